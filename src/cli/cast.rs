@@ -1,0 +1,10 @@
+//! `xscale cast` (not implemented yet).
+
+use std::process::ExitCode;
+
+#[derive(clap::Args, Debug)]
+pub struct Args {}
+
+pub fn run(_args: Args) -> anyhow::Result<ExitCode> {
+    anyhow::bail!("`xscale cast` is not implemented yet")
+}

@@ -1,0 +1,65 @@
+//! Command-line front end. Each subcommand's arguments and driver live in its own file here;
+//! the work itself lives in the library modules.
+
+use clap::{Parser, Subcommand};
+use std::process::ExitCode;
+
+pub mod batch;
+pub mod cast;
+pub mod compare;
+pub mod dump;
+pub mod eval;
+pub mod init;
+pub mod render;
+pub mod synth;
+pub mod train;
+
+#[derive(Parser, Debug)]
+#[command(name = "xscale", version, about = "Hash featurized manifold (XScale-NVS) on the CPU")]
+pub struct Cli {
+    /// Worker threads (default: all cores). Results do not depend on it.
+    #[arg(long, global = true)]
+    pub threads: Option<usize>,
+    #[command(subcommand)]
+    pub command: Command,
+}
+
+#[derive(Subcommand, Debug)]
+pub enum Command {
+    /// Generate a cross-scale synthetic scene with independent ground truth.
+    Synth(synth::Args),
+    /// Load a scene, cast its rays once and report what the sample cache holds.
+    Cast(cast::Args),
+    /// Write a freshly initialised checkpoint.
+    Init(init::Args),
+    /// Write a deterministic batch drawn from a scene's sample cache.
+    Batch(batch::Args),
+    /// Write every intermediate, the loss and every gradient for a checkpoint and a batch.
+    Dump(dump::Args),
+    /// Compare two safetensors files tensor by tensor.
+    Compare(compare::Args),
+    /// Train on a scene.
+    Train(train::Args),
+    /// Render views or a camera path from a checkpoint.
+    Render(render::Args),
+    /// PSNR / SSIM on held-out views.
+    Eval(eval::Args),
+}
+
+/// Run a parsed command line. `Ok(code)` is the process exit code; errors exit with 2.
+pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
+    if let Some(n) = cli.threads {
+        rayon::ThreadPoolBuilder::new().num_threads(n).build_global()?;
+    }
+    match cli.command {
+        Command::Synth(a) => synth::run(a),
+        Command::Cast(a) => cast::run(a),
+        Command::Init(a) => init::run(a),
+        Command::Batch(a) => batch::run(a),
+        Command::Dump(a) => dump::run(a),
+        Command::Compare(a) => compare::run(a),
+        Command::Train(a) => train::run(a),
+        Command::Render(a) => render::run(a),
+        Command::Eval(a) => eval::run(a),
+    }
+}

@@ -1,0 +1,10 @@
+//! `xscale synth` (not implemented yet).
+
+use std::process::ExitCode;
+
+#[derive(clap::Args, Debug)]
+pub struct Args {}
+
+pub fn run(_args: Args) -> anyhow::Result<ExitCode> {
+    anyhow::bail!("`xscale synth` is not implemented yet")
+}

@@ -1,0 +1,1 @@
+//! Tensor exchange (SPEC §6): safetensors checkpoints, batches and dumps, and `compare`.

@@ -1,0 +1,24 @@
+//! xscale — a pure-CPU, deterministic Rust implementation of XScale-NVS, the hash featurized
+//! manifold for cross-scale novel view synthesis (CVPR 2024).
+//!
+//! The modules follow the data flow of SPEC §1:
+//!
+//! | stage | module |
+//! |---|---|
+//! | scene dir → mesh, cameras, images, split, normalisation | [`scene`] |
+//! | BVH, γ² rays per pixel, sample cache | [`raycast`] |
+//! | synthetic cross-scale scenes with independent ground truth | [`synth`] |
+//! | hash grids, SH, MLPs, deformation ξ, pooling, shader, loss (forward + backward) | [`model`] |
+//! | Adam, batches, training loop, checkpoints | [`train`] |
+//! | safetensors checkpoints, batches, dumps, `compare` | [`io`] |
+//! | counter-based random numbers (SPEC §5) | [`rng`] |
+//! | command-line front end | [`cli`] |
+
+pub mod cli;
+pub mod io;
+pub mod model;
+pub mod raycast;
+pub mod rng;
+pub mod scene;
+pub mod synth;
+pub mod train;

@@ -1,0 +1,2 @@
+//! Training: Adam with tiny-cuda-nn's rules (SPEC §4.8), deterministic batches, the loop,
+//! checkpoints and resume.

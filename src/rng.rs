@@ -78,7 +78,10 @@ mod tests {
     fn pure_and_distinct() {
         assert_eq!(bits(1, Purpose::Batch, 2, 3), bits(1, Purpose::Batch, 2, 3));
         assert_ne!(bits(1, Purpose::Batch, 2, 3), bits(1, Purpose::Batch, 3, 2));
-        assert_ne!(bits(1, Purpose::Batch, 2, 3), bits(1, Purpose::InitTable, 2, 3));
+        assert_ne!(
+            bits(1, Purpose::Batch, 2, 3),
+            bits(1, Purpose::InitTable, 2, 3)
+        );
         assert_ne!(bits(1, Purpose::Batch, 2, 3), bits(2, Purpose::Batch, 2, 3));
     }
 

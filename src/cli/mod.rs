@@ -15,7 +15,11 @@ pub mod synth;
 pub mod train;
 
 #[derive(Parser, Debug)]
-#[command(name = "xscale", version, about = "Hash featurized manifold (XScale-NVS) on the CPU")]
+#[command(
+    name = "xscale",
+    version,
+    about = "Hash featurized manifold (XScale-NVS) on the CPU"
+)]
 pub struct Cli {
     /// Worker threads (default: all cores). Results do not depend on it.
     #[arg(long, global = true)]
@@ -49,7 +53,9 @@ pub enum Command {
 /// Run a parsed command line. `Ok(code)` is the process exit code; errors exit with 2.
 pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
     if let Some(n) = cli.threads {
-        rayon::ThreadPoolBuilder::new().num_threads(n).build_global()?;
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(n)
+            .build_global()?;
     }
     match cli.command {
         Command::Synth(a) => synth::run(a),

@@ -42,7 +42,12 @@ pub fn brute_force_closest_hit(mesh: &Mesh, origin: DVec3, dir: DVec3) -> Option
         }
         let t = e2.dot(q) * inv;
         if t > 0.0 && best.is_none_or(|h| t < h.t) {
-            best = Some(Hit { t, triangle: i as u32, u, v });
+            best = Some(Hit {
+                t,
+                triangle: i as u32,
+                u,
+                v,
+            });
         }
     }
     best

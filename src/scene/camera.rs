@@ -169,8 +169,16 @@ mod tests {
     fn undistort_inverts_distort() {
         let models = [
             Distortion::SimpleRadial { k: -0.12 },
-            Distortion::Radial { k1: 0.08, k2: -0.02 },
-            Distortion::OpenCv { k1: -0.2, k2: 0.05, p1: 0.001, p2: -0.002 },
+            Distortion::Radial {
+                k1: 0.08,
+                k2: -0.02,
+            },
+            Distortion::OpenCv {
+                k1: -0.2,
+                k2: 0.05,
+                p1: 0.001,
+                p2: -0.002,
+            },
         ];
         for m in models {
             for i in 0..21 {
@@ -178,7 +186,10 @@ mod tests {
                     let (x, y) = (-0.6 + 0.06 * i as f64, -0.45 + 0.045 * j as f64);
                     let (xd, yd) = m.distort(x, y);
                     let (xu, yu) = m.undistort(xd, yd);
-                    assert!((xu - x).abs() < 1e-12 && (yu - y).abs() < 1e-12, "{m:?} {x} {y}");
+                    assert!(
+                        (xu - x).abs() < 1e-12 && (yu - y).abs() < 1e-12,
+                        "{m:?} {x} {y}"
+                    );
                 }
             }
         }
@@ -194,7 +205,12 @@ mod tests {
             fy: 52.0,
             cx: 32.5,
             cy: 23.0,
-            distortion: Distortion::OpenCv { k1: -0.1, k2: 0.01, p1: 0.001, p2: 0.0005 },
+            distortion: Distortion::OpenCv {
+                k1: -0.1,
+                k2: 0.01,
+                p1: 0.001,
+                p2: 0.0005,
+            },
             rotation: rot,
             translation: DVec3::new(0.1, -2.0, 5.0),
         };

@@ -113,6 +113,8 @@ pub struct Scene {
 impl Scene {
     /// Indices of the training views, in scene order.
     pub fn train(&self) -> Vec<usize> {
-        (0..self.views.len()).filter(|i| !self.test.contains(i)).collect()
+        (0..self.views.len())
+            .filter(|i| !self.test.contains(i))
+            .collect()
     }
 }

@@ -1,0 +1,208 @@
+//! Model configuration and presets (SPEC §4, §9). Serialised as TOML into every checkpoint's
+//! `config` metadata; a reader (the PyTorch reference, a backend) takes the numbers from here and
+//! the per-level scale table from the checkpoint's `grid_*.scales` tensor.
+
+use serde::{Deserialize, Serialize};
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "lowercase")]
+pub enum Interpolation {
+    #[default]
+    Linear,
+    Smoothstep,
+}
+
+/// How grid positions are computed (SPEC §4.2 "Precision modes").
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "lowercase")]
+pub enum PositionMode {
+    /// `p = fma(scale as f64, x_n, 0.5)` in f64; only the cell fraction goes to the model's float.
+    #[default]
+    F64,
+    /// `x_n` rounded to f32, `p = f32::mul_add(scale, x_n, 0.5)`: bit-compatible with tiny-cuda-nn fp32.
+    Tcnn,
+}
+
+/// One multi-resolution hash grid (SPEC §4.2).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct GridConfig {
+    /// Number of levels L (after dropping levels finer than any footprint, SPEC §8).
+    pub levels: u32,
+    /// Features per level F ∈ {1, 2, 4, 8}.
+    pub features: u32,
+    /// log2 of the maximum entries per level, T.
+    pub log2_table_size: u32,
+    /// N0.
+    pub base_resolution: f32,
+    /// b; `scale_l = exp2(l * log2(b)) * N0 - 1` with log2(b) in f32.
+    pub per_level_scale: f64,
+    pub interpolation: Interpolation,
+}
+
+/// The manifold deformation ξ (SPEC §4.4, Eq. 5).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DeformConfig {
+    pub enabled: bool,
+    pub grid: GridConfig,
+    /// Width of ξ's single hidden ReLU layer.
+    pub hidden: u32,
+}
+
+/// A ReLU MLP (SPEC §4.6).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ShaderConfig {
+    pub hidden_layers: u32,
+    pub width: u32,
+    pub bias: bool,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum LossKind {
+    #[default]
+    L1,
+    L2,
+    SmoothL1,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ModelConfig {
+    pub grid_h: GridConfig,
+    pub deform: DeformConfig,
+    pub shader: ShaderConfig,
+    /// Appearance code size A (0 disables).
+    pub appearance_dim: u32,
+    /// Rows of the appearance table: the number of training views (set when a model is
+    /// initialised for a scene).
+    pub appearance_views: u32,
+    /// Multisampling factor γ: γ² rays per pixel (Eq. 4).
+    pub gamma: u32,
+    pub positions: PositionMode,
+    pub loss: LossKind,
+    /// δ of smooth-L1.
+    pub smooth_l1_delta: f64,
+}
+
+/// `(finest / base)^(1/(levels-1))`, the per-level scale that reaches `finest` at the last level.
+pub fn per_level_scale_for(base: f64, finest: f64, levels: u32) -> f64 {
+    (finest / base).powf(1.0 / (levels as f64 - 1.0))
+}
+
+impl ModelConfig {
+    /// `tiny`: for the oracle in CI and unit tests (SPEC §9).
+    pub fn tiny() -> ModelConfig {
+        ModelConfig {
+            grid_h: GridConfig {
+                levels: 4,
+                features: 2,
+                log2_table_size: 12,
+                base_resolution: 4.0,
+                per_level_scale: 2.0,
+                interpolation: Interpolation::Linear,
+            },
+            deform: DeformConfig {
+                enabled: true,
+                grid: GridConfig {
+                    levels: 2,
+                    features: 2,
+                    log2_table_size: 10,
+                    base_resolution: 4.0,
+                    per_level_scale: 2.0,
+                    interpolation: Interpolation::Linear,
+                },
+                hidden: 8,
+            },
+            shader: ShaderConfig {
+                hidden_layers: 1,
+                width: 16,
+                bias: false,
+            },
+            appearance_dim: 2,
+            appearance_views: 0,
+            gamma: 2,
+            positions: PositionMode::F64,
+            loss: LossKind::L1,
+            smooth_l1_delta: 0.01,
+        }
+    }
+
+    /// `cpu` (default): small scenes on a laptop (SPEC §9).
+    pub fn cpu() -> ModelConfig {
+        ModelConfig {
+            grid_h: GridConfig {
+                levels: 16,
+                features: 2,
+                log2_table_size: 19,
+                base_resolution: 16.0,
+                per_level_scale: per_level_scale_for(16.0, 2048.0, 16),
+                interpolation: Interpolation::Linear,
+            },
+            deform: DeformConfig {
+                enabled: true,
+                grid: GridConfig {
+                    levels: 8,
+                    features: 2,
+                    log2_table_size: 17,
+                    base_resolution: 16.0,
+                    per_level_scale: per_level_scale_for(16.0, 512.0, 8),
+                    interpolation: Interpolation::Linear,
+                },
+                hidden: 32,
+            },
+            shader: ShaderConfig {
+                hidden_layers: 2,
+                width: 64,
+                bias: false,
+            },
+            appearance_dim: 4,
+            appearance_views: 0,
+            gamma: 2,
+            positions: PositionMode::F64,
+            loss: LossKind::L1,
+            smooth_l1_delta: 0.01,
+        }
+    }
+
+    /// `paper`: the official code's grid (SPEC §9).
+    pub fn paper() -> ModelConfig {
+        let mut c = ModelConfig::cpu();
+        c.grid_h = GridConfig {
+            levels: 16,
+            features: 8,
+            log2_table_size: 22,
+            base_resolution: 16.0,
+            per_level_scale: 1.4768261459394993,
+            interpolation: Interpolation::Smoothstep,
+        };
+        c.deform.grid.interpolation = Interpolation::Smoothstep;
+        c
+    }
+
+    pub fn preset(name: &str) -> anyhow::Result<ModelConfig> {
+        match name {
+            "tiny" => Ok(ModelConfig::tiny()),
+            "cpu" => Ok(ModelConfig::cpu()),
+            "paper" => Ok(ModelConfig::paper()),
+            _ => anyhow::bail!("unknown preset {name:?}: expected one of tiny, cpu, paper"),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn toml_roundtrip() {
+        for name in ["tiny", "cpu", "paper"] {
+            let c = ModelConfig::preset(name).unwrap();
+            let s = toml::to_string(&c).unwrap();
+            let back: ModelConfig = toml::from_str(&s).unwrap();
+            assert_eq!(c, back, "{s}");
+        }
+    }
+}

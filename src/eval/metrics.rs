@@ -143,7 +143,9 @@ mod tests {
     use crate::rng::{uniform_f32, Purpose};
 
     fn noise(w: usize, h: usize, seed: u64) -> Vec<f32> {
-        (0..w * h * 3).map(|i| uniform_f32(seed, Purpose::Test, 0, i as u64)).collect()
+        (0..w * h * 3)
+            .map(|i| uniform_f32(seed, Purpose::Test, 0, i as u64))
+            .collect()
     }
 
     #[test]
@@ -167,10 +169,16 @@ mod tests {
         let a = noise(w, h, 1);
         assert!((ssim(&a, &a, w, h) - 1.0).abs() < 1e-12);
         // Symmetric, below 1 for different images, and degrades with more noise.
-        let b: Vec<f32> =
-            a.iter().zip(noise(w, h, 2)).map(|(x, n)| (x + 0.1 * (n - 0.5)).clamp(0.0, 1.0)).collect();
-        let c: Vec<f32> =
-            a.iter().zip(noise(w, h, 2)).map(|(x, n)| (x + 0.4 * (n - 0.5)).clamp(0.0, 1.0)).collect();
+        let b: Vec<f32> = a
+            .iter()
+            .zip(noise(w, h, 2))
+            .map(|(x, n)| (x + 0.1 * (n - 0.5)).clamp(0.0, 1.0))
+            .collect();
+        let c: Vec<f32> = a
+            .iter()
+            .zip(noise(w, h, 2))
+            .map(|(x, n)| (x + 0.4 * (n - 0.5)).clamp(0.0, 1.0))
+            .collect();
         let (sab, sba, sac) = (ssim(&a, &b, w, h), ssim(&b, &a, w, h), ssim(&a, &c, w, h));
         assert!((sab - sba).abs() < 1e-12);
         assert!(sab < 0.999 && sac < sab, "{sab} {sac}");
@@ -180,5 +188,23 @@ mod tests {
         let (mx, my) = (0.5f32 as f64, 0.6f32 as f64);
         let expect = (2.0 * mx * my + 1e-4) / (mx * mx + my * my + 1e-4);
         assert!((ssim(&f, &g, w, h) - expect).abs() < 1e-9);
+    }
+
+    /// Against scikit-image 0.25 (`structural_similarity(a, b, gaussian_weights=True, sigma=1.5,
+    /// use_sample_covariance=False, data_range=1.0, channel_axis=-1)` on float64 copies of these
+    /// f32 images: an independent implementation, value computed once with Python).
+    #[test]
+    fn ssim_matches_scikit_image() {
+        let (w, h) = (23usize, 17usize);
+        let a: Vec<f32> = (0..w * h * 3)
+            .map(|i| (0.5 + 0.4 * (i as f64 * 0.37).sin()) as f32)
+            .collect();
+        let b: Vec<f32> = a
+            .iter()
+            .enumerate()
+            .map(|(i, &x)| (x as f64 + 0.15 * (i as f64 * 1.91).cos()).clamp(0.0, 1.0) as f32)
+            .collect();
+        let v = ssim(&a, &b, w, h);
+        assert!((v - 0.9526834511575056).abs() < 1e-9, "{v}");
     }
 }

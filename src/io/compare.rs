@@ -135,7 +135,7 @@ impl Tolerances {
         for r in all {
             for (what, v) in [("max_abs", r.max_abs), ("max_rel", r.max_rel)] {
                 if let Some(x) = v {
-                    if !(x >= 0.0) {
+                    if x.is_nan() || x < 0.0 {
                         bail!(
                             "{label}: rule \"{}\": {what} = {x} must be a number >= 0",
                             r.pattern

@@ -54,6 +54,24 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use std::ops::Range;
 
+/// One dense chunk: (chunk index, (((w, m), v), t)).
+type DenseChunk<'a> = (
+    usize,
+    (
+        ((&'a mut [f32], &'a mut [f32]), &'a mut [f32]),
+        &'a mut [u32],
+    ),
+);
+/// One sparse chunk: (entries, first scalar, w, m, v, t) over the chunk's region.
+type SparseChunk<'a> = (
+    &'a [u32],
+    usize,
+    &'a mut [f32],
+    &'a mut [f32],
+    &'a mut [f32],
+    &'a mut [u32],
+);
+
 /// Scalars per parallel chunk in [`AdamState::step_dense`].
 pub const DENSE_CHUNK: usize = 1 << 14;
 /// Entries per parallel chunk in [`AdamState::step_sparse`].
@@ -420,10 +438,7 @@ impl AdamState {
         let m = &mut self.m[range.clone()];
         let v = &mut self.v[range.clone()];
         let t = &mut self.t[range];
-        let run = |(ci, (((w, m), v), t)): (
-            usize,
-            (((&mut [f32], &mut [f32]), &mut [f32]), &mut [u32]),
-        )| {
+        let run = |(ci, (((w, m), v), t)): DenseChunk| {
             let mut c = consts;
             let g = &grads[ci * DENSE_CHUNK..ci * DENSE_CHUNK + w.len()];
             for i in 0..w.len() {
@@ -509,14 +524,7 @@ impl AdamState {
             consumed = end;
             parts.push((chunk, start, w, m, v, t));
         }
-        let run = |(chunk, start, w, m, v, t): (
-            &[u32],
-            usize,
-            &mut [f32],
-            &mut [f32],
-            &mut [f32],
-            &mut [u32],
-        )| {
+        let run = |(chunk, start, w, m, v, t): SparseChunk| {
             let mut c = consts;
             for &e in chunk {
                 let base = e as usize * entry_len;

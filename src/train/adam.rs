@@ -587,6 +587,12 @@ impl AdamState {
     }
 }
 
+/// Sort and deduplicate a touched-entry list into the form [`AdamState::step_sparse`] requires.
+pub fn normalize_entries(entries: &mut Vec<u32>) {
+    entries.sort_unstable();
+    entries.dedup();
+}
+
 /// Zero the gradients of the listed entries only (so clearing a sparse table's gradient costs
 /// O(entries), like the step).
 pub fn zero_entries(grads: &mut [f32], entries: &[u32], entry_len: usize) {

@@ -945,3 +945,30 @@ fn colmap_images_txt_without_points_lines_still_parses() {
     let b = colmap::read_text(&fixture("colmap/sparse/0"), &d).unwrap();
     assert_cameras_close(&a, &b, 0.0);
 }
+
+#[test]
+fn nerf_synthetic_train_test_files_give_the_split() {
+    let d = scratch("nerf_synthetic");
+    copy_dir(&fixture("transforms"), &d);
+    let doc: serde_json::Value =
+        serde_json::from_str(&fs::read_to_string(d.join("transforms.json")).unwrap()).unwrap();
+    fs::remove_file(d.join("transforms.json")).unwrap();
+    let split = |i: usize| {
+        let mut x = doc.clone();
+        let f = x["frames"][i].clone();
+        x["frames"] = serde_json::json!([f]);
+        x.to_string()
+    };
+    fs::write(d.join("transforms_train.json"), split(1)).unwrap();
+    fs::write(d.join("transforms_test.json"), split(0)).unwrap();
+    fs::copy(fixture("mesh/cube_ascii.ply"), d.join("mesh.ply")).unwrap();
+    let s = Scene::load(&d, &LoadOptions::default()).unwrap();
+    let names: Vec<&str> = s.views.iter().map(|v| v.name.as_str()).collect();
+    assert_eq!(names, ["images/r_1.png", "images/r_0.png"]);
+    assert_eq!(s.test, vec![1]);
+    assert_eq!(
+        "nerfstudio".parse::<CameraFormat>().unwrap(),
+        CameraFormat::Transforms
+    );
+    assert!("blender".parse::<CameraFormat>().is_err());
+}

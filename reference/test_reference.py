@@ -28,7 +28,7 @@ from safetensors.numpy import load_file, save_file
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import make_case  # noqa: E402
 import xscale_ref as xr  # noqa: E402
-from xscale_fma import fma_f32, fma_f64  # noqa: E402
+from xscale_fma import fma_f32, fma_f64, fma_f64_fraction  # noqa: E402
 
 _LIBM = ctypes.CDLL(ctypes.util.find_library("m"))
 _LIBM.fmaf.argtypes = [ctypes.c_float] * 3
@@ -108,9 +108,18 @@ def test_fma_f64_matches_libm():
     ref = np.array([_LIBM.fma(s, v, 0.5) for s, v in zip(scales, x)])
     assert np.array_equal(ours.view(np.uint64), ref.view(np.uint64))
     # and it is the correct rounding of the exact value
-    for s, v, o in zip(scales[:50], x[:50], ours[:50]):
+    for s, v, o in zip(scales[:200], x[:200], ours[:200]):
         exact = Fraction(s) * Fraction(v) + Fraction(1, 2)
         assert abs(Fraction(o) - exact) <= Fraction(math.ulp(o)) / 2
+        assert o == fma_f64_fraction(s, v, 0.5)
+    # general arguments (signs, magnitudes, cancellation)
+    a = rng.normal(size=3000) * np.exp2(rng.integers(-40, 40, 3000))
+    b = rng.normal(size=3000) * np.exp2(rng.integers(-40, 40, 3000))
+    c = rng.normal(size=3000) * np.exp2(rng.integers(-80, 80, 3000))
+    c[:500] = -(a[:500] * b[:500])
+    ours = fma_f64(a, b, c)
+    ref = np.array([_LIBM.fma(p, q, r) for p, q, r in zip(a, b, c)])
+    assert np.array_equal(ours.view(np.uint64), ref.view(np.uint64))
 
 
 # ---------------------------------------------------------------------------------------------------------------

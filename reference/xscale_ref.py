@@ -79,7 +79,8 @@ class ModelConfig:
     grid_d: GridConfig | None
     shader_hidden_layers: int
     shader_width: int
-    bias: bool
+    bias: bool  # shader biases ([shader] bias)
+    deform_bias: bool | None  # [deform] bias if given; None: decided by the tensors present
     appearance_dim: int
     appearance_views: int
     positions: str  # "f64" | "tcnn"
@@ -125,6 +126,7 @@ def parse_config(text: str, where: str = "config") -> ModelConfig:
         shader_hidden_layers=int(shader.get("hidden_layers", 0)),
         shader_width=int(shader.get("width", 0)),
         bias=bool(shader.get("bias", False)),
+        deform_bias=bool(deform["bias"]) if "bias" in deform else None,
         appearance_dim=int(raw.get("appearance_dim", 0)),
         appearance_views=int(raw.get("appearance_views", 0)),
         positions=str(raw.get("positions", "f64")),
@@ -210,6 +212,7 @@ class Checkpoint:
     levels_d: list[Level] | None
     deform_layers: int
     shader_layers: int
+    deform_bias: bool = False
 
     def param_names(self) -> list[str]:
         """Trainable parameter tensors (those that get grad.<name>), in a fixed order."""
@@ -218,7 +221,7 @@ class Checkpoint:
             names.append("grid_d.table")
             for i in range(self.deform_layers):
                 names.append(f"deform.layers.{i}.weight")
-                if self.cfg.bias:
+                if self.deform_bias:
                     names.append(f"deform.layers.{i}.bias")
         for i in range(self.shader_layers):
             names.append(f"shader.layers.{i}.weight")
@@ -281,13 +284,17 @@ def load_checkpoint(path: str | Path) -> Checkpoint:
     lf = cfg.grid_h.levels * cfg.grid_h.features
     levels_d = None
     deform_layers = 0
+    deform_bias = False
     if cfg.deform_enabled:
         levels_d = _check_grid(path, tensors, "grid_d", cfg.grid_d)
         deform_layers = _count_layers(tensors, "deform")
         if deform_layers < 1:
             raise RefError(f"{path}: deform.enabled but no deform.layers.0.weight")
         n_in = cfg.grid_d.levels * cfg.grid_d.features + SH_DIM
-        _check_mlp(path, tensors, "deform", deform_layers, n_in, lf, cfg.deform_hidden, cfg.bias)
+        # The schema has one `bias` switch, under [shader]; a [deform] bias key wins if present, else the
+        # deformation MLP has biases iff the file holds deform.layers.0.bias.
+        deform_bias = cfg.deform_bias if cfg.deform_bias is not None else "deform.layers.0.bias" in tensors
+        _check_mlp(path, tensors, "deform", deform_layers, n_in, lf, cfg.deform_hidden, deform_bias)
     shader_layers = _count_layers(tensors, "shader")
     if shader_layers != cfg.shader_hidden_layers + 1:
         raise RefError(
@@ -304,10 +311,11 @@ def load_checkpoint(path: str | Path) -> Checkpoint:
             raise RefError(
                 f"{path}: appearance.codes: shape {list(codes.shape)}, expected [views, {cfg.appearance_dim}]"
             )
-    for name in Checkpoint(cfg, tensors, meta, levels_h, levels_d, deform_layers, shader_layers).param_names():
+    ck = Checkpoint(cfg, tensors, meta, levels_h, levels_d, deform_layers, shader_layers, deform_bias)
+    for name in ck.param_names():
         if not np.all(np.isfinite(tensors[name])):
             raise RefError(f"{path}: {name} holds NaN or Inf")
-    return Checkpoint(cfg, tensors, meta, levels_h, levels_d, deform_layers, shader_layers)
+    return ck
 
 
 @dataclass
@@ -432,7 +440,9 @@ def grid_forward(x_t: torch.Tensor, x_np: np.ndarray, levels: list[Level], table
     """Differentiable grid forward. x_t: [M,3] float64 (autograd), x_np: the same values in NumPy, table:
     [E,F] torch in dtype. Returns [M, L*F]. Gradients: table via gather, positions via t (dt/dx = scale)."""
     tdt = table.dtype
-    outs = []
+    m, nf = x_np.shape[0], table.shape[1]
+    weights = []  # L*8 tensors [M], level-major then corner k
+    indices = []  # L*8 arrays [M] (absolute table rows)
     for lvl in levels:
         t_np, c = level_coords(x_np, lvl, dtype, positions)
         if dtype == "float32" and positions == "tcnn":
@@ -442,7 +452,6 @@ def grid_forward(x_t: torch.Tensor, x_np: np.ndarray, levels: list[Level], table
             dx = float(lvl.scale) * (x_t - x_t.detach())  # float64, value exactly 0
             t = torch.from_numpy(t_np) + dx.to(tdt)
         w = t * t * (3 - 2 * t) if interpolation == "smoothstep" else t
-        acc = None
         for k in range(8):
             weight = None
             cc = c.copy()
@@ -452,12 +461,16 @@ def grid_forward(x_t: torch.Tensor, x_np: np.ndarray, levels: list[Level], table
                     cc[:, d] += 1
                 else:
                     wd = 1 - w[:, d]
-                weight = wd if weight is None else weight * wd
-            idx = torch.from_numpy(lvl.offset + corner_index(cc, lvl))
-            term = weight[:, None] * table[idx]
-            acc = term if acc is None else acc + term
-        outs.append(acc)
-    out = torch.cat(outs, dim=1)
+                weight = wd if weight is None else weight * wd  # product in order d = 0, 1, 2
+            weights.append(weight)
+            indices.append(lvl.offset + corner_index(cc, lvl))
+    # One gather for every level and corner: its backward is a single index_add into one zero table (a gather
+    # per corner would allocate a table-sized gradient per corner and level).
+    idx = torch.from_numpy(np.concatenate(indices))
+    rows = table.index_select(0, idx).view(len(levels), 8, m, nf)  # [L,8,M,F]
+    wts = torch.stack(weights).view(len(levels), 8, m, 1)  # [L,8,M,1]
+    out = (wts * rows).sum(dim=1)  # [L,M,F]
+    out = out.permute(1, 0, 2).reshape(m, len(levels) * nf)  # [M, L*F], feature index l*F + f
     if dtype == "float32":
         # Value-replace with the SPEC's f32 fma-chain (bit-exact); the gradient is that of the graph above.
         exact = torch.from_numpy(
@@ -473,8 +486,8 @@ def grid_forward(x_t: torch.Tensor, x_np: np.ndarray, levels: list[Level], table
 
 
 def sh_constants() -> list[float]:
-    """Normalisation constants of the real SH, bands 0-3, from the closed forms K = sqrt((2l+1)/(4 pi) * (l-|m|)! /
-    (l+|m|)!) times the Cartesian polynomial's factor; written as the usual closed forms."""
+    """Constants of the real SH of bands 0-3 in Cartesian form (the standard table, e.g. Sloan's "Stupid SH
+    tricks" appendix / Wikipedia's "Table of spherical harmonics"), as closed forms in sqrt(pi)."""
     sp = math.sqrt(math.pi)
     return [
         1 / (2 * sp),  # 0: Y00
@@ -593,7 +606,7 @@ def forward(ck: Checkpoint, batch: Batch, dtype: str, params: dict | None = None
                           dtype)  # [M, L_D*F_D]
         out["fwd.grid_d"] = scatter(gd)
         hidden: list = []
-        delta = mlp_forward(torch.cat([gd, sh[vn_t]], dim=1), params, "deform", ck.deform_layers, cfg.bias,
+        delta = mlp_forward(torch.cat([gd, sh[vn_t]], dim=1), params, "deform", ck.deform_layers, ck.deform_bias,
                             hidden)  # [M, L*F]
         for i, h in enumerate(hidden):
             out[f"fwd.deform_hidden.{i}"] = scatter(h)

@@ -311,6 +311,9 @@ def load_checkpoint(path: str | Path) -> Checkpoint:
             raise RefError(
                 f"{path}: appearance.codes: shape {list(codes.shape)}, expected [views, {cfg.appearance_dim}]"
             )
+        if "appearance_views" in cfg.raw and codes.shape[0] != cfg.appearance_views:
+            raise RefError(f"{path}: appearance.codes has {codes.shape[0]} rows, config appearance_views = "
+                           f"{cfg.appearance_views}")
     ck = Checkpoint(cfg, tensors, meta, levels_h, levels_d, deform_layers, shader_layers, deform_bias)
     for name in ck.param_names():
         if not np.all(np.isfinite(tensors[name])):

@@ -244,7 +244,12 @@ impl HashGrid {
     /// The 8 corners of `x` at level `l`: global entry indices (`offsets[l] + local`) and
     /// interpolation weights, in corner order k (bit d of k set = upper corner along axis d).
     /// The same code path as the passes; exposed for tests, dumps and tools.
-    pub fn corners<R: Real>(&self, l: usize, x: &[f64; 3], mode: PositionMode) -> ([u32; 8], [R; 8]) {
+    pub fn corners<R: Real>(
+        &self,
+        l: usize,
+        x: &[f64; 3],
+        mode: PositionMode,
+    ) -> ([u32; 8], [R; 8]) {
         let g = self.level(l, mode);
         let (c, t) = locate::<R>(g.scale, g.tcnn, x);
         let w = corner_weights(interp(t, g.smooth));
@@ -279,7 +284,11 @@ impl HashGrid {
         out: &mut [R],
     ) {
         let lf = self.out_dim();
-        assert_eq!(table.len(), self.n_params(), "hashgrid forward: table length");
+        assert_eq!(
+            table.len(),
+            self.n_params(),
+            "hashgrid forward: table length"
+        );
         assert_eq!(out.len(), points.len() * lf, "hashgrid forward: out length");
         let fast = has_fma();
         out.par_chunks_mut(CHUNK_POINTS * lf)
@@ -307,8 +316,16 @@ impl HashGrid {
         let lf = self.out_dim();
         let nf = self.cfg.features as usize;
         let nl = self.cfg.levels as usize;
-        assert_eq!(d_table.len(), self.n_params(), "hashgrid backward_table: d_table length");
-        assert_eq!(d_out.len(), points.len() * lf, "hashgrid backward_table: d_out length");
+        assert_eq!(
+            d_table.len(),
+            self.n_params(),
+            "hashgrid backward_table: d_table length"
+        );
+        assert_eq!(
+            d_out.len(),
+            points.len() * lf,
+            "hashgrid backward_table: d_out length"
+        );
         let fast = has_fma();
 
         // Per-level touched bitmaps, each word-aligned, in one reusable all-zero buffer.
@@ -383,9 +400,21 @@ impl HashGrid {
     ) {
         let lf = self.out_dim();
         let nf = self.cfg.features as usize;
-        assert_eq!(table.len(), self.n_params(), "hashgrid backward_points: table length");
-        assert_eq!(d_out.len(), points.len() * lf, "hashgrid backward_points: d_out length");
-        assert_eq!(d_points.len(), points.len() * 3, "hashgrid backward_points: d_points length");
+        assert_eq!(
+            table.len(),
+            self.n_params(),
+            "hashgrid backward_points: table length"
+        );
+        assert_eq!(
+            d_out.len(),
+            points.len() * lf,
+            "hashgrid backward_points: d_out length"
+        );
+        assert_eq!(
+            d_points.len(),
+            points.len() * 3,
+            "hashgrid backward_points: d_points length"
+        );
         let fast = has_fma();
         d_points
             .par_chunks_mut(CHUNK_POINTS * 3)
@@ -397,7 +426,17 @@ impl HashGrid {
                 for l in 0..self.cfg.levels as usize {
                     let g = self.level(l, mode);
                     let tab = &table[g.offset * nf..][..g.size as usize * nf];
-                    kernels::backward_points_level(fast, self.cfg.features, &g, tab, p, dout, lf, l, &mut acc);
+                    kernels::backward_points_level(
+                        fast,
+                        self.cfg.features,
+                        &g,
+                        tab,
+                        p,
+                        dout,
+                        lf,
+                        l,
+                        &mut acc,
+                    );
                 }
                 for (d, a) in dp.chunks_exact_mut(3).zip(acc.iter()) {
                     d[0] += a[0];
@@ -556,7 +595,9 @@ impl Indexer for DenseIx {
         ];
         let mut out = [0u32; 8];
         for (k, o) in out.iter_mut().enumerate() {
-            let i = xs[k & 1].wrapping_add(ys[(k >> 1) & 1]).wrapping_add(zs[k >> 2]);
+            let i = xs[k & 1]
+                .wrapping_add(ys[(k >> 1) & 1])
+                .wrapping_add(zs[k >> 2]);
             *o = fastmod(i, self.magic, self.size);
         }
         out
@@ -597,14 +638,46 @@ mod kernels {
     macro_rules! dispatch {
         ($nf:expr, $g:expr, |$F:ident, $ix:ident| $body:expr) => {
             match ($nf, $g.dense) {
-                (1, true) => { const $F: usize = 1; let $ix = $g.dense_ix(); $body }
-                (1, false) => { const $F: usize = 1; let $ix = $g.hash_ix(); $body }
-                (2, true) => { const $F: usize = 2; let $ix = $g.dense_ix(); $body }
-                (2, false) => { const $F: usize = 2; let $ix = $g.hash_ix(); $body }
-                (4, true) => { const $F: usize = 4; let $ix = $g.dense_ix(); $body }
-                (4, false) => { const $F: usize = 4; let $ix = $g.hash_ix(); $body }
-                (8, true) => { const $F: usize = 8; let $ix = $g.dense_ix(); $body }
-                (8, false) => { const $F: usize = 8; let $ix = $g.hash_ix(); $body }
+                (1, true) => {
+                    const $F: usize = 1;
+                    let $ix = $g.dense_ix();
+                    $body
+                }
+                (1, false) => {
+                    const $F: usize = 1;
+                    let $ix = $g.hash_ix();
+                    $body
+                }
+                (2, true) => {
+                    const $F: usize = 2;
+                    let $ix = $g.dense_ix();
+                    $body
+                }
+                (2, false) => {
+                    const $F: usize = 2;
+                    let $ix = $g.hash_ix();
+                    $body
+                }
+                (4, true) => {
+                    const $F: usize = 4;
+                    let $ix = $g.dense_ix();
+                    $body
+                }
+                (4, false) => {
+                    const $F: usize = 4;
+                    let $ix = $g.hash_ix();
+                    $body
+                }
+                (8, true) => {
+                    const $F: usize = 8;
+                    let $ix = $g.dense_ix();
+                    $body
+                }
+                (8, false) => {
+                    const $F: usize = 8;
+                    let $ix = $g.hash_ix();
+                    $body
+                }
                 _ => unreachable!("features validated to 1, 2, 4, 8"),
             }
         };
@@ -643,7 +716,12 @@ mod kernels {
         lf: usize,
         l: usize,
     ) {
-        fma_switch!(fast, forward_level_fma, forward_level_plain, (nf, g, tab, pts, out, lf, l))
+        fma_switch!(
+            fast,
+            forward_level_fma,
+            forward_level_plain,
+            (nf, g, tab, pts, out, lf, l)
+        )
     }
 
     #[cfg(any(target_arch = "x86", target_arch = "x86_64"))]
@@ -658,7 +736,9 @@ mod kernels {
         lf: usize,
         l: usize,
     ) {
-        dispatch!(nf, g, |F, ix| forward_level_impl::<R, F, _>(g, ix, tab, pts, out, lf, l))
+        dispatch!(nf, g, |F, ix| forward_level_impl::<R, F, _>(
+            g, ix, tab, pts, out, lf, l
+        ))
     }
 
     #[inline(never)]
@@ -672,7 +752,9 @@ mod kernels {
         lf: usize,
         l: usize,
     ) {
-        dispatch!(nf, g, |F, ix| forward_level_impl::<R, F, _>(g, ix, tab, pts, out, lf, l))
+        dispatch!(nf, g, |F, ix| forward_level_impl::<R, F, _>(
+            g, ix, tab, pts, out, lf, l
+        ))
     }
 
     /// One level for a chunk of points: `out[i, l*F..(l+1)*F] = Σ_k w_k · table[idx_k]` (Eq. 2).
@@ -681,7 +763,7 @@ mod kernels {
     fn forward_level_impl<R: Real, const F: usize, I: Indexer>(
         g: &Level,
         ix: I,
-        tab: &[R],       // [size, F], this level only
+        tab: &[R],        // [size, F], this level only
         pts: &[[f64; 3]], // [n]
         out: &mut [R],    // [n, L*F]
         lf: usize,
@@ -772,7 +854,7 @@ mod kernels {
         d_out: &[R],      // [n, L*F]
         lf: usize,
         l: usize,
-        d_tab: &mut [R], // [size, F], this level only
+        d_tab: &mut [R],  // [size, F], this level only
         bits: &mut [u64], // [ceil(size/64)]
     ) {
         assert_eq!(d_tab.len(), g.size as usize * F);
@@ -927,13 +1009,32 @@ mod tests {
 
     #[test]
     fn fastmod_is_exact() {
-        for d in [1u32, 3, 7, 8, 4096, 12168, 205384, 1 << 19, (1 << 31), u32::MAX] {
+        for d in [
+            1u32,
+            3,
+            7,
+            8,
+            4096,
+            12168,
+            205384,
+            1 << 19,
+            (1 << 31),
+            u32::MAX,
+        ] {
             let m = (u64::MAX / d as u64).wrapping_add(1);
             for k in 0..20_000u64 {
                 let a = (rng::bits(1, Purpose::Test, d as u64, k) as u32) >> (k % 32);
                 assert_eq!(fastmod(a, m, d), a % d, "a={a} d={d}");
             }
-            for a in [0u32, 1, d.wrapping_sub(1), d, d.wrapping_add(1), u32::MAX, u32::MAX - 1] {
+            for a in [
+                0u32,
+                1,
+                d.wrapping_sub(1),
+                d,
+                d.wrapping_add(1),
+                u32::MAX,
+                u32::MAX - 1,
+            ] {
                 assert_eq!(fastmod(a, m, d), a % d, "a={a} d={d}");
             }
         }
@@ -945,7 +1046,10 @@ mod tests {
         assert!(HashGrid::try_new(&good).is_ok());
         let mut c = good.clone();
         c.features = 3;
-        assert!(HashGrid::try_new(&c).unwrap_err().to_string().contains("features"));
+        assert!(HashGrid::try_new(&c)
+            .unwrap_err()
+            .to_string()
+            .contains("features"));
         let mut c = good.clone();
         c.levels = 0;
         assert!(HashGrid::try_new(&c).is_err());

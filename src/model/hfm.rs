@@ -398,29 +398,12 @@ impl Hfm {
         }
         // Eq. 4: pooled_n = (Σ_j F'_j) / count_n, F'_j = F_H(x_j) + δ_j.
         f.pooled = vec![R::ZERO; n * lf];
-        let has_deform = self.deform.is_some();
-        for i in 0..n {
-            let js = start[pixels.start + i] - samples.start
-                ..start[pixels.start + i + 1] - samples.start;
-            let cnt = R::from_f64(js.len() as f64);
-            let out = &mut f.pooled[i * lf..(i + 1) * lf];
-            for r in js {
-                let gh = &f.grid_h[r * lf..(r + 1) * lf];
-                if has_deform {
-                    let dl = &f.deform.out[r * lf..(r + 1) * lf];
-                    for ((o, &g), &d) in out.iter_mut().zip(gh).zip(dl) {
-                        *o += g + d;
-                    }
-                } else {
-                    for (o, &g) in out.iter_mut().zip(gh) {
-                        *o += g;
-                    }
-                }
-            }
-            for o in out.iter_mut() {
-                *o = *o / cnt;
-            }
-        }
+        let local_start: Vec<usize> = start[pixels.start..=pixels.end]
+            .iter()
+            .map(|&x| x - samples.start)
+            .collect();
+        let delta = self.deform.as_ref().map(|_| &f.deform.out[..]);
+        pool_forward(&local_start, &f.grid_h, delta, lf, &mut f.pooled);
         // Shader input [pooled, SH(d), code(view)].
         let din = lf + SH_DIM + a;
         f.shader_in = vec![R::ZERO; n * din];
@@ -610,17 +593,11 @@ impl Hfm {
         }
         // Eq. 4 backward: ∂L/∂F'_j = ∂L/∂pooled_n / count_n.
         let mut d_feat = vec![R::ZERO; v * lf];
-        for i in 0..n {
-            let p = ch.pixels.start + i;
-            let js = fwd.start[p] - ch.samples.start..fwd.start[p + 1] - ch.samples.start;
-            let cnt = R::from_f64(js.len() as f64);
-            let dp = &d_in[i * din..i * din + lf];
-            for r in js {
-                for (d, &g) in d_feat[r * lf..(r + 1) * lf].iter_mut().zip(dp) {
-                    *d = g / cnt;
-                }
-            }
-        }
+        let local_start: Vec<usize> = fwd.start[ch.pixels.start..=ch.pixels.end]
+            .iter()
+            .map(|&x| x - ch.samples.start)
+            .collect();
+        pool_backward(&local_start, &d_in, din, lf, &mut d_feat);
         let mut d_points = vec![R::ZERO; v * 3];
         // Eq. 5 backward through ξ and into SH(d) and F_D.
         let mut d_deform = Vec::new();
@@ -704,6 +681,58 @@ impl Hfm {
             self.cfg.grid_h.features as usize,
             self.cfg.deform.grid.features as usize,
         )
+    }
+}
+
+/// Eq. 4 forward: `out[n, lf] = (Σ_{j ∈ start[n]..start[n+1]} (feat[j] + delta[j])) / count_n`,
+/// summed in sub-sample order starting from +0, then divided by the count (overwrites `out`).
+/// `start [n+1]` indexes the rows of `feat`/`delta` `[v, lf]`.
+pub fn pool_forward<R: Real>(
+    start: &[usize],
+    feat: &[R],
+    delta: Option<&[R]>,
+    lf: usize,
+    out: &mut [R],
+) {
+    for (i, w) in start.windows(2).enumerate() {
+        let cnt = R::from_f64((w[1] - w[0]) as f64);
+        let o = &mut out[i * lf..(i + 1) * lf];
+        o.fill(R::ZERO);
+        for r in w[0]..w[1] {
+            let g = &feat[r * lf..(r + 1) * lf];
+            match delta {
+                Some(d) => {
+                    for ((o, &g), &d) in o.iter_mut().zip(g).zip(&d[r * lf..(r + 1) * lf]) {
+                        *o += g + d;
+                    }
+                }
+                None => add_into(o, g),
+            }
+        }
+        for v in o.iter_mut() {
+            *v = *v / cnt;
+        }
+    }
+}
+
+/// Eq. 4 backward: `d_feat[j] = d_pooled[n] / count_n` for every valid sub-sample j of pixel n
+/// (OVERWRITES `d_feat [v, lf]`, which is both ∂L/∂F_H(x_j) and ∂L/∂δ_j). `d_pooled` rows have
+/// stride `stride` (the pooled block is the first `lf` columns).
+pub fn pool_backward<R: Real>(
+    start: &[usize],
+    d_pooled: &[R],
+    stride: usize,
+    lf: usize,
+    d_feat: &mut [R],
+) {
+    for (i, w) in start.windows(2).enumerate() {
+        let cnt = R::from_f64((w[1] - w[0]) as f64);
+        let dp = &d_pooled[i * stride..i * stride + lf];
+        for r in w[0]..w[1] {
+            for (d, &g) in d_feat[r * lf..(r + 1) * lf].iter_mut().zip(dp) {
+                *d = g / cnt;
+            }
+        }
     }
 }
 

@@ -1,14 +1,80 @@
 //! Multi-resolution hash grid with tiny-cuda-nn semantics (SPEC §4.2, the paper's Eq. 2).
 //!
-//! API contract (the pipeline in `hfm.rs` codes against this; the bodies are being written):
-//! - points are normalised positions `x_n ∈ [0,1]^3` as `[f64; 3]`;
+//! Owns: the per-level geometry (scales, resolutions, sizes, dense/hashed), the table
+//! initialisation, and the three passes `forward` / `backward_table` / `backward_points`.
+//!
+//! API contract (the pipeline codes against this):
+//! - points are normalised positions `x_n ∈ [0,1]^3` as `[f64; 3]` (values outside are legal and
+//!   wrap exactly as tiny-cuda-nn's index arithmetic does);
 //! - `out` is `[M, L*F]` row-major (point-major, then level, then feature);
 //! - the table is `[entries, F]` (level-major, then entry, then feature), `offsets[l]` is the
 //!   first entry of level l (`offsets[L]` = total entries);
 //! - backward passes *accumulate* into their outputs.
+//!
+//! # Numerics (checked against tiny-cuda-nn `encodings/grid.h`, `common_device.h`)
+//! ```text
+//! log2b   = log2f((float)b)                              (f32, as tcnn's host code)
+//! scale_l = exp2f(l * log2b) * N0 - 1                    (f32; product then difference)
+//! res_l   = (u32)ceilf(scale_l) + 1
+//! size_l  = min(next_multiple_of_8(min(res_l^3, 2^31-1)), 2^T)
+//! dense_l = res_l <= 1625 && res_l^3 <= size_l           (else hashed, size_l = 2^T)
+//! p = fma(scale_l, x, 0.5); c = (u32)(i32)floor(p); t = p - c   (exact)
+//! w = t | t*t*(3-2t) ;  corner k: bit d of k → c_d+1 with w_d, else c_d with 1-w_d
+//! weight_k = ((w_0' * w_1') * w_2')                      (d = 0, 1, 2 order; tcnn starts at 1*)
+//! index_k  = dense:  (c_x + c_y*res + c_z*res^2) mod size   (u32 wrapping, no clamping:
+//!                                                     the +1 corner at the upper face wraps)
+//!            hashed: (c_x ^ c_y*2654435761 ^ c_z*805459861) mod 2^T   (u32 wrapping)
+//! out[l*F+f] = fma(w_7, v_7, … fma(w_1, v_1, fma(w_0, v_0, 0)))     (k order)
+//! ```
+//! Precision modes: [`PositionMode::Tcnn`] rounds `x` to f32 and computes `p` with an f32 FMA, so
+//! with `R = f32` the forward pass is bit-identical to tiny-cuda-nn's fp32 build given the same
+//! scale table (its device `exp2f` under fast-math may differ from ours by an ulp; that is why
+//! the scale table is saved with the model). [`PositionMode::F64`] computes `p` with an f64 FMA
+//! from the f64 position and hands only the exact fraction `t` (rounded once to `R`) to the model
+//! float: fine levels of km-scale scenes keep their sub-cell precision in an f32 model. Weights and
+//! interpolation are in `R` in both modes (f64 throughout for an f64 model).
+//!
+//! Backward into the table: `d_table[index_k*F+f] += weight_k * d_out[l*F+f]` (product rounded,
+//! then added — the value tcnn hands to its atomic add). Backward into positions follows tcnn's
+//! `dy_dx` formula: for each axis d and the four edges along d,
+//! `g[f][d] += ((scale * w_a') * w_b') * (v_right - v_left) * dw_d/dt`, then
+//! `d_x[d] += Σ_{l,f} d_out[l*F+f] * g[f][d]` in (l, f) order, accumulated with `mul_add`.
+//! These gradients are deterministic but not claimed bit-identical to tcnn (nvcc contracts
+//! those expressions into FMAs at its discretion, and tcnn's table gradient uses atomics).
+//!
+//! # Determinism and parallelism (SPEC §5)
+//! `forward` and `backward_points` run in parallel over chunks of [`CHUNK_POINTS`] points (a
+//! constant); every output element is written by exactly one chunk. `backward_table` walks the
+//! points in sequential chunks of [`BWD_TABLE_CHUNK`] and, inside a chunk, runs the levels in
+//! parallel: each level's slice of the table is disjoint and is accumulated in point order, so
+//! the result is bit-identical for any thread count, with no atomics.
+//!
+//! # Speed
+//! Within a chunk the work is level-major (one level's constants in registers, one level's table
+//! slice hot in cache), the dense/hashed choice and F are compile-time in the inner loops, and the
+//! kernels are compiled twice: once for baseline x86-64 and once with `fma,avx2` enabled, selected
+//! at run time (`is_x86_feature_detected!`). Both give identical bits (an FMA is exactly rounded
+//! whether done in hardware or by libm); without the feature `mul_add` is a libm call, which is
+//! slow.
 
-use crate::model::config::{GridConfig, PositionMode};
+use crate::model::config::{GridConfig, Interpolation, PositionMode};
 use crate::model::Real;
+use crate::rng::{self, Purpose};
+use anyhow::{bail, ensure};
+use rayon::prelude::*;
+use std::cell::RefCell;
+
+/// Points per parallel work item in `forward` and `backward_points` (a constant, SPEC §5).
+pub const CHUNK_POINTS: usize = 512;
+/// Points per sequential step of `backward_table` (levels run in parallel inside a step).
+pub const BWD_TABLE_CHUNK: usize = 16384;
+/// tiny-cuda-nn's `MAX_BASES[3]`: the largest resolution whose dense index cannot overflow u32.
+pub const MAX_DENSE_RESOLUTION: u32 = 0x659;
+/// tiny-cuda-nn's coherent-prime hash factors for y and z (x uses 1).
+pub const PRIME_Y: u32 = 2_654_435_761;
+pub const PRIME_Z: u32 = 805_459_861;
+/// tiny-cuda-nn's `MAX_N_LEVELS`.
+pub const MAX_LEVELS: u32 = 128;
 
 /// Geometry of a grid: per-level scales (saved with the model), resolutions, sizes, dense flags.
 #[derive(Clone, Debug, PartialEq)]
@@ -26,21 +92,120 @@ pub struct HashGrid {
 
 /// The set of table entries a backward pass wrote to, so Adam and gradient zeroing cost what the
 /// batch touched rather than the table size (SPEC §4.8, §8).
+///
+/// `backward_table` keeps `entries` sorted ascending and unique, and merges into what is already
+/// there (several backward calls in one step give the union). A point-level whose `d_out` slice
+/// is entirely zero contributes nothing and is not recorded; otherwise all 8 corners are
+/// recorded, including a corner whose interpolation weight is exactly 0 (its gradient
+/// contribution is then 0; Adam skips entries whose gradient is exactly zero anyway, SPEC §4.8).
+/// The caller clears `entries` when it zeroes the gradient.
 #[derive(Clone, Debug, Default)]
 pub struct Touched {
     /// Entry indices (each entry is F floats), unique, in a deterministic order.
     pub entries: Vec<u32>,
 }
 
+/// Check a grid configuration: what `HashGrid::try_new` accepts.
+pub fn validate_config(cfg: &GridConfig) -> anyhow::Result<()> {
+    ensure!(
+        (1..=MAX_LEVELS).contains(&cfg.levels),
+        "grid: levels = {} must be in 1..={MAX_LEVELS}",
+        cfg.levels
+    );
+    ensure!(
+        matches!(cfg.features, 1 | 2 | 4 | 8),
+        "grid: features = {} must be one of 1, 2, 4, 8",
+        cfg.features
+    );
+    ensure!(
+        cfg.log2_table_size <= 31,
+        "grid: log2_table_size = {} must be at most 31",
+        cfg.log2_table_size
+    );
+    ensure!(
+        cfg.base_resolution.is_finite() && cfg.base_resolution >= 1.0,
+        "grid: base_resolution = {} must be a finite number >= 1",
+        cfg.base_resolution
+    );
+    ensure!(
+        cfg.per_level_scale.is_finite() && cfg.per_level_scale > 0.0,
+        "grid: per_level_scale = {} must be a finite number > 0",
+        cfg.per_level_scale
+    );
+    Ok(())
+}
+
+/// The per-level scales exactly as tiny-cuda-nn computes them on the host:
+/// `log2b = log2f((float)b)`, `scale_l = exp2f(l * log2b) * N0 - 1.0f`, all in f32.
+/// (On the device nvcc may fuse `* N0 - 1` into an FMA; for power-of-two N0, as in every preset,
+/// the product is exact and both agree.)
+pub fn tcnn_scales(cfg: &GridConfig) -> Vec<f32> {
+    let log2b = (cfg.per_level_scale as f32).log2();
+    (0..cfg.levels)
+        .map(|l| (l as f32 * log2b).exp2() * cfg.base_resolution - 1.0)
+        .collect()
+}
+
+/// `min(next_multiple_of_8(min(res^3, 2^31-1)), 2^T)` (tcnn's `params_in_level` for a hash grid).
+fn level_size(res: u32, log2_table_size: u32) -> u32 {
+    let cube = (res as u64).pow(3);
+    let capped = cube.min((u32::MAX / 2) as u64);
+    let padded = capped.div_ceil(8) * 8;
+    padded.min(1u64 << log2_table_size) as u32
+}
+
 impl HashGrid {
-    /// Scales computed as tiny-cuda-nn does (log2(b) in f32).
-    pub fn new(_cfg: &GridConfig) -> HashGrid {
-        todo!("hashgrid")
+    /// Scales computed as tiny-cuda-nn does (log2(b) in f32). Panics on an invalid config (see
+    /// [`validate_config`]; use [`HashGrid::try_new`] to get an error instead).
+    pub fn new(cfg: &GridConfig) -> HashGrid {
+        HashGrid::try_new(cfg).unwrap_or_else(|e| panic!("{e:#}"))
     }
+
+    /// As [`HashGrid::new`], returning an error for an invalid config.
+    pub fn try_new(cfg: &GridConfig) -> anyhow::Result<HashGrid> {
+        validate_config(cfg)?;
+        HashGrid::with_scales(cfg, tcnn_scales(cfg))
+    }
+
     /// From a saved scale table (a loader never recomputes scales).
-    pub fn with_scales(_cfg: &GridConfig, _scales: Vec<f32>) -> anyhow::Result<HashGrid> {
-        todo!("hashgrid")
+    pub fn with_scales(cfg: &GridConfig, scales: Vec<f32>) -> anyhow::Result<HashGrid> {
+        validate_config(cfg)?;
+        ensure!(
+            scales.len() == cfg.levels as usize,
+            "grid: scale table has {} values, expected one per level ({})",
+            scales.len(),
+            cfg.levels
+        );
+        let mut resolutions = Vec::with_capacity(scales.len());
+        let mut offsets = Vec::with_capacity(scales.len() + 1);
+        let mut dense = Vec::with_capacity(scales.len());
+        let mut total: u64 = 0;
+        for (l, &s) in scales.iter().enumerate() {
+            // p = s*x + 0.5 must fit an i32 for x in [0,1].
+            if !(s.is_finite() && (0.0..=1.0e9).contains(&s)) {
+                bail!("grid: scale of level {l} is {s}, expected a finite number in [0, 1e9]");
+            }
+            let res = s.ceil() as u32 + 1;
+            let size = level_size(res, cfg.log2_table_size);
+            resolutions.push(res);
+            dense.push(res <= MAX_DENSE_RESOLUTION && (res as u64).pow(3) <= size as u64);
+            offsets.push(total as u32);
+            total += size as u64;
+            ensure!(
+                total <= u32::MAX as u64,
+                "grid: {total} entries up to level {l} do not fit the u32 offset table"
+            );
+        }
+        offsets.push(total as u32);
+        Ok(HashGrid {
+            cfg: cfg.clone(),
+            scales,
+            resolutions,
+            offsets,
+            dense,
+        })
     }
+
     /// Output width L*F.
     pub fn out_dim(&self) -> usize {
         (self.cfg.levels * self.cfg.features) as usize
@@ -53,40 +218,859 @@ impl HashGrid {
     pub fn n_params(&self) -> usize {
         self.n_entries() * self.cfg.features as usize
     }
-    /// Initial table, U(-1e-4, 1e-4) from the counter-based generator.
-    pub fn init_table(&self, _seed: u64, _tensor_id: u64) -> Vec<f32> {
-        todo!("hashgrid")
+    /// Entries of level l.
+    pub fn level_entries(&self, l: usize) -> usize {
+        (self.offsets[l + 1] - self.offsets[l]) as usize
     }
+
+    /// Initial table, U(-1e-4, 1e-4) from the counter-based generator
+    /// (`Purpose::InitTable`, a = tensor_id, b = element index; `-1e-4 + 2e-4*u` in f64, rounded
+    /// once to f32).
+    pub fn init_table(&self, seed: u64, tensor_id: u64) -> Vec<f32> {
+        const INIT_CHUNK: usize = 1 << 16;
+        let mut t = vec![0.0f32; self.n_params()];
+        t.par_chunks_mut(INIT_CHUNK)
+            .enumerate()
+            .for_each(|(ci, c)| {
+                for (j, v) in c.iter_mut().enumerate() {
+                    let e = (ci * INIT_CHUNK + j) as u64;
+                    let u = rng::uniform_f64(seed, Purpose::InitTable, tensor_id, e);
+                    *v = (-1e-4 + 2e-4 * u) as f32;
+                }
+            });
+        t
+    }
+
+    /// The 8 corners of `x` at level `l`: global entry indices (`offsets[l] + local`) and
+    /// interpolation weights, in corner order k (bit d of k set = upper corner along axis d).
+    /// The same code path as the passes; exposed for tests, dumps and tools.
+    pub fn corners<R: Real>(
+        &self,
+        l: usize,
+        x: &[f64; 3],
+        mode: PositionMode,
+    ) -> ([u32; 8], [R; 8]) {
+        let g = self.level(l, mode);
+        let (c, t) = locate::<R>(g.scale, g.tcnn, x);
+        let w = corner_weights(interp(t, g.smooth));
+        let local = if g.dense {
+            g.dense_ix().corners(c)
+        } else {
+            g.hash_ix().corners(c)
+        };
+        (local.map(|i| i + self.offsets[l]), w)
+    }
+
+    fn level(&self, l: usize, mode: PositionMode) -> Level {
+        let size = self.offsets[l + 1] - self.offsets[l];
+        let res = self.resolutions[l];
+        Level {
+            scale: self.scales[l],
+            tcnn: mode == PositionMode::Tcnn,
+            smooth: self.cfg.interpolation == Interpolation::Smoothstep,
+            dense: self.dense[l],
+            res,
+            size,
+            offset: self.offsets[l] as usize,
+        }
+    }
+
     /// Encode M points: `out[M, L*F]` (overwritten).
     pub fn forward<R: Real>(
         &self,
-        _table: &[R],
-        _points: &[[f64; 3]],
-        _mode: PositionMode,
-        _out: &mut [R],
+        table: &[R],
+        points: &[[f64; 3]],
+        mode: PositionMode,
+        out: &mut [R],
     ) {
-        todo!("hashgrid")
+        let lf = self.out_dim();
+        assert_eq!(
+            table.len(),
+            self.n_params(),
+            "hashgrid forward: table length"
+        );
+        assert_eq!(out.len(), points.len() * lf, "hashgrid forward: out length");
+        let fast = has_fma();
+        out.par_chunks_mut(CHUNK_POINTS * lf)
+            .zip(points.par_chunks(CHUNK_POINTS))
+            .for_each(|(o, p)| {
+                for l in 0..self.cfg.levels as usize {
+                    let g = self.level(l, mode);
+                    let tab = &table[g.offset * self.cfg.features as usize..]
+                        [..g.size as usize * self.cfg.features as usize];
+                    kernels::forward_level(fast, self.cfg.features, &g, tab, p, o, lf, l);
+                }
+            });
     }
-    /// Accumulate `d_table += ∂L/∂table` from `d_out[M, L*F]`, and record touched entries.
+
+    /// Accumulate `d_table += ∂L/∂table` from `d_out[M, L*F]`, and record touched entries
+    /// (merged into `touched`, sorted ascending, unique; see [`Touched`]).
     pub fn backward_table<R: Real>(
         &self,
-        _points: &[[f64; 3]],
-        _mode: PositionMode,
-        _d_out: &[R],
-        _d_table: &mut [R],
-        _touched: &mut Touched,
+        points: &[[f64; 3]],
+        mode: PositionMode,
+        d_out: &[R],
+        d_table: &mut [R],
+        touched: &mut Touched,
     ) {
-        todo!("hashgrid")
+        let lf = self.out_dim();
+        let nf = self.cfg.features as usize;
+        let nl = self.cfg.levels as usize;
+        assert_eq!(
+            d_table.len(),
+            self.n_params(),
+            "hashgrid backward_table: d_table length"
+        );
+        assert_eq!(
+            d_out.len(),
+            points.len() * lf,
+            "hashgrid backward_table: d_out length"
+        );
+        let fast = has_fma();
+
+        // Per-level touched bitmaps, each word-aligned, in one reusable all-zero buffer.
+        let mut word_off = Vec::with_capacity(nl + 1);
+        let mut nw = 0usize;
+        for l in 0..nl {
+            word_off.push(nw);
+            nw += self.level_entries(l).div_ceil(64);
+        }
+        word_off.push(nw);
+        let mut bits = BITMAP.with(|b| std::mem::take(&mut *b.borrow_mut()));
+        if bits.len() < nw {
+            bits.resize(nw, 0);
+        }
+        debug_assert!(bits.iter().all(|&w| w == 0));
+        // Entries already recorded (an earlier backward in the same step) join the union.
+        for &e in &touched.entries {
+            let l = self.offsets.partition_point(|&o| o <= e) - 1;
+            if l < nl {
+                let local = (e - self.offsets[l]) as usize;
+                bits[word_off[l] + local / 64] |= 1u64 << (local % 64);
+            }
+        }
+
+        // Split the gradient and the bitmap into disjoint per-level slices.
+        let mut work: Vec<(usize, &mut [R], &mut [u64])> = Vec::with_capacity(nl);
+        {
+            let mut dt_rest = &mut d_table[..];
+            let mut bm_rest = &mut bits[..nw];
+            for l in 0..nl {
+                let (dt, r) = dt_rest.split_at_mut(self.level_entries(l) * nf);
+                dt_rest = r;
+                let (bm, r) = bm_rest.split_at_mut(word_off[l + 1] - word_off[l]);
+                bm_rest = r;
+                work.push((l, dt, bm));
+            }
+        }
+        for (ci, p) in points.chunks(BWD_TABLE_CHUNK).enumerate() {
+            let dout = &d_out[ci * BWD_TABLE_CHUNK * lf..][..p.len() * lf];
+            work.par_iter_mut().for_each(|(l, dt, bm)| {
+                let g = self.level(*l, mode);
+                kernels::backward_table_level(fast, self.cfg.features, &g, p, dout, lf, *l, dt, bm);
+            });
+        }
+        drop(work);
+
+        // Extract sorted unique entries, zeroing the bitmap as it is read.
+        touched.entries.clear();
+        for l in 0..nl {
+            let base = self.offsets[l];
+            for (wi, w) in bits[word_off[l]..word_off[l + 1]].iter_mut().enumerate() {
+                let mut m = *w;
+                *w = 0;
+                while m != 0 {
+                    let b = m.trailing_zeros();
+                    touched.entries.push(base + (wi as u32) * 64 + b);
+                    m &= m - 1;
+                }
+            }
+        }
+        BITMAP.with(|b| *b.borrow_mut() = bits);
     }
+
     /// Accumulate `d_points[M, 3] += ∂L/∂x_n`.
     pub fn backward_points<R: Real>(
         &self,
-        _table: &[R],
-        _points: &[[f64; 3]],
-        _mode: PositionMode,
-        _d_out: &[R],
-        _d_points: &mut [R],
+        table: &[R],
+        points: &[[f64; 3]],
+        mode: PositionMode,
+        d_out: &[R],
+        d_points: &mut [R],
     ) {
-        todo!("hashgrid")
+        let lf = self.out_dim();
+        let nf = self.cfg.features as usize;
+        assert_eq!(
+            table.len(),
+            self.n_params(),
+            "hashgrid backward_points: table length"
+        );
+        assert_eq!(
+            d_out.len(),
+            points.len() * lf,
+            "hashgrid backward_points: d_out length"
+        );
+        assert_eq!(
+            d_points.len(),
+            points.len() * 3,
+            "hashgrid backward_points: d_points length"
+        );
+        let fast = has_fma();
+        d_points
+            .par_chunks_mut(CHUNK_POINTS * 3)
+            .zip(points.par_chunks(CHUNK_POINTS))
+            .zip(d_out.par_chunks(CHUNK_POINTS * lf))
+            .for_each(|((dp, p), dout)| {
+                // Per-point sums over (l, f), added to d_points once at the end (tcnn order).
+                let mut acc = [[R::ZERO; 3]; CHUNK_POINTS];
+                for l in 0..self.cfg.levels as usize {
+                    let g = self.level(l, mode);
+                    let tab = &table[g.offset * nf..][..g.size as usize * nf];
+                    kernels::backward_points_level(
+                        fast,
+                        self.cfg.features,
+                        &g,
+                        tab,
+                        p,
+                        dout,
+                        lf,
+                        l,
+                        &mut acc,
+                    );
+                }
+                for (d, a) in dp.chunks_exact_mut(3).zip(acc.iter()) {
+                    d[0] += a[0];
+                    d[1] += a[1];
+                    d[2] += a[2];
+                }
+            });
+    }
+}
+
+thread_local! {
+    /// Reusable touched-entry bitmap of the thread that calls `backward_table` (all zero at rest).
+    static BITMAP: RefCell<Vec<u64>> = const { RefCell::new(Vec::new()) };
+}
+
+/// Whether the `fma,avx2` build of the kernels can run here (checked once, cached by std).
+#[inline]
+fn has_fma() -> bool {
+    #[cfg(any(target_arch = "x86", target_arch = "x86_64"))]
+    {
+        std::arch::is_x86_feature_detected!("fma") && std::arch::is_x86_feature_detected!("avx2")
+    }
+    #[cfg(not(any(target_arch = "x86", target_arch = "x86_64")))]
+    {
+        false
+    }
+}
+
+/// Per-level constants of one pass.
+#[derive(Clone, Copy, Debug)]
+struct Level {
+    scale: f32,
+    tcnn: bool,
+    smooth: bool,
+    dense: bool,
+    res: u32,
+    size: u32,
+    /// First entry of the level.
+    offset: usize,
+}
+
+impl Level {
+    #[inline(always)]
+    fn dense_ix(&self) -> DenseIx {
+        DenseIx {
+            res: self.res,
+            res2: self.res.wrapping_mul(self.res),
+            size: self.size,
+            magic: (u64::MAX / self.size as u64).wrapping_add(1),
+        }
+    }
+    #[inline(always)]
+    fn hash_ix(&self) -> HashIx {
+        debug_assert!(self.size.is_power_of_two());
+        HashIx {
+            mask: self.size - 1,
+        }
+    }
+}
+
+/// Cell and fraction of one point at one level: `p = fma(scale, x, 0.5)`, `c = floor(p)`,
+/// `t = p - c` (exact in the precision of `p`), `t` then rounded once to `R`.
+#[inline(always)]
+fn locate<R: Real>(scale: f32, tcnn: bool, x: &[f64; 3]) -> ([u32; 3], [R; 3]) {
+    let mut c = [0u32; 3];
+    let mut t = [R::ZERO; 3];
+    if tcnn {
+        for d in 0..3 {
+            let p = scale.mul_add(x[d] as f32, 0.5);
+            let fl = p.floor();
+            c[d] = fl as i32 as u32;
+            t[d] = R::from_f32(p - fl);
+        }
+    } else {
+        let s = scale as f64;
+        for d in 0..3 {
+            let p = s.mul_add(x[d], 0.5);
+            let fl = p.floor();
+            c[d] = fl as i32 as u32;
+            t[d] = R::from_f64(p - fl);
+        }
+    }
+    (c, t)
+}
+
+/// `w(t)`: t (linear) or `(t*t)*(3-2t)` (smoothstep).
+#[inline(always)]
+fn interp<R: Real>(t: [R; 3], smooth: bool) -> [R; 3] {
+    if smooth {
+        let three = R::from_f32(3.0);
+        let two = R::from_f32(2.0);
+        t.map(|t| t * t * (three - two * t))
+    } else {
+        t
+    }
+}
+
+/// `dw/dt`: 1 (linear) or `(6t)*(1-t)` (smoothstep).
+#[inline(always)]
+fn interp_deriv<R: Real>(t: [R; 3], smooth: bool) -> [R; 3] {
+    if smooth {
+        let six = R::from_f32(6.0);
+        t.map(|t| six * t * (R::ONE - t))
+    } else {
+        [R::ONE; 3]
+    }
+}
+
+/// Trilinear corner weights in corner order k, each the product in axis order d = 0, 1, 2.
+#[inline(always)]
+fn corner_weights<R: Real>(w: [R; 3]) -> [R; 8] {
+    let a = [
+        [R::ONE - w[0], w[0]],
+        [R::ONE - w[1], w[1]],
+        [R::ONE - w[2], w[2]],
+    ];
+    let mut out = [R::ZERO; 8];
+    for (k, o) in out.iter_mut().enumerate() {
+        *o = a[0][k & 1] * a[1][(k >> 1) & 1] * a[2][k >> 2];
+    }
+    out
+}
+
+/// Corner index of a level (local entry index, < size).
+trait Indexer: Copy {
+    fn corners(self, c: [u32; 3]) -> [u32; 8];
+}
+
+/// Dense level: `(x + y*res + z*res^2) mod size`, u32 wrapping.
+#[derive(Clone, Copy)]
+struct DenseIx {
+    res: u32,
+    res2: u32,
+    size: u32,
+    /// Lemire's fastmod constant `floor((2^64-1)/size) + 1` (exact `a mod size` for all u32 a).
+    magic: u64,
+}
+
+#[inline(always)]
+fn fastmod(a: u32, magic: u64, d: u32) -> u32 {
+    let low = magic.wrapping_mul(a as u64);
+    ((low as u128 * d as u128) >> 64) as u32
+}
+
+impl Indexer for DenseIx {
+    #[inline(always)]
+    fn corners(self, c: [u32; 3]) -> [u32; 8] {
+        let xs = [c[0], c[0].wrapping_add(1)];
+        let ys = [
+            c[1].wrapping_mul(self.res),
+            c[1].wrapping_add(1).wrapping_mul(self.res),
+        ];
+        let zs = [
+            c[2].wrapping_mul(self.res2),
+            c[2].wrapping_add(1).wrapping_mul(self.res2),
+        ];
+        let mut out = [0u32; 8];
+        for (k, o) in out.iter_mut().enumerate() {
+            let i = xs[k & 1]
+                .wrapping_add(ys[(k >> 1) & 1])
+                .wrapping_add(zs[k >> 2]);
+            *o = fastmod(i, self.magic, self.size);
+        }
+        out
+    }
+}
+
+/// Hashed level: `(x ^ y*PRIME_Y ^ z*PRIME_Z) mod 2^T`, u32 wrapping.
+#[derive(Clone, Copy)]
+struct HashIx {
+    mask: u32,
+}
+
+impl Indexer for HashIx {
+    #[inline(always)]
+    fn corners(self, c: [u32; 3]) -> [u32; 8] {
+        let xs = [c[0], c[0].wrapping_add(1)];
+        let ys = [
+            c[1].wrapping_mul(PRIME_Y),
+            c[1].wrapping_add(1).wrapping_mul(PRIME_Y),
+        ];
+        let zs = [
+            c[2].wrapping_mul(PRIME_Z),
+            c[2].wrapping_add(1).wrapping_mul(PRIME_Z),
+        ];
+        let mut out = [0u32; 8];
+        for (k, o) in out.iter_mut().enumerate() {
+            *o = (xs[k & 1] ^ ys[(k >> 1) & 1] ^ zs[k >> 2]) & self.mask;
+        }
+        out
+    }
+}
+
+/// The inner loops, generic over R, F and the indexer, with a runtime-selected `fma,avx2` build.
+mod kernels {
+    use super::*;
+
+    /// Calls `$body` with `$F` bound to the const feature count and `$ix` to the level's indexer.
+    macro_rules! dispatch {
+        ($nf:expr, $g:expr, |$F:ident, $ix:ident| $body:expr) => {
+            match ($nf, $g.dense) {
+                (1, true) => {
+                    const $F: usize = 1;
+                    let $ix = $g.dense_ix();
+                    $body
+                }
+                (1, false) => {
+                    const $F: usize = 1;
+                    let $ix = $g.hash_ix();
+                    $body
+                }
+                (2, true) => {
+                    const $F: usize = 2;
+                    let $ix = $g.dense_ix();
+                    $body
+                }
+                (2, false) => {
+                    const $F: usize = 2;
+                    let $ix = $g.hash_ix();
+                    $body
+                }
+                (4, true) => {
+                    const $F: usize = 4;
+                    let $ix = $g.dense_ix();
+                    $body
+                }
+                (4, false) => {
+                    const $F: usize = 4;
+                    let $ix = $g.hash_ix();
+                    $body
+                }
+                (8, true) => {
+                    const $F: usize = 8;
+                    let $ix = $g.dense_ix();
+                    $body
+                }
+                (8, false) => {
+                    const $F: usize = 8;
+                    let $ix = $g.hash_ix();
+                    $body
+                }
+                _ => unreachable!("features validated to 1, 2, 4, 8"),
+            }
+        };
+    }
+
+    /// Selects the `fma,avx2` build when available. Both builds compute identical bits.
+    macro_rules! fma_switch {
+        ($fast:expr, $fma_fn:ident, $plain_fn:ident, ($($arg:expr),*)) => {{
+            #[cfg(any(target_arch = "x86", target_arch = "x86_64"))]
+            {
+                if $fast {
+                    // SAFETY: `$fast` is true only if the CPU reports fma and avx2.
+                    unsafe { $fma_fn($($arg),*) }
+                } else {
+                    $plain_fn($($arg),*)
+                }
+            }
+            #[cfg(not(any(target_arch = "x86", target_arch = "x86_64")))]
+            {
+                let _ = $fast;
+                $plain_fn($($arg),*)
+            }
+        }};
+    }
+
+    // ---------------------------------------------------------------- forward
+
+    #[allow(clippy::too_many_arguments)]
+    pub(super) fn forward_level<R: Real>(
+        fast: bool,
+        nf: u32,
+        g: &Level,
+        tab: &[R],
+        pts: &[[f64; 3]],
+        out: &mut [R],
+        lf: usize,
+        l: usize,
+    ) {
+        fma_switch!(
+            fast,
+            forward_level_fma,
+            forward_level_plain,
+            (nf, g, tab, pts, out, lf, l)
+        )
+    }
+
+    #[cfg(any(target_arch = "x86", target_arch = "x86_64"))]
+    #[target_feature(enable = "fma,avx2")]
+    #[allow(clippy::too_many_arguments)]
+    unsafe fn forward_level_fma<R: Real>(
+        nf: u32,
+        g: &Level,
+        tab: &[R],
+        pts: &[[f64; 3]],
+        out: &mut [R],
+        lf: usize,
+        l: usize,
+    ) {
+        dispatch!(nf, g, |F, ix| forward_level_impl::<R, F, _>(
+            g, ix, tab, pts, out, lf, l
+        ))
+    }
+
+    #[inline(never)]
+    #[allow(clippy::too_many_arguments)]
+    fn forward_level_plain<R: Real>(
+        nf: u32,
+        g: &Level,
+        tab: &[R],
+        pts: &[[f64; 3]],
+        out: &mut [R],
+        lf: usize,
+        l: usize,
+    ) {
+        dispatch!(nf, g, |F, ix| forward_level_impl::<R, F, _>(
+            g, ix, tab, pts, out, lf, l
+        ))
+    }
+
+    /// One level for a chunk of points: `out[i, l*F..(l+1)*F] = Σ_k w_k · table[idx_k]` (Eq. 2).
+    #[inline(always)]
+    #[allow(clippy::too_many_arguments)]
+    fn forward_level_impl<R: Real, const F: usize, I: Indexer>(
+        g: &Level,
+        ix: I,
+        tab: &[R],        // [size, F], this level only
+        pts: &[[f64; 3]], // [n]
+        out: &mut [R],    // [n, L*F]
+        lf: usize,
+        l: usize,
+    ) {
+        assert_eq!(tab.len(), g.size as usize * F);
+        assert!(out.len() >= pts.len() * lf);
+        for (i, x) in pts.iter().enumerate() {
+            let (c, t) = locate::<R>(g.scale, g.tcnn, x);
+            let w = corner_weights(interp(t, g.smooth));
+            let idx = ix.corners(c);
+            let mut acc = [R::ZERO; F];
+            for k in 0..8 {
+                // SAFETY: idx[k] < size (mod / mask), and tab.len() == size * F.
+                let v = unsafe { tab.get_unchecked(idx[k] as usize * F..idx[k] as usize * F + F) };
+                for f in 0..F {
+                    acc[f] = w[k].mul_add(v[f], acc[f]);
+                }
+            }
+            out[i * lf + l * F..][..F].copy_from_slice(&acc);
+        }
+    }
+
+    // ---------------------------------------------------------------- backward (table)
+
+    #[allow(clippy::too_many_arguments)]
+    pub(super) fn backward_table_level<R: Real>(
+        fast: bool,
+        nf: u32,
+        g: &Level,
+        pts: &[[f64; 3]],
+        d_out: &[R],
+        lf: usize,
+        l: usize,
+        d_tab: &mut [R],
+        bits: &mut [u64],
+    ) {
+        fma_switch!(
+            fast,
+            backward_table_level_fma,
+            backward_table_level_plain,
+            (nf, g, pts, d_out, lf, l, d_tab, bits)
+        )
+    }
+
+    #[cfg(any(target_arch = "x86", target_arch = "x86_64"))]
+    #[target_feature(enable = "fma,avx2")]
+    #[allow(clippy::too_many_arguments)]
+    unsafe fn backward_table_level_fma<R: Real>(
+        nf: u32,
+        g: &Level,
+        pts: &[[f64; 3]],
+        d_out: &[R],
+        lf: usize,
+        l: usize,
+        d_tab: &mut [R],
+        bits: &mut [u64],
+    ) {
+        dispatch!(nf, g, |F, ix| backward_table_level_impl::<R, F, _>(
+            g, ix, pts, d_out, lf, l, d_tab, bits
+        ))
+    }
+
+    #[inline(never)]
+    #[allow(clippy::too_many_arguments)]
+    fn backward_table_level_plain<R: Real>(
+        nf: u32,
+        g: &Level,
+        pts: &[[f64; 3]],
+        d_out: &[R],
+        lf: usize,
+        l: usize,
+        d_tab: &mut [R],
+        bits: &mut [u64],
+    ) {
+        dispatch!(nf, g, |F, ix| backward_table_level_impl::<R, F, _>(
+            g, ix, pts, d_out, lf, l, d_tab, bits
+        ))
+    }
+
+    /// One level, points in order: `d_table[idx_k, f] += w_k · d_out[i, l*F+f]`.
+    #[inline(always)]
+    #[allow(clippy::too_many_arguments)]
+    fn backward_table_level_impl<R: Real, const F: usize, I: Indexer>(
+        g: &Level,
+        ix: I,
+        pts: &[[f64; 3]], // [n]
+        d_out: &[R],      // [n, L*F]
+        lf: usize,
+        l: usize,
+        d_tab: &mut [R],  // [size, F], this level only
+        bits: &mut [u64], // [ceil(size/64)]
+    ) {
+        assert_eq!(d_tab.len(), g.size as usize * F);
+        assert_eq!(bits.len(), (g.size as usize).div_ceil(64));
+        assert!(d_out.len() >= pts.len() * lf);
+        for (i, x) in pts.iter().enumerate() {
+            let mut gr = [R::ZERO; F];
+            gr.copy_from_slice(&d_out[i * lf + l * F..][..F]);
+            if gr.iter().all(|&v| v == R::ZERO) {
+                continue; // contributes nothing; not recorded as touched
+            }
+            let (c, t) = locate::<R>(g.scale, g.tcnn, x);
+            let w = corner_weights(interp(t, g.smooth));
+            let idx = ix.corners(c);
+            for k in 0..8 {
+                let e = idx[k] as usize;
+                // SAFETY: e < size (mod / mask); d_tab.len() == size*F, bits cover size bits.
+                unsafe {
+                    let d = d_tab.get_unchecked_mut(e * F..e * F + F);
+                    for f in 0..F {
+                        d[f] += w[k] * gr[f];
+                    }
+                    *bits.get_unchecked_mut(e / 64) |= 1u64 << (e % 64);
+                }
+            }
+        }
+    }
+
+    // ---------------------------------------------------------------- backward (points)
+
+    #[allow(clippy::too_many_arguments)]
+    pub(super) fn backward_points_level<R: Real>(
+        fast: bool,
+        nf: u32,
+        g: &Level,
+        tab: &[R],
+        pts: &[[f64; 3]],
+        d_out: &[R],
+        lf: usize,
+        l: usize,
+        acc: &mut [[R; 3]],
+    ) {
+        fma_switch!(
+            fast,
+            backward_points_level_fma,
+            backward_points_level_plain,
+            (nf, g, tab, pts, d_out, lf, l, acc)
+        )
+    }
+
+    #[cfg(any(target_arch = "x86", target_arch = "x86_64"))]
+    #[target_feature(enable = "fma,avx2")]
+    #[allow(clippy::too_many_arguments)]
+    unsafe fn backward_points_level_fma<R: Real>(
+        nf: u32,
+        g: &Level,
+        tab: &[R],
+        pts: &[[f64; 3]],
+        d_out: &[R],
+        lf: usize,
+        l: usize,
+        acc: &mut [[R; 3]],
+    ) {
+        dispatch!(nf, g, |F, ix| backward_points_level_impl::<R, F, _>(
+            g, ix, tab, pts, d_out, lf, l, acc
+        ))
+    }
+
+    #[inline(never)]
+    #[allow(clippy::too_many_arguments)]
+    fn backward_points_level_plain<R: Real>(
+        nf: u32,
+        g: &Level,
+        tab: &[R],
+        pts: &[[f64; 3]],
+        d_out: &[R],
+        lf: usize,
+        l: usize,
+        acc: &mut [[R; 3]],
+    ) {
+        dispatch!(nf, g, |F, ix| backward_points_level_impl::<R, F, _>(
+            g, ix, tab, pts, d_out, lf, l, acc
+        ))
+    }
+
+    /// One level for a chunk of points: `acc[i][d] += Σ_f d_out[i, l*F+f] · ∂out[l*F+f]/∂x_d`,
+    /// with `∂out/∂x_d = Σ_{4 edges along d} ((scale·w_a')·w_b') · (v_hi - v_lo) · dw_d/dt`.
+    #[inline(always)]
+    #[allow(clippy::too_many_arguments)]
+    fn backward_points_level_impl<R: Real, const F: usize, I: Indexer>(
+        g: &Level,
+        ix: I,
+        tab: &[R],        // [size, F], this level only
+        pts: &[[f64; 3]], // [n]
+        d_out: &[R],      // [n, L*F]
+        lf: usize,
+        l: usize,
+        acc: &mut [[R; 3]], // [>= n]
+    ) {
+        assert_eq!(tab.len(), g.size as usize * F);
+        assert!(d_out.len() >= pts.len() * lf);
+        assert!(acc.len() >= pts.len());
+        let scale = R::from_f32(g.scale);
+        for (i, x) in pts.iter().enumerate() {
+            let mut gr = [R::ZERO; F];
+            gr.copy_from_slice(&d_out[i * lf + l * F..][..F]);
+            let (c, t) = locate::<R>(g.scale, g.tcnn, x);
+            let w = interp(t, g.smooth);
+            let dw = interp_deriv(t, g.smooth);
+            let ws = [
+                [R::ONE - w[0], w[0]],
+                [R::ONE - w[1], w[1]],
+                [R::ONE - w[2], w[2]],
+            ];
+            let idx = ix.corners(c);
+            let mut v = [[R::ZERO; F]; 8];
+            for k in 0..8 {
+                // SAFETY: idx[k] < size (mod / mask), and tab.len() == size * F.
+                let s = unsafe { tab.get_unchecked(idx[k] as usize * F..idx[k] as usize * F + F) };
+                v[k].copy_from_slice(s);
+            }
+            for d in 0..3 {
+                // The two other axes, ascending (tcnn's non_grad_dim order).
+                let (a, b) = match d {
+                    0 => (1, 2),
+                    1 => (0, 2),
+                    _ => (0, 1),
+                };
+                let mut gd = [R::ZERO; F];
+                for e in 0..4 {
+                    let (ba, bb) = (e & 1, (e >> 1) & 1);
+                    let wt = scale * ws[a][ba] * ws[b][bb];
+                    let lo = (ba << a) | (bb << b);
+                    let hi = lo | (1 << d);
+                    for f in 0..F {
+                        gd[f] += wt * (v[hi][f] - v[lo][f]) * dw[d];
+                    }
+                }
+                let mut s = acc[i][d];
+                for f in 0..F {
+                    s = gr[f].mul_add(gd[f], s);
+                }
+                acc[i][d] = s;
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn fastmod_is_exact() {
+        for d in [
+            1u32,
+            3,
+            7,
+            8,
+            4096,
+            12168,
+            205384,
+            1 << 19,
+            (1 << 31),
+            u32::MAX,
+        ] {
+            let m = (u64::MAX / d as u64).wrapping_add(1);
+            for k in 0..20_000u64 {
+                let a = (rng::bits(1, Purpose::Test, d as u64, k) as u32) >> (k % 32);
+                assert_eq!(fastmod(a, m, d), a % d, "a={a} d={d}");
+            }
+            for a in [
+                0u32,
+                1,
+                d.wrapping_sub(1),
+                d,
+                d.wrapping_add(1),
+                u32::MAX,
+                u32::MAX - 1,
+            ] {
+                assert_eq!(fastmod(a, m, d), a % d, "a={a} d={d}");
+            }
+        }
+    }
+
+    #[test]
+    fn invalid_configs_are_errors() {
+        let good = crate::model::ModelConfig::tiny().grid_h;
+        assert!(HashGrid::try_new(&good).is_ok());
+        let mut c = good.clone();
+        c.features = 3;
+        assert!(HashGrid::try_new(&c)
+            .unwrap_err()
+            .to_string()
+            .contains("features"));
+        let mut c = good.clone();
+        c.levels = 0;
+        assert!(HashGrid::try_new(&c).is_err());
+        let mut c = good.clone();
+        c.per_level_scale = f64::NAN;
+        assert!(HashGrid::try_new(&c).is_err());
+        let mut c = good.clone();
+        c.log2_table_size = 32;
+        assert!(HashGrid::try_new(&c).is_err());
+        let e = HashGrid::with_scales(&good, vec![1.0, 2.0]).unwrap_err();
+        assert!(e.to_string().contains("scale table has 2 values"), "{e}");
+        let e = HashGrid::with_scales(&good, vec![1.0, 2.0, f32::NAN, 3.0]).unwrap_err();
+        assert!(e.to_string().contains("level 2"), "{e}");
+    }
+
+    #[test]
+    fn level_size_rule() {
+        assert_eq!(level_size(16, 19), 4096);
+        assert_eq!(level_size(23, 19), 12168); // 12167 → next multiple of 8
+        assert_eq!(level_size(81, 19), 1 << 19); // 531441 > 2^19
+        assert_eq!(level_size(2000, 31), 1 << 31); // capped at 2^31-1 → 2^31
+        assert_eq!(level_size(2000, 20), 1 << 20);
     }
 }

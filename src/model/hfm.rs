@@ -31,7 +31,7 @@ use crate::model::mlp::{Mlp, MlpActs};
 use crate::model::params::{Grads, Group, ParamLayout};
 use crate::model::sh::{sh_backward, sh_forward, SH_DIM};
 use crate::model::Real;
-use anyhow::{ensure, Result};
+use anyhow::{ensure, Context, Result};
 use rayon::prelude::*;
 use std::ops::Range;
 
@@ -127,8 +127,12 @@ struct ChunkGrad<R> {
 impl Hfm {
     /// Structure for a config, with grid scales computed as tiny-cuda-nn does.
     pub fn new(cfg: &ModelConfig) -> Result<Hfm> {
-        let gh = HashGrid::new(&cfg.grid_h);
-        let gd = cfg.deform.enabled.then(|| HashGrid::new(&cfg.deform.grid));
+        let gh = HashGrid::try_new(&cfg.grid_h).context("config: grid_h")?;
+        let gd = if cfg.deform.enabled {
+            Some(HashGrid::try_new(&cfg.deform.grid).context("config: deform.grid")?)
+        } else {
+            None
+        };
         Hfm::with_grids(cfg, gh, gd)
     }
 

@@ -3,6 +3,7 @@
 //! `*_forward` / `*_backward` pair; backward passes accumulate.
 
 pub mod batch;
+pub mod checkpoint;
 pub mod config;
 pub mod hashgrid;
 pub mod hfm;

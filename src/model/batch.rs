@@ -1,0 +1,176 @@
+//! A training/evaluation batch (SPEC §6 "a batch"): N pixels × S sub-samples (S = γ²).
+//!
+//! `positions [N*S]` are normalised (f64), `valid [N*S]` is 0/1, `dirs [N]` are the pixels' unit
+//! view directions (f32), `view [N]` the appearance-code row (−1: mean code), `target [N]` RGB.
+//! A batch never holds a pixel without a valid sub-sample; invalid sub-samples are never
+//! evaluated (their position is ignored).
+
+use anyhow::{bail, ensure, Result};
+
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Batch {
+    /// `[N*S]` normalised positions (pixel-major, then sub-sample).
+    pub positions: Vec<[f64; 3]>,
+    /// `[N*S]` 1 = the sub-sample's ray hit the mesh.
+    pub valid: Vec<u8>,
+    /// `[N]` unit view direction per pixel.
+    pub dirs: Vec<[f32; 3]>,
+    /// `[N]` appearance-code row, or −1 for the mean of all rows.
+    pub view: Vec<i32>,
+    /// `[N]` target RGB.
+    pub target: Vec<[f32; 3]>,
+}
+
+impl Batch {
+    pub fn n_pixels(&self) -> usize {
+        self.dirs.len()
+    }
+
+    /// Sub-samples per pixel S (0 for an empty batch).
+    pub fn samples_per_pixel(&self) -> usize {
+        self.positions
+            .len()
+            .checked_div(self.dirs.len())
+            .unwrap_or(0)
+    }
+
+    /// Shapes agree, every pixel has ≥ 1 valid sub-sample, valid flags are 0/1, positions of
+    /// valid sub-samples and all directions/targets are finite, views are ≥ −1. Messages name the
+    /// element.
+    pub fn validate(&self) -> Result<()> {
+        let n = self.dirs.len();
+        ensure!(n > 0, "batch: no pixels");
+        ensure!(
+            self.positions.len() % n == 0 && !self.positions.is_empty(),
+            "batch: {} positions is not a positive multiple of {n} pixels",
+            self.positions.len()
+        );
+        let s = self.positions.len() / n;
+        ensure!(
+            self.valid.len() == n * s,
+            "batch: valid has {} entries, expected N*S = {}",
+            self.valid.len(),
+            n * s
+        );
+        ensure!(
+            self.view.len() == n,
+            "batch: view has {} entries, expected N = {n}",
+            self.view.len()
+        );
+        ensure!(
+            self.target.len() == n,
+            "batch: target has {} entries, expected N = {n}",
+            self.target.len()
+        );
+        for i in 0..n {
+            let mut any = false;
+            for j in 0..s {
+                match self.valid[i * s + j] {
+                    0 => {}
+                    1 => {
+                        any = true;
+                        let p = self.positions[i * s + j];
+                        if !p.iter().all(|v| v.is_finite()) {
+                            bail!("batch: pixel {i} sub-sample {j}: position {p:?} is not finite");
+                        }
+                    }
+                    v => {
+                        bail!("batch: pixel {i} sub-sample {j}: valid flag is {v}, expected 0 or 1")
+                    }
+                }
+            }
+            ensure!(any, "batch: pixel {i} has no valid sub-sample");
+            let d = self.dirs[i];
+            ensure!(
+                d.iter().all(|v| v.is_finite()),
+                "batch: pixel {i}: direction {d:?} is not finite"
+            );
+            let t = self.target[i];
+            ensure!(
+                t.iter().all(|v| v.is_finite()),
+                "batch: pixel {i}: target {t:?} is not finite"
+            );
+            ensure!(
+                self.view[i] >= -1,
+                "batch: pixel {i}: view {} is below -1",
+                self.view[i]
+            );
+        }
+        Ok(())
+    }
+
+    /// A seeded random batch for tests and benches: positions uniform in `[lo, 1-lo]^3`,
+    /// sub-samples invalid with probability `p_invalid` (sub-sample 0 of a pixel is made valid
+    /// if all others missed), unit directions, views uniform in `-1..n_views`, targets in [0,1).
+    pub fn random(seed: u64, n: usize, s: usize, n_views: usize, p_invalid: f64) -> Batch {
+        use crate::rng::{uniform_f64, Purpose::Test};
+        let lo = 0.02;
+        let u = |a: u64, b: usize| uniform_f64(seed, Test, a, b as u64);
+        let mut b = Batch::default();
+        for i in 0..n {
+            let mut any = false;
+            for j in 0..s {
+                let k = i * s + j;
+                b.positions.push([
+                    lo + (1.0 - 2.0 * lo) * u(1, k),
+                    lo + (1.0 - 2.0 * lo) * u(2, k),
+                    lo + (1.0 - 2.0 * lo) * u(3, k),
+                ]);
+                let v = u(4, k) >= p_invalid;
+                any |= v;
+                b.valid.push(v as u8);
+            }
+            if !any {
+                b.valid[i * s] = 1;
+            }
+            // Uniform direction on the sphere.
+            let z = 2.0 * u(5, i) - 1.0;
+            let phi = std::f64::consts::TAU * u(6, i);
+            let r = (1.0 - z * z).sqrt();
+            b.dirs
+                .push([(r * phi.cos()) as f32, (r * phi.sin()) as f32, z as f32]);
+            b.view
+                .push((u(7, i) * (n_views as f64 + 1.0)).floor() as i32 - 1);
+            b.target
+                .push([u(8, i) as f32, u(9, i) as f32, u(10, i) as f32]);
+        }
+        b
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn random_batch_is_valid_and_bad_ones_are_named() {
+        let b = Batch::random(1, 50, 4, 3, 0.5);
+        b.validate().unwrap();
+        assert!(b.valid.iter().any(|&v| v == 0));
+        assert!(b.view.contains(&-1) && b.view.contains(&2));
+
+        let mut bad = b.clone();
+        for j in 0..4 {
+            bad.valid[7 * 4 + j] = 0;
+        }
+        let e = bad.validate().unwrap_err().to_string();
+        assert!(e.contains("pixel 7 has no valid"), "{e}");
+
+        let mut bad = b.clone();
+        bad.dirs[3][1] = f32::NAN;
+        assert!(bad.validate().unwrap_err().to_string().contains("pixel 3"));
+
+        let mut bad = b.clone();
+        bad.valid.pop();
+        assert!(bad.validate().is_err());
+
+        let mut bad = b.clone();
+        bad.valid[0] = 1;
+        bad.positions[0][2] = f64::INFINITY;
+        assert!(bad
+            .validate()
+            .unwrap_err()
+            .to_string()
+            .contains("sub-sample 0"));
+    }
+}

@@ -1,0 +1,613 @@
+//! Model ↔ tensors (SPEC §6): checkpoints, batches and dumps as safetensors files.
+//!
+//! - Checkpoint: every parameter tensor of the layout (f32, names and shapes as
+//!   [`ParamLayout`]), `grid_h.scales` [L] f32 and `grid_h.offsets` [L+1] u32 (same for
+//!   `grid_d`), header metadata `format` = [`FORMAT`], `config` (the [`ModelConfig`] as TOML) and
+//!   `normalization` (JSON `{"center":[..],"extent":[..]}`, f64). Loading uses the SAVED scale
+//!   table (`HashGrid::with_scales`) and checks the saved offsets against it. Other tensors in the
+//!   file (e.g. the trainer's `adam.*`) are ignored by [`Checkpoint::from_tensor_file`].
+//! - Batch: `batch.positions` [N,S,3] f64, `batch.valid` [N,S] u8, `batch.dirs` [N,3] f32,
+//!   `batch.view` [N] i32, `batch.target` [N,3] f32.
+//! - Dump ([`dump`]): the checkpoint and batch tensors copied in, every intermediate `fwd.*`,
+//!   `loss` [] and every gradient `grad.*`, in the dtype of the instantiation (f64 or f32). Rows
+//!   of invalid sub-samples are zero (they are never evaluated).
+
+use crate::io::tensors::{DType, Tensor, TensorFile};
+use crate::model::batch::Batch;
+use crate::model::config::ModelConfig;
+use crate::model::hashgrid::HashGrid;
+use crate::model::hfm::{Forward, Hfm};
+use crate::model::params::{Grads, ParamLayout};
+use crate::model::sh::SH_DIM;
+use crate::model::Real;
+use anyhow::{bail, ensure, Context, Result};
+use serde::{Deserialize, Serialize};
+use std::path::Path;
+
+/// Version string in every checkpoint / dump header (`format`).
+pub const FORMAT: &str = "xscale-1";
+
+/// World → normalised coordinates: `x_n = (x − center) / extent + 0.5` (SPEC §4.1).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Normalization {
+    pub center: [f64; 3],
+    pub extent: [f64; 3],
+}
+
+impl Normalization {
+    /// The identity map of `[0,1]^3` (center 0.5, extent 1).
+    pub fn unit() -> Normalization {
+        Normalization {
+            center: [0.5; 3],
+            extent: [1.0; 3],
+        }
+    }
+}
+
+/// A model with its parameters (f32, the training precision) and normalisation.
+#[derive(Clone, Debug)]
+pub struct Checkpoint {
+    pub model: Hfm,
+    /// `[model.layout.total]`.
+    pub params: Vec<f32>,
+    pub normalization: Normalization,
+}
+
+/// A freshly initialised checkpoint: `n_train_views` appearance rows (zero), parameters from
+/// `seed` (see [`Hfm::init_params`]).
+pub fn init_checkpoint(
+    cfg: &ModelConfig,
+    seed: u64,
+    normalization: Normalization,
+    n_train_views: usize,
+) -> Result<Checkpoint> {
+    let mut cfg = cfg.clone();
+    cfg.appearance_views = if cfg.appearance_dim > 0 {
+        u32::try_from(n_train_views).context("too many training views")?
+    } else {
+        0
+    };
+    let model = Hfm::new(&cfg)?;
+    let params = model.init_params(seed);
+    Ok(Checkpoint {
+        model,
+        params,
+        normalization,
+    })
+}
+
+/// Write every tensor of a layout from a flat buffer, names prefixed by `prefix` (e.g. `""`,
+/// `"grad."`, `"adam.m."`).
+pub fn layout_to_tensors<R: Real>(
+    file: &mut TensorFile,
+    layout: &ParamLayout,
+    prefix: &str,
+    data: &[R],
+) -> Result<()> {
+    for t in &layout.tensors {
+        file.insert(
+            format!("{prefix}{}", t.name),
+            tensor_of(t.shape.clone(), &data[t.range()])?,
+        );
+    }
+    Ok(())
+}
+
+/// Read every tensor of a layout (f32, exact shapes) into a flat buffer.
+pub fn layout_from_tensors(
+    file: &TensorFile,
+    layout: &ParamLayout,
+    prefix: &str,
+) -> Result<Vec<f32>> {
+    let mut out = vec![0.0f32; layout.total];
+    for t in &layout.tensors {
+        let name = format!("{prefix}{}", t.name);
+        let v = file.get_checked(&name, DType::F32, &t.shape)?.to_f32()?;
+        out[t.range()].copy_from_slice(&v);
+    }
+    Ok(out)
+}
+
+/// A tensor in the dtype of `R` (F64 or F32).
+pub fn tensor_of<R: Real>(shape: Vec<usize>, data: &[R]) -> Result<Tensor> {
+    if R::DTYPE == "F64" {
+        let v: Vec<f64> = data.iter().map(|x| x.to_f64()).collect();
+        Tensor::f64(shape, &v)
+    } else {
+        let v: Vec<f32> = data.iter().map(|x| x.to_f64() as f32).collect();
+        Tensor::f32(shape, &v)
+    }
+}
+
+fn grid_tensors(file: &mut TensorFile, name: &str, g: &HashGrid) -> Result<()> {
+    file.insert(
+        format!("{name}.scales"),
+        Tensor::f32(vec![g.scales.len()], &g.scales)?,
+    );
+    file.insert(
+        format!("{name}.offsets"),
+        Tensor::u32(vec![g.offsets.len()], &g.offsets)?,
+    );
+    Ok(())
+}
+
+fn grid_from(
+    file: &TensorFile,
+    name: &str,
+    cfg: &crate::model::config::GridConfig,
+) -> Result<HashGrid> {
+    let l = cfg.levels as usize;
+    let scales = file
+        .get_checked(&format!("{name}.scales"), DType::F32, &[l])?
+        .to_f32()?;
+    let g = HashGrid::with_scales(cfg, scales).with_context(|| format!("{name}.scales"))?;
+    let offsets = file
+        .get_checked(&format!("{name}.offsets"), DType::U32, &[l + 1])?
+        .to_u32()?;
+    ensure!(
+        offsets == g.offsets,
+        "{name}.offsets {:?} disagree with the ones the saved scales and config give {:?}",
+        offsets,
+        g.offsets
+    );
+    Ok(g)
+}
+
+impl Checkpoint {
+    /// All tensors and the header metadata of the checkpoint.
+    pub fn to_tensor_file(&self) -> Result<TensorFile> {
+        let mut f = TensorFile::new();
+        f.set_meta("format", FORMAT);
+        f.set_meta("config", toml::to_string(&self.model.cfg)?);
+        f.set_meta("normalization", serde_json::to_string(&self.normalization)?);
+        layout_to_tensors(&mut f, &self.model.layout, "", &self.params)?;
+        grid_tensors(&mut f, "grid_h", &self.model.grid_h)?;
+        if let Some(g) = &self.model.grid_d {
+            grid_tensors(&mut f, "grid_d", g)?;
+        }
+        Ok(f)
+    }
+
+    /// Rebuild from a tensor file (saved scales, checked shapes); errors name the file/tensor.
+    pub fn from_tensor_file(file: &TensorFile) -> Result<Checkpoint> {
+        let label = file
+            .source
+            .as_ref()
+            .map_or("<in-memory checkpoint>".to_string(), |p| {
+                p.display().to_string()
+            });
+        let format = file.meta("format")?;
+        if format != FORMAT {
+            bail!("{label}: format is {format:?}, expected {FORMAT:?}");
+        }
+        let cfg: ModelConfig = toml::from_str(file.meta("config")?).with_context(|| {
+            format!("{label}: header metadata \"config\" is not a model config")
+        })?;
+        let normalization: Normalization = serde_json::from_str(file.meta("normalization")?)
+            .with_context(|| {
+                format!("{label}: header metadata \"normalization\" is not {{\"center\":[x,y,z],\"extent\":[x,y,z]}}")
+            })?;
+        ensure!(
+            normalization
+                .center
+                .iter()
+                .chain(&normalization.extent)
+                .all(|v| v.is_finite())
+                && normalization.extent.iter().all(|&e| e > 0.0),
+            "{label}: normalization {normalization:?} must be finite with positive extents"
+        );
+        let grid_h = grid_from(file, "grid_h", &cfg.grid_h).with_context(|| label.clone())?;
+        let grid_d = if cfg.deform.enabled {
+            Some(grid_from(file, "grid_d", &cfg.deform.grid).with_context(|| label.clone())?)
+        } else {
+            None
+        };
+        let model = Hfm::with_grids(&cfg, grid_h, grid_d).with_context(|| label.clone())?;
+        let params = layout_from_tensors(file, &model.layout, "")?;
+        if let Some(i) = params.iter().position(|v| !v.is_finite()) {
+            let t = model
+                .layout
+                .tensors
+                .iter()
+                .find(|t| t.range().contains(&i))
+                .unwrap();
+            bail!(
+                "{label}: tensor {} element {} is not finite",
+                t.name,
+                i - t.offset
+            );
+        }
+        Ok(Checkpoint {
+            model,
+            params,
+            normalization,
+        })
+    }
+
+    pub fn save(&self, path: impl AsRef<Path>) -> Result<()> {
+        self.to_tensor_file()?.write_atomic(path)
+    }
+
+    pub fn load(path: impl AsRef<Path>) -> Result<Checkpoint> {
+        Checkpoint::from_tensor_file(&TensorFile::read(path)?)
+    }
+}
+
+/// Insert a batch's tensors.
+pub fn batch_to_tensors(file: &mut TensorFile, batch: &Batch) -> Result<()> {
+    let n = batch.n_pixels();
+    let s = batch.samples_per_pixel();
+    let pos: Vec<f64> = batch.positions.iter().flatten().copied().collect();
+    file.insert("batch.positions", Tensor::f64(vec![n, s, 3], &pos)?);
+    file.insert("batch.valid", Tensor::u8(vec![n, s], &batch.valid)?);
+    let dirs: Vec<f32> = batch.dirs.iter().flatten().copied().collect();
+    file.insert("batch.dirs", Tensor::f32(vec![n, 3], &dirs)?);
+    file.insert("batch.view", Tensor::i32(vec![n], &batch.view)?);
+    let tgt: Vec<f32> = batch.target.iter().flatten().copied().collect();
+    file.insert("batch.target", Tensor::f32(vec![n, 3], &tgt)?);
+    Ok(())
+}
+
+/// Read and validate a batch.
+pub fn batch_from_tensors(file: &TensorFile) -> Result<Batch> {
+    let label = file
+        .source
+        .as_ref()
+        .map_or("<in-memory batch>".to_string(), |p| p.display().to_string());
+    let pt = file.get("batch.positions")?;
+    ensure!(
+        pt.shape.len() == 3 && pt.shape[2] == 3 && pt.dtype == DType::F64,
+        "{label}: batch.positions is {} {:?}, expected F64 [N, S, 3]",
+        pt.dtype,
+        pt.shape
+    );
+    let (n, s) = (pt.shape[0], pt.shape[1]);
+    let pos = pt.to_f64()?;
+    let valid = file
+        .get_checked("batch.valid", DType::U8, &[n, s])?
+        .to_u8()?;
+    let dirs = file
+        .get_checked("batch.dirs", DType::F32, &[n, 3])?
+        .to_f32()?;
+    let view = file.get_checked("batch.view", DType::I32, &[n])?.to_i32()?;
+    let target = file
+        .get_checked("batch.target", DType::F32, &[n, 3])?
+        .to_f32()?;
+    let b = Batch {
+        positions: pos.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect(),
+        valid,
+        dirs: dirs.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect(),
+        view,
+        target: target.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect(),
+    };
+    b.validate().with_context(|| label.clone())?;
+    Ok(b)
+}
+
+impl Batch {
+    pub fn save(&self, path: impl AsRef<Path>) -> Result<()> {
+        let mut f = TensorFile::new();
+        f.set_meta("format", FORMAT);
+        batch_to_tensors(&mut f, self)?;
+        f.write_atomic(path)
+    }
+
+    pub fn load(path: impl AsRef<Path>) -> Result<Batch> {
+        batch_from_tensors(&TensorFile::read(path)?)
+    }
+}
+
+/// Expand per-valid-sub-sample rows (`get(chunk)` `[v, width]`) to `[N*S, width]` with zero
+/// rows for invalid sub-samples.
+fn expand<R: Real>(
+    fwd: &Forward<R>,
+    n_s: usize,
+    width: usize,
+    get: impl Fn(&crate::model::hfm::ChunkFwd<R>) -> &[R],
+) -> Vec<R> {
+    let mut out = vec![R::ZERO; n_s * width];
+    for ch in &fwd.chunks {
+        let src = get(ch);
+        for (r, j) in ch.samples.clone().enumerate() {
+            let k = fwd.sample_index[j];
+            out[k * width..(k + 1) * width].copy_from_slice(&src[r * width..(r + 1) * width]);
+        }
+    }
+    out
+}
+
+/// Concatenate per-pixel chunk rows.
+fn concat<R: Real>(
+    fwd: &Forward<R>,
+    get: impl Fn(&crate::model::hfm::ChunkFwd<R>) -> &[R],
+) -> Vec<R> {
+    fwd.chunks
+        .iter()
+        .flat_map(|c| get(c).iter().copied())
+        .collect()
+}
+
+/// Evaluate a checkpoint on a batch in precision `R` and return the dump: inputs, every
+/// intermediate, the loss and every gradient (SPEC §6).
+pub fn dump<R: Real>(ckpt: &Checkpoint, batch: &Batch) -> Result<TensorFile> {
+    let model = &ckpt.model;
+    let params: Vec<R> = ckpt.params.iter().map(|&v| R::from_f32(v)).collect();
+    let fwd = model.forward(&params, batch)?;
+    let mut grads = Grads::<R>::new(&model.layout);
+    model.backward(&params, batch, &fwd, &mut grads);
+
+    let mut f = ckpt.to_tensor_file()?;
+    f.set_meta("precision", R::DTYPE.to_ascii_lowercase());
+    batch_to_tensors(&mut f, batch)?;
+    let n = batch.n_pixels();
+    let s = batch.samples_per_pixel();
+    let lf = model.feat_dim();
+    f.insert(
+        "fwd.grid_h",
+        tensor_of(vec![n, s, lf], &expand(&fwd, n * s, lf, |c| &c.grid_h))?,
+    );
+    if let (Some(gd), Some(mlp)) = (&model.grid_d, &model.deform) {
+        let ld = gd.out_dim();
+        f.insert(
+            "fwd.grid_d",
+            tensor_of(vec![n, s, ld], &expand(&fwd, n * s, ld, |c| &c.grid_d))?,
+        );
+        f.insert(
+            "fwd.deform",
+            tensor_of(vec![n, s, lf], &expand(&fwd, n * s, lf, |c| &c.deform.out))?,
+        );
+        for (i, l) in mlp.layers[..mlp.layers.len() - 1].iter().enumerate() {
+            let w = l.out_dim;
+            f.insert(
+                format!("fwd.deform_hidden.{i}"),
+                tensor_of(
+                    vec![n, s, w],
+                    &expand(&fwd, n * s, w, |c| &c.deform.hidden[i]),
+                )?,
+            );
+        }
+    }
+    f.insert(
+        "fwd.pooled",
+        tensor_of(vec![n, lf], &concat(&fwd, |c| &c.pooled))?,
+    );
+    f.insert(
+        "fwd.sh",
+        tensor_of(vec![n, SH_DIM], &concat(&fwd, |c| &c.sh))?,
+    );
+    let din = model.shader.in_dim();
+    f.insert(
+        "fwd.shader_in",
+        tensor_of(vec![n, din], &concat(&fwd, |c| &c.shader_in))?,
+    );
+    for (i, l) in model.shader.layers[..model.shader.layers.len() - 1]
+        .iter()
+        .enumerate()
+    {
+        f.insert(
+            format!("fwd.shader_hidden.{i}"),
+            tensor_of(vec![n, l.out_dim], &concat(&fwd, |c| &c.shader.hidden[i]))?,
+        );
+    }
+    f.insert(
+        "fwd.logits",
+        tensor_of(vec![n, 3], &concat(&fwd, |c| &c.shader.out))?,
+    );
+    f.insert("fwd.rgb", tensor_of(vec![n, 3], &concat(&fwd, |c| &c.rgb))?);
+    f.insert("loss", tensor_of(vec![], &[R::from_f64(fwd.loss)])?);
+    layout_to_tensors(&mut f, &model.layout, "grad.", &grads.params)?;
+    f.insert(
+        "grad.batch.positions",
+        tensor_of(vec![n, s, 3], &grads.positions)?,
+    );
+    f.insert("grad.batch.dirs", tensor_of(vec![n, 3], &grads.dirs)?);
+    Ok(f)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn tiny_ckpt() -> Checkpoint {
+        let norm = Normalization {
+            center: [1.25, -3.0, 1e6 + 0.1],
+            extent: [2.0, 0.5, 3.000001],
+        };
+        init_checkpoint(&ModelConfig::tiny(), 7, norm, 3).unwrap()
+    }
+
+    #[test]
+    fn checkpoint_roundtrip_exact() {
+        let c = tiny_ckpt();
+        let bytes = c.to_tensor_file().unwrap().to_bytes().unwrap();
+        let back =
+            Checkpoint::from_tensor_file(&TensorFile::from_bytes(&bytes, "mem").unwrap()).unwrap();
+        assert_eq!(back.model.cfg, c.model.cfg);
+        assert_eq!(back.model.layout, c.model.layout);
+        assert_eq!(back.normalization, c.normalization);
+        assert!(back
+            .params
+            .iter()
+            .zip(&c.params)
+            .all(|(a, b)| a.to_bits() == b.to_bits()));
+        assert_eq!(back.model.grid_h.scales, c.model.grid_h.scales);
+        // Deterministic bytes.
+        assert_eq!(bytes, back.to_tensor_file().unwrap().to_bytes().unwrap());
+        // SPEC §6 names.
+        let f = c.to_tensor_file().unwrap();
+        for name in [
+            "grid_h.table",
+            "grid_h.scales",
+            "grid_h.offsets",
+            "grid_d.table",
+            "deform.layers.0.weight",
+            "deform.layers.1.weight",
+            "shader.layers.0.weight",
+            "shader.layers.1.weight",
+            "appearance.codes",
+        ] {
+            assert!(f.tensors.contains_key(name), "{name}");
+        }
+        assert_eq!(f.tensors["appearance.codes"].shape, vec![3, 2]);
+    }
+
+    #[test]
+    fn loading_uses_saved_scales() {
+        let c = tiny_ckpt();
+        let mut f = c.to_tensor_file().unwrap();
+        let mut s = c.model.grid_h.scales.clone();
+        s[1] = f32::from_bits(s[1].to_bits() - 1); // an ulp lower: same resolution
+        f.insert("grid_h.scales", Tensor::f32(vec![s.len()], &s).unwrap());
+        let back = Checkpoint::from_tensor_file(&f).unwrap();
+        assert_eq!(back.model.grid_h.scales, s);
+    }
+
+    #[test]
+    fn switched_off_parts_have_no_tensors() {
+        let mut cfg = ModelConfig::tiny();
+        cfg.deform.enabled = false;
+        cfg.appearance_dim = 0;
+        let c = init_checkpoint(&cfg, 1, Normalization::unit(), 5).unwrap();
+        let f = c.to_tensor_file().unwrap();
+        assert!(f.tensors.keys().all(|k| !k.starts_with("grid_d")
+            && !k.starts_with("deform")
+            && !k.starts_with("appearance")));
+        Checkpoint::from_tensor_file(&f).unwrap();
+    }
+
+    #[test]
+    fn bad_checkpoints_are_named_errors() {
+        let c = tiny_ckpt();
+        let good = c.to_tensor_file().unwrap();
+        let mut f = good.clone();
+        f.tensors.remove("shader.layers.1.weight");
+        let e = format!("{:#}", Checkpoint::from_tensor_file(&f).unwrap_err());
+        assert!(e.contains("shader.layers.1.weight"), "{e}");
+        let mut f = good.clone();
+        f.set_meta("format", "xscale-0");
+        assert!(format!("{:#}", Checkpoint::from_tensor_file(&f).unwrap_err()).contains("format"));
+        let mut f = good.clone();
+        f.insert(
+            "grid_h.offsets",
+            Tensor::u32(vec![5], &[0, 1, 2, 3, 4]).unwrap(),
+        );
+        assert!(
+            format!("{:#}", Checkpoint::from_tensor_file(&f).unwrap_err())
+                .contains("grid_h.offsets")
+        );
+        let mut f = good.clone();
+        f.insert(
+            "appearance.codes",
+            Tensor::f32(vec![2, 2], &[0.0; 4]).unwrap(),
+        );
+        assert!(
+            format!("{:#}", Checkpoint::from_tensor_file(&f).unwrap_err())
+                .contains("appearance.codes")
+        );
+        let mut f = good.clone();
+        let mut w = f.tensors["shader.layers.0.weight"].to_f32().unwrap();
+        w[3] = f32::NAN;
+        f.insert(
+            "shader.layers.0.weight",
+            Tensor::f32(vec![16, 26], &w).unwrap(),
+        );
+        let e = format!("{:#}", Checkpoint::from_tensor_file(&f).unwrap_err());
+        assert!(e.contains("shader.layers.0.weight element 3"), "{e}");
+        let mut f = good;
+        f.set_meta("normalization", "{\"center\":[0,0]}");
+        assert!(
+            format!("{:#}", Checkpoint::from_tensor_file(&f).unwrap_err())
+                .contains("normalization")
+        );
+    }
+
+    #[test]
+    fn batch_roundtrip_and_validation() {
+        let b = Batch::random(3, 20, 4, 3, 0.3);
+        let mut f = TensorFile::new();
+        batch_to_tensors(&mut f, &b).unwrap();
+        let bytes = f.to_bytes().unwrap();
+        let back = batch_from_tensors(&TensorFile::from_bytes(&bytes, "mem").unwrap()).unwrap();
+        assert_eq!(back, b);
+        let mut bad = b.clone();
+        for j in 0..4 {
+            bad.valid[5 * 4 + j] = 0;
+        }
+        let mut f = TensorFile::new();
+        batch_to_tensors(&mut f, &bad).unwrap();
+        let e = format!("{:#}", batch_from_tensors(&f).unwrap_err());
+        assert!(e.contains("pixel 5"), "{e}");
+    }
+
+    #[test]
+    fn dump_has_every_tensor_and_agrees_with_the_model() {
+        let c = tiny_ckpt();
+        let b = Batch::random(4, 300, 4, 3, 0.3);
+        let d = dump::<f64>(&c, &b).unwrap();
+        let n = 300;
+        let shapes: &[(&str, &[usize])] = &[
+            ("fwd.grid_h", &[n, 4, 8]),
+            ("fwd.grid_d", &[n, 4, 4]),
+            ("fwd.deform", &[n, 4, 8]),
+            ("fwd.deform_hidden.0", &[n, 4, 8]),
+            ("fwd.pooled", &[n, 8]),
+            ("fwd.sh", &[n, 16]),
+            ("fwd.shader_in", &[n, 26]),
+            ("fwd.shader_hidden.0", &[n, 16]),
+            ("fwd.logits", &[n, 3]),
+            ("fwd.rgb", &[n, 3]),
+            ("loss", &[]),
+            (
+                "grad.grid_h.table",
+                &c.model.layout.get("grid_h.table").unwrap().shape,
+            ),
+            ("grad.appearance.codes", &[3, 2]),
+            ("grad.batch.positions", &[n, 4, 3]),
+            ("grad.batch.dirs", &[n, 3]),
+            ("batch.positions", &[n, 4, 3]),
+            ("shader.layers.0.weight", &[16, 26]),
+        ];
+        for (name, shape) in shapes {
+            let t = d.get(name).unwrap();
+            assert_eq!(&t.shape[..], *shape, "{name}");
+        }
+        for t in &c.model.layout.tensors {
+            assert!(
+                d.tensors.contains_key(&format!("grad.{}", t.name)),
+                "grad.{}",
+                t.name
+            );
+        }
+        assert_eq!(d.get("fwd.rgb").unwrap().dtype, DType::F64);
+        // Invalid rows are zero; valid rows of F_H are not.
+        let gh = d.get_f64("fwd.grid_h").unwrap();
+        let gp = d.get_f64("grad.batch.positions").unwrap();
+        for k in 0..n * 4 {
+            let row = &gh[k * 8..(k + 1) * 8];
+            if b.valid[k] == 0 {
+                assert!(row.iter().all(|&v| v == 0.0));
+                assert!(gp[k * 3..k * 3 + 3].iter().all(|&v| v == 0.0));
+            } else {
+                assert!(row.iter().any(|&v| v != 0.0));
+            }
+        }
+        // Independent recomputation of rgb and loss from the dumped logits (σ, L1 mean).
+        let logits = d.get_f64("fwd.logits").unwrap();
+        let rgb = d.get_f64("fwd.rgb").unwrap();
+        let mut l = 0.0;
+        for i in 0..n * 3 {
+            let s = 1.0 / (1.0 + (-logits[i]).exp());
+            assert!((s - rgb[i]).abs() < 1e-15);
+            l += (s - b.target[i / 3][i % 3] as f64).abs();
+        }
+        let loss = d.get_f64("loss").unwrap()[0];
+        assert!((l / (3 * n) as f64 - loss).abs() < 1e-14);
+        // ξ starts at zero: the deformation delta is exactly zero at initialisation.
+        assert!(d.get_f64("fwd.deform").unwrap().iter().all(|&v| v == 0.0));
+        // f32 dump agrees with the f64 one to f32 accuracy.
+        let d32 = dump::<f32>(&c, &b).unwrap();
+        assert_eq!(d32.get("fwd.rgb").unwrap().dtype, DType::F32);
+        let rgb32 = d32.get_f64("fwd.rgb").unwrap();
+        assert!(rgb.iter().zip(&rgb32).all(|(a, b)| (a - b).abs() < 1e-5));
+    }
+}

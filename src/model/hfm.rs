@@ -1,0 +1,767 @@
+//! The hash featurized manifold pipeline (the paper's Eq. 2–5) with its explicit backward.
+//!
+//! Per pixel n and each VALID sub-sample j (invalid ones are never evaluated):
+//! ```text
+//! F_H(x_j)                        grid H                                   (Eq. 2)
+//! δ_j = ξ([F_D(x_j), SH(d_n)])    grid D + 1-hidden-layer ReLU MLP, linear (Eq. 5)
+//! F'_j = F_H(x_j) + δ_j
+//! pooled_n = (Σ_j F'_j) / count_n   (sum in sub-sample order)              (Eq. 4)
+//! z_n = shader([pooled_n, SH(d_n), code(view_n)])  ReLU MLP, linear out
+//! rgb_n = σ(z_n)                                                            (Eq. 3)
+//! L = mean over pixels, channels of ρ(rgb − target)                         (SPEC §4.7)
+//! ```
+//! `code(−1)` is the mean of all appearance rows (a view without a code).
+//!
+//! Determinism (SPEC §5): pixels are processed in chunks of [`PIXEL_CHUNK`] (a constant), in
+//! parallel; every per-chunk partial (MLP weight gradients, loss sums) is combined in chunk
+//! order afterwards; grid-table gradients are scattered by the grid's own `backward_table` over
+//! all valid sub-samples in batch order; appearance-code gradients are added in pixel order.
+//! Results are bit-identical whatever the thread count.
+//!
+//! Backward order of accumulation into one buffer (part of the definition):
+//! ∂L/∂SH(d_n) = shader part, then ξ's part for j ascending; ∂L/∂x_j = grid H's part, then grid
+//! D's; ∂L/∂codes: pixels with a code in pixel order, then the mean-code pixels' sum / views
+//! added to every row.
+
+use crate::model::batch::Batch;
+use crate::model::config::ModelConfig;
+use crate::model::hashgrid::HashGrid;
+use crate::model::loss::{loss_backward, loss_forward, sigmoid_backward, sigmoid_forward};
+use crate::model::mlp::{Mlp, MlpActs};
+use crate::model::params::{Grads, Group, ParamLayout};
+use crate::model::sh::{sh_backward, sh_forward, SH_DIM};
+use crate::model::Real;
+use anyhow::{ensure, Context, Result};
+use rayon::prelude::*;
+use std::ops::Range;
+
+/// Pixels per parallel work item. A constant of the code (never derived from the thread count).
+pub const PIXEL_CHUNK: usize = 128;
+
+/// Tensor ids of the initialisation streams (`rng::Purpose::InitTable/InitWeights`, `a` = id).
+pub const TENSOR_ID_GRID_H: u64 = 0;
+pub const TENSOR_ID_GRID_D: u64 = 1;
+pub const TENSOR_ID_DEFORM: u64 = 100; // + layer index
+pub const TENSOR_ID_SHADER: u64 = 200; // + layer index
+
+/// The model's structure: grids, MLPs and the parameter layout (the numbers live in a flat
+/// parameter buffer, see [`ParamLayout`]).
+#[derive(Clone, Debug)]
+pub struct Hfm {
+    pub cfg: ModelConfig,
+    pub grid_h: HashGrid,
+    /// Grid D, when the deformation is enabled.
+    pub grid_d: Option<HashGrid>,
+    /// ξ: `[L_D·F_D + 16] → hidden → [L·F]`.
+    pub deform: Option<Mlp>,
+    /// Shader: `[L·F + 16 + A] → width × hidden_layers → 3`.
+    pub shader: Mlp,
+    pub layout: ParamLayout,
+    r_grid_h: Range<usize>,
+    r_grid_d: Range<usize>,
+    r_deform: Range<usize>,
+    r_shader: Range<usize>,
+    r_codes: Range<usize>,
+}
+
+/// Forward results of one chunk of pixels `pixels` (sub-samples `samples` in the compacted
+/// list of valid sub-samples).
+#[derive(Clone, Debug, Default)]
+pub struct ChunkFwd<R> {
+    pub pixels: Range<usize>,
+    pub samples: Range<usize>,
+    /// `[v, L·F]` F_H at each valid sub-sample (Eq. 2).
+    pub grid_h: Vec<R>,
+    /// `[v, L_D·F_D]` F_D.
+    pub grid_d: Vec<R>,
+    /// `[v, L_D·F_D + 16]` ξ's input.
+    pub deform_in: Vec<R>,
+    /// ξ's activations; `deform.out` `[v, L·F]` is the delta of Eq. 5.
+    pub deform: MlpActs<R>,
+    /// `[n, 16]`.
+    pub sh: Vec<R>,
+    /// `[n, L·F]` (Eq. 4).
+    pub pooled: Vec<R>,
+    /// `[n, L·F + 16 + A]`.
+    pub shader_in: Vec<R>,
+    /// Shader activations; `shader.out` `[n, 3]` are the logits.
+    pub shader: MlpActs<R>,
+    /// `[n, 3]` σ(logits) (Eq. 3).
+    pub rgb: Vec<R>,
+    /// Σ ρ over the chunk (f64).
+    pub loss_sum: f64,
+}
+
+/// Forward results of a batch.
+#[derive(Clone, Debug)]
+pub struct Forward<R> {
+    pub chunks: Vec<ChunkFwd<R>>,
+    /// `[N+1]`: pixel n's valid sub-samples are `start[n]..start[n+1]` of the compacted list.
+    pub start: Vec<usize>,
+    /// `[V]` positions of the valid sub-samples, in batch order.
+    pub points: Vec<[f64; 3]>,
+    /// `[V]` index into the batch's `[N*S]` sub-samples of each valid sub-sample.
+    pub sample_index: Vec<usize>,
+    /// `[A]` mean of all appearance rows (used for view −1).
+    pub code_mean: Vec<R>,
+    /// Loss (mean over pixels and channels), f64.
+    pub loss: f64,
+}
+
+/// One chunk's backward partials.
+struct ChunkGrad<R> {
+    d_shader: Vec<R>,
+    d_deform: Vec<R>,
+    /// `[v, L·F]` ∂L/∂F'_j (= ∂L/∂F_H(x_j) = ∂L/∂δ_j).
+    d_feat: Vec<R>,
+    /// `[v, L_D·F_D]`.
+    d_grid_d: Vec<R>,
+    /// `[n, A]`.
+    d_code: Vec<R>,
+    /// `[n, 3]`.
+    d_dirs: Vec<R>,
+    /// `[v, 3]`.
+    d_points: Vec<R>,
+}
+
+impl Hfm {
+    /// Structure for a config, with grid scales computed as tiny-cuda-nn does.
+    pub fn new(cfg: &ModelConfig) -> Result<Hfm> {
+        let gh = HashGrid::try_new(&cfg.grid_h).context("config: grid_h")?;
+        let gd = if cfg.deform.enabled {
+            Some(HashGrid::try_new(&cfg.deform.grid).context("config: deform.grid")?)
+        } else {
+            None
+        };
+        Hfm::with_grids(cfg, gh, gd)
+    }
+
+    /// Structure with given grids (e.g. built from a checkpoint's saved scales).
+    pub fn with_grids(
+        cfg: &ModelConfig,
+        grid_h: HashGrid,
+        grid_d: Option<HashGrid>,
+    ) -> Result<Hfm> {
+        ensure!(
+            cfg.grid_h.levels > 0 && cfg.grid_h.features > 0,
+            "config: grid_h has no features"
+        );
+        ensure!(
+            cfg.deform.enabled == grid_d.is_some(),
+            "config: deform.enabled = {} but grid D is {}",
+            cfg.deform.enabled,
+            if grid_d.is_some() {
+                "present"
+            } else {
+                "absent"
+            }
+        );
+        let lf = grid_h.out_dim();
+        let a = cfg.appearance_dim as usize;
+        let mut layout = ParamLayout::default();
+        let fh = cfg.grid_h.features as usize;
+        let r_grid_h = layout.push("grid_h.table", &[grid_h.n_entries(), fh], Group::GridH);
+        let mut r_grid_d = 0..0;
+        let mut r_deform = 0..0;
+        let mut deform = None;
+        if let Some(gd) = &grid_d {
+            ensure!(cfg.deform.hidden > 0, "config: deform.hidden must be > 0");
+            r_grid_d = layout.push(
+                "grid_d.table",
+                &[gd.n_entries(), cfg.deform.grid.features as usize],
+                Group::GridD,
+            );
+            let mlp = Mlp::new(
+                &[gd.out_dim() + SH_DIM, cfg.deform.hidden as usize, lf],
+                cfg.shader.bias,
+            );
+            r_deform = push_mlp(&mut layout, "deform", &mlp, Group::Deform);
+            deform = Some(mlp);
+        }
+        let mut dims = vec![lf + SH_DIM + a];
+        dims.extend(std::iter::repeat_n(
+            cfg.shader.width as usize,
+            cfg.shader.hidden_layers as usize,
+        ));
+        dims.push(3);
+        let shader = Mlp::new(&dims, cfg.shader.bias);
+        let r_shader = push_mlp(&mut layout, "shader", &shader, Group::Shader);
+        let r_codes = if a > 0 {
+            layout.push(
+                "appearance.codes",
+                &[cfg.appearance_views as usize, a],
+                Group::Appearance,
+            )
+        } else {
+            0..0
+        };
+        Ok(Hfm {
+            cfg: cfg.clone(),
+            grid_h,
+            grid_d,
+            deform,
+            shader,
+            layout,
+            r_grid_h,
+            r_grid_d,
+            r_deform,
+            r_shader,
+            r_codes,
+        })
+    }
+
+    /// Freshly initialised parameters (f32) in the layout: grids U(±1e-4), MLPs Xavier-uniform,
+    /// ξ's last layer zero, biases zero, appearance codes zero.
+    pub fn init_params(&self, seed: u64) -> Vec<f32> {
+        let mut p = vec![0.0f32; self.layout.total];
+        p[self.r_grid_h.clone()].copy_from_slice(&self.grid_h.init_table(seed, TENSOR_ID_GRID_H));
+        if let (Some(gd), Some(mlp)) = (&self.grid_d, &self.deform) {
+            p[self.r_grid_d.clone()].copy_from_slice(&gd.init_table(seed, TENSOR_ID_GRID_D));
+            let ids: Vec<u64> = (0..mlp.layers.len() as u64)
+                .map(|k| TENSOR_ID_DEFORM + k)
+                .collect();
+            p[self.r_deform.clone()].copy_from_slice(&mlp.init(seed, &ids, true));
+        }
+        let ids: Vec<u64> = (0..self.shader.layers.len() as u64)
+            .map(|k| TENSOR_ID_SHADER + k)
+            .collect();
+        p[self.r_shader.clone()].copy_from_slice(&self.shader.init(seed, &ids, false));
+        p
+    }
+
+    /// `L·F` of grid H.
+    pub fn feat_dim(&self) -> usize {
+        self.grid_h.out_dim()
+    }
+    pub fn appearance_dim(&self) -> usize {
+        self.cfg.appearance_dim as usize
+    }
+    pub fn appearance_views(&self) -> usize {
+        if self.appearance_dim() > 0 {
+            self.cfg.appearance_views as usize
+        } else {
+            0
+        }
+    }
+
+    /// Check a batch against this model (shapes, validity, view rows).
+    pub fn check_batch(&self, batch: &Batch) -> Result<()> {
+        batch.validate()?;
+        let views = self.appearance_views() as i32;
+        if self.appearance_dim() > 0 {
+            for (i, &v) in batch.view.iter().enumerate() {
+                ensure!(
+                    v < views,
+                    "batch: pixel {i}: view {v} has no appearance code (the model has {views} rows)"
+                );
+            }
+        }
+        Ok(())
+    }
+
+    /// Forward pass over a batch (parallel over pixel chunks).
+    pub fn forward<R: Real>(&self, params: &[R], batch: &Batch) -> Result<Forward<R>> {
+        ensure!(
+            params.len() == self.layout.total,
+            "parameters: {} values, the layout needs {}",
+            params.len(),
+            self.layout.total
+        );
+        self.check_batch(batch)?;
+        let n = batch.n_pixels();
+        let s = batch.samples_per_pixel();
+        // Compacted list of valid sub-samples (CSR by pixel).
+        let mut start = Vec::with_capacity(n + 1);
+        let mut points = Vec::new();
+        let mut sample_index = Vec::new();
+        start.push(0);
+        for i in 0..n {
+            for j in 0..s {
+                let k = i * s + j;
+                if batch.valid[k] != 0 {
+                    points.push(batch.positions[k]);
+                    sample_index.push(k);
+                }
+            }
+            start.push(points.len());
+        }
+        let code_mean = self.code_mean(params);
+        let wt_shader = self
+            .shader
+            .transpose_weights(&params[self.r_shader.clone()]);
+        let wt_deform = self
+            .deform
+            .as_ref()
+            .map(|m| m.transpose_weights(&params[self.r_deform.clone()]));
+        let n_chunks = n.div_ceil(PIXEL_CHUNK);
+        let chunks: Vec<ChunkFwd<R>> = (0..n_chunks)
+            .into_par_iter()
+            .map(|c| {
+                let p0 = c * PIXEL_CHUNK;
+                let p1 = (p0 + PIXEL_CHUNK).min(n);
+                self.forward_chunk(
+                    params,
+                    batch,
+                    &start,
+                    &points,
+                    &code_mean,
+                    &wt_shader,
+                    wt_deform.as_deref(),
+                    p0..p1,
+                )
+            })
+            .collect();
+        let mut sum = 0.0f64;
+        for ch in &chunks {
+            sum += ch.loss_sum; // chunk order
+        }
+        Ok(Forward {
+            chunks,
+            start,
+            points,
+            sample_index,
+            code_mean,
+            loss: sum / (3 * n) as f64,
+        })
+    }
+
+    /// `[A]` mean of all appearance rows (row order sum, then divide).
+    fn code_mean<R: Real>(&self, params: &[R]) -> Vec<R> {
+        let a = self.appearance_dim();
+        let views = self.appearance_views();
+        let mut m = vec![R::ZERO; a];
+        if a == 0 || views == 0 {
+            return m;
+        }
+        let codes = &params[self.r_codes.clone()];
+        for row in codes.chunks_exact(a) {
+            for (mi, &v) in m.iter_mut().zip(row) {
+                *mi += v;
+            }
+        }
+        let inv = R::from_f64(views as f64);
+        for v in m.iter_mut() {
+            *v = *v / inv;
+        }
+        m
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn forward_chunk<R: Real>(
+        &self,
+        params: &[R],
+        batch: &Batch,
+        start: &[usize],
+        points: &[[f64; 3]],
+        code_mean: &[R],
+        wt_shader: &[Vec<R>],
+        wt_deform: Option<&[Vec<R>]>,
+        pixels: Range<usize>,
+    ) -> ChunkFwd<R> {
+        let mode = self.cfg.positions;
+        let lf = self.feat_dim();
+        let a = self.appearance_dim();
+        let samples = start[pixels.start]..start[pixels.end];
+        let (n, v) = (pixels.len(), samples.len());
+        let pts = &points[samples.clone()];
+        let mut f = ChunkFwd::<R> {
+            pixels: pixels.clone(),
+            samples: samples.clone(),
+            ..Default::default()
+        };
+        // Eq. 2: F_H at every valid sub-sample.
+        f.grid_h = vec![R::ZERO; v * lf];
+        self.grid_h
+            .forward(&params[self.r_grid_h.clone()], pts, mode, &mut f.grid_h);
+        // SH(d_n).
+        f.sh = vec![R::ZERO; n * SH_DIM];
+        sh_forward(&batch.dirs[pixels.clone()], &mut f.sh);
+        // Eq. 5: δ_j = ξ([F_D(x_j), SH(d_n)]).
+        if let (Some(gd), Some(mlp), Some(wt)) = (&self.grid_d, &self.deform, wt_deform) {
+            let ld = gd.out_dim();
+            f.grid_d = vec![R::ZERO; v * ld];
+            gd.forward(&params[self.r_grid_d.clone()], pts, mode, &mut f.grid_d);
+            let din = ld + SH_DIM;
+            f.deform_in = vec![R::ZERO; v * din];
+            for i in 0..n {
+                let sh = &f.sh[i * SH_DIM..(i + 1) * SH_DIM];
+                for j in start[pixels.start + i]..start[pixels.start + i + 1] {
+                    let r = j - samples.start;
+                    let row = &mut f.deform_in[r * din..(r + 1) * din];
+                    row[..ld].copy_from_slice(&f.grid_d[r * ld..(r + 1) * ld]);
+                    row[ld..].copy_from_slice(sh);
+                }
+            }
+            mlp.forward(
+                &params[self.r_deform.clone()],
+                wt,
+                &f.deform_in,
+                v,
+                &mut f.deform,
+            );
+        }
+        // Eq. 4: pooled_n = (Σ_j F'_j) / count_n, F'_j = F_H(x_j) + δ_j.
+        f.pooled = vec![R::ZERO; n * lf];
+        let local_start: Vec<usize> = start[pixels.start..=pixels.end]
+            .iter()
+            .map(|&x| x - samples.start)
+            .collect();
+        let delta = self.deform.as_ref().map(|_| &f.deform.out[..]);
+        pool_forward(&local_start, &f.grid_h, delta, lf, &mut f.pooled);
+        // Shader input [pooled, SH(d), code(view)].
+        let din = lf + SH_DIM + a;
+        f.shader_in = vec![R::ZERO; n * din];
+        let codes = &params[self.r_codes.clone()];
+        for i in 0..n {
+            let row = &mut f.shader_in[i * din..(i + 1) * din];
+            row[..lf].copy_from_slice(&f.pooled[i * lf..(i + 1) * lf]);
+            row[lf..lf + SH_DIM].copy_from_slice(&f.sh[i * SH_DIM..(i + 1) * SH_DIM]);
+            if a > 0 {
+                let vw = batch.view[pixels.start + i];
+                let code = if vw >= 0 {
+                    &codes[vw as usize * a..(vw as usize + 1) * a]
+                } else {
+                    code_mean
+                };
+                row[lf + SH_DIM..].copy_from_slice(code);
+            }
+        }
+        // Eq. 3: shader MLP → σ → rgb.
+        self.shader.forward(
+            &params[self.r_shader.clone()],
+            wt_shader,
+            &f.shader_in,
+            n,
+            &mut f.shader,
+        );
+        f.rgb = vec![R::ZERO; n * 3];
+        sigmoid_forward(&f.shader.out, &mut f.rgb);
+        f.loss_sum = loss_forward(
+            self.cfg.loss,
+            self.cfg.smooth_l1_delta,
+            &f.rgb,
+            &batch.target[pixels],
+        );
+        f
+    }
+
+    /// Backward pass: ACCUMULATES ∂L/∂params, ∂L/∂positions `[N*S*3]` and ∂L/∂dirs `[N*3]` into
+    /// `grads` (input-gradient buffers are sized to the batch if empty). `fwd` must come from
+    /// [`Hfm::forward`] with the same parameters and batch.
+    pub fn backward<R: Real>(
+        &self,
+        params: &[R],
+        batch: &Batch,
+        fwd: &Forward<R>,
+        grads: &mut Grads<R>,
+    ) {
+        let n = batch.n_pixels();
+        let s = batch.samples_per_pixel();
+        assert_eq!(
+            grads.params.len(),
+            self.layout.total,
+            "gradient buffer layout"
+        );
+        if grads.positions.len() != n * s * 3 {
+            grads.positions = vec![R::ZERO; n * s * 3];
+        }
+        if grads.dirs.len() != n * 3 {
+            grads.dirs = vec![R::ZERO; n * 3];
+        }
+        let scale = R::ONE / R::from_f64((3 * n) as f64);
+        let cg: Vec<ChunkGrad<R>> = fwd
+            .chunks
+            .par_iter()
+            .map(|ch| self.backward_chunk(params, batch, fwd, ch, scale))
+            .collect();
+
+        // Combine MLP weight gradients in chunk order.
+        for c in &cg {
+            add_into(&mut grads.params[self.r_shader.clone()], &c.d_shader);
+            if self.deform.is_some() {
+                add_into(&mut grads.params[self.r_deform.clone()], &c.d_deform);
+            }
+        }
+        // Direction and position gradients (each pixel / sub-sample written by one chunk).
+        for (ch, c) in fwd.chunks.iter().zip(&cg) {
+            add_into(
+                &mut grads.dirs[ch.pixels.start * 3..ch.pixels.end * 3],
+                &c.d_dirs,
+            );
+            for (r, j) in ch.samples.clone().enumerate() {
+                let k = fwd.sample_index[j];
+                add_into(
+                    &mut grads.positions[k * 3..k * 3 + 3],
+                    &c.d_points[r * 3..r * 3 + 3],
+                );
+            }
+        }
+        // Appearance codes: pixels with a code in pixel order, then the mean-code pixels.
+        let a = self.appearance_dim();
+        if a > 0 {
+            let views = self.appearance_views();
+            let mut mean_acc = vec![R::ZERO; a];
+            let mut any_mean = false;
+            let d_codes = &mut grads.params[self.r_codes.clone()];
+            for (ch, c) in fwd.chunks.iter().zip(&cg) {
+                for (i, dc) in ch.pixels.clone().zip(c.d_code.chunks_exact(a)) {
+                    let vw = batch.view[i];
+                    if vw >= 0 {
+                        add_into(&mut d_codes[vw as usize * a..(vw as usize + 1) * a], dc);
+                    } else {
+                        any_mean = true;
+                        add_into(&mut mean_acc, dc);
+                    }
+                }
+            }
+            if any_mean && views > 0 {
+                let inv = R::from_f64(views as f64);
+                for m in mean_acc.iter_mut() {
+                    *m = *m / inv;
+                }
+                for row in d_codes.chunks_exact_mut(a) {
+                    add_into(row, &mean_acc);
+                }
+            }
+        }
+        // Grid tables: one scatter over all valid sub-samples in batch order (H and D write
+        // disjoint buffers, so they run concurrently).
+        let mode = self.cfg.positions;
+        let d_feat: Vec<R> = cg.iter().flat_map(|c| c.d_feat.iter().copied()).collect();
+        let (before_d, from_d) = grads
+            .params
+            .split_at_mut(self.r_grid_d.start.max(self.r_grid_h.end));
+        let d_table_h = &mut before_d[self.r_grid_h.clone()];
+        let touched_h = &mut grads.touched_h;
+        let touched_d = &mut grads.touched_d;
+        let points = &fwd.points;
+        rayon::join(
+            || {
+                self.grid_h
+                    .backward_table(points, mode, &d_feat, d_table_h, touched_h)
+            },
+            || {
+                if let Some(gd) = &self.grid_d {
+                    let d_gd: Vec<R> = cg.iter().flat_map(|c| c.d_grid_d.iter().copied()).collect();
+                    let len = self.r_grid_d.len();
+                    gd.backward_table(points, mode, &d_gd, &mut from_d[..len], touched_d);
+                }
+            },
+        );
+    }
+
+    fn backward_chunk<R: Real>(
+        &self,
+        params: &[R],
+        batch: &Batch,
+        fwd: &Forward<R>,
+        ch: &ChunkFwd<R>,
+        scale: R,
+    ) -> ChunkGrad<R> {
+        let mode = self.cfg.positions;
+        let lf = self.feat_dim();
+        let a = self.appearance_dim();
+        let (n, v) = (ch.pixels.len(), ch.samples.len());
+        let pts = &fwd.points[ch.samples.clone()];
+        // Loss and σ.
+        let mut d_rgb = vec![R::ZERO; n * 3];
+        loss_backward(
+            self.cfg.loss,
+            self.cfg.smooth_l1_delta,
+            &ch.rgb,
+            &batch.target[ch.pixels.clone()],
+            scale,
+            &mut d_rgb,
+        );
+        let mut d_logits = vec![R::ZERO; n * 3];
+        sigmoid_backward(&ch.rgb, &d_rgb, &mut d_logits);
+        // Shader (Eq. 3).
+        let din = lf + SH_DIM + a;
+        let mut d_shader = vec![R::ZERO; self.shader.n_params];
+        let mut d_in = vec![R::ZERO; n * din];
+        self.shader.backward(
+            &params[self.r_shader.clone()],
+            &ch.shader_in,
+            n,
+            &ch.shader,
+            d_logits,
+            &mut d_shader,
+            Some(&mut d_in),
+        );
+        let mut d_sh = vec![R::ZERO; n * SH_DIM];
+        let mut d_code = vec![R::ZERO; n * a];
+        for i in 0..n {
+            let row = &d_in[i * din..(i + 1) * din];
+            d_sh[i * SH_DIM..(i + 1) * SH_DIM].copy_from_slice(&row[lf..lf + SH_DIM]);
+            d_code[i * a..(i + 1) * a].copy_from_slice(&row[lf + SH_DIM..]);
+        }
+        // Eq. 4 backward: ∂L/∂F'_j = ∂L/∂pooled_n / count_n.
+        let mut d_feat = vec![R::ZERO; v * lf];
+        let local_start: Vec<usize> = fwd.start[ch.pixels.start..=ch.pixels.end]
+            .iter()
+            .map(|&x| x - ch.samples.start)
+            .collect();
+        pool_backward(&local_start, &d_in, din, lf, &mut d_feat);
+        let mut d_points = vec![R::ZERO; v * 3];
+        // Eq. 5 backward through ξ and into SH(d) and F_D.
+        let mut d_deform = Vec::new();
+        let mut d_grid_d = Vec::new();
+        if let (Some(gd), Some(mlp)) = (&self.grid_d, &self.deform) {
+            let ld = gd.out_dim();
+            let ddin = ld + SH_DIM;
+            d_deform = vec![R::ZERO; mlp.n_params];
+            let mut d_din = vec![R::ZERO; v * ddin];
+            mlp.backward(
+                &params[self.r_deform.clone()],
+                &ch.deform_in,
+                v,
+                &ch.deform,
+                d_feat.clone(),
+                &mut d_deform,
+                Some(&mut d_din),
+            );
+            d_grid_d = vec![R::ZERO; v * ld];
+            for i in 0..n {
+                let p = ch.pixels.start + i;
+                for r in fwd.start[p] - ch.samples.start..fwd.start[p + 1] - ch.samples.start {
+                    let row = &d_din[r * ddin..(r + 1) * ddin];
+                    d_grid_d[r * ld..(r + 1) * ld].copy_from_slice(&row[..ld]);
+                    add_into(&mut d_sh[i * SH_DIM..(i + 1) * SH_DIM], &row[ld..]);
+                }
+            }
+            // Position gradient: grid H first (below), then grid D — keep that order.
+            self.grid_h.backward_points(
+                &params[self.r_grid_h.clone()],
+                pts,
+                mode,
+                &d_feat,
+                &mut d_points,
+            );
+            gd.backward_points(
+                &params[self.r_grid_d.clone()],
+                pts,
+                mode,
+                &d_grid_d,
+                &mut d_points,
+            );
+        } else {
+            self.grid_h.backward_points(
+                &params[self.r_grid_h.clone()],
+                pts,
+                mode,
+                &d_feat,
+                &mut d_points,
+            );
+        }
+        // SH backward into the directions.
+        let mut d_dirs = vec![R::ZERO; n * 3];
+        sh_backward(&batch.dirs[ch.pixels.clone()], &d_sh, &mut d_dirs);
+        ChunkGrad {
+            d_shader,
+            d_deform,
+            d_feat,
+            d_grid_d,
+            d_code,
+            d_dirs,
+            d_points,
+        }
+    }
+
+    /// Forward + backward: accumulates gradients into `grads`, returns the loss.
+    pub fn loss_and_grad<R: Real>(
+        &self,
+        params: &[R],
+        batch: &Batch,
+        grads: &mut Grads<R>,
+    ) -> Result<f64> {
+        let fwd = self.forward(params, batch)?;
+        self.backward(params, batch, &fwd, grads);
+        Ok(fwd.loss)
+    }
+
+    /// Features touched sets for sparse zeroing: `(F_H, F_D)`.
+    pub fn grid_features(&self) -> (usize, usize) {
+        (
+            self.cfg.grid_h.features as usize,
+            self.cfg.deform.grid.features as usize,
+        )
+    }
+}
+
+/// Eq. 4 forward: `out[n, lf] = (Σ_{j ∈ start[n]..start[n+1]} (feat[j] + delta[j])) / count_n`,
+/// summed in sub-sample order starting from +0, then divided by the count (overwrites `out`).
+/// `start [n+1]` indexes the rows of `feat`/`delta` `[v, lf]`.
+pub fn pool_forward<R: Real>(
+    start: &[usize],
+    feat: &[R],
+    delta: Option<&[R]>,
+    lf: usize,
+    out: &mut [R],
+) {
+    for (i, w) in start.windows(2).enumerate() {
+        let cnt = R::from_f64((w[1] - w[0]) as f64);
+        let o = &mut out[i * lf..(i + 1) * lf];
+        o.fill(R::ZERO);
+        for r in w[0]..w[1] {
+            let g = &feat[r * lf..(r + 1) * lf];
+            match delta {
+                Some(d) => {
+                    for ((o, &g), &d) in o.iter_mut().zip(g).zip(&d[r * lf..(r + 1) * lf]) {
+                        *o += g + d;
+                    }
+                }
+                None => add_into(o, g),
+            }
+        }
+        for v in o.iter_mut() {
+            *v = *v / cnt;
+        }
+    }
+}
+
+/// Eq. 4 backward: `d_feat[j] = d_pooled[n] / count_n` for every valid sub-sample j of pixel n
+/// (OVERWRITES `d_feat [v, lf]`, which is both ∂L/∂F_H(x_j) and ∂L/∂δ_j). `d_pooled` rows have
+/// stride `stride` (the pooled block is the first `lf` columns).
+pub fn pool_backward<R: Real>(
+    start: &[usize],
+    d_pooled: &[R],
+    stride: usize,
+    lf: usize,
+    d_feat: &mut [R],
+) {
+    for (i, w) in start.windows(2).enumerate() {
+        let cnt = R::from_f64((w[1] - w[0]) as f64);
+        let dp = &d_pooled[i * stride..i * stride + lf];
+        for r in w[0]..w[1] {
+            for (d, &g) in d_feat[r * lf..(r + 1) * lf].iter_mut().zip(dp) {
+                *d = g / cnt;
+            }
+        }
+    }
+}
+
+/// `dst += src` element-wise.
+#[inline]
+fn add_into<R: Real>(dst: &mut [R], src: &[R]) {
+    for (d, &s) in dst.iter_mut().zip(src) {
+        *d += s;
+    }
+}
+
+/// Push an MLP's tensors (`<net>.layers.{i}.weight` [out, in], `.bias` [out]) contiguously.
+fn push_mlp(layout: &mut ParamLayout, net: &str, mlp: &Mlp, group: Group) -> Range<usize> {
+    let start = layout.total;
+    for (i, l) in mlp.layers.iter().enumerate() {
+        let r = layout.push(
+            &format!("{net}.layers.{i}.weight"),
+            &[l.out_dim, l.in_dim],
+            group,
+        );
+        debug_assert_eq!(r.start - start, l.w_off);
+        if let Some(b) = l.b_off {
+            let r = layout.push(&format!("{net}.layers.{i}.bias"), &[l.out_dim], group);
+            debug_assert_eq!(r.start - start, b);
+        }
+    }
+    start..layout.total
+}

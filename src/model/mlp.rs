@@ -1,0 +1,490 @@
+//! ReLU MLPs (the shader of Eq. 3 and the deformation ξ of Eq. 5): linear layers `y = W x (+ b)`
+//! with `W` `[out, in]` row-major and an optional bias, ReLU after every hidden layer, the last
+//! layer linear (the shader's sigmoid lives in `hfm.rs`). Xavier-uniform initialisation from the
+//! counter-based generator; optionally a zero last layer (ξ starts undeformed, SPEC §4.4).
+//!
+//! Numerics (part of the oracle's definition; a backend comparing against us should expect
+//! ~1e-6 relative differences, not bit equality, because it will sum in another order):
+//! - forward: `y[o] = (((b[o] or +0) + x[0]·W[o,0]) + x[1]·W[o,1]) + …` in input order, every
+//!   product and sum rounded separately (no fused multiply-add: Rust never contracts, and the
+//!   result does not depend on the CPU's FMA support). Inputs that are exactly zero (ReLU zeros)
+//!   are skipped, which changes no finite result.
+//! - backward, per row m in order: `dx[m,i] += Σ_o dy[m,o]·W[o,i]` (o ascending),
+//!   `dW[o,i] += dy[m,o]·x[m,i]`, `db[o] += dy[m,o]`; terms with `dy == 0` are skipped.
+//!   Callers hand in a fresh (zeroed) chunk buffer for `dW` per fixed-size chunk of rows and
+//!   combine chunk buffers in chunk order (SPEC §5), so results never depend on the thread count.
+//! - The loops are written so the compiler vectorises the innermost axpy; on x86-64 an AVX2
+//!   copy of each kernel is chosen at run time. Both copies do the same IEEE operations in the
+//!   same order, so they are bit-identical (tested below).
+
+use crate::model::Real;
+use crate::rng::{self, Purpose};
+
+/// One linear layer inside an MLP's parameter slice.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Linear {
+    pub in_dim: usize,
+    pub out_dim: usize,
+    /// Offset of `W [out, in]` in the MLP's parameter slice.
+    pub w_off: usize,
+    /// Offset of `b [out]`, if the layer has a bias.
+    pub b_off: Option<usize>,
+}
+
+/// A ReLU MLP whose parameters are one contiguous slice (`[W0, (b0), W1, (b1), …]`).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Mlp {
+    pub layers: Vec<Linear>,
+    pub n_params: usize,
+}
+
+/// Forward activations of an MLP over `rows` rows: `hidden[k]` is layer k's output after ReLU
+/// (`[rows, width_k]`), `out` the last layer's linear output `[rows, out]`.
+#[derive(Clone, Debug, Default)]
+pub struct MlpActs<R> {
+    pub hidden: Vec<Vec<R>>,
+    pub out: Vec<R>,
+}
+
+impl Mlp {
+    /// `dims = [in, hidden…, out]`.
+    pub fn new(dims: &[usize], bias: bool) -> Mlp {
+        assert!(
+            dims.len() >= 2,
+            "an MLP needs at least an input and an output size"
+        );
+        let mut off = 0;
+        let mut layers = Vec::new();
+        for w in dims.windows(2) {
+            let (i, o) = (w[0], w[1]);
+            let w_off = off;
+            off += i * o;
+            let b_off = if bias {
+                let b = off;
+                off += o;
+                Some(b)
+            } else {
+                None
+            };
+            layers.push(Linear {
+                in_dim: i,
+                out_dim: o,
+                w_off,
+                b_off,
+            });
+        }
+        Mlp {
+            layers,
+            n_params: off,
+        }
+    }
+
+    pub fn in_dim(&self) -> usize {
+        self.layers[0].in_dim
+    }
+    pub fn out_dim(&self) -> usize {
+        self.layers.last().unwrap().out_dim
+    }
+
+    /// Transposed weights `Wᵀ [in, out]` of every layer (the forward kernel's layout). Computed
+    /// once per pipeline pass and shared by all chunks.
+    pub fn transpose_weights<R: Real>(&self, p: &[R]) -> Vec<Vec<R>> {
+        self.layers
+            .iter()
+            .map(|l| {
+                let w = &p[l.w_off..l.w_off + l.in_dim * l.out_dim];
+                let mut t = vec![R::ZERO; w.len()];
+                for o in 0..l.out_dim {
+                    for i in 0..l.in_dim {
+                        t[i * l.out_dim + o] = w[o * l.in_dim + i];
+                    }
+                }
+                t
+            })
+            .collect()
+    }
+
+    /// Forward over `rows` rows of `x [rows, in]`. `wt` from [`Mlp::transpose_weights`].
+    pub fn forward<R: Real>(
+        &self,
+        p: &[R],
+        wt: &[Vec<R>],
+        x: &[R],
+        rows: usize,
+        acts: &mut MlpActs<R>,
+    ) {
+        let n = self.layers.len();
+        acts.hidden.resize_with(n - 1, Vec::new);
+        for (k, l) in self.layers.iter().enumerate() {
+            let bias = l.b_off.map(|b| &p[b..b + l.out_dim]);
+            let mut y = if k + 1 < n {
+                std::mem::take(&mut acts.hidden[k])
+            } else {
+                std::mem::take(&mut acts.out)
+            };
+            y.clear();
+            y.resize(rows * l.out_dim, R::ZERO);
+            {
+                let input: &[R] = if k == 0 { x } else { &acts.hidden[k - 1] };
+                linear_forward(&wt[k], bias, input, rows, l.in_dim, l.out_dim, &mut y);
+            }
+            if k + 1 < n {
+                relu_forward(&mut y);
+                acts.hidden[k] = y;
+            } else {
+                acts.out = y;
+            }
+        }
+    }
+
+    /// Backward over the same rows. `d_out [rows, out]` is ∂L/∂(last linear output) and is
+    /// consumed as scratch. Accumulates `dp += ∂L/∂params` (the MLP's own parameter layout) and,
+    /// if given, `dx [rows, in] += ∂L/∂x`.
+    #[allow(clippy::too_many_arguments)]
+    pub fn backward<R: Real>(
+        &self,
+        p: &[R],
+        x: &[R],
+        rows: usize,
+        acts: &MlpActs<R>,
+        d_out: Vec<R>,
+        dp: &mut [R],
+        dx: Option<&mut [R]>,
+    ) {
+        let mut dy = d_out;
+        let mut dx = dx;
+        for (k, l) in self.layers.iter().enumerate().rev() {
+            let w = &p[l.w_off..l.w_off + l.in_dim * l.out_dim];
+            let input: &[R] = if k == 0 { x } else { &acts.hidden[k - 1] };
+            let (dw_part, rest) = dp[l.w_off..].split_at_mut(l.in_dim * l.out_dim);
+            let db = l.b_off.map(|b| {
+                debug_assert_eq!(b, l.w_off + l.in_dim * l.out_dim);
+                &mut rest[..l.out_dim]
+            });
+            if k > 0 {
+                let mut dprev = vec![R::ZERO; rows * l.in_dim];
+                linear_backward(
+                    w,
+                    input,
+                    &dy,
+                    rows,
+                    l.in_dim,
+                    l.out_dim,
+                    dw_part,
+                    db,
+                    Some(&mut dprev),
+                );
+                relu_backward(&acts.hidden[k - 1], &mut dprev);
+                dy = dprev;
+            } else {
+                linear_backward(
+                    w,
+                    input,
+                    &dy,
+                    rows,
+                    l.in_dim,
+                    l.out_dim,
+                    dw_part,
+                    db,
+                    dx.take(),
+                );
+            }
+        }
+    }
+
+    /// Xavier-uniform weights `U(±sqrt(6/(fan_in+fan_out)))`, element e of layer k drawn as
+    /// `uniform_f64(seed, InitWeights, tensor_ids[k], e)`; biases zero; the last layer all zero
+    /// if `zero_last` (ξ, SPEC §4.4). Returns the MLP's parameter slice in f32.
+    pub fn init(&self, seed: u64, tensor_ids: &[u64], zero_last: bool) -> Vec<f32> {
+        let mut p = vec![0.0f32; self.n_params];
+        for (k, l) in self.layers.iter().enumerate() {
+            if zero_last && k + 1 == self.layers.len() {
+                continue;
+            }
+            let limit = (6.0 / (l.in_dim + l.out_dim) as f64).sqrt();
+            for e in 0..l.in_dim * l.out_dim {
+                let u = rng::uniform_f64(seed, Purpose::InitWeights, tensor_ids[k], e as u64);
+                p[l.w_off + e] = ((2.0 * u - 1.0) * limit) as f32;
+            }
+        }
+        p
+    }
+}
+
+/// `y [rows, out] = x [rows, in] · Wᵀ (+ b)` (overwritten), with `wt = Wᵀ [in, out]`.
+pub fn linear_forward<R: Real>(
+    wt: &[R],
+    b: Option<&[R]>,
+    x: &[R],
+    rows: usize,
+    in_dim: usize,
+    out_dim: usize,
+    y: &mut [R],
+) {
+    #[cfg(target_arch = "x86_64")]
+    if std::is_x86_feature_detected!("avx2") {
+        // SAFETY: the CPU supports AVX2 (checked just above).
+        unsafe { linear_forward_avx2(wt, b, x, rows, in_dim, out_dim, y) };
+        return;
+    }
+    linear_forward_body(wt, b, x, rows, in_dim, out_dim, y)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn linear_forward_avx2<R: Real>(
+    wt: &[R],
+    b: Option<&[R]>,
+    x: &[R],
+    rows: usize,
+    in_dim: usize,
+    out_dim: usize,
+    y: &mut [R],
+) {
+    linear_forward_body(wt, b, x, rows, in_dim, out_dim, y)
+}
+
+#[inline(always)]
+fn linear_forward_body<R: Real>(
+    wt: &[R],
+    b: Option<&[R]>,
+    x: &[R],
+    rows: usize,
+    in_dim: usize,
+    out_dim: usize,
+    y: &mut [R],
+) {
+    assert!(wt.len() == in_dim * out_dim && x.len() >= rows * in_dim && y.len() >= rows * out_dim);
+    for m in 0..rows {
+        let xr = &x[m * in_dim..(m + 1) * in_dim];
+        let yr = &mut y[m * out_dim..(m + 1) * out_dim];
+        match b {
+            Some(b) => yr.copy_from_slice(b),
+            None => yr.fill(R::ZERO),
+        }
+        for (i, &xi) in xr.iter().enumerate() {
+            if xi == R::ZERO {
+                continue;
+            }
+            let w = &wt[i * out_dim..(i + 1) * out_dim];
+            for (yo, &wo) in yr.iter_mut().zip(w) {
+                *yo += xi * wo;
+            }
+        }
+    }
+}
+
+/// ReLU in place: `max(0, y)` (NaN stays NaN).
+pub fn relu_forward<R: Real>(y: &mut [R]) {
+    for v in y.iter_mut() {
+        if *v < R::ZERO {
+            *v = R::ZERO;
+        }
+    }
+}
+
+/// `dy *= (y > 0)` where `y` is the ReLU output (derivative 0 at the kink).
+pub fn relu_backward<R: Real>(y: &[R], dy: &mut [R]) {
+    for (g, &v) in dy.iter_mut().zip(y) {
+        if !(v > R::ZERO) {
+            *g = R::ZERO;
+        }
+    }
+}
+
+/// Accumulate the gradients of `y = x Wᵀ + b` over `rows` rows: `dw [out, in] += dyᵀ x`,
+/// `db [out] += Σ dy`, `dx [rows, in] += dy W`.
+#[allow(clippy::too_many_arguments)]
+pub fn linear_backward<R: Real>(
+    w: &[R],
+    x: &[R],
+    dy: &[R],
+    rows: usize,
+    in_dim: usize,
+    out_dim: usize,
+    dw: &mut [R],
+    db: Option<&mut [R]>,
+    dx: Option<&mut [R]>,
+) {
+    #[cfg(target_arch = "x86_64")]
+    if std::is_x86_feature_detected!("avx2") {
+        // SAFETY: the CPU supports AVX2 (checked just above).
+        unsafe { linear_backward_avx2(w, x, dy, rows, in_dim, out_dim, dw, db, dx) };
+        return;
+    }
+    linear_backward_body(w, x, dy, rows, in_dim, out_dim, dw, db, dx)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+#[allow(clippy::too_many_arguments)]
+unsafe fn linear_backward_avx2<R: Real>(
+    w: &[R],
+    x: &[R],
+    dy: &[R],
+    rows: usize,
+    in_dim: usize,
+    out_dim: usize,
+    dw: &mut [R],
+    db: Option<&mut [R]>,
+    dx: Option<&mut [R]>,
+) {
+    linear_backward_body(w, x, dy, rows, in_dim, out_dim, dw, db, dx)
+}
+
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+fn linear_backward_body<R: Real>(
+    w: &[R],
+    x: &[R],
+    dy: &[R],
+    rows: usize,
+    in_dim: usize,
+    out_dim: usize,
+    dw: &mut [R],
+    mut db: Option<&mut [R]>,
+    mut dx: Option<&mut [R]>,
+) {
+    assert!(w.len() == in_dim * out_dim && dw.len() == in_dim * out_dim);
+    assert!(x.len() >= rows * in_dim && dy.len() >= rows * out_dim);
+    for m in 0..rows {
+        let xr = &x[m * in_dim..(m + 1) * in_dim];
+        let gr = &dy[m * out_dim..(m + 1) * out_dim];
+        if let Some(db) = db.as_deref_mut() {
+            for (d, &g) in db.iter_mut().zip(gr) {
+                *d += g;
+            }
+        }
+        // dW[o, :] += g_o · x[m, :]
+        for (o, &g) in gr.iter().enumerate() {
+            if g == R::ZERO {
+                continue;
+            }
+            let dwr = &mut dw[o * in_dim..(o + 1) * in_dim];
+            for (d, &xi) in dwr.iter_mut().zip(xr) {
+                *d += g * xi;
+            }
+        }
+        // dx[m, :] += Σ_o g_o · W[o, :]
+        if let Some(dx) = dx.as_deref_mut() {
+            let dxr = &mut dx[m * in_dim..(m + 1) * in_dim];
+            for (o, &g) in gr.iter().enumerate() {
+                if g == R::ZERO {
+                    continue;
+                }
+                let wr = &w[o * in_dim..(o + 1) * in_dim];
+                for (d, &wi) in dxr.iter_mut().zip(wr) {
+                    *d += g * wi;
+                }
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn rand_vec(n: usize, a: u64) -> Vec<f32> {
+        (0..n)
+            .map(|i| rng::uniform_f32(3, Purpose::Test, a, i as u64) * 2.0 - 1.0)
+            .collect()
+    }
+
+    /// The run-time dispatched (AVX2) kernels and the baseline kernels are bit-identical.
+    #[test]
+    fn dispatch_paths_bit_identical() {
+        let (rows, i, o) = (37, 52, 64);
+        let wt = rand_vec(i * o, 1);
+        let w = rand_vec(i * o, 2);
+        let mut x = rand_vec(rows * i, 3);
+        for v in x.iter_mut().step_by(3) {
+            *v = 0.0;
+        }
+        let dy = rand_vec(rows * o, 4);
+        let b = rand_vec(o, 5);
+        let mut y1 = vec![0.0f32; rows * o];
+        let mut y2 = y1.clone();
+        linear_forward(&wt, Some(&b), &x, rows, i, o, &mut y1);
+        linear_forward_body(&wt, Some(&b), &x, rows, i, o, &mut y2);
+        assert!(y1.iter().zip(&y2).all(|(a, b)| a.to_bits() == b.to_bits()));
+        let (mut dw1, mut dx1, mut db1) =
+            (vec![0.0f32; i * o], vec![0.0f32; rows * i], vec![0.0f32; o]);
+        let (mut dw2, mut dx2, mut db2) = (dw1.clone(), dx1.clone(), db1.clone());
+        linear_backward(
+            &w,
+            &x,
+            &dy,
+            rows,
+            i,
+            o,
+            &mut dw1,
+            Some(&mut db1),
+            Some(&mut dx1),
+        );
+        linear_backward_body(
+            &w,
+            &x,
+            &dy,
+            rows,
+            i,
+            o,
+            &mut dw2,
+            Some(&mut db2),
+            Some(&mut dx2),
+        );
+        for (a, b) in [(&dw1, &dw2), (&dx1, &dx2), (&db1, &db2)] {
+            assert!(a
+                .iter()
+                .zip(b.iter())
+                .all(|(p, q)| p.to_bits() == q.to_bits()));
+        }
+    }
+
+    /// Forward against a naive dot product in f64 (independent formulation).
+    #[test]
+    fn forward_matches_naive() {
+        let mlp = Mlp::new(&[5, 7, 3], true);
+        let p: Vec<f64> = rand_vec(mlp.n_params, 9)
+            .iter()
+            .map(|&v| v as f64)
+            .collect();
+        let x: Vec<f64> = rand_vec(4 * 5, 10).iter().map(|&v| v as f64).collect();
+        let wt = mlp.transpose_weights(&p);
+        let mut acts = MlpActs::default();
+        mlp.forward(&p, &wt, &x, 4, &mut acts);
+        for m in 0..4 {
+            let mut h = [0.0f64; 7];
+            let l0 = &mlp.layers[0];
+            for (o, ho) in h.iter_mut().enumerate() {
+                let mut s = p[l0.b_off.unwrap() + o];
+                for i in 0..5 {
+                    s += p[l0.w_off + o * 5 + i] * x[m * 5 + i];
+                }
+                *ho = s.max(0.0);
+            }
+            let l1 = &mlp.layers[1];
+            for o in 0..3 {
+                let mut s = p[l1.b_off.unwrap() + o];
+                for (i, hi) in h.iter().enumerate() {
+                    s += p[l1.w_off + o * 7 + i] * hi;
+                }
+                assert!((s - acts.out[m * 3 + o]).abs() < 1e-12);
+            }
+        }
+    }
+
+    #[test]
+    fn xavier_bounds_and_zero_last() {
+        let mlp = Mlp::new(&[52, 64, 64, 3], false);
+        let p = mlp.init(1, &[30, 31, 32], true);
+        let l0 = &mlp.layers[0];
+        let lim = (6.0f64 / (52.0 + 64.0)).sqrt() as f32;
+        let w0 = &p[l0.w_off..l0.w_off + 52 * 64];
+        assert!(w0.iter().all(|v| v.abs() <= lim));
+        assert!(w0.iter().any(|v| v.abs() > 0.9 * lim));
+        let l2 = &mlp.layers[2];
+        assert!(p[l2.w_off..].iter().all(|&v| v == 0.0));
+        assert_eq!(p, mlp.init(1, &[30, 31, 32], true));
+    }
+}

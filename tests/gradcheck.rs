@@ -1,0 +1,644 @@
+//! Gradient checks: central finite differences in f64 against every hand-written backward,
+//! per operation (SH, MLP layers, pooling, sigmoid + each loss, hash grid) and through the whole
+//! pipeline (every parameter group of grid H, grid D, ξ, the shader and the appearance codes, and
+//! the input positions and directions), for linear and smoothstep interpolation, dense and
+//! hashed levels, γ = 1 and γ = 2 with invalid sub-samples, views −1 and ≥ 0.
+//!
+//! Step and tolerance (the same everywhere):
+//! - `H = 1e-6`: central differences have truncation error h²/6·|f'''| ≈ 2e-13·|f'''| and
+//!   rounding error ≈ ε·|f|/h ≈ 1e-16·|f|·1e6 = 1e-10·|f| (times a small factor for the
+//!   rounding accumulated through the forward). All functions checked have |f| ≲ 1 (losses are
+//!   means of values in [0,1]; per-op checks contract outputs with weights in [−1,1]), and |f'''|
+//!   stays below ~1e4 here (the finest grid level has scale ≈ 31, so a smoothstep weight's third
+//!   derivative w.r.t. a position is 12·31³ ≈ 4e5 times features ≲ 0.5 and a pooling factor ≤ 1,
+//!   divided by 3N ≥ 18 in the pipeline), so both error terms stay below ~1e-8.
+//! - Pass if `|fd − analytic| ≤ ATOL + RTOL·|analytic|` with `ATOL = 1e-8`, `RTOL = 1e-6`.
+//!   ATOL sits ~10× above the worst error budget above; real bugs (a wrong index, a missing
+//!   factor, a wrong sign) give errors of the order of the gradient itself (1e-4…1), far above.
+//!   The observed worst cases are printed on failure.
+//! - Kinks: points are drawn away from grid-cell borders (every level of both grids has its cell
+//!   fraction t ∈ [1e-3, 1−1e-3]; a step of h moves t by at most 31·h ≈ 3e-5); a case whose ±h
+//!   evaluation changes any ReLU pattern or loss branch (sign of r for L1, |r| < δ for smooth-L1)
+//!   is skipped and counted, and the test asserts that few cases were skipped.
+//! - Positions are checked in `positions = "f64"` mode (the "tcnn" mode rounds x to f32, a
+//!   staircase that finite differences cannot see through).
+
+use xscale::model::batch::Batch;
+use xscale::model::config::{GridConfig, Interpolation, LossKind, ModelConfig, PositionMode};
+use xscale::model::hashgrid::{HashGrid, Touched};
+use xscale::model::hfm::{pool_backward, pool_forward, Forward, Hfm};
+use xscale::model::loss::{loss_backward, loss_forward, sigmoid_backward, sigmoid_forward};
+use xscale::model::mlp::{Mlp, MlpActs};
+use xscale::model::params::{Grads, Group};
+use xscale::model::sh::{sh_backward_one, sh_forward_one, SH_DIM};
+use xscale::rng::{uniform_f64, Purpose};
+
+const H: f64 = 1e-6;
+const ATOL: f64 = 1e-8;
+const RTOL: f64 = 1e-6;
+/// Cell-fraction margin for points (see the header).
+const T_MARGIN: f64 = 1e-3;
+/// Finite-difference step for the f32 directions (exactly representable, see the pipeline test).
+const DIR_STEP: f64 = 1.0 / 16384.0;
+
+fn u(seed: u64, a: u64, b: u64) -> f64 {
+    uniform_f64(seed, Purpose::Test, a, b)
+}
+fn sym(seed: u64, a: u64, b: u64) -> f64 {
+    2.0 * u(seed, a, b) - 1.0
+}
+
+/// Collects every failure and the worst error seen; asserts once at the end.
+#[derive(Default)]
+struct Report {
+    fails: Vec<String>,
+    checked: usize,
+    skipped: usize,
+    worst: f64,
+    worst_label: String,
+}
+
+impl Report {
+    fn check(&mut self, label: &str, fd: f64, an: f64) {
+        self.checked += 1;
+        let err = (fd - an).abs();
+        let ratio = err / (ATOL + RTOL * an.abs());
+        if ratio > self.worst {
+            self.worst = ratio;
+            self.worst_label = format!("{label}: fd {fd:.12e} analytic {an:.12e}");
+        }
+        if !(err <= ATOL + RTOL * an.abs()) {
+            self.fails.push(format!(
+                "{label}: fd {fd:.12e} analytic {an:.12e} |diff| {err:.3e}"
+            ));
+        }
+    }
+    fn finish(self, what: &str, min_checked: usize) {
+        eprintln!(
+            "{what}: {} checked, {} skipped at kinks, worst err/tol = {:.3} ({})",
+            self.checked, self.skipped, self.worst, self.worst_label
+        );
+        assert!(
+            self.fails.is_empty(),
+            "{what}: {} of {} gradient checks failed:\n{}",
+            self.fails.len(),
+            self.checked,
+            self.fails.join("\n")
+        );
+        assert!(
+            self.checked >= min_checked,
+            "{what}: only {} cases checked (expected ≥ {min_checked})",
+            self.checked
+        );
+        assert!(
+            self.skipped * 10 <= self.checked,
+            "{what}: too many cases skipped at kinks ({} of {})",
+            self.skipped,
+            self.checked
+        );
+    }
+}
+
+/// Central difference of `f` around the current value of `*slot`.
+fn central(slot_get: f64, mut f: impl FnMut(f64) -> f64) -> f64 {
+    let fp = f(slot_get + H);
+    let fm = f(slot_get - H);
+    (fp - fm) / (2.0 * H)
+}
+
+// ---------------------------------------------------------------------------------------------
+// Per operation
+// ---------------------------------------------------------------------------------------------
+
+#[test]
+fn sh_backward_matches_fd() {
+    let mut rep = Report::default();
+    for case in 0..12u64 {
+        // Directions on and off the unit sphere (the encoding is applied as given).
+        let len = if case % 3 == 0 {
+            1.0
+        } else {
+            0.5 + u(1, 0, case)
+        };
+        let mut d = [sym(1, 1, case), sym(1, 2, case), sym(1, 3, case)];
+        let nrm = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+        for v in d.iter_mut() {
+            *v *= len / nrm;
+        }
+        let w: Vec<f64> = (0..SH_DIM as u64).map(|i| sym(1, 4 + case, i)).collect();
+        let f = |d: [f64; 3]| {
+            let mut y = [0.0; SH_DIM];
+            sh_forward_one(d, &mut y);
+            y.iter().zip(&w).map(|(a, b)| a * b).sum::<f64>()
+        };
+        let mut an = [0.0; 3];
+        sh_backward_one(d, &w, &mut an);
+        for k in 0..3 {
+            let fd = central(d[k], |x| {
+                let mut dd = d;
+                dd[k] = x;
+                f(dd)
+            });
+            rep.check(&format!("sh case {case} d[{k}]"), fd, an[k]);
+        }
+    }
+    rep.finish("sh", 36);
+}
+
+/// Random f64 parameters for an MLP (weights and biases U(±0.8)).
+fn rand_params(n: usize, seed: u64) -> Vec<f64> {
+    (0..n as u64).map(|i| 0.8 * sym(seed, 50, i)).collect()
+}
+
+fn relu_pattern(acts: &MlpActs<f64>) -> Vec<bool> {
+    acts.hidden.iter().flatten().map(|&v| v > 0.0).collect()
+}
+
+#[test]
+fn mlp_backward_matches_fd() {
+    let mut rep = Report::default();
+    for (ci, (dims, bias)) in [
+        (vec![6usize, 9, 7, 4], true),
+        (vec![5, 8, 3], false),
+        (vec![4, 3], true),
+    ]
+    .into_iter()
+    .enumerate()
+    {
+        let mlp = Mlp::new(&dims, bias);
+        let rows = 5;
+        let p = rand_params(mlp.n_params, 10 + ci as u64);
+        let x: Vec<f64> = (0..(rows * dims[0]) as u64)
+            .map(|i| sym(11, ci as u64, i))
+            .collect();
+        let w_out: Vec<f64> = (0..(rows * mlp.out_dim()) as u64)
+            .map(|i| sym(12, ci as u64, i))
+            .collect();
+        let eval = |p: &[f64], x: &[f64]| {
+            let mut acts = MlpActs::default();
+            mlp.forward(p, &mlp.transpose_weights(p), x, rows, &mut acts);
+            let l: f64 = acts.out.iter().zip(&w_out).map(|(a, b)| a * b).sum();
+            (l, relu_pattern(&acts))
+        };
+        let mut acts = MlpActs::default();
+        mlp.forward(&p, &mlp.transpose_weights(&p), &x, rows, &mut acts);
+        let base_pat = relu_pattern(&acts);
+        let mut dp = vec![0.0; mlp.n_params];
+        let mut dx = vec![0.0; x.len()];
+        mlp.backward(&p, &x, rows, &acts, w_out.clone(), &mut dp, Some(&mut dx));
+        for i in 0..p.len() {
+            let (mut pp, mut pm) = (p.clone(), p.clone());
+            pp[i] += H;
+            pm[i] -= H;
+            let ((fp, sp), (fm, sm)) = (eval(&pp, &x), eval(&pm, &x));
+            if sp != base_pat || sm != base_pat {
+                rep.skipped += 1;
+                continue;
+            }
+            rep.check(&format!("mlp {ci} param {i}"), (fp - fm) / (2.0 * H), dp[i]);
+        }
+        for i in 0..x.len() {
+            let (mut xp, mut xm) = (x.clone(), x.clone());
+            xp[i] += H;
+            xm[i] -= H;
+            let ((fp, sp), (fm, sm)) = (eval(&p, &xp), eval(&p, &xm));
+            if sp != base_pat || sm != base_pat {
+                rep.skipped += 1;
+                continue;
+            }
+            rep.check(&format!("mlp {ci} input {i}"), (fp - fm) / (2.0 * H), dx[i]);
+        }
+    }
+    rep.finish("mlp", 250);
+}
+
+#[test]
+fn pooling_backward_matches_fd() {
+    let mut rep = Report::default();
+    let start = [0usize, 2, 3, 7];
+    let lf = 5;
+    let v = 7;
+    let feat: Vec<f64> = (0..(v * lf) as u64).map(|i| sym(20, 0, i)).collect();
+    let delta: Vec<f64> = (0..(v * lf) as u64).map(|i| sym(20, 1, i)).collect();
+    let w: Vec<f64> = (0..(3 * lf) as u64).map(|i| sym(20, 2, i)).collect();
+    let f = |feat: &[f64], delta: &[f64]| {
+        let mut out = vec![0.0; 3 * lf];
+        pool_forward(&start, feat, Some(delta), lf, &mut out);
+        out.iter().zip(&w).map(|(a, b)| a * b).sum::<f64>()
+    };
+    let mut d_feat = vec![0.0; v * lf];
+    pool_backward(&start, &w, lf, lf, &mut d_feat);
+    for i in 0..v * lf {
+        let fd = central(feat[i], |x| {
+            let mut g = feat.clone();
+            g[i] = x;
+            f(&g, &delta)
+        });
+        rep.check(&format!("pool feat {i}"), fd, d_feat[i]);
+        let fd = central(delta[i], |x| {
+            let mut g = delta.clone();
+            g[i] = x;
+            f(&feat, &g)
+        });
+        rep.check(&format!("pool delta {i}"), fd, d_feat[i]);
+    }
+    rep.finish("pooling", 70);
+}
+
+#[test]
+fn sigmoid_and_losses_match_fd() {
+    let mut rep = Report::default();
+    let n = 6;
+    for (kind, delta) in [
+        (LossKind::L1, 0.01),
+        (LossKind::L2, 0.01),
+        (LossKind::SmoothL1, 0.2),
+    ] {
+        let z: Vec<f64> = (0..(n * 3) as u64).map(|i| 3.0 * sym(30, 0, i)).collect();
+        let target: Vec<[f32; 3]> = (0..n as u64)
+            .map(|i| [u(30, 1, i) as f32, u(30, 2, i) as f32, u(30, 3, i) as f32])
+            .collect();
+        let f = |z: &[f64]| {
+            let mut rgb = vec![0.0; n * 3];
+            sigmoid_forward(z, &mut rgb);
+            loss_forward(kind, delta, &rgb, &target) / (3 * n) as f64
+        };
+        let branch = |z: &[f64]| {
+            let mut rgb = vec![0.0; n * 3];
+            sigmoid_forward(z, &mut rgb);
+            rgb.iter()
+                .enumerate()
+                .map(|(k, &v)| {
+                    let r = v - target[k / 3][k % 3] as f64;
+                    (r > 0.0, r.abs() < delta)
+                })
+                .collect::<Vec<_>>()
+        };
+        let mut rgb = vec![0.0; n * 3];
+        sigmoid_forward(&z, &mut rgb);
+        let mut d_rgb = vec![0.0; n * 3];
+        loss_backward(kind, delta, &rgb, &target, 1.0 / (3 * n) as f64, &mut d_rgb);
+        let mut dz = vec![0.0; n * 3];
+        sigmoid_backward(&rgb, &d_rgb, &mut dz);
+        let b0 = branch(&z);
+        for i in 0..n * 3 {
+            let (mut zp, mut zm) = (z.clone(), z.clone());
+            zp[i] += H;
+            zm[i] -= H;
+            if branch(&zp) != b0 || branch(&zm) != b0 {
+                rep.skipped += 1;
+                continue;
+            }
+            rep.check(
+                &format!("{kind:?} z[{i}]"),
+                (f(&zp) - f(&zm)) / (2.0 * H),
+                dz[i],
+            );
+        }
+        // The smooth-L1 case must exercise both branches.
+        if kind == LossKind::SmoothL1 {
+            assert!(b0.iter().any(|b| b.1) && b0.iter().any(|b| !b.1), "{b0:?}");
+        }
+    }
+    rep.finish("sigmoid+loss", 50);
+}
+
+/// A point whose cell fraction in every level of every grid is away from 0 and 1.
+fn safe_point(seed: u64, k: u64, grids: &[&HashGrid]) -> [f64; 3] {
+    for attempt in 0..1000u64 {
+        let p = [
+            0.05 + 0.9 * u(seed, 1000 + attempt, 3 * k),
+            0.05 + 0.9 * u(seed, 1000 + attempt, 3 * k + 1),
+            0.05 + 0.9 * u(seed, 1000 + attempt, 3 * k + 2),
+        ];
+        let ok = grids.iter().all(|g| {
+            g.scales.iter().all(|&s| {
+                p.iter().all(|&x| {
+                    let q = (s as f64).mul_add(x, 0.5);
+                    let t = q - q.floor();
+                    t > T_MARGIN && t < 1.0 - T_MARGIN
+                })
+            })
+        });
+        if ok {
+            return p;
+        }
+    }
+    panic!("no safe point found");
+}
+
+fn grid_cfg(levels: u32, log2: u32, interp: Interpolation) -> GridConfig {
+    GridConfig {
+        levels,
+        features: 2,
+        log2_table_size: log2,
+        base_resolution: 4.0,
+        per_level_scale: 2.0,
+        interpolation: interp,
+    }
+}
+
+#[test]
+fn hashgrid_backward_matches_fd() {
+    let mut rep = Report::default();
+    for interp in [Interpolation::Linear, Interpolation::Smoothstep] {
+        // Scales 3, 7, 15, 31: levels 0–2 dense, level 3 (32³ > 2^12) hashed.
+        let g = HashGrid::new(&grid_cfg(4, 12, interp));
+        assert!(
+            g.dense[0] && !g.dense[3],
+            "want dense and hashed levels: {:?}",
+            g.dense
+        );
+        let table: Vec<f64> = (0..g.n_params() as u64)
+            .map(|i| 0.5 * sym(40, 0, i))
+            .collect();
+        let m = 5;
+        let pts: Vec<[f64; 3]> = (0..m as u64).map(|k| safe_point(41, k, &[&g])).collect();
+        let od = g.out_dim();
+        let w: Vec<f64> = (0..(m * od) as u64).map(|i| sym(42, 0, i)).collect();
+        let f = |table: &[f64], pts: &[[f64; 3]]| {
+            let mut out = vec![0.0; m * od];
+            g.forward(table, pts, PositionMode::F64, &mut out);
+            out.iter().zip(&w).map(|(a, b)| a * b).sum::<f64>()
+        };
+        let mut d_table = vec![0.0; table.len()];
+        let mut touched = Touched::default();
+        g.backward_table(&pts, PositionMode::F64, &w, &mut d_table, &mut touched);
+        let mut d_pts = vec![0.0; m * 3];
+        g.backward_points(&table, &pts, PositionMode::F64, &w, &mut d_pts);
+        // Every touched entry's features, plus a few untouched entries (gradient exactly 0).
+        let fdim = g.cfg.features as usize;
+        let mut idx: Vec<usize> = touched
+            .entries
+            .iter()
+            .flat_map(|&e| (0..fdim).map(move |f| e as usize * fdim + f))
+            .collect();
+        idx.extend([0, 17, table.len() - 1]);
+        for &i in &idx {
+            let fd = central(table[i], |x| {
+                let mut t = table.clone();
+                t[i] = x;
+                f(&t, &pts)
+            });
+            rep.check(&format!("{interp:?} table[{i}]"), fd, d_table[i]);
+        }
+        for k in 0..m * 3 {
+            let fd = central(pts[k / 3][k % 3], |x| {
+                let mut p = pts.clone();
+                p[k / 3][k % 3] = x;
+                f(&table, &p)
+            });
+            rep.check(
+                &format!("{interp:?} point {} axis {}", k / 3, k % 3),
+                fd,
+                d_pts[k],
+            );
+        }
+    }
+    rep.finish("hashgrid", 300);
+}
+
+// ---------------------------------------------------------------------------------------------
+// Whole pipeline
+// ---------------------------------------------------------------------------------------------
+
+struct Case {
+    name: &'static str,
+    cfg: ModelConfig,
+    n: usize,
+    p_invalid: f64,
+}
+
+fn cases() -> Vec<Case> {
+    let mut out = Vec::new();
+    // A: linear, γ = 2 with invalid sub-samples, ξ on (grid D with a hashed level), A = 2 with
+    // 3 rows (views −1 … 2), L1.
+    let mut a = ModelConfig::tiny();
+    a.deform.grid.log2_table_size = 8; // scales 3, 7 → 64 (dense), 512 > 256 (hashed)
+    a.appearance_views = 3;
+    out.push(Case {
+        name: "A linear γ2 deform codes L1",
+        cfg: a,
+        n: 7,
+        p_invalid: 0.35,
+    });
+    // B: smoothstep, γ = 1, biases, L2, no appearance codes.
+    let mut b = ModelConfig::tiny();
+    b.grid_h.interpolation = Interpolation::Smoothstep;
+    b.deform.grid.interpolation = Interpolation::Smoothstep;
+    b.shader.bias = true;
+    b.appearance_dim = 0;
+    b.gamma = 1;
+    b.loss = LossKind::L2;
+    out.push(Case {
+        name: "B smoothstep γ1 bias L2",
+        cfg: b,
+        n: 6,
+        p_invalid: 0.0,
+    });
+    // C: smoothstep, γ = 2 with invalid sub-samples, no ξ, two hidden shader layers, smooth-L1.
+    let mut c = ModelConfig::tiny();
+    c.grid_h.interpolation = Interpolation::Smoothstep;
+    c.deform.enabled = false;
+    c.shader.hidden_layers = 2;
+    c.appearance_views = 2;
+    c.loss = LossKind::SmoothL1;
+    c.smooth_l1_delta = 0.15;
+    out.push(Case {
+        name: "C smoothstep γ2 no-deform smoothL1",
+        cfg: c,
+        n: 6,
+        p_invalid: 0.35,
+    });
+    out
+}
+
+/// Random parameters that exercise every path (the initial ones would not: ξ's last layer and the
+/// codes start at zero).
+fn random_params(model: &Hfm, seed: u64) -> Vec<f64> {
+    let mut p = vec![0.0f64; model.layout.total];
+    for (ti, t) in model.layout.tensors.iter().enumerate() {
+        let amp = match t.group {
+            Group::GridH | Group::GridD => 0.5,
+            Group::Appearance => 0.5,
+            _ => {
+                if t.name.ends_with(".bias") {
+                    0.2
+                } else {
+                    let s = &t.shape;
+                    (6.0 / (s[0] + s[1]) as f64).sqrt() * 1.5
+                }
+            }
+        };
+        for (e, v) in p[t.range()].iter_mut().enumerate() {
+            *v = amp * sym(seed, 60 + ti as u64, e as u64);
+        }
+    }
+    p
+}
+
+fn make_batch(model: &Hfm, case: &Case, seed: u64) -> Batch {
+    let s = (case.cfg.gamma * case.cfg.gamma) as usize;
+    let mut b = Batch::random(seed, case.n, s, model.appearance_views(), case.p_invalid);
+    let mut grids: Vec<&HashGrid> = vec![&model.grid_h];
+    if let Some(g) = &model.grid_d {
+        grids.push(g);
+    }
+    for k in 0..b.positions.len() {
+        b.positions[k] = safe_point(seed, k as u64, &grids);
+    }
+    for d in b.dirs.iter_mut() {
+        for v in d.iter_mut() {
+            *v = ((*v as f64 / DIR_STEP).round() * DIR_STEP) as f32;
+        }
+    }
+    if model.appearance_dim() > 0 {
+        // Both kinds of pixels: with a code and with the mean code.
+        b.view[0] = -1;
+        b.view[1] = (model.appearance_views() - 1) as i32;
+    }
+    b
+}
+
+/// ReLU patterns and loss branches of a forward pass: a ±h evaluation whose signature differs
+/// from the base one straddles a kink and is skipped.
+fn signature(model: &Hfm, fwd: &Forward<f64>, batch: &Batch) -> Vec<bool> {
+    let mut s = Vec::new();
+    for ch in &fwd.chunks {
+        s.extend(ch.shader.hidden.iter().flatten().map(|&v| v > 0.0));
+        s.extend(ch.deform.hidden.iter().flatten().map(|&v| v > 0.0));
+        for (k, &v) in ch.rgb.iter().enumerate() {
+            let r = v - batch.target[ch.pixels.start + k / 3][k % 3] as f64;
+            s.push(r > 0.0);
+            s.push(r.abs() < model.cfg.smooth_l1_delta);
+        }
+    }
+    s
+}
+
+#[test]
+fn pipeline_gradients_match_fd() {
+    let mut rep = Report::default();
+    for (ci, case) in cases().iter().enumerate() {
+        let model = Hfm::new(&case.cfg).unwrap();
+        let params = random_params(&model, 70 + ci as u64);
+        let batch = make_batch(&model, case, 80 + ci as u64);
+        batch.validate().unwrap();
+        if case.p_invalid > 0.0 {
+            assert!(
+                batch.valid.contains(&0),
+                "{}: want invalid sub-samples",
+                case.name
+            );
+        }
+        let mut grads = Grads::<f64>::new(&model.layout);
+        let fwd = model.forward(&params, &batch).unwrap();
+        let base_sig = signature(&model, &fwd, &batch);
+        model.backward(&params, &batch, &fwd, &mut grads);
+
+        // Loss and its kink signature at perturbed parameters / inputs.
+        let eval = |params: &[f64], batch: &Batch| {
+            let f = model.forward(params, batch).unwrap();
+            (f.loss, signature(&model, &f, batch))
+        };
+        let mut fd_case = |label: String, an: f64, fp: (f64, Vec<bool>), fm: (f64, Vec<bool>)| {
+            if fp.1 != base_sig || fm.1 != base_sig {
+                rep.skipped += 1;
+                return;
+            }
+            rep.check(
+                &format!("{}: {label}", case.name),
+                (fp.0 - fm.0) / (2.0 * H),
+                an,
+            );
+        };
+
+        // Parameters: every tensor; grid tables at their touched entries plus a few others.
+        for t in &model.layout.tensors {
+            let idx: Vec<usize> = match t.group {
+                Group::GridH | Group::GridD => {
+                    let (touched, f) = if t.group == Group::GridH {
+                        (&grads.touched_h, case.cfg.grid_h.features as usize)
+                    } else {
+                        (&grads.touched_d, case.cfg.deform.grid.features as usize)
+                    };
+                    assert!(
+                        !touched.entries.is_empty(),
+                        "{}: {} untouched",
+                        case.name,
+                        t.name
+                    );
+                    let mut v: Vec<usize> = touched
+                        .entries
+                        .iter()
+                        .step_by(3)
+                        .flat_map(|&e| (0..f).map(move |k| e as usize * f + k))
+                        .collect();
+                    v.extend([1, t.len / 2, t.len - 1]);
+                    v
+                }
+                _ => (0..t.len).step_by(1 + t.len / 40).collect(),
+            };
+            for i in idx {
+                let g = t.offset + i;
+                let (mut pp, mut pm) = (params.clone(), params.clone());
+                pp[g] += H;
+                pm[g] -= H;
+                fd_case(
+                    format!("{}[{i}]", t.name),
+                    grads.params[g],
+                    eval(&pp, &batch),
+                    eval(&pm, &batch),
+                );
+            }
+        }
+        // Input positions (valid ones: through both grids; invalid ones: exactly zero).
+        let mut saw_invalid = false;
+        for k in 0..batch.positions.len() {
+            if batch.valid[k] == 0 {
+                saw_invalid = true;
+                assert!(
+                    grads.positions[k * 3..k * 3 + 3].iter().all(|&v| v == 0.0),
+                    "{}: gradient on invalid sub-sample {k}",
+                    case.name
+                );
+            }
+            for a in 0..3 {
+                let (mut bp, mut bm) = (batch.clone(), batch.clone());
+                bp.positions[k][a] += H;
+                bm.positions[k][a] -= H;
+                fd_case(
+                    format!("positions[{k}][{a}] (valid {})", batch.valid[k]),
+                    grads.positions[k * 3 + a],
+                    eval(&params, &bp),
+                    eval(&params, &bm),
+                );
+            }
+        }
+        assert_eq!(saw_invalid, case.p_invalid > 0.0);
+        // Directions are f32 in the batch: make_batch quantised them to multiples of
+        // DIR_STEP = 2^-14, so x ± DIR_STEP is exact in f32 and the step is exactly DIR_STEP
+        // (truncation DIR_STEP²/6·|f'''| ≈ 6e-10·|f'''|, with |f'''| ≲ 0.1 here because the loss is
+        // a mean over 3N and SH are cubic polynomials: inside ATOL).
+        for i in 0..batch.dirs.len() {
+            for a in 0..3 {
+                let (mut bp, mut bm) = (batch.clone(), batch.clone());
+                bp.dirs[i][a] += DIR_STEP as f32;
+                bm.dirs[i][a] -= DIR_STEP as f32;
+                assert_eq!(bp.dirs[i][a] as f64 - batch.dirs[i][a] as f64, DIR_STEP);
+                let (fp, fm) = (eval(&params, &bp), eval(&params, &bm));
+                if fp.1 != base_sig || fm.1 != base_sig {
+                    rep.skipped += 1;
+                    continue;
+                }
+                let fd = (fp.0 - fm.0) / (2.0 * DIR_STEP);
+                rep.check(
+                    &format!("{}: dirs[{i}][{a}]", case.name),
+                    fd,
+                    grads.dirs[i * 3 + a],
+                );
+            }
+        }
+    }
+    rep.finish("pipeline", 400);
+}

@@ -10,6 +10,8 @@
 //! | synthetic cross-scale scenes with independent ground truth | [`synth`] |
 //! | hash grids, SH, MLPs, deformation ξ, pooling, shader, loss (forward + backward) | [`model`] |
 //! | Adam, batches, training loop, checkpoints | [`train`] |
+//! | rendering any camera, camera paths, error images | [`render`] |
+//! | PSNR / SSIM, the held-out protocol | [`eval`] |
 //! | safetensors checkpoints, batches, dumps, `compare` | [`io`] |
 //! | counter-based random numbers (SPEC §5) | [`rng`] |
 //! | command-line front end | [`cli`] |
@@ -19,6 +21,7 @@ pub mod eval;
 pub mod io;
 pub mod model;
 pub mod raycast;
+pub mod render;
 pub mod rng;
 pub mod scene;
 pub mod synth;

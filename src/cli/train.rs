@@ -1,10 +1,80 @@
-//! `xscale train` (not implemented yet).
+//! `xscale train`: train on a scene directory into a run folder (see `train/trainer.rs`).
 
+use crate::train::config::RunConfig;
+use crate::train::trainer::{train, TrainOptions};
+use std::path::PathBuf;
 use std::process::ExitCode;
+use std::sync::atomic::{AtomicBool, Ordering};
 
 #[derive(clap::Args, Debug)]
-pub struct Args {}
+pub struct Args {
+    /// Scene directory (mesh + cameras + images; see README "Formats").
+    #[arg(long)]
+    pub scene: PathBuf,
+    /// Run folder (created): checkpoint, metrics.jsonl, config.toml, renders, eval.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Preset: tiny, cpu or paper (SPEC §9).
+    #[arg(long, default_value = "cpu")]
+    pub preset: String,
+    /// TOML file overriding any field of the preset (`[model]`, `[train]` tables).
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// Number of steps (overrides the config).
+    #[arg(long)]
+    pub steps: Option<u64>,
+    /// Pixels per batch (overrides the config).
+    #[arg(long)]
+    pub batch: Option<usize>,
+    /// Seed (overrides the config).
+    #[arg(long)]
+    pub seed: Option<u64>,
+    /// Continue from RUN/checkpoint.safetensors, bit-identically to an uninterrupted run.
+    #[arg(long)]
+    pub resume: bool,
+    /// Stop after this many steps with a checkpoint, as if interrupted (for resume tests).
+    #[arg(long, hide = true)]
+    pub stop_at: Option<u64>,
+    /// Skip the final renders and held-out evaluation.
+    #[arg(long)]
+    pub no_eval: bool,
+    /// Only errors.
+    #[arg(long, short)]
+    pub quiet: bool,
+}
 
-pub fn run(_args: Args) -> anyhow::Result<ExitCode> {
-    anyhow::bail!("`xscale train` is not implemented yet")
+static INTERRUPTED: AtomicBool = AtomicBool::new(false);
+
+pub fn run(a: Args) -> anyhow::Result<ExitCode> {
+    let mut cfg = RunConfig::resolve(&a.preset, a.config.as_deref())?;
+    if let Some(s) = a.steps {
+        cfg.train.steps = s;
+    }
+    if let Some(b) = a.batch {
+        cfg.train.batch_pixels = b;
+    }
+    if let Some(s) = a.seed {
+        cfg.train.seed = s;
+    }
+    cfg.validate()?;
+    // First Ctrl-C: finish the step, write a checkpoint, exit. Second: exit at once.
+    let _ = ctrlc::set_handler(|| {
+        if INTERRUPTED.swap(true, Ordering::SeqCst) {
+            std::process::exit(130);
+        }
+        eprintln!("\ninterrupt: writing a checkpoint after this step (Ctrl-C again to abort)");
+    });
+    let opts = TrainOptions {
+        resume: a.resume,
+        stop_at: a.stop_at,
+        interrupt: Some(&INTERRUPTED),
+        no_final_eval: a.no_eval,
+        quiet: a.quiet,
+    };
+    let s = train(&a.scene, &a.out, cfg, &opts)?;
+    Ok(if s.interrupted && INTERRUPTED.load(Ordering::SeqCst) {
+        ExitCode::from(130)
+    } else {
+        ExitCode::SUCCESS
+    })
 }

@@ -1,3 +1,4 @@
 //! Evaluation: image metrics (SPEC §7) and the held-out protocol.
 
 pub mod metrics;
+pub mod protocol;

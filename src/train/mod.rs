@@ -1,4 +1,18 @@
 //! Training: Adam with tiny-cuda-nn's rules (SPEC §4.8), deterministic batches, the loop,
 //! checkpoints and resume.
+//!
+//! | file | owns |
+//! |---|---|
+//! | `config.rs` | presets + TOML overrides → [`RunConfig`] |
+//! | `setup.rs` | scene → BVH → sample cache; dropping unresolved hash levels (SPEC §8) |
+//! | `sampler.rs` | batch k as a pure function of (seed, k) |
+//! | `adam.rs` | the optimizer |
+//! | `trainer.rs` | the loop, metrics, checkpoints, exact resume, Ctrl-C |
 
 pub mod adam;
+pub mod config;
+pub mod sampler;
+pub mod setup;
+pub mod trainer;
+
+pub use config::{RunConfig, TrainConfig};

@@ -1,0 +1,143 @@
+//! Rendering (SPEC §1 last stage): cast γ×γ rays for any camera, evaluate the model on the
+//! pixels that hit the mesh, paint misses white (the official protocol), plus camera paths
+//! between two views and the hit-mask / footprint / side-by-side images.
+
+use crate::model::batch::Batch;
+use crate::model::hfm::Hfm;
+use crate::raycast::{cast_view, Tracer};
+use crate::scene::{Camera, Image};
+use anyhow::Result;
+use glam::{DMat3, DQuat};
+
+/// Pixels per forward call while rendering (bounds memory; results do not depend on it because
+/// every pixel's colour is computed independently).
+pub const RENDER_CHUNK: usize = 8192;
+
+/// A rendered view.
+#[derive(Clone, Debug)]
+pub struct Rendered {
+    /// RGB in [0,1]; pixels whose rays all miss are white.
+    pub image: Image,
+    /// `[h*w]` at least one sub-sample hit the mesh.
+    pub hit: Vec<bool>,
+    /// `[h*w]` pixel footprint on the surface (normalised units), 0 for misses.
+    pub footprint: Vec<f32>,
+}
+
+/// Render `camera` with the model; `view_row` is the appearance row (−1: mean code).
+pub fn render_camera(
+    model: &Hfm,
+    params: &[f32],
+    tracer: &Tracer,
+    camera: &Camera,
+    gamma: u32,
+    view_row: i32,
+) -> Result<Rendered> {
+    let cast = cast_view(tracer, camera, gamma)?;
+    let (w, h) = (cast.width as usize, cast.height as usize);
+    let s = (gamma * gamma) as usize;
+    let hit: Vec<bool> = cast.pixels.iter().map(|p| p.valid != 0).collect();
+    let footprint: Vec<f32> = cast.pixels.iter().map(|p| p.footprint as f32).collect();
+    let hits: Vec<usize> = (0..w * h).filter(|&i| hit[i]).collect();
+    let mut data = vec![1.0f32; w * h * 3];
+    for chunk in hits.chunks(RENDER_CHUNK) {
+        let mut b = Batch {
+            positions: Vec::with_capacity(chunk.len() * s),
+            valid: Vec::with_capacity(chunk.len() * s),
+            dirs: Vec::with_capacity(chunk.len()),
+            view: vec![view_row; chunk.len()],
+            target: vec![[0.0; 3]; chunk.len()],
+        };
+        for &i in chunk {
+            let px = &cast.pixels[i];
+            for sub in &cast.subs[i * s..(i + 1) * s] {
+                b.positions.push(sub.position.to_array());
+                b.valid.push(sub.hit() as u8);
+            }
+            b.dirs.push(px.dir.as_vec3().to_array());
+        }
+        let fwd = model.forward(params, &b)?;
+        let rgb: Vec<f32> = fwd.chunks.iter().flat_map(|c| c.rgb.iter().copied()).collect();
+        for (k, &i) in chunk.iter().enumerate() {
+            data[i * 3..i * 3 + 3].copy_from_slice(&rgb[k * 3..k * 3 + 3]);
+        }
+    }
+    Ok(Rendered { image: Image { width: w as u32, height: h as u32, data }, hit, footprint })
+}
+
+/// Camera `i` of `n` on the path from `a` to `b` (both ends included): rotation by slerp,
+/// centre by lerp, intrinsics interpolated linearly; the image size is `a`'s.
+pub fn interpolate_camera(a: &Camera, b: &Camera, i: usize, n: usize) -> Camera {
+    let s = if n <= 1 { 0.0 } else { i as f64 / (n - 1) as f64 };
+    let qa = DQuat::from_mat3(&a.rotation);
+    let mut qb = DQuat::from_mat3(&b.rotation);
+    if qa.dot(qb) < 0.0 {
+        qb = -qb;
+    }
+    let rot = DMat3::from_quat(qa.slerp(qb, s).normalize());
+    let centre = a.center().lerp(b.center(), s);
+    let lerp = |x: f64, y: f64| x + (y - x) * s;
+    Camera {
+        width: a.width,
+        height: a.height,
+        fx: lerp(a.fx, b.fx),
+        fy: lerp(a.fy, b.fy),
+        cx: lerp(a.cx, b.cx),
+        cy: lerp(a.cy, b.cy),
+        distortion: a.distortion,
+        rotation: rot,
+        translation: -(rot * centre),
+    }
+}
+
+/// A white/black image of the hit mask.
+pub fn mask_image(hit: &[bool], w: u32, h: u32) -> Image {
+    let data = hit.iter().flat_map(|&m| [m as u8 as f32; 3]).collect();
+    Image { width: w, height: h, data }
+}
+
+/// log-scaled footprint (finest black … coarsest white over the image's own range).
+pub fn footprint_image(fp: &[f32], w: u32, h: u32) -> Image {
+    let logs: Vec<f64> = fp.iter().filter(|&&f| f > 0.0).map(|&f| (f as f64).ln()).collect();
+    let lo = logs.iter().cloned().fold(f64::INFINITY, f64::min);
+    let hi = logs.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
+    let span = (hi - lo).max(1e-12);
+    let data = fp
+        .iter()
+        .flat_map(|&f| {
+            let v = if f > 0.0 { (((f as f64).ln() - lo) / span) as f32 } else { 0.0 };
+            [v, v, v]
+        })
+        .collect();
+    Image { width: w, height: h, data }
+}
+
+/// Error heat map: mean absolute error over channels, scaled so 0.25 saturates, black → red →
+/// yellow → white.
+pub fn heat_map(a: &Image, b: &Image) -> Image {
+    let data = a
+        .data
+        .chunks_exact(3)
+        .zip(b.data.chunks_exact(3))
+        .flat_map(|(p, q)| {
+            let e = ((p[0] - q[0]).abs() + (p[1] - q[1]).abs() + (p[2] - q[2]).abs()) / 3.0;
+            let x = (e / 0.25).clamp(0.0, 1.0) * 3.0;
+            [x.min(1.0), (x - 1.0).clamp(0.0, 1.0), (x - 2.0).clamp(0.0, 1.0)]
+        })
+        .collect();
+    Image { width: a.width, height: a.height, data }
+}
+
+/// Images of equal height side by side.
+pub fn side_by_side(images: &[&Image]) -> Image {
+    let h = images[0].height;
+    let w: u32 = images.iter().map(|i| i.width).sum();
+    let mut data = Vec::with_capacity((w * h * 3) as usize);
+    for r in 0..h as usize {
+        for img in images {
+            let iw = img.width as usize * 3;
+            data.extend_from_slice(&img.data[r * iw..(r + 1) * iw]);
+        }
+    }
+    Image { width: w, height: h, data }
+}

@@ -1,0 +1,208 @@
+//! Run configuration: a preset (SPEC §9) plus any TOML overrides, resolved once and saved in the
+//! run folder (`config.toml`) and in every checkpoint.
+//!
+//! File form (every field optional; unknown keys are an error naming them):
+//! ```toml
+//! preset = "cpu"                 # tiny | cpu | paper: the base that the tables below override
+//! [model]                        # ModelConfig (src/model/config.rs)
+//! gamma = 1
+//! deform.enabled = false
+//! [train]                        # TrainConfig below
+//! steps = 3000
+//! [train.adam.grid_h]            # AdamGroup (src/train/adam.rs)
+//! lr = 1e-2
+//! ```
+
+use crate::model::ModelConfig;
+use crate::scene::NormalizeMode;
+use crate::train::adam::AdamConfig;
+use anyhow::{bail, Context, Result};
+use serde::{Deserialize, Serialize};
+use std::path::Path;
+
+/// Everything about a training run that is not the model.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TrainConfig {
+    /// Optimisation steps.
+    pub steps: u64,
+    /// Pixels per batch (each with γ² sub-samples).
+    pub batch_pixels: usize,
+    /// Seed of initialisation and batch selection (SPEC §5).
+    pub seed: u64,
+    /// Evaluate on held-out views every N steps (0 = only at the end).
+    pub eval_every: u64,
+    /// At most this many held-out views in a periodic evaluation (0 = all); the final one uses all.
+    pub eval_max_views: usize,
+    /// Write a checkpoint every N steps (0 = only at the end).
+    pub checkpoint_every: u64,
+    /// Append to `metrics.jsonl` (and print when not on a terminal) every N steps.
+    pub log_every: u64,
+    /// Integer image downsample factor.
+    pub downsample: u32,
+    pub normalize: NormalizeMode,
+    /// Drop hash levels finer than the finest pixel footprint of any training view (SPEC §8).
+    pub drop_fine_levels: bool,
+    pub adam: AdamConfig,
+}
+
+impl TrainConfig {
+    pub fn for_preset(name: &str) -> Result<TrainConfig> {
+        let mut adam = AdamConfig::default();
+        // Grids learn fast with a large rate (instant-ngp); the MLPs and codes are smaller.
+        adam.shader.lr = 1e-2;
+        adam.deform.lr = 1e-3;
+        adam.appearance.lr = 1e-3;
+        let base = TrainConfig {
+            steps: 2000,
+            batch_pixels: 4096,
+            seed: 0,
+            eval_every: 500,
+            eval_max_views: 2,
+            checkpoint_every: 500,
+            log_every: 25,
+            downsample: 1,
+            normalize: NormalizeMode::PerAxis,
+            drop_fine_levels: true,
+            adam,
+        };
+        Ok(match name {
+            "tiny" => TrainConfig {
+                steps: 300,
+                batch_pixels: 1024,
+                eval_every: 100,
+                checkpoint_every: 100,
+                log_every: 10,
+                ..base
+            },
+            "cpu" => base,
+            "paper" => TrainConfig { batch_pixels: 8192, ..base },
+            _ => bail!("unknown preset {name:?}: expected one of tiny, cpu, paper"),
+        })
+    }
+}
+
+/// A resolved run configuration.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RunConfig {
+    pub preset: String,
+    pub model: ModelConfig,
+    pub train: TrainConfig,
+}
+
+/// Merge `over` into `base` table by table (values in `over` win).
+fn merge(base: &mut toml::Value, over: toml::Value) {
+    match (base, over) {
+        (toml::Value::Table(b), toml::Value::Table(o)) => {
+            for (k, v) in o {
+                match b.get_mut(&k) {
+                    Some(bv) if bv.is_table() && v.is_table() => merge(bv, v),
+                    _ => {
+                        b.insert(k, v);
+                    }
+                }
+            }
+        }
+        (b, o) => *b = o,
+    }
+}
+
+impl RunConfig {
+    pub fn preset(name: &str) -> Result<RunConfig> {
+        Ok(RunConfig {
+            preset: name.to_string(),
+            model: ModelConfig::preset(name)?,
+            train: TrainConfig::for_preset(name)?,
+        })
+    }
+
+    /// The preset (`preset` key of the text, else `default_preset`) with the text's tables laid
+    /// over it. `origin` names the source in errors.
+    pub fn from_toml_str(text: &str, default_preset: &str, origin: &str) -> Result<RunConfig> {
+        let over: toml::Value =
+            toml::from_str(text).with_context(|| format!("{origin}: not valid TOML"))?;
+        let preset = over
+            .get("preset")
+            .and_then(|p| p.as_str())
+            .unwrap_or(default_preset)
+            .to_string();
+        let base = RunConfig::preset(&preset).with_context(|| format!("{origin}: preset"))?;
+        let mut v = toml::Value::try_from(&base).context("serialising the preset")?;
+        merge(&mut v, over);
+        let cfg: RunConfig = v
+            .try_into()
+            .with_context(|| format!("{origin}: does not describe a run configuration"))?;
+        cfg.validate().with_context(|| format!("{origin}: invalid configuration"))?;
+        Ok(cfg)
+    }
+
+    /// Preset `preset`, overridden by the file `path` if given.
+    pub fn resolve(preset: &str, path: Option<&Path>) -> Result<RunConfig> {
+        match path {
+            None => RunConfig::preset(preset),
+            Some(p) => {
+                let text = std::fs::read_to_string(p)
+                    .with_context(|| format!("{}: cannot read config", p.display()))?;
+                RunConfig::from_toml_str(&text, preset, &p.display().to_string())
+            }
+        }
+    }
+
+    pub fn to_toml(&self) -> String {
+        toml::to_string(self).expect("a RunConfig always serialises")
+    }
+
+    pub fn validate(&self) -> Result<()> {
+        let t = &self.train;
+        if t.batch_pixels == 0 {
+            bail!("train.batch_pixels must be > 0");
+        }
+        if t.downsample == 0 {
+            bail!("train.downsample must be ≥ 1");
+        }
+        if !(1..=4).contains(&self.model.gamma) {
+            bail!("model.gamma must be 1..=4, got {}", self.model.gamma);
+        }
+        t.adam.validate().context("train.adam")?;
+        crate::model::hashgrid::validate_config(&self.model.grid_h).context("model.grid_h")?;
+        if self.model.deform.enabled {
+            crate::model::hashgrid::validate_config(&self.model.deform.grid)
+                .context("model.deform.grid")?;
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn overrides_and_roundtrip() {
+        let c = RunConfig::from_toml_str(
+            "preset = \"tiny\"\n[model]\ngamma = 1\n[model.deform]\nenabled = false\n[train]\nsteps = 7\n[train.adam.grid_h]\nlr = 0.5\n",
+            "cpu",
+            "test.toml",
+        )
+        .unwrap();
+        assert_eq!(c.preset, "tiny");
+        assert_eq!(c.model.gamma, 1);
+        assert!(!c.model.deform.enabled);
+        assert_eq!(c.model.grid_h.levels, 4, "untouched fields keep the preset");
+        assert_eq!(c.train.steps, 7);
+        assert_eq!(c.train.adam.grid_h.lr, 0.5);
+        assert!(c.train.adam.grid_h.sparse, "roles are not overridable");
+        let back = RunConfig::from_toml_str(&c.to_toml(), "cpu", "roundtrip").unwrap();
+        assert_eq!(back, c);
+    }
+
+    #[test]
+    fn bad_keys_are_named() {
+        let e = RunConfig::from_toml_str("[train]\nstepz = 3\n", "tiny", "x.toml").unwrap_err();
+        let msg = format!("{e:#}");
+        assert!(msg.contains("x.toml") && msg.contains("stepz"), "{msg}");
+        let e = RunConfig::from_toml_str("[model]\ngamma = 9\n", "tiny", "y.toml").unwrap_err();
+        assert!(format!("{e:#}").contains("gamma"), "{e:#}");
+    }
+}

@@ -1,0 +1,399 @@
+//! The training loop (SPEC §1): deterministic batches → forward → explicit backward → Adam, with
+//! progress, `metrics.jsonl`, periodic held-out evaluation, atomic checkpoints, exact resume and
+//! a clean stop on Ctrl-C.
+//!
+//! Run folder:
+//! ```text
+//! RUN/config.toml              the resolved run configuration (preset + overrides + dropped levels)
+//! RUN/checkpoint.safetensors   latest checkpoint: parameters, Adam state, step (atomic rename)
+//! RUN/metrics.jsonl            one JSON object per log line / evaluation
+//! RUN/render/NAME.png          final renders of the held-out views
+//! RUN/eval/NAME.png            prediction | ground truth | error heat map
+//! RUN/eval.json                final per-view and mean scores
+//! ```
+//! Exact resume: batch k depends only on (seed, k); the checkpoint holds the f32 parameters and
+//! the whole Adam state (m, v and per-parameter t); nothing in a checkpoint depends on wall time.
+//! So a run stopped at step k and resumed writes the same bytes as one never stopped.
+
+use crate::eval::protocol::{mean_score, score_view, table, ViewScore};
+use crate::io::tensors::TensorFile;
+use crate::model::batch::Batch;
+use crate::model::checkpoint::{init_checkpoint, Checkpoint, Normalization as CkptNorm};
+use crate::model::params::{Grads, Group, ParamLayout};
+use crate::render::{heat_map, render_camera, side_by_side};
+use crate::scene::image::write_png8;
+use crate::train::adam::AdamState;
+use crate::train::config::RunConfig;
+use crate::train::sampler::sample_batch;
+use crate::train::setup::{drop_fine_levels, prepare, Prepared};
+use anyhow::{bail, Context, Result};
+use std::io::{IsTerminal, Write};
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::Instant;
+
+/// Everything that defines a run at a step: configuration, model, parameters, Adam state.
+pub struct TrainState {
+    pub cfg: RunConfig,
+    pub ckpt: Checkpoint,
+    pub adam: AdamState,
+    /// Steps completed.
+    pub step: u64,
+}
+
+/// What one step measured.
+#[derive(Clone, Copy, Debug)]
+pub struct StepStats {
+    pub loss: f64,
+    /// Mean squared error of the batch's RGB (for a running PSNR).
+    pub mse: f64,
+    /// Valid sub-samples evaluated.
+    pub samples: usize,
+}
+
+fn param_specs(layout: &ParamLayout) -> Vec<(String, Vec<usize>)> {
+    layout.tensors.iter().map(|t| (t.name.clone(), t.shape.clone())).collect()
+}
+
+impl TrainState {
+    /// A fresh run for a prepared scene (`cfg.model` already has its levels resolved).
+    pub fn init(cfg: RunConfig, prepared: &Prepared) -> Result<TrainState> {
+        let n = &prepared.scene.normalization;
+        let norm = CkptNorm { center: n.center.to_array(), extent: n.extent.to_array() };
+        let ckpt = init_checkpoint(&cfg.model, cfg.train.seed, norm, prepared.train_views.len())?;
+        let adam = AdamState::new(&param_specs(&ckpt.model.layout));
+        Ok(TrainState { cfg, ckpt, adam, step: 0 })
+    }
+
+    pub fn to_tensor_file(&self) -> Result<TensorFile> {
+        let mut f = self.ckpt.to_tensor_file()?;
+        self.adam.save(&mut f)?;
+        f.set_meta("step", self.step.to_string());
+        f.set_meta("run_config", self.cfg.to_toml());
+        Ok(f)
+    }
+
+    pub fn from_tensor_file(f: &TensorFile) -> Result<TrainState> {
+        let label = f.source.as_ref().map_or("<checkpoint>".into(), |p| p.display().to_string());
+        let ckpt = Checkpoint::from_tensor_file(f)?;
+        let cfg = RunConfig::from_toml_str(f.meta("run_config")?, "cpu", &label)
+            .with_context(|| format!("{label}: header metadata \"run_config\""))?;
+        let step: u64 = f.meta("step")?.parse().with_context(|| format!("{label}: \"step\""))?;
+        let adam = AdamState::load(f, &param_specs(&ckpt.model.layout))?;
+        Ok(TrainState { cfg, ckpt, adam, step })
+    }
+
+    pub fn save(&self, path: &Path) -> Result<()> {
+        self.to_tensor_file()?.write_atomic(path)
+    }
+
+    pub fn load(path: &Path) -> Result<TrainState> {
+        TrainState::from_tensor_file(&TensorFile::read(path)?)
+    }
+
+    /// One optimisation step on `batch`; `grads` must be zero on entry and is zero on exit.
+    pub fn step(&mut self, batch: &Batch, grads: &mut Grads<f32>) -> Result<StepStats> {
+        let model = &self.ckpt.model;
+        let fwd = model.forward(&self.ckpt.params, batch)?;
+        model.backward(&self.ckpt.params, batch, &fwd, grads);
+        let (mut se, mut n) = (0.0f64, 0usize);
+        for c in &fwd.chunks {
+            for (k, p) in c.pixels.clone().enumerate() {
+                for ch in 0..3 {
+                    let d = c.rgb[k * 3 + ch] as f64 - batch.target[p][ch] as f64;
+                    se += d * d;
+                }
+                n += 3;
+            }
+        }
+        let (fh, fd) = model.grid_features();
+        let k = self.step;
+        let a = &self.cfg.train.adam;
+        for t in &model.layout.tensors {
+            let r = t.range();
+            let (p, g) = (&mut self.ckpt.params[r.clone()], &grads.params[r.clone()]);
+            match t.group {
+                Group::GridH => {
+                    self.adam.step_sparse(p, g, &grads.touched_h.entries, fh, r.start, &a.grid_h, k)
+                }
+                Group::GridD => {
+                    self.adam.step_sparse(p, g, &grads.touched_d.entries, fd, r.start, &a.grid_d, k)
+                }
+                Group::Shader => self.adam.step_dense(r, p, g, &a.shader, k),
+                Group::Deform => self.adam.step_dense(r, p, g, &a.deform, k),
+                Group::Appearance => self.adam.step_dense(r, p, g, &a.appearance, k),
+            }
+        }
+        grads.zero_sparse(&model.layout, fh, fd);
+        self.step += 1;
+        Ok(StepStats { loss: fwd.loss, mse: se / n.max(1) as f64, samples: fwd.points.len() })
+    }
+}
+
+/// How a training run is driven (not part of its result).
+#[derive(Default)]
+pub struct TrainOptions {
+    /// Continue from `RUN/checkpoint.safetensors`.
+    pub resume: bool,
+    /// Stop (with a checkpoint) once this many steps are done, as if interrupted.
+    pub stop_at: Option<u64>,
+    /// Set by a Ctrl-C handler: stop with a checkpoint at the next step.
+    pub interrupt: Option<&'static AtomicBool>,
+    /// Skip the final renders and evaluation.
+    pub no_final_eval: bool,
+    /// Print nothing but errors.
+    pub quiet: bool,
+}
+
+/// How a run ended.
+pub struct TrainSummary {
+    pub steps: u64,
+    pub interrupted: bool,
+    pub final_scores: Option<ViewScore>,
+    pub seconds: f64,
+}
+
+fn psnr_of(mse: f64) -> f64 {
+    -10.0 * mse.log10()
+}
+
+/// Keep only the metrics lines of steps ≤ `step` (resume rewrites history from there on).
+fn truncate_metrics(path: &Path, step: u64) -> Result<()> {
+    let Ok(text) = std::fs::read_to_string(path) else { return Ok(()) };
+    let kept: String = text
+        .lines()
+        .filter(|l| {
+            serde_json::from_str::<serde_json::Value>(l)
+                .ok()
+                .and_then(|v| v.get("step").and_then(|s| s.as_u64()))
+                .is_some_and(|s| s <= step)
+        })
+        .map(|l| format!("{l}\n"))
+        .collect();
+    std::fs::write(path, kept).with_context(|| format!("{}: cannot rewrite", path.display()))
+}
+
+/// Render and score held-out views (`max` = 0: all). Writes renders and side-by-sides under
+/// `out` if given.
+pub fn evaluate(
+    state: &TrainState,
+    prepared: &Prepared,
+    max: usize,
+    out: Option<&Path>,
+) -> Result<Vec<ViewScore>> {
+    let views: Vec<usize> = if max == 0 {
+        prepared.scene.test.clone()
+    } else {
+        prepared.scene.test.iter().copied().take(max).collect()
+    };
+    let mut scores = Vec::new();
+    for &i in &views {
+        let view = &prepared.scene.views[i];
+        let r = render_camera(
+            &state.ckpt.model,
+            &state.ckpt.params,
+            &prepared.tracer,
+            &view.camera,
+            state.cfg.model.gamma,
+            prepared.appearance_row(i),
+        )?;
+        let gt = prepared.scene.load_image(i)?;
+        let (s, g) = score_view(&view.name, &r.image, &gt, &r.hit);
+        if let Some(dir) = out {
+            for sub in ["render", "eval"] {
+                std::fs::create_dir_all(dir.join(sub))
+                    .with_context(|| format!("{}: cannot create", dir.join(sub).display()))?;
+            }
+            let stem = Path::new(&view.name).with_extension("png");
+            write_png8(&dir.join("render").join(&stem), &r.image)?;
+            let heat = heat_map(&r.image, &g);
+            write_png8(&dir.join("eval").join(&stem), &side_by_side(&[&r.image, &g, &heat]))?;
+        }
+        scores.push(s);
+    }
+    Ok(scores)
+}
+
+/// Train on `scene_dir` into `run_dir`.
+pub fn train(
+    scene_dir: &Path,
+    run_dir: &Path,
+    cfg: RunConfig,
+    opts: &TrainOptions,
+) -> Result<TrainSummary> {
+    std::fs::create_dir_all(run_dir)
+        .with_context(|| format!("{}: cannot create the run folder", run_dir.display()))?;
+    let say = |s: String| {
+        if !opts.quiet {
+            eprintln!("{s}");
+        }
+    };
+    let ckpt_path = run_dir.join("checkpoint.safetensors");
+    let metrics_path = run_dir.join("metrics.jsonl");
+    let resumed = if opts.resume {
+        if !ckpt_path.exists() {
+            bail!("--resume: {} does not exist", ckpt_path.display());
+        }
+        let mut st = TrainState::load(&ckpt_path)?;
+        // A resumed run keeps its configuration; only the number of steps may be raised.
+        st.cfg.train.steps = st.cfg.train.steps.max(cfg.train.steps);
+        say(format!("resuming {} at step {}", ckpt_path.display(), st.step));
+        truncate_metrics(&metrics_path, st.step)?;
+        Some(st)
+    } else {
+        None
+    };
+    let run_cfg = resumed.as_ref().map_or(cfg.clone(), |s| s.cfg.clone());
+    let prepared = prepare(scene_dir, &run_cfg, true, &mut |m| say(m))?;
+    let mut state = match resumed {
+        Some(s) => s,
+        None => {
+            let mut cfg = run_cfg;
+            if cfg.train.drop_fine_levels {
+                if let Some(fp) = prepared.cache.footprint_min() {
+                    if let Some(msg) = drop_fine_levels(&mut cfg.model, fp as f64) {
+                        say(msg);
+                    }
+                }
+            }
+            if let Ok(old) = std::fs::metadata(&metrics_path) {
+                if old.is_file() {
+                    std::fs::remove_file(&metrics_path)?;
+                }
+            }
+            TrainState::init(cfg, &prepared)?
+        }
+    };
+    std::fs::write(run_dir.join("config.toml"), state.cfg.to_toml())
+        .with_context(|| format!("{}: cannot write config.toml", run_dir.display()))?;
+    let mut metrics = std::fs::OpenOptions::new()
+        .create(true)
+        .append(true)
+        .open(&metrics_path)
+        .with_context(|| format!("{}: cannot open", metrics_path.display()))?;
+    let tc = state.cfg.train.clone();
+    say(format!(
+        "model: {} parameters ({} grid H levels, deformation {}, γ={}, A={}); {} steps of {} pixels",
+        state.ckpt.model.layout.total,
+        state.cfg.model.grid_h.levels,
+        if state.cfg.model.deform.enabled { "on" } else { "off" },
+        state.cfg.model.gamma,
+        state.cfg.model.appearance_dim,
+        tc.steps,
+        tc.batch_pixels
+    ));
+    let bar = if !opts.quiet && std::io::stderr().is_terminal() {
+        let b = indicatif::ProgressBar::new(tc.steps);
+        b.set_style(
+            indicatif::ProgressStyle::with_template(
+                "{bar:30} {pos}/{len} [{elapsed_precise} < {eta_precise}] {msg}",
+            )
+            .expect("valid template"),
+        );
+        b.set_position(state.step);
+        Some(b)
+    } else {
+        None
+    };
+    let t0 = Instant::now();
+    let mut grads = Grads::new(&state.ckpt.model.layout);
+    let mut ema_mse: Option<f64> = None;
+    let (mut win_t, mut win_samples, mut win_pixels) = (Instant::now(), 0usize, 0usize);
+    let mut interrupted = false;
+    let stop = opts.stop_at.unwrap_or(u64::MAX).min(tc.steps);
+    while state.step < stop {
+        let batch = sample_batch(&prepared.cache, tc.seed, state.step, tc.batch_pixels);
+        let st = state.step(&batch, &mut grads)?;
+        if !st.loss.is_finite() {
+            state.save(&run_dir.join("checkpoint-diverged.safetensors"))?;
+            bail!("step {}: loss is {} (diverged); state saved to checkpoint-diverged.safetensors", state.step, st.loss);
+        }
+        ema_mse = Some(ema_mse.map_or(st.mse, |e| 0.9 * e + 0.1 * st.mse));
+        win_samples += st.samples;
+        win_pixels += batch.n_pixels();
+        let k = state.step;
+        if k % tc.log_every.max(1) == 0 || k == tc.steps {
+            let dt = win_t.elapsed().as_secs_f64().max(1e-9);
+            let line = serde_json::json!({
+                "step": k, "loss": st.loss, "psnr": psnr_of(ema_mse.unwrap()),
+                "pixels_per_s": win_pixels as f64 / dt, "samples_per_s": win_samples as f64 / dt,
+                "elapsed_s": t0.elapsed().as_secs_f64(),
+            });
+            writeln!(metrics, "{line}")?;
+            let msg = format!(
+                "loss {:.4}  psnr {:.2}  {:.0} px/s",
+                st.loss,
+                psnr_of(ema_mse.unwrap()),
+                win_pixels as f64 / dt
+            );
+            match &bar {
+                Some(b) => b.set_message(msg),
+                None => say(format!("step {k}/{}  {msg}", tc.steps)),
+            }
+            (win_t, win_samples, win_pixels) = (Instant::now(), 0, 0);
+        }
+        if let Some(b) = &bar {
+            b.set_position(k);
+        }
+        if tc.eval_every > 0 && k % tc.eval_every == 0 && k < tc.steps && !prepared.scene.test.is_empty() {
+            let scores = evaluate(&state, &prepared, tc.eval_max_views, None)?;
+            let m = mean_score(&scores);
+            writeln!(
+                metrics,
+                "{}",
+                serde_json::json!({"step": k, "eval": m, "elapsed_s": t0.elapsed().as_secs_f64()})
+            )?;
+            let msg = format!(
+                "eval @ {k}: PSNR {:.2} (masked {:.2}), SSIM {:.4} (masked {:.4}) on {} views",
+                m.psnr, m.psnr_masked, m.ssim, m.ssim_masked, scores.len()
+            );
+            match &bar {
+                Some(b) => b.println(msg),
+                None => say(msg),
+            }
+        }
+        if tc.checkpoint_every > 0 && k % tc.checkpoint_every == 0 && k < tc.steps {
+            state.save(&ckpt_path)?;
+        }
+        if opts.interrupt.is_some_and(|f| f.load(Ordering::SeqCst)) {
+            interrupted = true;
+            break;
+        }
+    }
+    if let Some(b) = &bar {
+        b.finish_and_clear();
+    }
+    state.save(&ckpt_path)?;
+    let seconds = t0.elapsed().as_secs_f64();
+    if interrupted || state.step < tc.steps {
+        say(format!(
+            "stopped at step {} of {}; checkpoint written to {} (continue with --resume)",
+            state.step,
+            tc.steps,
+            ckpt_path.display()
+        ));
+        return Ok(TrainSummary { steps: state.step, interrupted: true, final_scores: None, seconds });
+    }
+    say(format!("trained {} steps in {seconds:.1} s; checkpoint {}", state.step, ckpt_path.display()));
+    let mut final_scores = None;
+    if !opts.no_final_eval && !prepared.scene.test.is_empty() {
+        let scores = evaluate(&state, &prepared, 0, Some(run_dir))?;
+        let m = mean_score(&scores);
+        say(table(&scores));
+        writeln!(
+            metrics,
+            "{}",
+            serde_json::json!({"step": state.step, "eval": m, "final": true, "elapsed_s": t0.elapsed().as_secs_f64()})
+        )?;
+        let json = serde_json::json!({ "views": scores, "mean": m, "step": state.step });
+        std::fs::write(run_dir.join("eval.json"), serde_json::to_string_pretty(&json)?)?;
+        say(format!("renders in {}, side-by-sides in {}", run_dir.join("render").display(), run_dir.join("eval").display()));
+        final_scores = Some(m);
+    }
+    Ok(TrainSummary { steps: state.step, interrupted: false, final_scores, seconds })
+}
+
+/// `RUN/checkpoint.safetensors` of a run folder.
+pub fn run_checkpoint(run: &Path) -> PathBuf {
+    run.join("checkpoint.safetensors")
+}

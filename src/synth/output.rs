@@ -1,0 +1,1 @@
+//! Writing a synthetic scene directory (placeholder until the scene writers land).

@@ -10,6 +10,11 @@
 //! element, and what was expected. No loader panics on bad input.
 
 pub mod camera;
+pub mod colmap;
+pub mod image;
+pub mod mesh;
+pub mod mvsnet;
+pub mod transforms;
 
 pub use camera::{Camera, Distortion};
 

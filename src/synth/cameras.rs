@@ -19,7 +19,10 @@ use glam::{DMat3, DVec3};
 pub fn look_at(eye: DVec3, target: DVec3, up: DVec3) -> (DMat3, DVec3) {
     let f = (target - eye).normalize();
     let r = f.cross(up);
-    assert!(r.length() > 1e-12, "look_at: up is parallel to the view direction");
+    assert!(
+        r.length() > 1e-12,
+        "look_at: up is parallel to the view direction"
+    );
     let r = r.normalize();
     let down = f.cross(r);
     // Rows of the world→camera rotation are the camera axes in world coordinates.
@@ -97,7 +100,10 @@ pub fn hit_fraction(surface: &TrueSurface, cam: &Camera) -> f64 {
         for i in 0..nx {
             let x = (i as f64 + 0.5) * cam.width as f64 / nx as f64;
             let y = (j as f64 + 0.5) * cam.height as f64 / ny as f64;
-            if surface.trace(o, cam.dir_world(x, y), 0.0, f64::INFINITY).is_some() {
+            if surface
+                .trace(o, cam.dir_world(x, y), 0.0, f64::INFINITY)
+                .is_some()
+            {
                 hits += 1;
             }
         }
@@ -131,7 +137,14 @@ pub fn place(seed: u64, p: &CameraParams, surface: &TrueSurface, close: &[bool])
 const MAX_ATTEMPTS: u64 = 256;
 
 fn place_aerial(seed: u64, p: &CameraParams, s: &TrueSurface, k: usize) -> Placed {
-    let r = |attempt: u64, c: u64| rng::uniform_f64(seed, Purpose::Synth, stream::CAMERAS + 1, (k as u64) << 16 | attempt << 4 | c);
+    let r = |attempt: u64, c: u64| {
+        rng::uniform_f64(
+            seed,
+            Purpose::Synth,
+            stream::CAMERAS + 1,
+            (k as u64) << 16 | attempt << 4 | c,
+        )
+    };
     let mut fallback = None;
     for attempt in 0..MAX_ATTEMPTS {
         let az = std::f64::consts::TAU * (k as f64 + 0.3 * r(attempt, 0)) / p.n_aerial as f64;
@@ -141,12 +154,18 @@ fn place_aerial(seed: u64, p: &CameraParams, s: &TrueSurface, k: usize) -> Place
         let tx = j * (2.0 * r(attempt, 2) - 1.0);
         let ty = j * (2.0 * r(attempt, 3) - 1.0);
         let target = DVec3::new(tx, ty, s.terrain.height_at(tx, ty));
-        let eye = target + p.aerial_distance * DVec3::new(el.cos() * az.cos(), el.cos() * az.sin(), el.sin());
+        let eye = target
+            + p.aerial_distance * DVec3::new(el.cos() * az.cos(), el.cos() * az.sin(), el.sin());
         if !eye_ok(s, eye) {
             continue;
         }
         let cam = camera(p, eye, target);
-        let placed = Placed { kind: ViewKind::Aerial, camera: cam, target, distance: p.aerial_distance };
+        let placed = Placed {
+            kind: ViewKind::Aerial,
+            camera: cam,
+            target,
+            distance: p.aerial_distance,
+        };
         if hit_fraction(s, &placed.camera) >= p.min_hit_fraction {
             return placed;
         }
@@ -156,7 +175,14 @@ fn place_aerial(seed: u64, p: &CameraParams, s: &TrueSurface, k: usize) -> Place
 }
 
 fn place_close(seed: u64, p: &CameraParams, s: &TrueSurface, k: usize) -> Placed {
-    let r = |attempt: u64, c: u64| rng::uniform_f64(seed, Purpose::Synth, stream::CAMERAS + 2, (k as u64) << 16 | attempt << 4 | c);
+    let r = |attempt: u64, c: u64| {
+        rng::uniform_f64(
+            seed,
+            Purpose::Synth,
+            stream::CAMERAS + 2,
+            (k as u64) << 16 | attempt << 4 | c,
+        )
+    };
     let mut fallback = None;
     let d = p.close_distance;
     for attempt in 0..MAX_ATTEMPTS {
@@ -190,7 +216,10 @@ fn place_close(seed: u64, p: &CameraParams, s: &TrueSurface, k: usize) -> Placed
             let t = DVec3::new(tx, ty, b.hi[2]);
             let az = std::f64::consts::TAU * r(attempt, 3);
             let el = (55.0 + 30.0 * r(attempt, 4)).to_radians();
-            (t, t + d * DVec3::new(el.cos() * az.cos(), el.cos() * az.sin(), el.sin()))
+            (
+                t,
+                t + d * DVec3::new(el.cos() * az.cos(), el.cos() * az.sin(), el.sin()),
+            )
         } else {
             // The ground (terrain or whatever stands there), looked at from 45–80° elevation.
             let h = p.close_region;
@@ -203,7 +232,10 @@ fn place_close(seed: u64, p: &CameraParams, s: &TrueSurface, k: usize) -> Placed
             let t = hit.pos;
             let az = std::f64::consts::TAU * r(attempt, 3);
             let el = (45.0 + 35.0 * r(attempt, 4)).to_radians();
-            (t, t + d * DVec3::new(el.cos() * az.cos(), el.cos() * az.sin(), el.sin()))
+            (
+                t,
+                t + d * DVec3::new(el.cos() * az.cos(), el.cos() * az.sin(), el.sin()),
+            )
         };
         if !eye_ok(s, eye) {
             continue;
@@ -215,7 +247,12 @@ fn place_close(seed: u64, p: &CameraParams, s: &TrueSurface, k: usize) -> Placed
             _ => continue,
         }
         let cam = camera(p, eye, target);
-        let placed = Placed { kind: ViewKind::Close, camera: cam, target, distance: d };
+        let placed = Placed {
+            kind: ViewKind::Close,
+            camera: cam,
+            target,
+            distance: d,
+        };
         if hit_fraction(s, &placed.camera) >= p.min_hit_fraction {
             return placed;
         }
@@ -234,7 +271,10 @@ mod tests {
         let target = DVec3::new(4.0, 2.0, -1.0);
         let (r, t) = look_at(eye, target, DVec3::Z);
         // Orthonormal, right-handed.
-        assert!((r * r.transpose() - DMat3::IDENTITY).to_cols_array().iter().all(|v| v.abs() < 1e-12));
+        assert!((r * r.transpose() - DMat3::IDENTITY)
+            .to_cols_array()
+            .iter()
+            .all(|v| v.abs() < 1e-12));
         assert!((r.determinant() - 1.0).abs() < 1e-12);
         // Eye maps to the origin, target onto +z.
         assert!((r * eye + t).length() < 1e-12);

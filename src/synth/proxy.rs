@@ -20,7 +20,10 @@ pub fn displacement(seed: u64, p: &ProxyParams, x: f64, y: f64) -> f64 {
 
 pub fn proxy_mesh(seed: u64, p: &ProxyParams, truth: &TrueSurface) -> Mesh {
     let hf = &truth.terrain;
-    assert!(hf.n % p.stride == 0, "terrain cells must be a multiple of the proxy stride");
+    assert!(
+        hf.n % p.stride == 0,
+        "terrain cells must be a multiple of the proxy stride"
+    );
     let m = hf.n / p.stride;
     let mut vertices = Vec::with_capacity((m + 1) * (m + 1) + 8 * truth.buildings.len());
     for j in 0..=m {
@@ -38,7 +41,14 @@ pub fn proxy_mesh(seed: u64, p: &ProxyParams, truth: &TrueSurface) -> Mesh {
         }
     }
     for (k, b) in truth.buildings.iter().enumerate() {
-        let r = |c: u64| 2.0 * rng::uniform_f64(seed, Purpose::Synth, stream::PROXY + 16, (k as u64) << 4 | c) - 1.0;
+        let r = |c: u64| {
+            2.0 * rng::uniform_f64(
+                seed,
+                Purpose::Synth,
+                stream::PROXY + 16,
+                (k as u64) << 4 | c,
+            ) - 1.0
+        };
         let s = p.building_shift;
         let shift = DVec3::new(s * r(0), s * r(1), 0.0);
         let lo = b.lo() + shift - DVec3::Z * (p.displacement + 1.0);

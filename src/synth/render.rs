@@ -51,7 +51,8 @@ pub fn render(shader: &Shader, cam: &Camera, spp_side: u32) -> Image {
                             acc += match shader.surface.trace(o, d, 0.0, f64::INFINITY) {
                                 Some(hit) => {
                                     let cos = 1.0 / dc.length();
-                                    let ray_fp = hit.t * cos.powf(1.5) / (cam.fx * cam.fy).sqrt() * inv;
+                                    let ray_fp =
+                                        hit.t * cos.powf(1.5) / (cam.fx * cam.fy).sqrt() * inv;
                                     let fp = ray_fp / hit.normal.dot(d).abs().max(0.25);
                                     shader.shade(&hit, d, fp)
                                 }

@@ -120,16 +120,33 @@ impl Shader<'_> {
     /// Terrain albedo at (x, y) for a surface footprint `fp` (0 = full detail), and material.
     pub fn terrain_material(&self, x: f64, y: f64, fp: f64) -> Material {
         let (seed, l) = (self.seed, self.look);
-        let region = noise::value(seed, stream::REGION, x / l.coarse_wavelength, y / l.coarse_wavelength);
+        let region = noise::value(
+            seed,
+            stream::REGION,
+            x / l.coarse_wavelength,
+            y / l.coarse_wavelength,
+        );
         let tint = noise::centred(seed, stream::TINT, x, y, 0.5 * l.coarse_wavelength);
         let mid = octave(seed, stream::MID_A, x, y, l.mid_wavelength, fp)
-            + 0.6 * octave(seed, stream::MID_B, x, y, 0.25 * l.mid_wavelength, fp);
+            + 0.8 * octave(seed, stream::MID_B, x, y, 0.25 * l.mid_wavelength, fp);
         if region > 0.56 {
             // Pavement: warm grey, square tiles at the fine period.
             let base = DVec3::new(0.62, 0.58, 0.52) + DVec3::new(0.10, 0.06, 0.0) * tint * 2.0;
-            let t = tiles(seed, stream::TILE, x, y, l.fine_period, l.fine_period, 0.0, 0.12, 0.45, 0.22, fp);
+            let t = tiles(
+                seed,
+                stream::TILE,
+                x,
+                y,
+                l.fine_period,
+                l.fine_period,
+                0.0,
+                0.12,
+                0.45,
+                0.22,
+                fp,
+            );
             Material {
-                albedo: base * (1.0 + 0.35 * mid) * t,
+                albedo: base * (1.0 + 0.6 * mid) * t,
                 ks: 0.10,
                 shininess: 24.0,
             }
@@ -139,7 +156,7 @@ impl Shader<'_> {
             let grain = octave(seed, stream::FINE, x, y, 0.5 * l.fine_period, fp)
                 + octave(seed, stream::FINE + 1, x, y, l.fine_period, fp);
             Material {
-                albedo: base * (1.0 + 0.7 * mid) * (1.0 + 0.8 * grain),
+                albedo: base * (1.0 + mid) * (1.0 + 0.8 * grain),
                 ks: 0.03,
                 shininess: 6.0,
             }
@@ -150,9 +167,28 @@ impl Shader<'_> {
         let (seed, l) = (self.seed, self.look);
         let base = DVec3::from_array(self.surface.buildings[b].wall_colour);
         let st = stream::BRICK + 16 * b as u64;
-        let bricks = tiles(seed, st, s, z, 2.0 * l.fine_period, l.fine_period, 0.5, 0.10, 0.55, 0.25, fp);
-        let weather = octave(seed, stream::WEATHER, s + 1000.0 * b as f64, z, l.mid_wavelength, fp)
-            + 0.6 * octave(seed, stream::WEATHER + 1, s, z, 0.25 * l.mid_wavelength, fp);
+        let bricks = tiles(
+            seed,
+            st,
+            s,
+            z,
+            2.0 * l.fine_period,
+            l.fine_period,
+            0.5,
+            0.10,
+            0.55,
+            0.25,
+            fp,
+        );
+        let weather = octave(
+            seed,
+            stream::WEATHER,
+            s + 1000.0 * b as f64,
+            z,
+            l.mid_wavelength,
+            fp,
+        ) + 0.6
+            * octave(seed, stream::WEATHER + 1, s, z, 0.25 * l.mid_wavelength, fp);
         // Darker towards the ground (coarse vertical gradient).
         let grime = 1.0 - 0.25 * (-(z - self.surface.buildings[b].lo[2]) / 6.0).exp();
         Material {
@@ -169,7 +205,19 @@ impl Shader<'_> {
         // Standing-seam panels along the longer side, period = a quarter of mid_wavelength.
         let along_x = bd.hi[0] - bd.lo[0] >= bd.hi[1] - bd.lo[1];
         let (u, v) = if along_x { (y, x) } else { (x, y) };
-        let seams = tiles(seed, stream::ROOF + b as u64, u, v, 0.25 * l.mid_wavelength, 1e6, 0.0, 0.06, 0.6, 0.05, fp);
+        let seams = tiles(
+            seed,
+            stream::ROOF + b as u64,
+            u,
+            v,
+            0.25 * l.mid_wavelength,
+            1e6,
+            0.0,
+            0.06,
+            0.6,
+            0.05,
+            fp,
+        );
         let grain = octave(seed, stream::ROOF + 64, x, y, l.fine_period, fp);
         let stain = octave(seed, stream::ROOF + 65, x, y, l.mid_wavelength, fp);
         Material {

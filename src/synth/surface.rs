@@ -142,29 +142,21 @@ impl Heightfield {
                 if zhi < bmin || zlo > bmax {
                     return None;
                 }
-                let borig = self.origin + DVec2::new(bi as f64, bj as f64) * self.cell * BLOCK as f64;
-                dda(
-                    o2,
-                    d2,
-                    borig,
-                    self.cell,
-                    BLOCK,
-                    ta,
-                    tb,
-                    |ci, cj, _, _| {
-                        let (i, j) = (bi * BLOCK + ci, bj * BLOCK + cj);
-                        let mut best: Option<(f64, DVec3)> = None;
-                        for tri in self.cell_triangles(i, j) {
-                            if let Some(t) = intersect_triangle(o, d, &tri) {
-                                if t >= tmin && t <= tmax && best.is_none_or(|b| t < b.0) {
-                                    let n = (tri[1] - tri[0]).cross(tri[2] - tri[0]).normalize();
-                                    best = Some((t, n));
-                                }
+                let borig =
+                    self.origin + DVec2::new(bi as f64, bj as f64) * self.cell * BLOCK as f64;
+                dda(o2, d2, borig, self.cell, BLOCK, ta, tb, |ci, cj, _, _| {
+                    let (i, j) = (bi * BLOCK + ci, bj * BLOCK + cj);
+                    let mut best: Option<(f64, DVec3)> = None;
+                    for tri in self.cell_triangles(i, j) {
+                        if let Some(t) = intersect_triangle(o, d, &tri) {
+                            if t >= tmin && t <= tmax && best.is_none_or(|b| t < b.0) {
+                                let n = (tri[1] - tri[0]).cross(tri[2] - tri[0]).normalize();
+                                best = Some((t, n));
                             }
                         }
-                        best
-                    },
-                )
+                    }
+                    best
+                })
             },
         )
     }
@@ -199,8 +191,13 @@ impl Building {
 pub enum SurfaceKind {
     Terrain,
     /// A wall of building `b`, facing along axis 0 (x) or 1 (y).
-    Wall { building: u32, axis: u8 },
-    Roof { building: u32 },
+    Wall {
+        building: u32,
+        axis: u8,
+    },
+    Roof {
+        building: u32,
+    },
 }
 
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -264,9 +261,9 @@ impl TrueSurface {
     /// Does any building block the ray `o + t·d`, t > 0? (Shadow rays; terrain self-shadowing
     /// is not modelled: the hills are gentle and the sun high, so `n·l` carries their shading.)
     pub fn blocked_by_building(&self, o: DVec3, d: DVec3) -> bool {
-        self.buildings.iter().any(|b| {
-            slab(o, d, b.lo(), b.hi()).is_some_and(|(t0, t1)| t1 > 0.0 && t0 <= t1)
-        })
+        self.buildings
+            .iter()
+            .any(|b| slab(o, d, b.lo(), b.hi()).is_some_and(|(t0, t1)| t1 > 0.0 && t0 <= t1))
     }
 
     /// The triangles [`TrueSurface::trace`] intersects: terrain (2 per cell) then 5 faces
@@ -448,7 +445,11 @@ mod tests {
         for j in 0..=n {
             for i in 0..=n {
                 let (x, y) = (i as f64, j as f64);
-                h.push((x * 0.37).sin() * 2.0 + (y * 0.23).cos() * 1.5 + ((i * 7 + j * 13) % 5) as f64 * 0.1);
+                h.push(
+                    (x * 0.37).sin() * 2.0
+                        + (y * 0.23).cos() * 1.5
+                        + ((i * 7 + j * 13) % 5) as f64 * 0.1,
+                );
             }
         }
         Heightfield::new(DVec2::new(-8.0, -8.0), 16.0 / n as f64, n, h)
@@ -514,11 +515,21 @@ mod tests {
             terrain: hf,
             buildings: vec![b],
         };
-        let h = s.trace(DVec3::new(0.0, 0.0, 20.0), DVec3::NEG_Z, 0.0, f64::INFINITY).unwrap();
+        let h = s
+            .trace(DVec3::new(0.0, 0.0, 20.0), DVec3::NEG_Z, 0.0, f64::INFINITY)
+            .unwrap();
         assert_eq!(h.kind, SurfaceKind::Roof { building: 0 });
         assert!((h.t - 10.0).abs() < 1e-12 && h.normal == DVec3::Z);
-        let h = s.trace(DVec3::new(-5.0, 0.5, 5.0), DVec3::X, 0.0, f64::INFINITY).unwrap();
-        assert_eq!(h.kind, SurfaceKind::Wall { building: 0, axis: 0 });
+        let h = s
+            .trace(DVec3::new(-5.0, 0.5, 5.0), DVec3::X, 0.0, f64::INFINITY)
+            .unwrap();
+        assert_eq!(
+            h.kind,
+            SurfaceKind::Wall {
+                building: 0,
+                axis: 0
+            }
+        );
         assert!((h.t - 4.0).abs() < 1e-12 && h.normal == DVec3::NEG_X);
         assert!(s.blocked_by_building(DVec3::new(-5.0, 0.5, 5.0), DVec3::X));
         assert!(!s.blocked_by_building(DVec3::new(-5.0, 0.5, 5.0), DVec3::NEG_X));

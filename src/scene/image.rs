@@ -26,7 +26,12 @@ pub fn dimensions(path: &Path) -> Result<(u32, u32)> {
             .ok_or_else(|| anyhow!("{}: EXR file has no layers", path.display()))?;
         Ok((h.layer_size.0 as u32, h.layer_size.1 as u32))
     } else {
-        ::image::image_dimensions(path)
+        // Format from the content, not the extension (a mislabelled JPEG still works).
+        ::image::ImageReader::open(path)
+            .with_context(|| format!("{}: cannot open image", path.display()))?
+            .with_guessed_format()
+            .with_context(|| format!("{}: cannot read image", path.display()))?
+            .into_dimensions()
             .map_err(|e| anyhow!("{}: cannot read image header: {e}", path.display()))
     }
 }

@@ -99,11 +99,21 @@ fn push_face(vertices: &[DVec3], face: &[u32], out: &mut Vec<[u32; 3]>, stats: &
 /// fatal). All models are merged. tobj is built with `use_f64`, so coordinates are exact.
 /// Note: tobj re-indexes vertices in order of first use by a face and drops unreferenced ones.
 fn load_obj(path: &Path) -> Result<(Mesh, MeshStats)> {
-    // tobj's own errors carry no line number: diagnose the file ourselves first for the common
-    // problems (bad numbers, non-finite coordinates, indices out of range).
-    obj_diagnose(path)?;
-    let (models, _materials) = tobj::load_obj(path, &tobj::GPU_LOAD_OPTIONS)
-        .map_err(|e| anyhow!("{}: cannot load OBJ: {e}", path.display()))?;
+    // tobj's own errors carry no line number: on any failure, re-scan the file ourselves to
+    // name the line (bad numbers, non-finite coordinates, indices out of range).
+    let (models, _materials) = match tobj::load_obj(path, &tobj::GPU_LOAD_OPTIONS) {
+        Ok(x) => x,
+        Err(e) => {
+            obj_diagnose(path)?;
+            bail!("{}: cannot load OBJ: {e}", path.display());
+        }
+    };
+    let any_non_finite = models
+        .iter()
+        .any(|m| m.mesh.positions.iter().any(|v| !v.is_finite()));
+    if any_non_finite {
+        obj_diagnose(path)?;
+    }
     let mut mesh = Mesh::default();
     let mut stats = MeshStats::default();
     for m in &models {
@@ -513,11 +523,14 @@ fn load_ply(path: &Path) -> Result<(Mesh, MeshStats)> {
     }
 }
 
-fn check_index(path: &Path, where_: &str, i: f64, nv: usize) -> Result<u32> {
+/// Range-check a face index; `where_` builds the error location only on failure.
+#[inline]
+fn check_index(path: &Path, where_: impl Fn() -> String, i: f64, nv: usize) -> Result<u32> {
     if !(i >= 0.0 && i < nv as f64) || i.fract() != 0.0 {
         bail!(
-            "{}: {where_}: vertex index {i} out of range (0..{nv})",
-            path.display()
+            "{}: {}: vertex index {i} out of range (0..{nv})",
+            path.display(),
+            where_()
         );
     }
     Ok(i as u32)
@@ -564,24 +577,33 @@ fn load_ply_ascii(path: &Path, data: &[u8], h: &Header, lay: &Layout) -> Result<
             let mut vals = [0.0f64; 3];
             face_buf.clear();
             for (pi, prop) in el.props.iter().enumerate() {
-                let mut next = |what: &str| -> Result<f64> {
+                let mut next = |what: &str, count: bool| -> Result<f64> {
+                    let what = || {
+                        if count {
+                            format!("{what} count")
+                        } else {
+                            what.to_string()
+                        }
+                    };
                     let s = tok.get(t).ok_or_else(|| {
                         anyhow!(
-                            "{p}: line {ln}: {} {k}: too few values (missing {what}; header count or data wrong?)",
-                            el.name
+                            "{p}: line {ln}: {} {k}: too few values (missing {}; header count or data wrong?)",
+                            el.name,
+                            what()
                         )
                     })?;
                     t += 1;
                     s.parse::<f64>().map_err(|_| {
                         anyhow!(
-                            "{p}: line {ln}: {} {k}: '{s}' is not a number ({what})",
-                            el.name
+                            "{p}: line {ln}: {} {k}: '{s}' is not a number ({})",
+                            el.name,
+                            what()
                         )
                     })
                 };
                 match prop.kind {
                     PropKind::Scalar(_) => {
-                        let v = next(&prop.name)?;
+                        let v = next(&prop.name, false)?;
                         if is_vertex {
                             if let Some(axis) = lay.xyz.iter().position(|&x| x == pi) {
                                 if !v.is_finite() {
@@ -595,17 +617,21 @@ fn load_ply_ascii(path: &Path, data: &[u8], h: &Header, lay: &Layout) -> Result<
                         }
                     }
                     PropKind::List { .. } => {
-                        let n = next(&format!("{} count", prop.name))?;
+                        let n = next(&prop.name, true)?;
                         if !(n >= 0.0) || n.fract() != 0.0 {
                             bail!("{p}: line {ln}: {} {k}: bad list count {n}", el.name);
                         }
                         let n = n as usize;
                         let take_face = is_face && lay.face_list == Some(pi);
                         for _ in 0..n {
-                            let v = next(&prop.name)?;
+                            let v = next(&prop.name, false)?;
                             if take_face {
-                                let i =
-                                    check_index(path, &format!("line {ln}: face {k}"), v, nv_decl)?;
+                                let i = check_index(
+                                    path,
+                                    || format!("line {ln}: face {k}"),
+                                    v,
+                                    nv_decl,
+                                )?;
                                 face_buf.push(i);
                             }
                         }
@@ -663,13 +689,61 @@ fn load_ply_binary(
     let mut face_buf: Vec<u32> = Vec::new();
     let mut faces_pending: Vec<Vec<u32>> = Vec::new();
     let mut vertex_seen = false;
-    // Fast path for the common vertex layouts is not needed: per-property decoding runs at
-    // hundreds of MB/s, well below ray-casting cost.
     for el in &h.elements {
         let is_vertex = el.name == "vertex";
         let is_face = el.name == "face";
         if is_vertex {
             mesh.vertices.reserve(el.count.min(data.len() / 12));
+        }
+        // Fast path: an element of scalars only is a fixed-size record (vertices, usually).
+        let scalars: Option<Vec<Scalar>> = el
+            .props
+            .iter()
+            .map(|pr| match pr.kind {
+                PropKind::Scalar(s) => Some(s),
+                PropKind::List { .. } => None,
+            })
+            .collect();
+        if let Some(types) = scalars {
+            let mut offs = Vec::with_capacity(types.len());
+            let mut rec = 0usize;
+            for t in &types {
+                offs.push(rec);
+                rec += t.size();
+            }
+            let need = rec.checked_mul(el.count);
+            if need.is_none_or(|n| pos + n > data.len()) {
+                let k = (data.len() - pos) / rec.max(1);
+                bail!(
+                    "{p}: truncated: file ends inside {} {k} of {} declared",
+                    el.name,
+                    el.count
+                );
+            }
+            if is_vertex {
+                for k in 0..el.count {
+                    let r = &data[pos + k * rec..pos + (k + 1) * rec];
+                    let mut v = [0f64; 3];
+                    for axis in 0..3 {
+                        let pi = lay.xyz[axis];
+                        let x = types[pi].read(&r[offs[pi]..], big);
+                        if !x.is_finite() {
+                            bail!(
+                                "{p}: vertex {k}: coordinate {} is {x} (must be finite)",
+                                ["x", "y", "z"][axis]
+                            );
+                        }
+                        v[axis] = x;
+                    }
+                    mesh.vertices.push(DVec3::from_array(v));
+                }
+                vertex_seen = true;
+                for f in faces_pending.drain(..) {
+                    push_face(&mesh.vertices, &f, &mut mesh.triangles, &mut stats);
+                }
+            }
+            pos += rec * el.count;
+            continue;
         }
         for k in 0..el.count {
             let mut vals = [0.0f64; 3];
@@ -714,7 +788,12 @@ fn load_ply_binary(
                         if take_face {
                             for _ in 0..n {
                                 let v = read(item)?;
-                                face_buf.push(check_index(path, &format!("face {k}"), v, nv_decl)?);
+                                face_buf.push(check_index(
+                                    path,
+                                    || format!("face {k}"),
+                                    v,
+                                    nv_decl,
+                                )?);
                             }
                         } else {
                             let bytes = n * item.size();

@@ -364,31 +364,50 @@ fn truth_ply_loads_back() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
-/// THE cross-format test: COLMAP, MVSNet and transforms.json loaders read the synth output in
-/// their own layouts and agree on every camera (K and pose) to ≤ 1e-9, with each other and
-/// with the generator's cameras.
+/// THE cross-format test: `Scene::load` with each camera format (COLMAP, MVSNet,
+/// transforms.json) reads the synth output in its own layout, and all three agree on every
+/// camera (K and pose) to ≤ 1e-9, with each other and with the generator's cameras; they also
+/// find the same proxy mesh, the same images and the default every-7th split.
 #[test]
 fn three_camera_layouts_agree() {
+    use xscale::scene::{CameraFormat, LoadOptions, Scene};
     let dir = temp_dir("formats");
     let s = synth::build(Preset::Tiny, 4);
     let images = s.render();
     synth::output::write(&s, &images, &s.summary(), &dir, false).unwrap();
-    let colmap = scene::colmap::read_text(&dir.join("sparse/0"), &dir.join("images")).unwrap();
-    let layouts = scene::mvsnet::find_layouts(&dir);
-    assert_eq!(layouts.len(), 1);
-    let mvsnet = scene::mvsnet::load(&layouts[0]).unwrap();
-    let tjson = scene::transforms::load(&dir.join("transforms.json")).unwrap();
-    assert_eq!(colmap.len(), s.views.len());
-    assert_eq!(mvsnet.len(), s.views.len());
-    assert_eq!(tjson.len(), s.views.len());
-    for (i, v) in s.views.iter().enumerate() {
-        for (fmt, loaded) in [
-            ("colmap", &colmap[i]),
-            ("mvsnet", &mvsnet[i]),
-            ("transforms", &tjson[i]),
-        ] {
+    let load = |f: CameraFormat| {
+        let opts = LoadOptions {
+            format: Some(f),
+            load_images_check: true,
+            ..Default::default()
+        };
+        Scene::load(&dir, &opts).unwrap_or_else(|e| panic!("{}: {e:#}", f.name()))
+    };
+    let scenes = [
+        ("colmap", load(CameraFormat::Colmap)),
+        ("mvsnet", load(CameraFormat::MvsNet)),
+        ("transforms", load(CameraFormat::Transforms)),
+    ];
+    for (fmt, sc) in &scenes {
+        assert_eq!(sc.views.len(), s.views.len(), "{fmt}");
+        assert_eq!(sc.mesh.triangles, s.proxy.triangles, "{fmt}: proxy mesh");
+        let verr = sc
+            .mesh
+            .vertices
+            .iter()
+            .zip(&s.proxy.vertices)
+            .map(|(a, b)| (*a - *b).abs().max_element())
+            .fold(0.0, f64::max);
+        assert!(verr < 1e-6, "{fmt}: proxy vertices differ by {verr}");
+        let want_test: Vec<usize> = (0..s.views.len()).step_by(7).collect();
+        assert_eq!(sc.test, want_test, "{fmt}: split");
+        for (i, v) in s.views.iter().enumerate() {
+            let loaded = &sc.views[i];
             let d = loaded.camera.max_abs_diff(&v.camera);
-            assert!(d <= 1e-9, "{fmt}: view {i} differs by {d}");
+            assert!(
+                d <= 1e-9,
+                "{fmt}: view {i} differs from the generator by {d}"
+            );
             assert_eq!(
                 Path::new(&loaded.name).file_stem(),
                 Path::new(&s.names[i]).file_stem(),
@@ -407,8 +426,30 @@ fn three_camera_layouts_agree() {
                 "{fmt}: 8-bit quantisation error {q}"
             );
         }
-        assert!(colmap[i].camera.max_abs_diff(&mvsnet[i].camera) <= 1e-9);
-        assert!(colmap[i].camera.max_abs_diff(&tjson[i].camera) <= 1e-9);
+    }
+    for i in 0..s.views.len() {
+        let c = &scenes[0].1.views[i].camera;
+        for (fmt, sc) in &scenes[1..] {
+            let d = c.max_abs_diff(&sc.views[i].camera);
+            assert!(d <= 1e-9, "colmap vs {fmt}: view {i} differs by {d}");
+        }
+    }
+    // The committed fixture loads in all three formats too, and they agree.
+    let fixture = Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/tiny");
+    let opts = |f| LoadOptions {
+        format: Some(f),
+        ..Default::default()
+    };
+    let a = Scene::load(&fixture, &opts(CameraFormat::Colmap)).unwrap();
+    for f in [CameraFormat::MvsNet, CameraFormat::Transforms] {
+        let b = Scene::load(&fixture, &opts(f)).unwrap();
+        for (x, y) in a.views.iter().zip(&b.views) {
+            assert!(
+                x.camera.max_abs_diff(&y.camera) <= 1e-9,
+                "fixture: colmap vs {}",
+                f.name()
+            );
+        }
     }
     let _ = std::fs::remove_dir_all(&dir);
 }

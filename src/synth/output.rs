@@ -81,7 +81,7 @@ pub fn write(
     }
     scene::transforms::write(&dir.join("transforms.json"), &vs, "images/")?;
     let record = Record {
-        generator: concat!("xscale synth ", env!("CARGO_PKG_VERSION")),
+        generator: "xscale synth",
         preset: s.preset,
         seed: s.seed,
         params: &s.params,

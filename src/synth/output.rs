@@ -8,6 +8,7 @@
 //! images_1/NAME.png + cams_1/NAME_cam.txt  MVSNet layout (same images)
 //! transforms.json             instant-ngp / nerfstudio (file_path = images/NAME.png)
 //! synth.toml                  preset, seed, every parameter, per-view kind, summary
+//! scene.toml                  `format = "colmap"`: which of the three layouts a plain load uses
 //! ```
 //! All writers are the `scene` module's; every file is a pure function of (preset, seed).
 
@@ -101,6 +102,13 @@ pub fn write(
     };
     let text = toml::to_string(&record).context("synth.toml: cannot serialise")?;
     let path = dir.join("synth.toml");
+    fs::write(&path, text).with_context(|| format!("{}: cannot write", path.display()))?;
+    // All three layouts describe the same cameras (tests/synth.rs checks it); a plain
+    // `Scene::load` needs to be told which to read.
+    let path = dir.join("scene.toml");
+    let text = "# The cameras are written in three layouts (COLMAP, MVSNet, transforms.json);\n\
+                # they agree to 1e-9. Load the COLMAP one unless told otherwise.\n\
+                format = \"colmap\"\n";
     fs::write(&path, text).with_context(|| format!("{}: cannot write", path.display()))?;
     Ok(())
 }

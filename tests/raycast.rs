@@ -556,4 +556,3 @@ fn bad_input_is_an_error() {
     let t = Tracer::new(&empty, &n).unwrap();
     assert!(t.closest_hit(DVec3::ZERO, DVec3::X).is_none());
 }
-

@@ -198,6 +198,8 @@ impl Default for LoadOptions {
 #[derive(Clone, Debug, Default, serde::Deserialize)]
 #[serde(deny_unknown_fields)]
 struct SceneToml {
+    /// Camera layout to use when the dir holds several (`colmap`, `mvsnet`, `transforms`).
+    format: Option<String>,
     /// Names of the held-out views (as in [`View::name`]).
     test_views: Option<Vec<String>>,
     /// Hold out indices 0, N, 2N, … (0 = no test views).
@@ -320,7 +322,23 @@ impl Scene {
         if opts.downsample == 0 {
             bail!("downsample factor must be >= 1");
         }
-        let format = match opts.format {
+        // Optional scene.toml: camera layout and split.
+        let toml_path = dir.join("scene.toml");
+        let cfg: SceneToml = if toml_path.is_file() {
+            let text = std::fs::read_to_string(&toml_path)
+                .map_err(|e| anyhow!("{}: cannot read: {e}", toml_path.display()))?;
+            toml::from_str(&text).map_err(|e| anyhow!("{}: {e}", toml_path.display()))?
+        } else {
+            SceneToml::default()
+        };
+        let toml_format = match &cfg.format {
+            Some(name) => Some(
+                name.parse::<CameraFormat>()
+                    .map_err(|e| anyhow!("{}: format: {e}", toml_path.display()))?,
+            ),
+            None => None,
+        };
+        let format = match opts.format.or(toml_format) {
             Some(f) => f,
             None => {
                 let found = detect_formats(dir);
@@ -443,15 +461,7 @@ impl Scene {
             }
         }
 
-        // Split.
-        let toml_path = dir.join("scene.toml");
-        let cfg: SceneToml = if toml_path.is_file() {
-            let text = std::fs::read_to_string(&toml_path)
-                .map_err(|e| anyhow!("{}: cannot read: {e}", toml_path.display()))?;
-            toml::from_str(&text).map_err(|e| anyhow!("{}: {e}", toml_path.display()))?
-        } else {
-            SceneToml::default()
-        };
+        // Split (scene.toml was read above).
         let test: Vec<usize> = if let Some(names) = &cfg.test_views {
             if cfg.holdout_every.is_some() {
                 bail!(

@@ -57,18 +57,34 @@ pub fn render_camera(
             b.dirs.push(px.dir.as_vec3().to_array());
         }
         let fwd = model.forward(params, &b)?;
-        let rgb: Vec<f32> = fwd.chunks.iter().flat_map(|c| c.rgb.iter().copied()).collect();
+        let rgb: Vec<f32> = fwd
+            .chunks
+            .iter()
+            .flat_map(|c| c.rgb.iter().copied())
+            .collect();
         for (k, &i) in chunk.iter().enumerate() {
             data[i * 3..i * 3 + 3].copy_from_slice(&rgb[k * 3..k * 3 + 3]);
         }
     }
-    Ok(Rendered { image: Image { width: w as u32, height: h as u32, data }, hit, footprint })
+    Ok(Rendered {
+        image: Image {
+            width: w as u32,
+            height: h as u32,
+            data,
+        },
+        hit,
+        footprint,
+    })
 }
 
 /// Camera `i` of `n` on the path from `a` to `b` (both ends included): rotation by slerp,
 /// centre by lerp, intrinsics interpolated linearly; the image size is `a`'s.
 pub fn interpolate_camera(a: &Camera, b: &Camera, i: usize, n: usize) -> Camera {
-    let s = if n <= 1 { 0.0 } else { i as f64 / (n - 1) as f64 };
+    let s = if n <= 1 {
+        0.0
+    } else {
+        i as f64 / (n - 1) as f64
+    };
     let qa = DQuat::from_mat3(&a.rotation);
     let mut qb = DQuat::from_mat3(&b.rotation);
     if qa.dot(qb) < 0.0 {
@@ -93,23 +109,39 @@ pub fn interpolate_camera(a: &Camera, b: &Camera, i: usize, n: usize) -> Camera 
 /// A white/black image of the hit mask.
 pub fn mask_image(hit: &[bool], w: u32, h: u32) -> Image {
     let data = hit.iter().flat_map(|&m| [m as u8 as f32; 3]).collect();
-    Image { width: w, height: h, data }
+    Image {
+        width: w,
+        height: h,
+        data,
+    }
 }
 
 /// log-scaled footprint (finest black … coarsest white over the image's own range).
 pub fn footprint_image(fp: &[f32], w: u32, h: u32) -> Image {
-    let logs: Vec<f64> = fp.iter().filter(|&&f| f > 0.0).map(|&f| (f as f64).ln()).collect();
+    let logs: Vec<f64> = fp
+        .iter()
+        .filter(|&&f| f > 0.0)
+        .map(|&f| (f as f64).ln())
+        .collect();
     let lo = logs.iter().cloned().fold(f64::INFINITY, f64::min);
     let hi = logs.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
     let span = (hi - lo).max(1e-12);
     let data = fp
         .iter()
         .flat_map(|&f| {
-            let v = if f > 0.0 { (((f as f64).ln() - lo) / span) as f32 } else { 0.0 };
+            let v = if f > 0.0 {
+                (((f as f64).ln() - lo) / span) as f32
+            } else {
+                0.0
+            };
             [v, v, v]
         })
         .collect();
-    Image { width: w, height: h, data }
+    Image {
+        width: w,
+        height: h,
+        data,
+    }
 }
 
 /// Error heat map: mean absolute error over channels, scaled so 0.25 saturates, black → red →
@@ -122,10 +154,18 @@ pub fn heat_map(a: &Image, b: &Image) -> Image {
         .flat_map(|(p, q)| {
             let e = ((p[0] - q[0]).abs() + (p[1] - q[1]).abs() + (p[2] - q[2]).abs()) / 3.0;
             let x = (e / 0.25).clamp(0.0, 1.0) * 3.0;
-            [x.min(1.0), (x - 1.0).clamp(0.0, 1.0), (x - 2.0).clamp(0.0, 1.0)]
+            [
+                x.min(1.0),
+                (x - 1.0).clamp(0.0, 1.0),
+                (x - 2.0).clamp(0.0, 1.0),
+            ]
         })
         .collect();
-    Image { width: a.width, height: a.height, data }
+    Image {
+        width: a.width,
+        height: a.height,
+        data,
+    }
 }
 
 /// Images of equal height side by side.
@@ -139,5 +179,9 @@ pub fn side_by_side(images: &[&Image]) -> Image {
             data.extend_from_slice(&img.data[r * iw..(r + 1) * iw]);
         }
     }
-    Image { width: w, height: h, data }
+    Image {
+        width: w,
+        height: h,
+        data,
+    }
 }

@@ -76,7 +76,10 @@ impl TrainConfig {
                 ..base
             },
             "cpu" => base,
-            "paper" => TrainConfig { batch_pixels: 8192, ..base },
+            "paper" => TrainConfig {
+                batch_pixels: 8192,
+                ..base
+            },
             _ => bail!("unknown preset {name:?}: expected one of tiny, cpu, paper"),
         })
     }
@@ -133,7 +136,8 @@ impl RunConfig {
         let cfg: RunConfig = v
             .try_into()
             .with_context(|| format!("{origin}: does not describe a run configuration"))?;
-        cfg.validate().with_context(|| format!("{origin}: invalid configuration"))?;
+        cfg.validate()
+            .with_context(|| format!("{origin}: invalid configuration"))?;
         Ok(cfg)
     }
 

@@ -33,7 +33,9 @@ pub fn batch_from_pixels(cache: &SampleCache, pixels: &[usize]) -> Batch {
 /// The cached pixels of batch `step`.
 pub fn batch_pixels(cache: &SampleCache, seed: u64, step: u64, size: usize) -> Vec<usize> {
     let n = cache.len() as u64;
-    (0..size as u64).map(|i| below(seed, Purpose::Batch, step, i, n) as usize).collect()
+    (0..size as u64)
+        .map(|i| below(seed, Purpose::Batch, step, i, n) as usize)
+        .collect()
 }
 
 /// Batch `step` of a run with `seed`.

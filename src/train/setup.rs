@@ -24,7 +24,10 @@ pub struct Prepared {
 impl Prepared {
     /// Appearance row of a scene view, or -1 (held-out / unknown view: mean code).
     pub fn appearance_row(&self, scene_view: usize) -> i32 {
-        self.train_views.iter().position(|&v| v == scene_view).map_or(-1, |r| r as i32)
+        self.train_views
+            .iter()
+            .position(|&v| v == scene_view)
+            .map_or(-1, |r| r as i32)
     }
 }
 
@@ -55,7 +58,11 @@ pub fn prepare(
         report.mesh_stats.dropped_degenerate
     ));
     if train_views.is_empty() {
-        bail!("{}: no training views (all {} are held out)", dir.display(), scene.views.len());
+        bail!(
+            "{}: no training views (all {} are held out)",
+            dir.display(),
+            scene.views.len()
+        );
     }
     let tracer = Tracer::new(&scene.mesh, &scene.normalization).context("building the BVH")?;
     let images: Vec<Option<Image>> = if with_images {
@@ -81,7 +88,10 @@ pub fn prepare(
         }
     })?;
     if cache.is_empty() {
-        bail!("{}: no training pixel sees the mesh (check the cameras' convention)", dir.display());
+        bail!(
+            "{}: no training pixel sees the mesh (check the cameras' convention)",
+            dir.display()
+        );
     }
     log(format!(
         "cast {} training views with γ={} in {:.2} s: {} pixels kept, {:.1} MB",
@@ -91,14 +101,22 @@ pub fn prepare(
         cache.len(),
         cache.bytes() as f64 / 1e6
     ));
-    Ok(Prepared { scene, tracer, train_views, cache })
+    Ok(Prepared {
+        scene,
+        tracer,
+        train_views,
+        cache,
+    })
 }
 
 /// Number of levels of `grid` whose cells are not finer than `footprint` (normalised units):
 /// level l is kept while `1 / scale_l ≥ footprint`; at least one level is kept (SPEC §8).
 pub fn levels_resolved(grid: &GridConfig, footprint: f64) -> u32 {
     let scales = tcnn_scales(grid);
-    let kept = scales.iter().take_while(|&&s| 1.0 / (s as f64) >= footprint).count();
+    let kept = scales
+        .iter()
+        .take_while(|&&s| 1.0 / (s as f64) >= footprint)
+        .count();
     kept.max(1) as u32
 }
 

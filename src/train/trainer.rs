@@ -52,17 +52,29 @@ pub struct StepStats {
 }
 
 fn param_specs(layout: &ParamLayout) -> Vec<(String, Vec<usize>)> {
-    layout.tensors.iter().map(|t| (t.name.clone(), t.shape.clone())).collect()
+    layout
+        .tensors
+        .iter()
+        .map(|t| (t.name.clone(), t.shape.clone()))
+        .collect()
 }
 
 impl TrainState {
     /// A fresh run for a prepared scene (`cfg.model` already has its levels resolved).
     pub fn init(cfg: RunConfig, prepared: &Prepared) -> Result<TrainState> {
         let n = &prepared.scene.normalization;
-        let norm = CkptNorm { center: n.center.to_array(), extent: n.extent.to_array() };
+        let norm = CkptNorm {
+            center: n.center.to_array(),
+            extent: n.extent.to_array(),
+        };
         let ckpt = init_checkpoint(&cfg.model, cfg.train.seed, norm, prepared.train_views.len())?;
         let adam = AdamState::new(&param_specs(&ckpt.model.layout));
-        Ok(TrainState { cfg, ckpt, adam, step: 0 })
+        Ok(TrainState {
+            cfg,
+            ckpt,
+            adam,
+            step: 0,
+        })
     }
 
     pub fn to_tensor_file(&self) -> Result<TensorFile> {
@@ -74,13 +86,24 @@ impl TrainState {
     }
 
     pub fn from_tensor_file(f: &TensorFile) -> Result<TrainState> {
-        let label = f.source.as_ref().map_or("<checkpoint>".into(), |p| p.display().to_string());
+        let label = f
+            .source
+            .as_ref()
+            .map_or("<checkpoint>".into(), |p| p.display().to_string());
         let ckpt = Checkpoint::from_tensor_file(f)?;
         let cfg = RunConfig::from_toml_str(f.meta("run_config")?, "cpu", &label)
             .with_context(|| format!("{label}: header metadata \"run_config\""))?;
-        let step: u64 = f.meta("step")?.parse().with_context(|| format!("{label}: \"step\""))?;
+        let step: u64 = f
+            .meta("step")?
+            .parse()
+            .with_context(|| format!("{label}: \"step\""))?;
         let adam = AdamState::load(f, &param_specs(&ckpt.model.layout))?;
-        Ok(TrainState { cfg, ckpt, adam, step })
+        Ok(TrainState {
+            cfg,
+            ckpt,
+            adam,
+            step,
+        })
     }
 
     pub fn save(&self, path: &Path) -> Result<()> {
@@ -114,10 +137,12 @@ impl TrainState {
             let (p, g) = (&mut self.ckpt.params[r.clone()], &grads.params[r.clone()]);
             match t.group {
                 Group::GridH => {
-                    self.adam.step_sparse(p, g, &grads.touched_h.entries, fh, r.start, &a.grid_h, k)
+                    self.adam
+                        .step_sparse(p, g, &grads.touched_h.entries, fh, r.start, &a.grid_h, k)
                 }
                 Group::GridD => {
-                    self.adam.step_sparse(p, g, &grads.touched_d.entries, fd, r.start, &a.grid_d, k)
+                    self.adam
+                        .step_sparse(p, g, &grads.touched_d.entries, fd, r.start, &a.grid_d, k)
                 }
                 Group::Shader => self.adam.step_dense(r, p, g, &a.shader, k),
                 Group::Deform => self.adam.step_dense(r, p, g, &a.deform, k),
@@ -126,7 +151,11 @@ impl TrainState {
         }
         grads.zero_sparse(&model.layout, fh, fd);
         self.step += 1;
-        Ok(StepStats { loss: fwd.loss, mse: se / n.max(1) as f64, samples: fwd.points.len() })
+        Ok(StepStats {
+            loss: fwd.loss,
+            mse: se / n.max(1) as f64,
+            samples: fwd.points.len(),
+        })
     }
 }
 
@@ -159,7 +188,9 @@ fn psnr_of(mse: f64) -> f64 {
 
 /// Keep only the metrics lines of steps ≤ `step` (resume rewrites history from there on).
 fn truncate_metrics(path: &Path, step: u64) -> Result<()> {
-    let Ok(text) = std::fs::read_to_string(path) else { return Ok(()) };
+    let Ok(text) = std::fs::read_to_string(path) else {
+        return Ok(());
+    };
     let kept: String = text
         .lines()
         .filter(|l| {
@@ -207,7 +238,10 @@ pub fn evaluate(
             let stem = Path::new(&view.name).with_extension("png");
             write_png8(&dir.join("render").join(&stem), &r.image)?;
             let heat = heat_map(&r.image, &g);
-            write_png8(&dir.join("eval").join(&stem), &side_by_side(&[&r.image, &g, &heat]))?;
+            write_png8(
+                &dir.join("eval").join(&stem),
+                &side_by_side(&[&r.image, &g, &heat]),
+            )?;
         }
         scores.push(s);
     }
@@ -237,7 +271,11 @@ pub fn train(
         let mut st = TrainState::load(&ckpt_path)?;
         // A resumed run keeps its configuration; only the number of steps may be raised.
         st.cfg.train.steps = st.cfg.train.steps.max(cfg.train.steps);
-        say(format!("resuming {} at step {}", ckpt_path.display(), st.step));
+        say(format!(
+            "resuming {} at step {}",
+            ckpt_path.display(),
+            st.step
+        ));
         truncate_metrics(&metrics_path, st.step)?;
         Some(st)
     } else {
@@ -306,7 +344,11 @@ pub fn train(
         let st = state.step(&batch, &mut grads)?;
         if !st.loss.is_finite() {
             state.save(&run_dir.join("checkpoint-diverged.safetensors"))?;
-            bail!("step {}: loss is {} (diverged); state saved to checkpoint-diverged.safetensors", state.step, st.loss);
+            bail!(
+                "step {}: loss is {} (diverged); state saved to checkpoint-diverged.safetensors",
+                state.step,
+                st.loss
+            );
         }
         ema_mse = Some(ema_mse.map_or(st.mse, |e| 0.9 * e + 0.1 * st.mse));
         win_samples += st.samples;
@@ -335,7 +377,11 @@ pub fn train(
         if let Some(b) = &bar {
             b.set_position(k);
         }
-        if tc.eval_every > 0 && k % tc.eval_every == 0 && k < tc.steps && !prepared.scene.test.is_empty() {
+        if tc.eval_every > 0
+            && k % tc.eval_every == 0
+            && k < tc.steps
+            && !prepared.scene.test.is_empty()
+        {
             let scores = evaluate(&state, &prepared, tc.eval_max_views, None)?;
             let m = mean_score(&scores);
             writeln!(
@@ -345,7 +391,11 @@ pub fn train(
             )?;
             let msg = format!(
                 "eval @ {k}: PSNR {:.2} (masked {:.2}), SSIM {:.4} (masked {:.4}) on {} views",
-                m.psnr, m.psnr_masked, m.ssim, m.ssim_masked, scores.len()
+                m.psnr,
+                m.psnr_masked,
+                m.ssim,
+                m.ssim_masked,
+                scores.len()
             );
             match &bar {
                 Some(b) => b.println(msg),
@@ -372,9 +422,18 @@ pub fn train(
             tc.steps,
             ckpt_path.display()
         ));
-        return Ok(TrainSummary { steps: state.step, interrupted: true, final_scores: None, seconds });
+        return Ok(TrainSummary {
+            steps: state.step,
+            interrupted: true,
+            final_scores: None,
+            seconds,
+        });
     }
-    say(format!("trained {} steps in {seconds:.1} s; checkpoint {}", state.step, ckpt_path.display()));
+    say(format!(
+        "trained {} steps in {seconds:.1} s; checkpoint {}",
+        state.step,
+        ckpt_path.display()
+    ));
     let mut final_scores = None;
     if !opts.no_final_eval && !prepared.scene.test.is_empty() {
         let scores = evaluate(&state, &prepared, 0, Some(run_dir))?;
@@ -386,11 +445,23 @@ pub fn train(
             serde_json::json!({"step": state.step, "eval": m, "final": true, "elapsed_s": t0.elapsed().as_secs_f64()})
         )?;
         let json = serde_json::json!({ "views": scores, "mean": m, "step": state.step });
-        std::fs::write(run_dir.join("eval.json"), serde_json::to_string_pretty(&json)?)?;
-        say(format!("renders in {}, side-by-sides in {}", run_dir.join("render").display(), run_dir.join("eval").display()));
+        std::fs::write(
+            run_dir.join("eval.json"),
+            serde_json::to_string_pretty(&json)?,
+        )?;
+        say(format!(
+            "renders in {}, side-by-sides in {}",
+            run_dir.join("render").display(),
+            run_dir.join("eval").display()
+        ));
         final_scores = Some(m);
     }
-    Ok(TrainSummary { steps: state.step, interrupted: false, final_scores, seconds })
+    Ok(TrainSummary {
+        steps: state.step,
+        interrupted: false,
+        final_scores,
+        seconds,
+    })
 }
 
 /// `RUN/checkpoint.safetensors` of a run folder.

@@ -1,10 +1,51 @@
-//! `xscale init` (not implemented yet).
+//! `xscale init --scene DIR --preset P --seed S --out FILE`: a freshly initialised checkpoint for a
+//! scene (appearance rows = its training views, hash levels dropped as SPEC §8 says).
 
+use crate::model::checkpoint::{init_checkpoint, Normalization};
+use crate::train::config::RunConfig;
+use crate::train::setup::{drop_fine_levels, prepare};
+use std::path::PathBuf;
 use std::process::ExitCode;
 
 #[derive(clap::Args, Debug)]
-pub struct Args {}
+pub struct Args {
+    #[arg(long)]
+    pub scene: PathBuf,
+    #[arg(long, default_value = "cpu")]
+    pub preset: String,
+    /// TOML overrides (as `xscale train --config`).
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    #[arg(long)]
+    pub out: PathBuf,
+}
 
-pub fn run(_args: Args) -> anyhow::Result<ExitCode> {
-    anyhow::bail!("`xscale init` is not implemented yet")
+pub fn run(a: Args) -> anyhow::Result<ExitCode> {
+    let mut cfg = RunConfig::resolve(&a.preset, a.config.as_deref())?;
+    cfg.train.seed = a.seed;
+    let p = prepare(&a.scene, &cfg, false, &mut |m| eprintln!("{m}"))?;
+    if cfg.train.drop_fine_levels {
+        if let Some(fp) = p.cache.footprint_min() {
+            if let Some(msg) = drop_fine_levels(&mut cfg.model, fp as f64) {
+                eprintln!("{msg}");
+            }
+        }
+    }
+    let n = &p.scene.normalization;
+    let norm = Normalization {
+        center: n.center.to_array(),
+        extent: n.extent.to_array(),
+    };
+    let ck = init_checkpoint(&cfg.model, a.seed, norm, p.train_views.len())?;
+    let mut f = ck.to_tensor_file()?;
+    f.set_meta("run_config", cfg.to_toml());
+    f.write_atomic(&a.out)?;
+    eprintln!(
+        "wrote {} ({} parameters)",
+        a.out.display(),
+        ck.model.layout.total
+    );
+    Ok(ExitCode::SUCCESS)
 }

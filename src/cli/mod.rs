@@ -6,6 +6,7 @@ use std::process::ExitCode;
 
 pub mod batch;
 pub mod cast;
+pub mod common;
 pub mod compare;
 pub mod dump;
 pub mod eval;

@@ -1,0 +1,111 @@
+//! Pieces shared by several subcommands: choosing a checkpoint, loading a scene for a model.
+
+use crate::io::tensors::TensorFile;
+use crate::model::checkpoint::Checkpoint;
+use crate::raycast::Tracer;
+use crate::scene::{LoadOptions, Normalization, Scene};
+use crate::train::config::RunConfig;
+use crate::train::trainer::run_checkpoint;
+use anyhow::{bail, Context, Result};
+use glam::DVec3;
+use std::path::{Path, PathBuf};
+
+/// `--run RUN` or `--checkpoint FILE` (exactly one).
+pub fn checkpoint_path(run: &Option<PathBuf>, checkpoint: &Option<PathBuf>) -> Result<PathBuf> {
+    match (run, checkpoint) {
+        (Some(r), None) => Ok(run_checkpoint(r)),
+        (None, Some(c)) => Ok(c.clone()),
+        (Some(_), Some(_)) => bail!("give either --run or --checkpoint, not both"),
+        (None, None) => bail!("give --run RUN or --checkpoint FILE"),
+    }
+}
+
+/// A model checkpoint and, when it has one, the run configuration it was trained with.
+pub fn load_model(path: &Path) -> Result<(Checkpoint, Option<RunConfig>)> {
+    let f = TensorFile::read(path)?;
+    let ckpt = Checkpoint::from_tensor_file(&f)?;
+    let cfg = match f.metadata.get("run_config") {
+        Some(text) => Some(RunConfig::from_toml_str(
+            text,
+            "cpu",
+            &path.display().to_string(),
+        )?),
+        None => None,
+    };
+    Ok((ckpt, cfg))
+}
+
+/// A scene loaded for a model: the model's normalisation (not the scene mesh's own, so a
+/// decimated or edited mesh still maps into the trained grid), its BVH, and the appearance row
+/// of each view (training views in order; held-out views −1).
+pub struct SceneForModel {
+    pub scene: Scene,
+    pub tracer: Tracer,
+    pub rows: Vec<i32>,
+}
+
+pub fn scene_for_model(
+    dir: &Path,
+    ckpt: &Checkpoint,
+    cfg: Option<&RunConfig>,
+    downsample: Option<u32>,
+) -> Result<SceneForModel> {
+    let opts = LoadOptions {
+        downsample: downsample.or(cfg.map(|c| c.train.downsample)).unwrap_or(1),
+        normalize: cfg.map(|c| c.train.normalize).unwrap_or_default(),
+        ..LoadOptions::default()
+    };
+    let mut scene = Scene::load(dir, &opts)?;
+    scene.normalization = Normalization {
+        center: DVec3::from_array(ckpt.normalization.center),
+        extent: DVec3::from_array(ckpt.normalization.extent),
+    };
+    let tracer = Tracer::new(&scene.mesh, &scene.normalization).context("building the BVH")?;
+    let train = scene.train();
+    let mut rows = vec![-1; scene.views.len()];
+    if ckpt.model.appearance_dim() > 0 {
+        if train.len() != ckpt.model.appearance_views() {
+            eprintln!(
+                "warning: the scene has {} training views but the model has {} appearance codes; every view uses the mean code",
+                train.len(),
+                ckpt.model.appearance_views()
+            );
+        } else {
+            for (r, &i) in train.iter().enumerate() {
+                rows[i] = r as i32;
+            }
+        }
+    }
+    Ok(SceneForModel {
+        scene,
+        tracer,
+        rows,
+    })
+}
+
+/// Views named by `test`, `all`, `train`, or a comma-separated list of names or indices.
+pub fn select_views(scene: &Scene, spec: &str) -> Result<Vec<usize>> {
+    match spec {
+        "test" => Ok(scene.test.clone()),
+        "train" => Ok(scene.train()),
+        "all" => Ok((0..scene.views.len()).collect()),
+        list => list
+            .split(',')
+            .map(|s| {
+                let s = s.trim();
+                if let Some(i) = scene.views.iter().position(|v| {
+                    v.name == s || Path::new(&v.name).file_stem().is_some_and(|x| x == s)
+                }) {
+                    return Ok(i);
+                }
+                match s.parse::<usize>() {
+                    Ok(i) if i < scene.views.len() => Ok(i),
+                    _ => bail!(
+                        "--views: no view named or numbered {s:?} (the scene has {} views)",
+                        scene.views.len()
+                    ),
+                }
+            })
+            .collect(),
+    }
+}

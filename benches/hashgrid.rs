@@ -28,7 +28,11 @@ fn surface_points(pixels: usize) -> Vec<[f64; 3]> {
         let r = 0.35 + 0.05 * (5.0 * z.acos()).sin() * (3.0 * phi).cos();
         let c = [0.5 + r * n[0], 0.5 + r * n[1], 0.5 + r * n[2]];
         // Tangent frame.
-        let a = if n[0].abs() < 0.9 { [1.0, 0.0, 0.0] } else { [0.0, 1.0, 0.0] };
+        let a = if n[0].abs() < 0.9 {
+            [1.0, 0.0, 0.0]
+        } else {
+            [0.0, 1.0, 0.0]
+        };
         let t1 = normalize(cross(n, a));
         let t2 = cross(n, t1);
         for (sa, sb) in [(0.25, 0.25), (0.75, 0.25), (0.25, 0.75), (0.75, 0.75)] {
@@ -44,7 +48,11 @@ fn surface_points(pixels: usize) -> Vec<[f64; 3]> {
 }
 
 fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
-    [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+    [
+        a[1] * b[2] - a[2] * b[1],
+        a[2] * b[0] - a[0] * b[2],
+        a[0] * b[1] - a[1] * b[0],
+    ]
 }
 fn normalize(a: [f64; 3]) -> [f64; 3] {
     let l = (a[0] * a[0] + a[1] * a[1] + a[2] * a[2]).sqrt();
@@ -74,7 +82,10 @@ fn best_of<F: FnMut()>(reps: usize, mut f: F) -> (f64, f64) {
             let w = t.elapsed().as_secs_f64();
             (w, cpu_seconds().unwrap_or(f64::NAN) - c)
         })
-        .fold((f64::INFINITY, f64::NAN), |a, b| if b.0 < a.0 { b } else { a })
+        .fold(
+            (f64::INFINITY, f64::NAN),
+            |a, b| if b.0 < a.0 { b } else { a },
+        )
 }
 
 fn main() {
@@ -83,7 +94,10 @@ fn main() {
         .and_then(|s| s.parse().ok())
         .unwrap_or(65_536);
     let mut cfg = ModelConfig::cpu().grid_h;
-    if let Some(t) = std::env::var("HASHGRID_BENCH_T").ok().and_then(|s| s.parse().ok()) {
+    if let Some(t) = std::env::var("HASHGRID_BENCH_T")
+        .ok()
+        .and_then(|s| s.parse().ok())
+    {
         cfg.log2_table_size = t; // e.g. 10: a cache-resident table, to see the compute cost
     }
     let g = HashGrid::new(&cfg);
@@ -100,6 +114,23 @@ fn main() {
         .map(|i| (2.0 * uniform_f64(2, Purpose::Test, 0, i as u64) - 1.0) as f32)
         .collect();
 
+    // Instruction-count mode (for `valgrind --tool=cachegrind`, whose counts do not depend on
+    // the machine's load): run one pass once and exit. `none` measures the set-up alone.
+    if let Ok(op) = std::env::var("HASHGRID_BENCH_ONLY") {
+        let mut out = vec![0.0f32; n * lf];
+        let mut d_table = vec![0.0f32; g.n_params()];
+        let mut d_pts = vec![0.0f32; n * 3];
+        let mut touched = Touched::default();
+        match op.as_str() {
+            "forward" => g.forward(&table, &pts, mode, &mut out),
+            "backward_table" => g.backward_table(&pts, mode, &d_out, &mut d_table, &mut touched),
+            "backward_points" => g.backward_points(&table, &pts, mode, &d_out, &mut d_pts),
+            _ => {}
+        }
+        std::hint::black_box((&out, &d_table, &d_pts));
+        return;
+    }
+
     // ---- validation: f32 path against the f64 path on a subset.
     {
         let sub = 4096.min(n);
@@ -108,7 +139,11 @@ fn main() {
         let mut o64 = vec![0.0f64; sub * lf];
         g.forward(&table, &pts[..sub], mode, &mut o32);
         g.forward(&t64, &pts[..sub], mode, &mut o64);
-        let err = o32.iter().zip(&o64).map(|(&a, &b)| (a as f64 - b).abs()).fold(0.0, f64::max);
+        let err = o32
+            .iter()
+            .zip(&o64)
+            .map(|(&a, &b)| (a as f64 - b).abs())
+            .fold(0.0, f64::max);
         assert!(err < 1e-5, "forward f32 vs f64: max abs error {err}");
         let d64: Vec<f64> = d_out[..sub * lf].iter().map(|&v| v as f64).collect();
         let mut p32 = vec![0.0f32; sub * 3];
@@ -123,7 +158,10 @@ fn main() {
             .zip(&p64)
             .map(|(&a, &b)| (a as f64 - b).abs() / pmax)
             .fold(0.0, f64::max);
-        assert!(perr < 1e-5, "backward_points f32 vs f64: max error / max |grad| = {perr}");
+        assert!(
+            perr < 1e-5,
+            "backward_points f32 vs f64: max error / max |grad| = {perr}"
+        );
         let mut dt32 = vec![0.0f32; g.n_params()];
         let mut dt64 = vec![0.0f64; g.n_params()];
         let (mut tc32, mut tc64) = (Touched::default(), Touched::default());
@@ -136,7 +174,10 @@ fn main() {
             .flat_map(|&e| [e as usize * 2, e as usize * 2 + 1])
             .map(|i| (dt32[i] as f64 - dt64[i]).abs())
             .fold(0.0, f64::max);
-        assert!(terr < 1e-4, "backward_table f32 vs f64: max abs error {terr}");
+        assert!(
+            terr < 1e-4,
+            "backward_table f32 vs f64: max abs error {terr}"
+        );
         println!(
             "validated on {sub} sub-samples: forward {err:.2e}, d_points {perr:.2e} (rel), d_table {terr:.2e}"
         );
@@ -156,19 +197,26 @@ fn main() {
     let mut d_table = vec![0.0f32; g.n_params()];
     let mut d_pts = vec![0.0f32; n * 3];
     let mut touched = Touched::default();
+    let zero = |d_table: &mut [f32], touched: &mut Touched| {
+        for &e in &touched.entries {
+            d_table[e as usize * 2] = 0.0;
+            d_table[e as usize * 2 + 1] = 0.0;
+        }
+        touched.entries.clear();
+    };
+    println!(
+        "whole batch: best of 3 wall (cpu) ns per sub-sample; slices: median / min over {} slices of {SLICE}",
+        n / SLICE
+    );
     let mut results = Vec::new();
     for threads in [1usize, 2] {
-        let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap();
         pool.install(|| {
             let reps = 3;
             let fwd = best_of(reps, || g.forward(&table, &pts, mode, &mut out));
-            let zero = |d_table: &mut [f32], touched: &mut Touched| {
-                for &e in &touched.entries {
-                    d_table[e as usize * 2] = 0.0;
-                    d_table[e as usize * 2 + 1] = 0.0;
-                }
-                touched.entries.clear();
-            };
             let bt = best_of(reps, || {
                 zero(&mut d_table, &mut touched);
                 g.backward_table(&pts, mode, &d_out, &mut d_table, &mut touched)
@@ -180,23 +228,59 @@ fn main() {
                 g.backward_table(&pts, mode, &d_out, &mut d_table, &mut touched);
                 g.backward_points(&table, &pts, mode, &d_out, &mut d_pts);
             });
+            let n_touched = touched.entries.len();
+            // Per-slice timings: each slice is short enough to usually run without being
+            // preempted on a shared machine; the median is robust to the slices that were.
+            zero(&mut d_table, &mut touched);
+            let sl = slice_stats(n, |r| {
+                g.forward(&table, &pts[r.clone()], mode, &mut out[r.start * lf..r.end * lf])
+            });
+            let sl_all = slice_stats(n, |r| {
+                let (p, o, dd) = (&pts[r.clone()], &mut out[r.start * lf..r.end * lf], &d_out[r.start * lf..r.end * lf]);
+                g.forward(&table, p, mode, o);
+                g.backward_table(p, mode, dd, &mut d_table, &mut touched);
+                g.backward_points(&table, p, mode, dd, &mut d_pts[r.start * 3..r.end * 3]);
+                zero(&mut d_table, &mut touched);
+            });
             let ns = |s: (f64, f64)| format!("{:6.1} ({:6.1})", s.0 * 1e9 / n as f64, s.1 * 1e9 / n as f64);
             println!(
-                "{threads} thread(s), ns per sub-sample, wall (cpu): forward {}  backward_table {}  \
-                 backward_points {}  fwd+bwd {}  [{:.2} M sub-samples/s fwd+bwd; touched {} entries]",
+                "{threads} thread(s): forward {}  backward_table {}  backward_points {}  fwd+bwd {}  \
+                 [{:.2} M sub-samples/s fwd+bwd; touched {n_touched} entries]",
                 ns(fwd),
                 ns(bt),
                 ns(bp),
                 ns(all),
                 n as f64 / all.0 / 1e6,
-                touched.entries.len()
             );
-            results.push((threads, fwd.0, all.0));
+            println!(
+                "{threads} thread(s) slices: forward {:6.1} / {:6.1}   fwd+bwd (incl. zeroing) {:6.1} / {:6.1}",
+                sl.0, sl.1, sl_all.0, sl_all.1
+            );
+            results.push((threads, sl.0, sl_all.0));
         });
     }
     if let [(_, f1, a1), (_, f2, a2)] = results[..] {
-        println!("speed-up 1→2 threads: forward {:.2}x, fwd+bwd {:.2}x", f1 / f2, a1 / a2);
+        println!(
+            "speed-up 1→2 threads (slice medians): forward {:.2}x, fwd+bwd {:.2}x",
+            f1 / f2,
+            a1 / a2
+        );
     }
     let uptime = std::fs::read_to_string("/proc/loadavg").unwrap_or_default();
     println!("load average at end: {}", uptime.trim());
+}
+
+const SLICE: usize = 4096;
+
+/// (median, min) ns per sub-sample of `f` over consecutive slices of SLICE sub-samples.
+fn slice_stats<F: FnMut(std::ops::Range<usize>)>(n: usize, mut f: F) -> (f64, f64) {
+    let mut v: Vec<f64> = (0..n / SLICE)
+        .map(|s| {
+            let t = Instant::now();
+            f(s * SLICE..(s + 1) * SLICE);
+            t.elapsed().as_secs_f64() * 1e9 / SLICE as f64
+        })
+        .collect();
+    v.sort_by(f64::total_cmp);
+    (v[v.len() / 2], v[0])
 }

@@ -226,7 +226,7 @@ fn reference_f64(grid: &HashGrid, table: &[f64], x: &[f64; 3]) -> Vec<f64> {
         assert_eq!(scale, grid.scales[l]);
         let res = scale.ceil() as u32 + 1;
         let cube = (res as u64).pow(3);
-        let size = ((cube.min(2147483647) + 7) / 8 * 8).min(1 << c.log2_table_size) as u32;
+        let size = (cube.min(2147483647).div_ceil(8) * 8).min(1 << c.log2_table_size) as u32;
         let dense = res <= 1625 && cube <= size as u64;
         let mut cell = [0u32; 3];
         let mut w = [0.0f64; 3];

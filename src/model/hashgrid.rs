@@ -507,7 +507,7 @@ fn locate<R: Real>(scale: f32, tcnn: bool, x: &[f64; 3]) -> ([u32; 3], [R; 3]) {
         for d in 0..3 {
             let p = scale.mul_add(x[d] as f32, 0.5);
             let fl = p.floor();
-            c[d] = fl as i32 as u32;
+            c[d] = to_i32_clamped(fl as f64) as u32;
             t[d] = R::from_f32(p - fl);
         }
     } else {
@@ -515,11 +515,21 @@ fn locate<R: Real>(scale: f32, tcnn: bool, x: &[f64; 3]) -> ([u32; 3], [R; 3]) {
         for d in 0..3 {
             let p = s.mul_add(x[d], 0.5);
             let fl = p.floor();
-            c[d] = fl as i32 as u32;
+            c[d] = to_i32_clamped(fl) as u32;
             t[d] = R::from_f64(p - fl);
         }
     }
     (c, t)
+}
+
+/// `v as i32` for an integer-valued `v`: saturating at the i32 range like `as i32` (and like
+/// CUDA's float→int conversion); NaN → i32::MIN (the output is NaN anyway, as t is NaN).
+/// Cheaper than Rust's `as` once vectorised. Used by both the scalar and the block paths.
+#[inline(always)]
+fn to_i32_clamped(v: f64) -> i32 {
+    let v = v.max(i32::MIN as f64).min(i32::MAX as f64);
+    // SAFETY: v is finite and within the i32 range after the clamp (max/min drop NaN).
+    unsafe { v.to_int_unchecked::<i32>() }
 }
 
 /// `w(t)`: t (linear) or `(t*t)*(3-2t)` (smoothstep).
@@ -622,15 +632,15 @@ impl Indexer for HashIx {
 /// Corner indices of a block of points, one corner at a time over all points (SoA, so the
 /// compiler can vectorise the hash).
 trait BlockIndexer: Indexer {
-    fn corners_block(self, c: &[[u32; BLOCK]; 3], idx: &mut [[u32; BLOCK]; 8]);
+    fn corners_block(self, n: usize, c: &[[u32; BLOCK]; 3], idx: &mut [[u32; BLOCK]; 8]);
 }
 
 impl BlockIndexer for HashIx {
     #[inline(always)]
-    fn corners_block(self, c: &[[u32; BLOCK]; 3], idx: &mut [[u32; BLOCK]; 8]) {
+    fn corners_block(self, n: usize, c: &[[u32; BLOCK]; 3], idx: &mut [[u32; BLOCK]; 8]) {
         for (k, row) in idx.iter_mut().enumerate() {
             let (bx, by, bz) = ((k & 1) as u32, ((k >> 1) & 1) as u32, (k >> 2) as u32);
-            for j in 0..BLOCK {
+            for j in 0..n {
                 let x = c[0][j].wrapping_add(bx);
                 let y = c[1][j].wrapping_add(by).wrapping_mul(PRIME_Y);
                 let z = c[2][j].wrapping_add(bz).wrapping_mul(PRIME_Z);
@@ -642,8 +652,8 @@ impl BlockIndexer for HashIx {
 
 impl BlockIndexer for DenseIx {
     #[inline(always)]
-    fn corners_block(self, c: &[[u32; BLOCK]; 3], idx: &mut [[u32; BLOCK]; 8]) {
-        for j in 0..BLOCK {
+    fn corners_block(self, n: usize, c: &[[u32; BLOCK]; 3], idx: &mut [[u32; BLOCK]; 8]) {
+        for j in 0..n {
             let ids = self.corners([c[0][j], c[1][j], c[2][j]]);
             for k in 0..8 {
                 idx[k][j] = ids[k];
@@ -657,8 +667,15 @@ impl BlockIndexer for DenseIx {
 /// that does not fit the cache. Does not affect results.
 const BLOCK: usize = 64;
 
-/// `locate` for a block, SoA: `c[d][j]`, `t[d][j]`; entries past `xs.len()` are computed from
-/// x = 0 and ignored.
+/// The block loops run over `xs.len()` rounded up to a multiple of 8 (a runtime bound, so the
+/// compiler emits one vector loop instead of unrolling 64 iterations); lanes past `xs.len()`
+/// are computed from x = 0 and ignored.
+#[inline(always)]
+fn block_len(n: usize) -> usize {
+    n.next_multiple_of(8).min(BLOCK)
+}
+
+/// `locate` for a block, SoA: `c[d][j]`, `t[d][j]` for `j < block_len(xs.len())`.
 #[inline(always)]
 fn locate_block<R: Real>(
     scale: f32,
@@ -667,6 +684,7 @@ fn locate_block<R: Real>(
     c: &mut [[u32; BLOCK]; 3],
     t: &mut [[R; BLOCK]; 3],
 ) {
+    let n = block_len(xs.len());
     let mut xd = [[0.0f64; BLOCK]; 3];
     for (j, x) in xs.iter().enumerate() {
         xd[0][j] = x[0];
@@ -675,18 +693,18 @@ fn locate_block<R: Real>(
     }
     for d in 0..3 {
         if tcnn {
-            for j in 0..BLOCK {
+            for j in 0..n {
                 let p = scale.mul_add(xd[d][j] as f32, 0.5);
                 let fl = p.floor();
-                c[d][j] = fl as i32 as u32;
+                c[d][j] = to_i32_clamped(fl as f64) as u32;
                 t[d][j] = R::from_f32(p - fl);
             }
         } else {
             let s = scale as f64;
-            for j in 0..BLOCK {
+            for j in 0..n {
                 let p = s.mul_add(xd[d][j], 0.5);
                 let fl = p.floor();
-                c[d][j] = fl as i32 as u32;
+                c[d][j] = to_i32_clamped(fl) as u32;
                 t[d][j] = R::from_f64(p - fl);
             }
         }
@@ -695,7 +713,12 @@ fn locate_block<R: Real>(
 
 /// Per-axis `w(t)` (in place) and, if asked, `dw/dt`, for a block.
 #[inline(always)]
-fn interp_block<R: Real>(smooth: bool, t: &mut [[R; BLOCK]; 3], dw: Option<&mut [[R; BLOCK]; 3]>) {
+fn interp_block<R: Real>(
+    n: usize,
+    smooth: bool,
+    t: &mut [[R; BLOCK]; 3],
+    dw: Option<&mut [[R; BLOCK]; 3]>,
+) {
     if !smooth {
         if let Some(dw) = dw {
             *dw = [[R::ONE; BLOCK]; 3];
@@ -705,14 +728,14 @@ fn interp_block<R: Real>(smooth: bool, t: &mut [[R; BLOCK]; 3], dw: Option<&mut 
     let (two, three, six) = (R::from_f32(2.0), R::from_f32(3.0), R::from_f32(6.0));
     if let Some(dw) = dw {
         for d in 0..3 {
-            for j in 0..BLOCK {
+            for j in 0..n {
                 let v = t[d][j];
                 dw[d][j] = six * v * (R::ONE - v);
             }
         }
     }
     for row in t.iter_mut() {
-        for v in row.iter_mut() {
+        for v in row[..n].iter_mut() {
             *v = *v * *v * (three - two * *v);
         }
     }
@@ -720,12 +743,24 @@ fn interp_block<R: Real>(smooth: bool, t: &mut [[R; BLOCK]; 3], dw: Option<&mut 
 
 /// Trilinear corner weights for a block: `w8[k][j]`, each the product in axis order 0, 1, 2.
 #[inline(always)]
-fn corner_weights_block<R: Real>(w: &[[R; BLOCK]; 3], w8: &mut [[R; BLOCK]; 8]) {
+fn corner_weights_block<R: Real>(n: usize, w: &[[R; BLOCK]; 3], w8: &mut [[R; BLOCK]; 8]) {
     for (k, row) in w8.iter_mut().enumerate() {
-        for j in 0..BLOCK {
-            let a = if k & 1 == 1 { w[0][j] } else { R::ONE - w[0][j] };
-            let b = if (k >> 1) & 1 == 1 { w[1][j] } else { R::ONE - w[1][j] };
-            let c = if k >> 2 == 1 { w[2][j] } else { R::ONE - w[2][j] };
+        for j in 0..n {
+            let a = if k & 1 == 1 {
+                w[0][j]
+            } else {
+                R::ONE - w[0][j]
+            };
+            let b = if (k >> 1) & 1 == 1 {
+                w[1][j]
+            } else {
+                R::ONE - w[1][j]
+            };
+            let c = if k >> 2 == 1 {
+                w[2][j]
+            } else {
+                R::ONE - w[2][j]
+            };
             row[j] = a * b * c;
         }
     }
@@ -742,6 +777,20 @@ fn prefetch<T>(p: *const T) {
     let _ = p;
 }
 
+/// Prefetch the table rows of point j's corners. The x-neighbours k and k+1 are the same or
+/// adjacent entries (dense) or differ only in their lowest bits (hashed: `c ^ h` vs `(c+1) ^ h`),
+/// so they usually share a cache line: the odd corners are prefetched only when an entry is at
+/// least half a line.
+#[inline(always)]
+fn prefetch_corners<R, const F: usize>(tab: &[R], idx: &[[u32; BLOCK]; 8], j: usize) {
+    let both = F * std::mem::size_of::<R>() >= 32;
+    for (k, row) in idx.iter().enumerate() {
+        if k % 2 == 0 || both {
+            prefetch(tab.as_ptr().wrapping_add(row[j] as usize * F));
+        }
+    }
+}
+
 /// The inner loops, generic over R, F and the indexer, with a runtime-selected `fma,avx2` build.
 mod kernels {
     use super::*;
@@ -750,14 +799,46 @@ mod kernels {
     macro_rules! dispatch {
         ($nf:expr, $g:expr, |$F:ident, $ix:ident| $body:expr) => {
             match ($nf, $g.dense) {
-                (1, true) => { const $F: usize = 1; let $ix = $g.dense_ix(); $body }
-                (1, false) => { const $F: usize = 1; let $ix = $g.hash_ix(); $body }
-                (2, true) => { const $F: usize = 2; let $ix = $g.dense_ix(); $body }
-                (2, false) => { const $F: usize = 2; let $ix = $g.hash_ix(); $body }
-                (4, true) => { const $F: usize = 4; let $ix = $g.dense_ix(); $body }
-                (4, false) => { const $F: usize = 4; let $ix = $g.hash_ix(); $body }
-                (8, true) => { const $F: usize = 8; let $ix = $g.dense_ix(); $body }
-                (8, false) => { const $F: usize = 8; let $ix = $g.hash_ix(); $body }
+                (1, true) => {
+                    const $F: usize = 1;
+                    let $ix = $g.dense_ix();
+                    $body
+                }
+                (1, false) => {
+                    const $F: usize = 1;
+                    let $ix = $g.hash_ix();
+                    $body
+                }
+                (2, true) => {
+                    const $F: usize = 2;
+                    let $ix = $g.dense_ix();
+                    $body
+                }
+                (2, false) => {
+                    const $F: usize = 2;
+                    let $ix = $g.hash_ix();
+                    $body
+                }
+                (4, true) => {
+                    const $F: usize = 4;
+                    let $ix = $g.dense_ix();
+                    $body
+                }
+                (4, false) => {
+                    const $F: usize = 4;
+                    let $ix = $g.hash_ix();
+                    $body
+                }
+                (8, true) => {
+                    const $F: usize = 8;
+                    let $ix = $g.dense_ix();
+                    $body
+                }
+                (8, false) => {
+                    const $F: usize = 8;
+                    let $ix = $g.hash_ix();
+                    $body
+                }
                 _ => unreachable!("features validated to 1, 2, 4, 8"),
             }
         };
@@ -821,13 +902,11 @@ mod kernels {
         for (b, xs) in pts.chunks(BLOCK).enumerate() {
             // Pass 1: corners and weights of the block, prefetching the table rows.
             locate_block(g.scale, g.tcnn, xs, &mut c, &mut w);
-            interp_block(g.smooth, &mut w, None);
-            corner_weights_block(&w, &mut w8);
-            ix.corners_block(&c, &mut idx);
+            interp_block(block_len(xs.len()), g.smooth, &mut w, None);
+            corner_weights_block(block_len(xs.len()), &w, &mut w8);
+            ix.corners_block(block_len(xs.len()), &c, &mut idx);
             for j in 0..xs.len() {
-                for row in &idx {
-                    prefetch(tab.as_ptr().wrapping_add(row[j] as usize * F));
-                }
+                prefetch_corners::<R, F>(tab, &idx, j);
             }
             // Pass 2: gather and interpolate (Eq. 2), fma chain in corner order.
             for j in 0..xs.len() {
@@ -876,17 +955,15 @@ mod kernels {
         for (b, xs) in pts.chunks(BLOCK).enumerate() {
             // Pass 1: corners and weights, prefetching the gradient rows.
             locate_block(g.scale, g.tcnn, xs, &mut c, &mut w);
-            interp_block(g.smooth, &mut w, None);
-            corner_weights_block(&w, &mut w8);
-            ix.corners_block(&c, &mut idx);
+            interp_block(block_len(xs.len()), g.smooth, &mut w, None);
+            corner_weights_block(block_len(xs.len()), &w, &mut w8);
+            ix.corners_block(block_len(xs.len()), &c, &mut idx);
             for j in 0..xs.len() {
                 grs[j].copy_from_slice(&d_out[(b * BLOCK + j) * lf + l * F..][..F]);
                 // An all-zero d_out slice contributes nothing and is not recorded as touched.
                 live[j] = grs[j].iter().any(|&v| v != R::ZERO);
                 if live[j] {
-                    for row in &idx {
-                        prefetch(d_tab.as_ptr().wrapping_add(row[j] as usize * F));
-                    }
+                    prefetch_corners::<R, F>(d_tab, &idx, j);
                 }
             }
             // Pass 2: scatter, in point order.
@@ -923,9 +1000,9 @@ mod kernels {
     fn backward_points_level_impl<R: Real, const F: usize, I: BlockIndexer>(
         g: &Level,
         ix: I,
-        tab: &[R],          // [size, F], this level only
-        pts: &[[f64; 3]],   // [n]
-        d_out: &[R],        // [n, L*F]
+        tab: &[R],        // [size, F], this level only
+        pts: &[[f64; 3]], // [n]
+        d_out: &[R],      // [n, L*F]
         lf: usize,
         l: usize,
         acc: &mut [[R; 3]], // [>= n]
@@ -941,12 +1018,10 @@ mod kernels {
         for (b, xs) in pts.chunks(BLOCK).enumerate() {
             // Pass 1: corners, weights and dw/dt, prefetching the table rows.
             locate_block(g.scale, g.tcnn, xs, &mut c, &mut w);
-            interp_block(g.smooth, &mut w, Some(&mut dw));
-            ix.corners_block(&c, &mut idx);
+            interp_block(block_len(xs.len()), g.smooth, &mut w, Some(&mut dw));
+            ix.corners_block(block_len(xs.len()), &c, &mut idx);
             for j in 0..xs.len() {
-                for row in &idx {
-                    prefetch(tab.as_ptr().wrapping_add(row[j] as usize * F));
-                }
+                prefetch_corners::<R, F>(tab, &idx, j);
             }
             // Pass 2: gather and differentiate.
             for j in 0..xs.len() {

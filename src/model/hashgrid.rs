@@ -653,6 +653,35 @@ impl BlockIndexer for HashIx {
 impl BlockIndexer for DenseIx {
     #[inline(always)]
     fn corners_block(self, n: usize, c: &[[u32; BLOCK]; 3], idx: &mut [[u32; BLOCK]; 8]) {
+        // Fast path: for x in [0,1] every corner index is below 2*size (c_d <= res-1, so the
+        // index is at most res + res^2 + res^3 < 2 res^3 <= 2 size), and `mod size` is one
+        // conditional subtraction. If any lane of the block falls outside, redo the block with
+        // the exact general modulo. Same results either way (wrapping adds are associative).
+        let mut base = [0u32; BLOCK];
+        for j in 0..n {
+            base[j] = c[0][j]
+                .wrapping_add(c[1][j].wrapping_mul(self.res))
+                .wrapping_add(c[2][j].wrapping_mul(self.res2));
+        }
+        let mut ok = true;
+        for (k, row) in idx.iter_mut().enumerate() {
+            let off = (k & 1) as u32
+                + if (k >> 1) & 1 == 1 { self.res } else { 0 }
+                + if k >> 2 == 1 { self.res2 } else { 0 };
+            for j in 0..n {
+                let i = base[j].wrapping_add(off);
+                let r = if i >= self.size {
+                    i.wrapping_sub(self.size)
+                } else {
+                    i
+                };
+                ok &= r < self.size;
+                row[j] = r;
+            }
+        }
+        if ok {
+            return;
+        }
         for j in 0..n {
             let ids = self.corners([c[0][j], c[1][j], c[2][j]]);
             for k in 0..8 {
@@ -744,24 +773,18 @@ fn interp_block<R: Real>(
 /// Trilinear corner weights for a block: `w8[k][j]`, each the product in axis order 0, 1, 2.
 #[inline(always)]
 fn corner_weights_block<R: Real>(n: usize, w: &[[R; BLOCK]; 3], w8: &mut [[R; BLOCK]; 8]) {
-    for (k, row) in w8.iter_mut().enumerate() {
+    let mut om = [[R::ZERO; BLOCK]; 3];
+    for d in 0..3 {
         for j in 0..n {
-            let a = if k & 1 == 1 {
-                w[0][j]
-            } else {
-                R::ONE - w[0][j]
-            };
-            let b = if (k >> 1) & 1 == 1 {
-                w[1][j]
-            } else {
-                R::ONE - w[1][j]
-            };
-            let c = if k >> 2 == 1 {
-                w[2][j]
-            } else {
-                R::ONE - w[2][j]
-            };
-            row[j] = a * b * c;
+            om[d][j] = R::ONE - w[d][j];
+        }
+    }
+    for (k, row) in w8.iter_mut().enumerate() {
+        let a = if k & 1 == 1 { &w[0] } else { &om[0] };
+        let b = if (k >> 1) & 1 == 1 { &w[1] } else { &om[1] };
+        let c = if k >> 2 == 1 { &w[2] } else { &om[2] };
+        for j in 0..n {
+            row[j] = a[j] * b[j] * c[j];
         }
     }
 }

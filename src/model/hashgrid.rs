@@ -821,6 +821,7 @@ fn prefetch_corners<R, const F: usize>(tab: &[R], idx: &[[u32; BLOCK]; 8], j: us
 }
 
 /// The inner loops, generic over R, F and the indexer, with a runtime-selected `fma,avx2` build.
+#[allow(clippy::needless_range_loop)] // index loops over SoA blocks read best as they are
 mod kernels {
     use super::*;
 

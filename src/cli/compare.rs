@@ -1,10 +1,78 @@
-//! `xscale compare` (not implemented yet).
+//! `xscale compare A B`: tensor-by-tensor comparison of two safetensors files (SPEC §6).
+//! Definitions of the errors and of the tolerance file: `io::compare`.
+//! Exit code 0 = all within limits, 1 = a limit exceeded, 2 = bad input.
 
+use crate::io::compare::{compare_files, report_json, Rule, Tolerances};
+use anyhow::Context;
+use std::path::PathBuf;
 use std::process::ExitCode;
 
 #[derive(clap::Args, Debug)]
-pub struct Args {}
+pub struct Args {
+    /// First file (e.g. the reference / oracle dump).
+    pub a: PathBuf,
+    /// Second file (e.g. the backend's dump).
+    pub b: PathBuf,
+    /// Tolerance rules (TOML: `[[rule]] pattern = "fwd.*"`, `max_abs`, `max_rel`, `max_ulp`,
+    /// `reason`, `required`, `ignore`; `[default]`; `strict`).
+    #[arg(long)]
+    pub tolerances: Option<PathBuf>,
+    /// Also write the report as JSON to this file.
+    #[arg(long)]
+    pub json: Option<PathBuf>,
+    /// Strict: tensors without a rule must be exactly equal; tensors in only one file are errors.
+    #[arg(long)]
+    pub strict: bool,
+    /// Default rule's abs limit (replaces the file's `[default]` when any --max-* is given).
+    #[arg(long)]
+    pub max_abs: Option<f64>,
+    /// Default rule's rel limit.
+    #[arg(long)]
+    pub max_rel: Option<f64>,
+    /// Default rule's ULP limit.
+    #[arg(long)]
+    pub max_ulp: Option<u64>,
+    /// Print only failures and the summary.
+    #[arg(long, short)]
+    pub quiet: bool,
+}
 
-pub fn run(_args: Args) -> anyhow::Result<ExitCode> {
-    anyhow::bail!("`xscale compare` is not implemented yet")
+pub fn run(args: Args) -> anyhow::Result<ExitCode> {
+    let mut tol = match &args.tolerances {
+        Some(p) => Tolerances::read(p)?,
+        None => Tolerances::default(),
+    };
+    if args.strict {
+        tol.strict = true;
+    }
+    if args.max_abs.is_some() || args.max_rel.is_some() || args.max_ulp.is_some() {
+        tol.default = Some(Rule {
+            pattern: String::new(),
+            max_abs: args.max_abs,
+            max_rel: args.max_rel,
+            max_ulp: args.max_ulp,
+            reason: Some("command line".into()),
+            ..Rule::default()
+        });
+    }
+    let report = compare_files(&args.a, &args.b, &tol)?;
+    let table = report.to_table();
+    if args.quiet {
+        for line in table.lines() {
+            if !line.starts_with("ok ")
+                && !line.starts_with("norule")
+                && !line.starts_with("ignored")
+                && !line.starts_with("status")
+            {
+                println!("{line}");
+            }
+        }
+    } else {
+        print!("{table}");
+    }
+    if let Some(j) = &args.json {
+        std::fs::write(j, report_json(&report)?)
+            .with_context(|| format!("{}: cannot write JSON report", j.display()))?;
+    }
+    Ok(ExitCode::from(report.exit_code()))
 }

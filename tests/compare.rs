@@ -1,0 +1,362 @@
+//! `xscale compare`: error measures, tolerance rules and exit codes (library API and the binary).
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use xscale::io::compare::{
+    compare, compare_files, element_error, ulp_distance_f32, ulp_distance_f64, CompareIn, Status,
+    Tolerances,
+};
+use xscale::io::{Tensor, TensorFile};
+
+fn tmpdir(tag: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("xscale-compare-{tag}-{}", std::process::id()));
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+fn base_file() -> TensorFile {
+    let mut f = TensorFile::new();
+    let v: Vec<f32> = (0..24).map(|i| (i as f32 - 7.0) * 0.37).collect();
+    f.insert("fwd.grid_h", Tensor::f32(vec![2, 3, 4], &v).unwrap());
+    f.insert(
+        "fwd.rgb",
+        Tensor::f32(vec![2, 3], &[0.1, 0.2, 0.3, 0.4, 0.5, 0.6]).unwrap(),
+    );
+    f.insert("batch.view", Tensor::i32(vec![2], &[0, -1]).unwrap());
+    f.insert("loss", Tensor::scalar_f32(0.125));
+    f
+}
+
+fn write(f: &TensorFile, p: &Path) {
+    f.write_atomic(p).unwrap();
+}
+
+fn run_cli(args: &[&str]) -> (i32, String) {
+    let out = Command::new(env!("CARGO_BIN_EXE_xscale"))
+        .arg("compare")
+        .args(args)
+        .output()
+        .unwrap();
+    let text = format!(
+        "{}{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    (out.status.code().unwrap(), text)
+}
+
+const TOL: &str = r#"
+[default]
+max_ulp = 0
+
+[[rule]]
+pattern = "fwd.*"
+max_abs = 1e-6
+max_rel = 1e-5
+max_ulp = 4
+reason = "fp32 fma chain vs reference"
+"#;
+
+#[test]
+fn ulp_known_values() {
+    assert_eq!(ulp_distance_f32(1.0, 1.0), 0);
+    assert_eq!(
+        ulp_distance_f32(1.0, f32::from_bits(1.0f32.to_bits() + 1)),
+        1
+    );
+    assert_eq!(ulp_distance_f32(1.0, 1.0 + f32::EPSILON), 1);
+    // Below 1.0 the spacing halves: 1 - eps is 2 ulps below 1.
+    assert_eq!(ulp_distance_f32(1.0, 1.0 - f32::EPSILON), 2);
+    assert_eq!(ulp_distance_f32(-0.0, 0.0), 0);
+    let tiny = f32::from_bits(1); // smallest positive subnormal
+    assert_eq!(ulp_distance_f32(-tiny, tiny), 2, "across zero");
+    assert_eq!(ulp_distance_f32(-tiny, 0.0), 1);
+    assert_eq!(ulp_distance_f32(-1.0, 1.0), 2 * 1.0f32.to_bits() as u64);
+    assert_eq!(ulp_distance_f32(f32::MAX, f32::INFINITY), 1);
+    assert_eq!(ulp_distance_f64(1.0, 1.0 + f64::EPSILON), 1);
+    assert_eq!(ulp_distance_f64(-0.0, 0.0), 0);
+    let t64 = f64::from_bits(1);
+    assert_eq!(ulp_distance_f64(-t64, t64), 2);
+    assert_eq!(
+        ulp_distance_f64(-f64::MAX, f64::MAX),
+        2 * f64::MAX.to_bits(),
+        "largest span fits in u64"
+    );
+}
+
+#[test]
+fn element_error_definitions() {
+    let e = element_error(1.0, 1.0 + f32::EPSILON as f64, CompareIn::F32);
+    assert_eq!(e.ulp, 1);
+    assert_eq!(e.abs, f32::EPSILON as f64);
+    assert!((e.rel - f32::EPSILON as f64 / (1.0 + f32::EPSILON as f64)).abs() < 1e-20);
+    // 0 vs 0 and -0 vs +0: all zero (floor avoids 0/0).
+    assert_eq!(element_error(0.0, -0.0, CompareIn::F32).rel, 0.0);
+    // NaN vs NaN equal, NaN vs number infinite.
+    let e = element_error(f64::NAN, f64::NAN, CompareIn::F32);
+    assert_eq!((e.abs, e.rel, e.ulp), (0.0, 0.0, 0));
+    let e = element_error(f64::NAN, 1.0, CompareIn::F64);
+    assert!(e.abs.is_infinite() && e.rel.is_infinite() && e.ulp == u64::MAX);
+    let e = element_error(f64::INFINITY, f64::INFINITY, CompareIn::F64);
+    assert_eq!(e.ulp, 0);
+    let e = element_error(f64::INFINITY, 1.0, CompareIn::F64);
+    assert!(e.abs.is_infinite());
+    // Mixed F64 vs F32: ulps counted in f32 after rounding the f64 value.
+    let x = 0.1f64; // not representable in f32
+    let e = element_error(x, 0.1f32 as f64, CompareIn::F32);
+    assert_eq!(
+        e.ulp, 0,
+        "correctly rounded f32 is 0 ulp from the f64 reference"
+    );
+    assert!(e.abs > 0.0);
+    let next = f32::from_bits(0.1f32.to_bits() + 1) as f64;
+    assert_eq!(element_error(x, next, CompareIn::F32).ulp, 1);
+    // Integers: ulp = integer difference.
+    assert_eq!(element_error(-3.0, 4.0, CompareIn::Int).ulp, 7);
+}
+
+#[test]
+fn identical_files_exit_0() {
+    let d = tmpdir("same");
+    let (a, b) = (d.join("a.safetensors"), d.join("b.safetensors"));
+    write(&base_file(), &a);
+    write(&base_file(), &b);
+    let tol = Tolerances::from_toml(TOL, "tol").unwrap();
+    let r = compare_files(&a, &b, &tol).unwrap();
+    assert_eq!(r.exit_code(), 0, "{}", r.to_table());
+    assert!(r.tensors.iter().all(|t| t.status == Status::Pass));
+    let (code, out) = run_cli(&[a.to_str().unwrap(), b.to_str().unwrap()]);
+    assert_eq!(code, 0, "{out}");
+    std::fs::remove_dir_all(&d).unwrap();
+}
+
+#[test]
+fn perturbed_element_exit_1_names_tensor_and_index() {
+    let d = tmpdir("perturb");
+    let (a, b, t) = (
+        d.join("a.safetensors"),
+        d.join("b.safetensors"),
+        d.join("tol.toml"),
+    );
+    let fa = base_file();
+    let mut fb = base_file();
+    let mut v = fb.get_f32("fwd.grid_h").unwrap();
+    // flat index 17 of shape [2,3,4] is [1,1,1].
+    v[17] += 1e-3;
+    // A tiny perturbation elsewhere stays within 4 ulps: passes.
+    v[3] = f32::from_bits(v[3].to_bits() + 2);
+    fb.insert("fwd.grid_h", Tensor::f32(vec![2, 3, 4], &v).unwrap());
+    write(&fa, &a);
+    write(&fb, &b);
+    std::fs::write(&t, TOL).unwrap();
+    let tol = Tolerances::read(&t).unwrap();
+    let r = compare_files(&a, &b, &tol).unwrap();
+    assert_eq!(r.exit_code(), 1);
+    let tr = r.tensors.iter().find(|t| t.name == "fwd.grid_h").unwrap();
+    assert_eq!(tr.status, Status::Fail);
+    let s = tr.stats.as_ref().unwrap();
+    assert_eq!(s.n_fail, 1);
+    assert_eq!(s.worst_fail.as_ref().unwrap().index, vec![1, 1, 1]);
+    assert_eq!(s.worst_abs.as_ref().unwrap().index, vec![1, 1, 1]);
+    assert!((s.max_abs - 1e-3).abs() < 1e-6);
+    let (code, out) = run_cli(&[
+        a.to_str().unwrap(),
+        b.to_str().unwrap(),
+        "--tolerances",
+        t.to_str().unwrap(),
+        "--json",
+        d.join("r.json").to_str().unwrap(),
+    ]);
+    assert_eq!(code, 1, "{out}");
+    assert!(
+        out.contains("FAIL fwd.grid_h") && out.contains("[1,1,1]"),
+        "{out}"
+    );
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(d.join("r.json")).unwrap()).unwrap();
+    assert!(json["tensors"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .any(|t| t["name"] == "fwd.grid_h"
+            && t["status"] == "fail"
+            && t["stats"]["worst_fail"]["index"] == serde_json::json!([1, 1, 1])));
+    // Without a tolerance file nothing has a rule: reported, not failed.
+    let (code, out) = run_cli(&[a.to_str().unwrap(), b.to_str().unwrap()]);
+    assert_eq!(code, 0, "{out}");
+    assert!(out.contains("norule"), "{out}");
+    // --strict: no rule means exact equality.
+    let (code, _) = run_cli(&[a.to_str().unwrap(), b.to_str().unwrap(), "--strict"]);
+    assert_eq!(code, 1);
+    // A command-line default limit loose enough passes.
+    let (code, out) = run_cli(&[
+        a.to_str().unwrap(),
+        b.to_str().unwrap(),
+        "--max-abs",
+        "2e-3",
+    ]);
+    assert_eq!(code, 0, "{out}");
+    std::fs::remove_dir_all(&d).unwrap();
+}
+
+#[test]
+fn shape_mismatch_exit_2() {
+    let fa = base_file();
+    let mut fb = base_file();
+    let v = fb.get_f32("fwd.rgb").unwrap();
+    fb.insert("fwd.rgb", Tensor::f32(vec![3, 2], &v).unwrap());
+    let r = compare(&fa, &fb, &Tolerances::default());
+    assert_eq!(r.exit_code(), 2);
+    assert!(r.to_table().contains("SHAPE fwd.rgb"));
+    let d = tmpdir("shape");
+    let (a, b) = (d.join("a.st"), d.join("b.st"));
+    write(&fa, &a);
+    write(&fb, &b);
+    let (code, out) = run_cli(&[a.to_str().unwrap(), b.to_str().unwrap()]);
+    assert_eq!(code, 2, "{out}");
+    // Unreadable file: exit 2 naming it.
+    let (code, out) = run_cli(&[a.to_str().unwrap(), d.join("nope.st").to_str().unwrap()]);
+    assert_eq!(code, 2);
+    assert!(out.contains("nope.st"), "{out}");
+    std::fs::remove_dir_all(&d).unwrap();
+}
+
+#[test]
+fn missing_required_tensor_exit_2_and_only_in_lists() {
+    let fa = base_file();
+    let mut fb = base_file();
+    fb.tensors.remove("fwd.rgb");
+    fb.insert("extra", Tensor::u8(vec![1], &[1]).unwrap());
+    fb.set_meta("format", "other");
+    let r = compare(&fa, &fb, &Tolerances::default());
+    assert_eq!(r.metadata_differs, vec!["format".to_string()]);
+    assert_eq!(r.only_in_a, vec!["fwd.rgb".to_string()]);
+    assert_eq!(r.only_in_b, vec!["extra".to_string()]);
+    assert_eq!(r.exit_code(), 0, "not strict, nothing required");
+    let strict = Tolerances {
+        strict: true,
+        ..Default::default()
+    };
+    assert_eq!(compare(&fa, &fb, &strict).exit_code(), 2);
+    let tol = Tolerances::from_toml(
+        "[[rule]]\npattern = \"fwd.rgb\"\nmax_abs = 1e-6\nrequired = true\n",
+        "t",
+    )
+    .unwrap();
+    let r = compare(&fa, &fb, &tol);
+    assert_eq!(r.exit_code(), 2);
+    assert!(
+        r.missing_required[0].contains("fwd.rgb"),
+        "{:?}",
+        r.missing_required
+    );
+}
+
+#[test]
+fn first_matching_rule_wins_and_ignore() {
+    let fa = base_file();
+    let mut fb = base_file();
+    fb.insert("loss", Tensor::scalar_f32(0.5));
+    let tol = Tolerances::from_toml(
+        r#"
+[[rule]]
+pattern = "loss"
+ignore = true
+[[rule]]
+pattern = "*"
+max_ulp = 0
+"#,
+        "t",
+    )
+    .unwrap();
+    let r = compare(&fa, &fb, &tol);
+    assert_eq!(r.exit_code(), 0);
+    let l = r.tensors.iter().find(|t| t.name == "loss").unwrap();
+    assert_eq!(l.status, Status::Ignored);
+    // Reversed order: the catch-all wins and the loss fails.
+    let tol = Tolerances::from_toml("[[rule]]\npattern = \"*\"\nmax_ulp = 0\n", "t").unwrap();
+    assert_eq!(compare(&fa, &fb, &tol).exit_code(), 1);
+}
+
+#[test]
+fn any_limit_suffices_per_element() {
+    // Near zero the relative error is large but the absolute one tiny; for large values the
+    // reverse: with both limits given, both elements pass.
+    let mut fa = TensorFile::new();
+    let mut fb = TensorFile::new();
+    fa.insert("x", Tensor::f64(vec![2], &[1e-12, 1e6]).unwrap());
+    fb.insert("x", Tensor::f64(vec![2], &[-1e-12, 1e6 + 1e-3]).unwrap());
+    let both = Tolerances::from_toml("[default]\nmax_abs = 1e-9\nmax_rel = 1e-8\n", "t").unwrap();
+    assert_eq!(compare(&fa, &fb, &both).exit_code(), 0);
+    let abs_only = Tolerances::from_toml("[default]\nmax_abs = 1e-9\n", "t").unwrap();
+    let r = compare(&fa, &fb, &abs_only);
+    assert_eq!(r.exit_code(), 1);
+    assert_eq!(
+        r.tensors[0]
+            .stats
+            .as_ref()
+            .unwrap()
+            .worst_fail
+            .as_ref()
+            .unwrap()
+            .index,
+        vec![1]
+    );
+    let rel_only = Tolerances::from_toml("[default]\nmax_rel = 1e-8\n", "t").unwrap();
+    let r = compare(&fa, &fb, &rel_only);
+    assert_eq!(r.exit_code(), 1);
+    assert_eq!(r.tensors[0].stats.as_ref().unwrap().max_rel, 2.0);
+}
+
+#[test]
+fn nan_handling_in_files() {
+    let mut fa = TensorFile::new();
+    let mut fb = TensorFile::new();
+    fa.insert("x", Tensor::f32(vec![3], &[f32::NAN, 1.0, 2.0]).unwrap());
+    fb.insert("x", Tensor::f32(vec![3], &[f32::NAN, 1.0, 2.0]).unwrap());
+    let tol = Tolerances::from_toml("[default]\nmax_ulp = 0\n", "t").unwrap();
+    assert_eq!(compare(&fa, &fb, &tol).exit_code(), 0);
+    fb.insert(
+        "x",
+        Tensor::f32(vec![3], &[f32::NAN, f32::NAN, 2.0]).unwrap(),
+    );
+    let r = compare(&fa, &fb, &tol);
+    assert_eq!(r.exit_code(), 1);
+    let s = r.tensors[0].stats.as_ref().unwrap();
+    assert_eq!(s.worst_fail.as_ref().unwrap().index, vec![1]);
+    assert!(s.max_abs.is_infinite());
+    // Huge limits still fail a NaN-vs-number element.
+    let loose = Tolerances::from_toml("[default]\nmax_abs = 1e300\n", "t").unwrap();
+    assert_eq!(compare(&fa, &fb, &loose).exit_code(), 1);
+}
+
+#[test]
+fn mixed_f64_f32_compares_in_f32_ulps() {
+    let mut fa = TensorFile::new();
+    let mut fb = TensorFile::new();
+    let ref64 = [0.1f64, 1.0 / 3.0, -2.7];
+    let back32: Vec<f32> = ref64.iter().map(|&x| x as f32).collect();
+    fa.insert("x", Tensor::f64(vec![3], &ref64).unwrap());
+    fb.insert("x", Tensor::f32(vec![3], &back32).unwrap());
+    let tol = Tolerances::from_toml("[default]\nmax_ulp = 0\n", "t").unwrap();
+    let r = compare(&fa, &fb, &tol);
+    assert_eq!(r.exit_code(), 0, "{}", r.to_table());
+    assert_eq!(
+        r.tensors[0].stats.as_ref().unwrap().compare_in,
+        CompareIn::F32
+    );
+}
+
+#[test]
+fn bad_tolerance_files_are_errors() {
+    assert!(Tolerances::from_toml("[[rule]]\nmax_abs = 1\n", "t.toml")
+        .unwrap_err()
+        .to_string()
+        .contains("no pattern"));
+    let e = format!(
+        "{:#}",
+        Tolerances::from_toml("[[rule]]\npattern = \"x\"\nmax_abss = 1\n", "t.toml").unwrap_err()
+    );
+    assert!(e.contains("t.toml") && e.contains("max_abss"), "{e}");
+    assert!(Tolerances::from_toml("[[rule]]\npattern = \"x\"\nmax_abs = -1\n", "t").is_err());
+}

@@ -669,6 +669,40 @@ fn bit_identical_across_thread_counts() {
     }
 }
 
+#[test]
+fn portable_and_fma_builds_agree_bitwise() {
+    // The kernels are compiled for baseline x86-64 and for fma+avx2 and picked at run time; both
+    // must compute the same bits (FMA is exactly rounded in hardware and in libm). This is the
+    // only test that switches the process-wide flag, and it compares within itself.
+    let c = cfg(8, 2, 12, 4.0, 1.5, Interpolation::Smoothstep);
+    let g = HashGrid::new(&c);
+    let table: Vec<f32> = values(g.n_params(), 31, 1.0)
+        .iter()
+        .map(|&v| v as f32)
+        .collect();
+    let pts = points(CHUNK_POINTS + 99, 32, -0.02, 1.02);
+    let d_out: Vec<f32> = values(pts.len() * g.out_dim(), 33, 1.0)
+        .iter()
+        .map(|&v| v as f32)
+        .collect();
+    let run = |portable: bool, mode: PositionMode| {
+        xscale::model::hashgrid::force_portable_kernels(portable);
+        let mut out = vec![0.0f32; pts.len() * g.out_dim()];
+        g.forward(&table, &pts, mode, &mut out);
+        let mut d_table = vec![0.0f32; g.n_params()];
+        let mut touched = Touched::default();
+        g.backward_table(&pts, mode, &d_out, &mut d_table, &mut touched);
+        let mut d_pts = vec![0.0f32; pts.len() * 3];
+        g.backward_points(&table, &pts, mode, &d_out, &mut d_pts);
+        xscale::model::hashgrid::force_portable_kernels(false);
+        let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<u32>>();
+        (bits(&out), bits(&d_table), touched.entries, bits(&d_pts))
+    };
+    for mode in [PositionMode::F64, PositionMode::Tcnn] {
+        assert!(run(false, mode) == run(true, mode), "{mode:?}");
+    }
+}
+
 // ------------------------------------------------------------------------------------------
 // Touched entries
 // ------------------------------------------------------------------------------------------

@@ -458,9 +458,21 @@ thread_local! {
     static BITMAP: RefCell<Vec<u64>> = const { RefCell::new(Vec::new()) };
 }
 
+static FORCE_PORTABLE: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
+
+/// Use the baseline (portable) build of the kernels even where `fma,avx2` is available. For
+/// tests, which check that both builds give identical bits; process-wide.
+#[doc(hidden)]
+pub fn force_portable_kernels(on: bool) {
+    FORCE_PORTABLE.store(on, std::sync::atomic::Ordering::Relaxed);
+}
+
 /// Whether the `fma,avx2` build of the kernels can run here (checked once, cached by std).
 #[inline]
 fn has_fma() -> bool {
+    if FORCE_PORTABLE.load(std::sync::atomic::Ordering::Relaxed) {
+        return false;
+    }
     #[cfg(any(target_arch = "x86", target_arch = "x86_64"))]
     {
         std::arch::is_x86_feature_detected!("fma") && std::arch::is_x86_feature_detected!("avx2")

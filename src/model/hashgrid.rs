@@ -18,7 +18,8 @@
 //! res_l   = (u32)ceilf(scale_l) + 1
 //! size_l  = min(next_multiple_of_8(min(res_l^3, 2^31-1)), 2^T)
 //! dense_l = res_l <= 1625 && res_l^3 <= size_l           (else hashed, size_l = 2^T)
-//! p = fma(scale_l, x, 0.5); c = (u32)(i32)floor(p); t = p - c   (exact)
+//! p = fma(scale_l, x, 0.5); c = (u32)(i32)floor(p); t = p - c   (exact; the i32 conversion
+//!                                             saturates, NaN → i32::MIN, output NaN)
 //! w = t | t*t*(3-2t) ;  corner k: bit d of k → c_d+1 with w_d, else c_d with 1-w_d
 //! weight_k = ((w_0' * w_1') * w_2')                      (d = 0, 1, 2 order; tcnn starts at 1*)
 //! index_k  = dense:  (c_x + c_y*res + c_z*res^2) mod size   (u32 wrapping, no clamping:

@@ -534,17 +534,6 @@ fn interp<R: Real>(t: [R; 3], smooth: bool) -> [R; 3] {
     }
 }
 
-/// `dw/dt`: 1 (linear) or `(6t)*(1-t)` (smoothstep).
-#[inline(always)]
-fn interp_deriv<R: Real>(t: [R; 3], smooth: bool) -> [R; 3] {
-    if smooth {
-        let six = R::from_f32(6.0);
-        t.map(|t| six * t * (R::ONE - t))
-    } else {
-        [R::ONE; 3]
-    }
-}
-
 /// Trilinear corner weights in corner order k, each the product in axis order d = 0, 1, 2.
 #[inline(always)]
 fn corner_weights<R: Real>(w: [R; 3]) -> [R; 8] {
@@ -630,6 +619,129 @@ impl Indexer for HashIx {
     }
 }
 
+/// Corner indices of a block of points, one corner at a time over all points (SoA, so the
+/// compiler can vectorise the hash).
+trait BlockIndexer: Indexer {
+    fn corners_block(self, c: &[[u32; BLOCK]; 3], idx: &mut [[u32; BLOCK]; 8]);
+}
+
+impl BlockIndexer for HashIx {
+    #[inline(always)]
+    fn corners_block(self, c: &[[u32; BLOCK]; 3], idx: &mut [[u32; BLOCK]; 8]) {
+        for (k, row) in idx.iter_mut().enumerate() {
+            let (bx, by, bz) = ((k & 1) as u32, ((k >> 1) & 1) as u32, (k >> 2) as u32);
+            for j in 0..BLOCK {
+                let x = c[0][j].wrapping_add(bx);
+                let y = c[1][j].wrapping_add(by).wrapping_mul(PRIME_Y);
+                let z = c[2][j].wrapping_add(bz).wrapping_mul(PRIME_Z);
+                row[j] = (x ^ y ^ z) & self.mask;
+            }
+        }
+    }
+}
+
+impl BlockIndexer for DenseIx {
+    #[inline(always)]
+    fn corners_block(self, c: &[[u32; BLOCK]; 3], idx: &mut [[u32; BLOCK]; 8]) {
+        for j in 0..BLOCK {
+            let ids = self.corners([c[0][j], c[1][j], c[2][j]]);
+            for k in 0..8 {
+                idx[k][j] = ids[k];
+            }
+        }
+    }
+}
+
+/// Points prepared together (corners computed and table rows prefetched before they are
+/// gathered): enough independent cache misses in flight to hide most of the latency of a table
+/// that does not fit the cache. Does not affect results.
+const BLOCK: usize = 64;
+
+/// `locate` for a block, SoA: `c[d][j]`, `t[d][j]`; entries past `xs.len()` are computed from
+/// x = 0 and ignored.
+#[inline(always)]
+fn locate_block<R: Real>(
+    scale: f32,
+    tcnn: bool,
+    xs: &[[f64; 3]],
+    c: &mut [[u32; BLOCK]; 3],
+    t: &mut [[R; BLOCK]; 3],
+) {
+    let mut xd = [[0.0f64; BLOCK]; 3];
+    for (j, x) in xs.iter().enumerate() {
+        xd[0][j] = x[0];
+        xd[1][j] = x[1];
+        xd[2][j] = x[2];
+    }
+    for d in 0..3 {
+        if tcnn {
+            for j in 0..BLOCK {
+                let p = scale.mul_add(xd[d][j] as f32, 0.5);
+                let fl = p.floor();
+                c[d][j] = fl as i32 as u32;
+                t[d][j] = R::from_f32(p - fl);
+            }
+        } else {
+            let s = scale as f64;
+            for j in 0..BLOCK {
+                let p = s.mul_add(xd[d][j], 0.5);
+                let fl = p.floor();
+                c[d][j] = fl as i32 as u32;
+                t[d][j] = R::from_f64(p - fl);
+            }
+        }
+    }
+}
+
+/// Per-axis `w(t)` (in place) and, if asked, `dw/dt`, for a block.
+#[inline(always)]
+fn interp_block<R: Real>(smooth: bool, t: &mut [[R; BLOCK]; 3], dw: Option<&mut [[R; BLOCK]; 3]>) {
+    if !smooth {
+        if let Some(dw) = dw {
+            *dw = [[R::ONE; BLOCK]; 3];
+        }
+        return;
+    }
+    let (two, three, six) = (R::from_f32(2.0), R::from_f32(3.0), R::from_f32(6.0));
+    if let Some(dw) = dw {
+        for d in 0..3 {
+            for j in 0..BLOCK {
+                let v = t[d][j];
+                dw[d][j] = six * v * (R::ONE - v);
+            }
+        }
+    }
+    for row in t.iter_mut() {
+        for v in row.iter_mut() {
+            *v = *v * *v * (three - two * *v);
+        }
+    }
+}
+
+/// Trilinear corner weights for a block: `w8[k][j]`, each the product in axis order 0, 1, 2.
+#[inline(always)]
+fn corner_weights_block<R: Real>(w: &[[R; BLOCK]; 3], w8: &mut [[R; BLOCK]; 8]) {
+    for (k, row) in w8.iter_mut().enumerate() {
+        for j in 0..BLOCK {
+            let a = if k & 1 == 1 { w[0][j] } else { R::ONE - w[0][j] };
+            let b = if (k >> 1) & 1 == 1 { w[1][j] } else { R::ONE - w[1][j] };
+            let c = if k >> 2 == 1 { w[2][j] } else { R::ONE - w[2][j] };
+            row[j] = a * b * c;
+        }
+    }
+}
+
+#[inline(always)]
+fn prefetch<T>(p: *const T) {
+    #[cfg(target_arch = "x86_64")]
+    // SAFETY: a prefetch never faults, whatever the address.
+    unsafe {
+        std::arch::x86_64::_mm_prefetch::<{ std::arch::x86_64::_MM_HINT_T0 }>(p as *const i8)
+    };
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = p;
+}
+
 /// The inner loops, generic over R, F and the indexer, with a runtime-selected `fma,avx2` build.
 mod kernels {
     use super::*;
@@ -638,129 +750,60 @@ mod kernels {
     macro_rules! dispatch {
         ($nf:expr, $g:expr, |$F:ident, $ix:ident| $body:expr) => {
             match ($nf, $g.dense) {
-                (1, true) => {
-                    const $F: usize = 1;
-                    let $ix = $g.dense_ix();
-                    $body
-                }
-                (1, false) => {
-                    const $F: usize = 1;
-                    let $ix = $g.hash_ix();
-                    $body
-                }
-                (2, true) => {
-                    const $F: usize = 2;
-                    let $ix = $g.dense_ix();
-                    $body
-                }
-                (2, false) => {
-                    const $F: usize = 2;
-                    let $ix = $g.hash_ix();
-                    $body
-                }
-                (4, true) => {
-                    const $F: usize = 4;
-                    let $ix = $g.dense_ix();
-                    $body
-                }
-                (4, false) => {
-                    const $F: usize = 4;
-                    let $ix = $g.hash_ix();
-                    $body
-                }
-                (8, true) => {
-                    const $F: usize = 8;
-                    let $ix = $g.dense_ix();
-                    $body
-                }
-                (8, false) => {
-                    const $F: usize = 8;
-                    let $ix = $g.hash_ix();
-                    $body
-                }
+                (1, true) => { const $F: usize = 1; let $ix = $g.dense_ix(); $body }
+                (1, false) => { const $F: usize = 1; let $ix = $g.hash_ix(); $body }
+                (2, true) => { const $F: usize = 2; let $ix = $g.dense_ix(); $body }
+                (2, false) => { const $F: usize = 2; let $ix = $g.hash_ix(); $body }
+                (4, true) => { const $F: usize = 4; let $ix = $g.dense_ix(); $body }
+                (4, false) => { const $F: usize = 4; let $ix = $g.hash_ix(); $body }
+                (8, true) => { const $F: usize = 8; let $ix = $g.dense_ix(); $body }
+                (8, false) => { const $F: usize = 8; let $ix = $g.hash_ix(); $body }
                 _ => unreachable!("features validated to 1, 2, 4, 8"),
             }
         };
     }
 
-    /// Selects the `fma,avx2` build when available. Both builds compute identical bits.
-    macro_rules! fma_switch {
-        ($fast:expr, $fma_fn:ident, $plain_fn:ident, ($($arg:expr),*)) => {{
-            #[cfg(any(target_arch = "x86", target_arch = "x86_64"))]
-            {
-                if $fast {
-                    // SAFETY: `$fast` is true only if the CPU reports fma and avx2.
-                    unsafe { $fma_fn($($arg),*) }
-                } else {
-                    $plain_fn($($arg),*)
+    /// Defines `$name` (runtime switch), `$name_fma` (`fma,avx2` build) and `$name_plain`
+    /// around the generic `$imp::<R, F, I>`. Both builds compute identical bits.
+    macro_rules! kernel {
+        ($name:ident, $fma:ident, $plain:ident, $imp:ident, ($($arg:ident : $ty:ty),*)) => {
+            #[allow(clippy::too_many_arguments)]
+            pub(super) fn $name<R: Real>(fast: bool, nf: u32, g: &Level, $($arg: $ty),*) {
+                #[cfg(any(target_arch = "x86", target_arch = "x86_64"))]
+                {
+                    if fast {
+                        // SAFETY: `fast` is true only if the CPU reports fma and avx2.
+                        return unsafe { $fma::<R>(nf, g, $($arg),*) };
+                    }
                 }
+                let _ = fast;
+                $plain::<R>(nf, g, $($arg),*)
             }
-            #[cfg(not(any(target_arch = "x86", target_arch = "x86_64")))]
-            {
-                let _ = $fast;
-                $plain_fn($($arg),*)
+
+            #[cfg(any(target_arch = "x86", target_arch = "x86_64"))]
+            #[target_feature(enable = "fma,avx2")]
+            #[allow(clippy::too_many_arguments)]
+            unsafe fn $fma<R: Real>(nf: u32, g: &Level, $($arg: $ty),*) {
+                dispatch!(nf, g, |F, ix| $imp::<R, F, _>(g, ix, $($arg),*))
             }
-        }};
+
+            #[inline(never)]
+            #[allow(clippy::too_many_arguments)]
+            fn $plain<R: Real>(nf: u32, g: &Level, $($arg: $ty),*) {
+                dispatch!(nf, g, |F, ix| $imp::<R, F, _>(g, ix, $($arg),*))
+            }
+        };
     }
 
     // ---------------------------------------------------------------- forward
 
-    #[allow(clippy::too_many_arguments)]
-    pub(super) fn forward_level<R: Real>(
-        fast: bool,
-        nf: u32,
-        g: &Level,
-        tab: &[R],
-        pts: &[[f64; 3]],
-        out: &mut [R],
-        lf: usize,
-        l: usize,
-    ) {
-        fma_switch!(
-            fast,
-            forward_level_fma,
-            forward_level_plain,
-            (nf, g, tab, pts, out, lf, l)
-        )
-    }
-
-    #[cfg(any(target_arch = "x86", target_arch = "x86_64"))]
-    #[target_feature(enable = "fma,avx2")]
-    #[allow(clippy::too_many_arguments)]
-    unsafe fn forward_level_fma<R: Real>(
-        nf: u32,
-        g: &Level,
-        tab: &[R],
-        pts: &[[f64; 3]],
-        out: &mut [R],
-        lf: usize,
-        l: usize,
-    ) {
-        dispatch!(nf, g, |F, ix| forward_level_impl::<R, F, _>(
-            g, ix, tab, pts, out, lf, l
-        ))
-    }
-
-    #[inline(never)]
-    #[allow(clippy::too_many_arguments)]
-    fn forward_level_plain<R: Real>(
-        nf: u32,
-        g: &Level,
-        tab: &[R],
-        pts: &[[f64; 3]],
-        out: &mut [R],
-        lf: usize,
-        l: usize,
-    ) {
-        dispatch!(nf, g, |F, ix| forward_level_impl::<R, F, _>(
-            g, ix, tab, pts, out, lf, l
-        ))
-    }
+    kernel!(forward_level, forward_level_fma, forward_level_plain, forward_level_impl,
+        (tab: &[R], pts: &[[f64; 3]], out: &mut [R], lf: usize, l: usize));
 
     /// One level for a chunk of points: `out[i, l*F..(l+1)*F] = Σ_k w_k · table[idx_k]` (Eq. 2).
     #[inline(always)]
     #[allow(clippy::too_many_arguments)]
-    fn forward_level_impl<R: Real, const F: usize, I: Indexer>(
+    fn forward_level_impl<R: Real, const F: usize, I: BlockIndexer>(
         g: &Level,
         ix: I,
         tab: &[R],        // [size, F], this level only
@@ -771,83 +814,47 @@ mod kernels {
     ) {
         assert_eq!(tab.len(), g.size as usize * F);
         assert!(out.len() >= pts.len() * lf);
-        for (i, x) in pts.iter().enumerate() {
-            let (c, t) = locate::<R>(g.scale, g.tcnn, x);
-            let w = corner_weights(interp(t, g.smooth));
-            let idx = ix.corners(c);
-            let mut acc = [R::ZERO; F];
-            for k in 0..8 {
-                // SAFETY: idx[k] < size (mod / mask), and tab.len() == size * F.
-                let v = unsafe { tab.get_unchecked(idx[k] as usize * F..idx[k] as usize * F + F) };
-                for f in 0..F {
-                    acc[f] = w[k].mul_add(v[f], acc[f]);
+        let mut c = [[0u32; BLOCK]; 3];
+        let mut w = [[R::ZERO; BLOCK]; 3];
+        let mut idx = [[0u32; BLOCK]; 8];
+        let mut w8 = [[R::ZERO; BLOCK]; 8];
+        for (b, xs) in pts.chunks(BLOCK).enumerate() {
+            // Pass 1: corners and weights of the block, prefetching the table rows.
+            locate_block(g.scale, g.tcnn, xs, &mut c, &mut w);
+            interp_block(g.smooth, &mut w, None);
+            corner_weights_block(&w, &mut w8);
+            ix.corners_block(&c, &mut idx);
+            for j in 0..xs.len() {
+                for row in &idx {
+                    prefetch(tab.as_ptr().wrapping_add(row[j] as usize * F));
                 }
             }
-            out[i * lf + l * F..][..F].copy_from_slice(&acc);
+            // Pass 2: gather and interpolate (Eq. 2), fma chain in corner order.
+            for j in 0..xs.len() {
+                let mut acc = [R::ZERO; F];
+                for k in 0..8 {
+                    let e = idx[k][j] as usize * F;
+                    // SAFETY: idx < size (mod / mask), and tab.len() == size * F.
+                    let v = unsafe { tab.get_unchecked(e..e + F) };
+                    for f in 0..F {
+                        acc[f] = w8[k][j].mul_add(v[f], acc[f]);
+                    }
+                }
+                out[(b * BLOCK + j) * lf + l * F..][..F].copy_from_slice(&acc);
+            }
         }
     }
 
     // ---------------------------------------------------------------- backward (table)
 
-    #[allow(clippy::too_many_arguments)]
-    pub(super) fn backward_table_level<R: Real>(
-        fast: bool,
-        nf: u32,
-        g: &Level,
-        pts: &[[f64; 3]],
-        d_out: &[R],
-        lf: usize,
-        l: usize,
-        d_tab: &mut [R],
-        bits: &mut [u64],
-    ) {
-        fma_switch!(
-            fast,
-            backward_table_level_fma,
-            backward_table_level_plain,
-            (nf, g, pts, d_out, lf, l, d_tab, bits)
-        )
-    }
-
-    #[cfg(any(target_arch = "x86", target_arch = "x86_64"))]
-    #[target_feature(enable = "fma,avx2")]
-    #[allow(clippy::too_many_arguments)]
-    unsafe fn backward_table_level_fma<R: Real>(
-        nf: u32,
-        g: &Level,
-        pts: &[[f64; 3]],
-        d_out: &[R],
-        lf: usize,
-        l: usize,
-        d_tab: &mut [R],
-        bits: &mut [u64],
-    ) {
-        dispatch!(nf, g, |F, ix| backward_table_level_impl::<R, F, _>(
-            g, ix, pts, d_out, lf, l, d_tab, bits
-        ))
-    }
-
-    #[inline(never)]
-    #[allow(clippy::too_many_arguments)]
-    fn backward_table_level_plain<R: Real>(
-        nf: u32,
-        g: &Level,
-        pts: &[[f64; 3]],
-        d_out: &[R],
-        lf: usize,
-        l: usize,
-        d_tab: &mut [R],
-        bits: &mut [u64],
-    ) {
-        dispatch!(nf, g, |F, ix| backward_table_level_impl::<R, F, _>(
-            g, ix, pts, d_out, lf, l, d_tab, bits
-        ))
-    }
+    kernel!(backward_table_level, backward_table_level_fma, backward_table_level_plain,
+        backward_table_level_impl,
+        (pts: &[[f64; 3]], d_out: &[R], lf: usize, l: usize, d_tab: &mut [R], bits: &mut [u64]));
 
     /// One level, points in order: `d_table[idx_k, f] += w_k · d_out[i, l*F+f]`.
     #[inline(always)]
     #[allow(clippy::too_many_arguments)]
-    fn backward_table_level_impl<R: Real, const F: usize, I: Indexer>(
+    fn backward_table_level_impl<R: Real, const F: usize, I: BlockIndexer>(
         g: &Level,
         ix: I,
         pts: &[[f64; 3]], // [n]
@@ -860,24 +867,43 @@ mod kernels {
         assert_eq!(d_tab.len(), g.size as usize * F);
         assert_eq!(bits.len(), (g.size as usize).div_ceil(64));
         assert!(d_out.len() >= pts.len() * lf);
-        for (i, x) in pts.iter().enumerate() {
-            let mut gr = [R::ZERO; F];
-            gr.copy_from_slice(&d_out[i * lf + l * F..][..F]);
-            if gr.iter().all(|&v| v == R::ZERO) {
-                continue; // contributes nothing; not recorded as touched
-            }
-            let (c, t) = locate::<R>(g.scale, g.tcnn, x);
-            let w = corner_weights(interp(t, g.smooth));
-            let idx = ix.corners(c);
-            for k in 0..8 {
-                let e = idx[k] as usize;
-                // SAFETY: e < size (mod / mask); d_tab.len() == size*F, bits cover size bits.
-                unsafe {
-                    let d = d_tab.get_unchecked_mut(e * F..e * F + F);
-                    for f in 0..F {
-                        d[f] += w[k] * gr[f];
+        let mut c = [[0u32; BLOCK]; 3];
+        let mut w = [[R::ZERO; BLOCK]; 3];
+        let mut idx = [[0u32; BLOCK]; 8];
+        let mut w8 = [[R::ZERO; BLOCK]; 8];
+        let mut grs = [[R::ZERO; F]; BLOCK];
+        let mut live = [false; BLOCK];
+        for (b, xs) in pts.chunks(BLOCK).enumerate() {
+            // Pass 1: corners and weights, prefetching the gradient rows.
+            locate_block(g.scale, g.tcnn, xs, &mut c, &mut w);
+            interp_block(g.smooth, &mut w, None);
+            corner_weights_block(&w, &mut w8);
+            ix.corners_block(&c, &mut idx);
+            for j in 0..xs.len() {
+                grs[j].copy_from_slice(&d_out[(b * BLOCK + j) * lf + l * F..][..F]);
+                // An all-zero d_out slice contributes nothing and is not recorded as touched.
+                live[j] = grs[j].iter().any(|&v| v != R::ZERO);
+                if live[j] {
+                    for row in &idx {
+                        prefetch(d_tab.as_ptr().wrapping_add(row[j] as usize * F));
                     }
-                    *bits.get_unchecked_mut(e / 64) |= 1u64 << (e % 64);
+                }
+            }
+            // Pass 2: scatter, in point order.
+            for j in 0..xs.len() {
+                if !live[j] {
+                    continue;
+                }
+                for k in 0..8 {
+                    let e = idx[k][j] as usize;
+                    // SAFETY: e < size (mod / mask); d_tab.len() == size*F, bits cover size bits.
+                    unsafe {
+                        let d = d_tab.get_unchecked_mut(e * F..e * F + F);
+                        for f in 0..F {
+                            d[f] += w8[k][j] * grs[j][f];
+                        }
+                        *bits.get_unchecked_mut(e / 64) |= 1u64 << (e % 64);
+                    }
                 }
             }
         }
@@ -885,71 +911,21 @@ mod kernels {
 
     // ---------------------------------------------------------------- backward (points)
 
-    #[allow(clippy::too_many_arguments)]
-    pub(super) fn backward_points_level<R: Real>(
-        fast: bool,
-        nf: u32,
-        g: &Level,
-        tab: &[R],
-        pts: &[[f64; 3]],
-        d_out: &[R],
-        lf: usize,
-        l: usize,
-        acc: &mut [[R; 3]],
-    ) {
-        fma_switch!(
-            fast,
-            backward_points_level_fma,
-            backward_points_level_plain,
-            (nf, g, tab, pts, d_out, lf, l, acc)
-        )
-    }
+    kernel!(backward_points_level, backward_points_level_fma, backward_points_level_plain,
+        backward_points_level_impl,
+        (tab: &[R], pts: &[[f64; 3]], d_out: &[R], lf: usize, l: usize, acc: &mut [[R; 3]]));
 
-    #[cfg(any(target_arch = "x86", target_arch = "x86_64"))]
-    #[target_feature(enable = "fma,avx2")]
-    #[allow(clippy::too_many_arguments)]
-    unsafe fn backward_points_level_fma<R: Real>(
-        nf: u32,
-        g: &Level,
-        tab: &[R],
-        pts: &[[f64; 3]],
-        d_out: &[R],
-        lf: usize,
-        l: usize,
-        acc: &mut [[R; 3]],
-    ) {
-        dispatch!(nf, g, |F, ix| backward_points_level_impl::<R, F, _>(
-            g, ix, tab, pts, d_out, lf, l, acc
-        ))
-    }
-
-    #[inline(never)]
-    #[allow(clippy::too_many_arguments)]
-    fn backward_points_level_plain<R: Real>(
-        nf: u32,
-        g: &Level,
-        tab: &[R],
-        pts: &[[f64; 3]],
-        d_out: &[R],
-        lf: usize,
-        l: usize,
-        acc: &mut [[R; 3]],
-    ) {
-        dispatch!(nf, g, |F, ix| backward_points_level_impl::<R, F, _>(
-            g, ix, tab, pts, d_out, lf, l, acc
-        ))
-    }
-
-    /// One level for a chunk of points: `acc[i][d] += Σ_f d_out[i, l*F+f] · ∂out[l*F+f]/∂x_d`,
-    /// with `∂out/∂x_d = Σ_{4 edges along d} ((scale·w_a')·w_b') · (v_hi - v_lo) · dw_d/dt`.
+    /// One level for a chunk of points: `acc[i][d] += Σ_f d_out[i, l*F+f] · ∂out[l*F+f]/∂x_d`
+    /// (fma chain in f order), with
+    /// `∂out/∂x_d = Σ_{4 edges along d} ((scale·w_a')·w_b') · (v_hi - v_lo) · dw_d/dt`.
     #[inline(always)]
     #[allow(clippy::too_many_arguments)]
-    fn backward_points_level_impl<R: Real, const F: usize, I: Indexer>(
+    fn backward_points_level_impl<R: Real, const F: usize, I: BlockIndexer>(
         g: &Level,
         ix: I,
-        tab: &[R],        // [size, F], this level only
-        pts: &[[f64; 3]], // [n]
-        d_out: &[R],      // [n, L*F]
+        tab: &[R],          // [size, F], this level only
+        pts: &[[f64; 3]],   // [n]
+        d_out: &[R],        // [n, L*F]
         lf: usize,
         l: usize,
         acc: &mut [[R; 3]], // [>= n]
@@ -958,46 +934,59 @@ mod kernels {
         assert!(d_out.len() >= pts.len() * lf);
         assert!(acc.len() >= pts.len());
         let scale = R::from_f32(g.scale);
-        for (i, x) in pts.iter().enumerate() {
-            let mut gr = [R::ZERO; F];
-            gr.copy_from_slice(&d_out[i * lf + l * F..][..F]);
-            let (c, t) = locate::<R>(g.scale, g.tcnn, x);
-            let w = interp(t, g.smooth);
-            let dw = interp_deriv(t, g.smooth);
-            let ws = [
-                [R::ONE - w[0], w[0]],
-                [R::ONE - w[1], w[1]],
-                [R::ONE - w[2], w[2]],
-            ];
-            let idx = ix.corners(c);
-            let mut v = [[R::ZERO; F]; 8];
-            for k in 0..8 {
-                // SAFETY: idx[k] < size (mod / mask), and tab.len() == size * F.
-                let s = unsafe { tab.get_unchecked(idx[k] as usize * F..idx[k] as usize * F + F) };
-                v[k].copy_from_slice(s);
+        let mut c = [[0u32; BLOCK]; 3];
+        let mut w = [[R::ZERO; BLOCK]; 3];
+        let mut dw = [[R::ZERO; BLOCK]; 3];
+        let mut idx = [[0u32; BLOCK]; 8];
+        for (b, xs) in pts.chunks(BLOCK).enumerate() {
+            // Pass 1: corners, weights and dw/dt, prefetching the table rows.
+            locate_block(g.scale, g.tcnn, xs, &mut c, &mut w);
+            interp_block(g.smooth, &mut w, Some(&mut dw));
+            ix.corners_block(&c, &mut idx);
+            for j in 0..xs.len() {
+                for row in &idx {
+                    prefetch(tab.as_ptr().wrapping_add(row[j] as usize * F));
+                }
             }
-            for d in 0..3 {
-                // The two other axes, ascending (tcnn's non_grad_dim order).
-                let (a, b) = match d {
-                    0 => (1, 2),
-                    1 => (0, 2),
-                    _ => (0, 1),
-                };
-                let mut gd = [R::ZERO; F];
-                for e in 0..4 {
-                    let (ba, bb) = (e & 1, (e >> 1) & 1);
-                    let wt = scale * ws[a][ba] * ws[b][bb];
-                    let lo = (ba << a) | (bb << b);
-                    let hi = lo | (1 << d);
-                    for f in 0..F {
-                        gd[f] += wt * (v[hi][f] - v[lo][f]) * dw[d];
+            // Pass 2: gather and differentiate.
+            for j in 0..xs.len() {
+                let i = b * BLOCK + j;
+                let mut gr = [R::ZERO; F];
+                gr.copy_from_slice(&d_out[i * lf + l * F..][..F]);
+                let ws = [
+                    [R::ONE - w[0][j], w[0][j]],
+                    [R::ONE - w[1][j], w[1][j]],
+                    [R::ONE - w[2][j], w[2][j]],
+                ];
+                let mut v = [[R::ZERO; F]; 8];
+                for k in 0..8 {
+                    let e = idx[k][j] as usize * F;
+                    // SAFETY: idx < size (mod / mask), and tab.len() == size * F.
+                    v[k].copy_from_slice(unsafe { tab.get_unchecked(e..e + F) });
+                }
+                for d in 0..3 {
+                    // The two other axes, ascending (tcnn's non_grad_dim order).
+                    let (a, b) = match d {
+                        0 => (1, 2),
+                        1 => (0, 2),
+                        _ => (0, 1),
+                    };
+                    let mut gd = [R::ZERO; F];
+                    for e in 0..4 {
+                        let (ba, bb) = (e & 1, (e >> 1) & 1);
+                        let wt = scale * ws[a][ba] * ws[b][bb];
+                        let lo = (ba << a) | (bb << b);
+                        let hi = lo | (1 << d);
+                        for f in 0..F {
+                            gd[f] += wt * (v[hi][f] - v[lo][f]) * dw[d][j];
+                        }
                     }
+                    let mut s = acc[i][d];
+                    for f in 0..F {
+                        s = gr[f].mul_add(gd[f], s);
+                    }
+                    acc[i][d] = s;
                 }
-                let mut s = acc[i][d];
-                for f in 0..F {
-                    s = gr[f].mul_add(gd[f], s);
-                }
-                acc[i][d] = s;
             }
         }
     }

@@ -227,7 +227,9 @@ fn missing_required_tensor_exit_2_and_only_in_lists() {
     let mut fb = base_file();
     fb.tensors.remove("fwd.rgb");
     fb.insert("extra", Tensor::u8(vec![1], &[1]).unwrap());
+    fb.set_meta("format", "other");
     let r = compare(&fa, &fb, &Tolerances::default());
+    assert_eq!(r.metadata_differs, vec!["format".to_string()]);
     assert_eq!(r.only_in_a, vec!["fwd.rgb".to_string()]);
     assert_eq!(r.only_in_b, vec!["extra".to_string()]);
     assert_eq!(r.exit_code(), 0, "not strict, nothing required");

@@ -58,7 +58,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let report = compare_files(&args.a, &args.b, &tol)?;
     let table = report.to_table();
     if args.quiet {
-        for line in table.lines().skip(2) {
+        for line in table.lines() {
             if !line.starts_with("ok ")
                 && !line.starts_with("norule")
                 && !line.starts_with("ignored")

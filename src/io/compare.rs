@@ -135,7 +135,7 @@ impl Tolerances {
         for r in all {
             for (what, v) in [("max_abs", r.max_abs), ("max_rel", r.max_rel)] {
                 if let Some(x) = v {
-                    if !(x >= 0.0) {
+                    if x.is_nan() || x < 0.0 {
                         bail!(
                             "{label}: rule \"{}\": {what} = {x} must be a number >= 0",
                             r.pattern
@@ -394,6 +394,9 @@ pub struct Report {
     pub only_in_b: Vec<String>,
     /// Problems with `required` rules (a matched tensor missing from a file, or nothing matched).
     pub missing_required: Vec<String>,
+    /// Header metadata keys whose values differ or that only one file has (informational:
+    /// never affects the exit code).
+    pub metadata_differs: Vec<String>,
     pub strict: bool,
 }
 
@@ -544,6 +547,12 @@ impl Report {
         if !self.only_in_b.is_empty() {
             out.push_str(&format!("only in B: {}\n", self.only_in_b.join(", ")));
         }
+        if !self.metadata_differs.is_empty() {
+            out.push_str(&format!(
+                "metadata differs (informational): {}\n",
+                self.metadata_differs.join(", ")
+            ));
+        }
         for m in &self.missing_required {
             out.push_str(&format!("MISSING {m}\n"));
         }
@@ -680,6 +689,13 @@ pub fn compare(a: &TensorFile, b: &TensorFile, tol: &Tolerances) -> Report {
             .cloned()
             .collect(),
         missing_required: Vec::new(),
+        metadata_differs: a
+            .metadata
+            .keys()
+            .chain(b.metadata.keys().filter(|k| !a.metadata.contains_key(*k)))
+            .filter(|k| a.metadata.get(*k) != b.metadata.get(*k))
+            .cloned()
+            .collect(),
         strict: tol.strict,
     };
     // Required rules: every tensor whose first matching rule is required must be in both files;

@@ -461,10 +461,13 @@ impl TensorFile {
         let fname = path
             .file_name()
             .ok_or_else(|| anyhow!("{}: not a file path", path.display()))?;
+        // Unique per process and per call, so concurrent writers never share a temp file.
+        static COUNTER: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
         let tmp = dir.join(format!(
-            ".{}.tmp.{}",
+            ".{}.tmp.{}.{}",
             fname.to_string_lossy(),
-            std::process::id()
+            std::process::id(),
+            COUNTER.fetch_add(1, std::sync::atomic::Ordering::Relaxed)
         ));
         let result = (|| -> Result<()> {
             let file = std::fs::File::create(&tmp)

@@ -1,0 +1,658 @@
+//! Adam with tiny-cuda-nn's rules (SPEC §4.8). This file owns the optimizer state (flat `m`, `v`,
+//! `t` over the whole parameter buffer, saved per named parameter as `adam.m.<name>`,
+//! `adam.v.<name>`, `adam.t.<name>`), the per-group hyperparameters and the learning-rate schedule.
+//!
+//! # The update (per scalar parameter `w` with gradient `g`, all in f32 as tiny-cuda-nn)
+//! ```text
+//! sparse group and g == 0   →  skip: w, m, v, t unchanged            (tcnn: non-matrix params)
+//! dense group and l2 != 0   →  g = g + l2 * w                        (tcnn: matrix params only)
+//! m = β1 * m + (1 - β1) * g
+//! v = β2 * v + (1 - β2) * (g * g)
+//! t = t + 1                                                          (u32, per parameter)
+//! lr_t = lr_k * sqrt(1 - β2^t) / (1 - β1^t)                          (bias correction, own t)
+//! w = w - (lr_t / (sqrt(v) + ε)) * m                                 (ε outside the sqrt)
+//! ```
+//! This is tiny-cuda-nn's `adam_step` kernel (read in `include/tiny-cuda-nn/optimizers/adam.h`):
+//! non-matrix parameters (grids) with an exactly zero gradient return early, L2 is added to the
+//! gradient of matrix (MLP) weights only, every parameter has its own step counter, and the step
+//! divides the bias-corrected learning rate by `sqrt(v) + ε` before multiplying by `m`. Its other
+//! options (AdaBound bounds, relative/absolute weight decay, clipping, loss scale) are not
+//! implemented: with their defaults they are the identity. Note tcnn's default `l2_reg` is 1e-8;
+//! ours is per group (default 1e-6 on MLPs as instant-ngp's NeRF config, 0 elsewhere).
+//!
+//! `g == 0` is IEEE equality, so `-0.0` is skipped too. Groups are "dense" (every parameter steps
+//! every time, L2 allowed: the shader and deformation MLPs) or "sparse" (zero-gradient parameters
+//! are skipped, no L2: grids H and D, appearance codes).
+//!
+//! # Numerics
+//! Moments and weights are f32, operations in the order written above, unfused (no FMA). nvcc
+//! contracts `a*b + c` into FMAs by default, so a CUDA port may differ by an ulp or so per step.
+//! The bias-corrected rate `lr_t` is computed in f64 from the f32 hyperparameters (β^t by
+//! exponentiation by squaring, so it is the same on every platform and libm) and rounded once to
+//! f32; tcnn computes it in f32 with `powf`, which differs from ours by at most a few f32 ulps.
+//!
+//! # Learning-rate schedule (`lr_k` at 0-based global step `k`, the k-th call for this group)
+//! ```text
+//! lr_k = lr * warm(k) * decay(k)
+//! warm(k)  = min(1, (k + 1) / warmup_steps)                 (1 if warmup_steps = 0; linear)
+//! decay(k) = decay_base ^ n(k),  n(k) = 0 if decay_interval = 0 or min(k, decay_end) < decay_start,
+//!            else floor((min(k, decay_end) - decay_start) / decay_interval) + 1
+//! ```
+//! `decay` is tiny-cuda-nn's `ExponentialDecay` optimizer (piecewise constant: the factor is
+//! multiplied by `decay_base` at steps start, start + interval, … up to `decay_end`); warm-up is ours.
+//! Computed in f64.
+//!
+//! # Cost and determinism
+//! `step_sparse` touches only the listed entries, so its cost grows with the entries touched, not
+//! with the table size (`benches/adam.rs`). Work is split into chunks of a constant size
+//! ([`DENSE_CHUNK`] scalars, [`SPARSE_CHUNK`] entries) run in parallel; every scalar's update
+//! depends only on its own state, so results are bit-identical for any thread count.
+
+use crate::io::tensors::{DType, Tensor, TensorFile};
+use anyhow::{bail, Context, Result};
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+use std::ops::Range;
+
+/// One dense chunk: (chunk index, (((w, m), v), t)).
+type DenseChunk<'a> = (
+    usize,
+    (
+        ((&'a mut [f32], &'a mut [f32]), &'a mut [f32]),
+        &'a mut [u32],
+    ),
+);
+/// One sparse chunk: (entries, first scalar, w, m, v, t) over the chunk's region.
+type SparseChunk<'a> = (
+    &'a [u32],
+    usize,
+    &'a mut [f32],
+    &'a mut [f32],
+    &'a mut [f32],
+    &'a mut [u32],
+);
+
+/// Scalars per parallel chunk in [`AdamState::step_dense`].
+pub const DENSE_CHUNK: usize = 1 << 14;
+/// Entries per parallel chunk in [`AdamState::step_sparse`].
+pub const SPARSE_CHUNK: usize = 1 << 11;
+
+/// Learning-rate schedule of one group (see the module doc for the formula).
+#[derive(Clone, Copy, Debug, Serialize, Deserialize, PartialEq)]
+#[serde(default, deny_unknown_fields)]
+pub struct LrSchedule {
+    /// Linear warm-up length in steps (0 = none).
+    pub warmup_steps: u32,
+    /// First step at which the learning rate is multiplied by `decay_base`.
+    pub decay_start: u32,
+    /// Steps between decays (0 = no decay).
+    pub decay_interval: u32,
+    pub decay_base: f32,
+    /// Last step at which a decay may happen.
+    pub decay_end: u32,
+}
+
+impl Default for LrSchedule {
+    fn default() -> Self {
+        LrSchedule {
+            warmup_steps: 0,
+            decay_start: 0,
+            decay_interval: 0,
+            decay_base: 1.0,
+            decay_end: u32::MAX,
+        }
+    }
+}
+
+impl LrSchedule {
+    /// `warm(k) * decay(k)` at 0-based step `k`.
+    pub fn factor(&self, k: u64) -> f64 {
+        let warm = if self.warmup_steps == 0 {
+            1.0
+        } else {
+            ((k + 1) as f64 / self.warmup_steps as f64).min(1.0)
+        };
+        let last = k.min(self.decay_end as u64);
+        let n = if self.decay_interval == 0 || last < self.decay_start as u64 {
+            0
+        } else {
+            (last - self.decay_start as u64) / self.decay_interval as u64 + 1
+        };
+        warm * pow_u64(self.decay_base as f64, n)
+    }
+}
+
+/// Hyperparameters of one parameter group.
+#[derive(Clone, Copy, Debug, Serialize, Deserialize, PartialEq)]
+#[serde(default, deny_unknown_fields)]
+pub struct AdamGroup {
+    pub lr: f32,
+    pub beta1: f32,
+    pub beta2: f32,
+    pub epsilon: f32,
+    /// L2 regularisation added to the gradient (`g += l2 * w`); ignored in sparse groups.
+    pub l2: f32,
+    /// Skip parameters whose gradient is exactly zero (grids, appearance codes); no L2. Not read
+    /// from config files: [`AdamConfig`] sets it by the group's role.
+    #[serde(skip)]
+    pub sparse: bool,
+    pub schedule: LrSchedule,
+}
+
+impl Default for AdamGroup {
+    /// instant-ngp's NeRF Adam: lr 1e-2, β1 0.9, β2 0.99, ε 1e-15, L2 1e-6 (dense groups only);
+    /// dense; no schedule.
+    fn default() -> Self {
+        AdamGroup {
+            lr: 1e-2,
+            beta1: 0.9,
+            beta2: 0.99,
+            epsilon: 1e-15,
+            l2: 1e-6,
+            sparse: false,
+            schedule: LrSchedule::default(),
+        }
+    }
+}
+
+impl AdamGroup {
+    /// tiny-cuda-nn's Adam defaults (lr 1e-3, β1 0.9, β2 0.999, ε 1e-8, l2 1e-8 on dense groups).
+    pub fn tcnn_default(sparse: bool) -> Self {
+        AdamGroup {
+            lr: 1e-3,
+            beta1: 0.9,
+            beta2: 0.999,
+            epsilon: 1e-8,
+            l2: if sparse { 0.0 } else { 1e-8 },
+            sparse,
+            schedule: LrSchedule::default(),
+        }
+    }
+
+    /// Scheduled learning rate at 0-based step `k` (f64).
+    pub fn lr_at(&self, k: u64) -> f64 {
+        self.lr as f64 * self.schedule.factor(k)
+    }
+
+    fn check(&self) -> Result<()> {
+        let ok = self.lr.is_finite()
+            && self.lr >= 0.0
+            && (0.0..1.0).contains(&self.beta1)
+            && (0.0..1.0).contains(&self.beta2)
+            && self.epsilon.is_finite()
+            && self.epsilon >= 0.0
+            && self.l2.is_finite()
+            && self.schedule.decay_base.is_finite();
+        if !ok {
+            bail!("bad Adam group {self:?}: need lr >= 0, 0 <= β1, β2 < 1, finite ε >= 0, l2, decay_base");
+        }
+        Ok(())
+    }
+}
+
+/// Hyperparameters of every group of the model (SPEC §4.8). In TOML, one table per group
+/// (`[grid_h] lr = 1e-2`, missing keys take the defaults); `sparse` is set by role (shader and
+/// deform dense, grids and appearance codes sparse), never read from the file.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[serde(from = "AdamConfigFile")]
+pub struct AdamConfig {
+    pub shader: AdamGroup,
+    pub deform: AdamGroup,
+    pub grid_h: AdamGroup,
+    pub grid_d: AdamGroup,
+    pub appearance: AdamGroup,
+}
+
+impl Default for AdamConfig {
+    /// instant-ngp's NeRF hyperparameters for every group (lr 1e-2, β2 0.99, ε 1e-15), L2 1e-6
+    /// on the MLPs, grids and appearance codes sparse; no schedule.
+    fn default() -> Self {
+        AdamConfigFile::default().into()
+    }
+}
+
+/// The file form of [`AdamConfig`] (before the roles set `sparse`).
+#[derive(Deserialize, Default)]
+#[serde(default, deny_unknown_fields)]
+struct AdamConfigFile {
+    shader: AdamGroup,
+    deform: AdamGroup,
+    grid_h: AdamGroup,
+    grid_d: AdamGroup,
+    appearance: AdamGroup,
+}
+
+impl From<AdamConfigFile> for AdamConfig {
+    fn from(f: AdamConfigFile) -> AdamConfig {
+        let role = |g: AdamGroup, sparse: bool| AdamGroup { sparse, ..g };
+        AdamConfig {
+            shader: role(f.shader, false),
+            deform: role(f.deform, false),
+            grid_h: role(f.grid_h, true),
+            grid_d: role(f.grid_d, true),
+            appearance: role(f.appearance, true),
+        }
+    }
+}
+
+impl AdamConfig {
+    /// Every group valid (finite, β in [0, 1), …).
+    pub fn validate(&self) -> Result<()> {
+        for (name, g) in [
+            ("shader", &self.shader),
+            ("deform", &self.deform),
+            ("grid_h", &self.grid_h),
+            ("grid_d", &self.grid_d),
+            ("appearance", &self.appearance),
+        ] {
+            g.check().with_context(|| format!("adam.{name}"))?;
+        }
+        Ok(())
+    }
+}
+
+/// `x^n` by exponentiation by squaring (same result on every platform).
+fn pow_u64(x: f64, mut n: u64) -> f64 {
+    let (mut base, mut acc) = (x, 1.0f64);
+    while n > 0 {
+        if n & 1 == 1 {
+            acc *= base;
+        }
+        base *= base;
+        n >>= 1;
+    }
+    acc
+}
+
+/// Per-step constants of a group, with a one-entry memo of `lr_t` by step count.
+#[derive(Clone, Copy)]
+struct StepConsts {
+    lr_k: f64,
+    b1: f32,
+    b2: f32,
+    one_minus_b1: f32,
+    one_minus_b2: f32,
+    eps: f32,
+    l2: f32,
+    skip_zero: bool,
+    memo_t: u32,
+    memo_lr: f32,
+}
+
+impl StepConsts {
+    fn new(cfg: &AdamGroup, k: u64, sparse: bool) -> Self {
+        StepConsts {
+            lr_k: cfg.lr_at(k),
+            b1: cfg.beta1,
+            b2: cfg.beta2,
+            one_minus_b1: 1.0 - cfg.beta1,
+            one_minus_b2: 1.0 - cfg.beta2,
+            eps: cfg.epsilon,
+            l2: if sparse { 0.0 } else { cfg.l2 },
+            skip_zero: sparse,
+            memo_t: 0,
+            memo_lr: 0.0,
+        }
+    }
+
+    /// `lr_k * sqrt(1 - β2^t) / (1 - β1^t)` in f64, rounded to f32.
+    #[inline]
+    fn lr_t(&mut self, t: u32) -> f32 {
+        if t != self.memo_t {
+            let b1t = pow_u64(self.b1 as f64, t as u64);
+            let b2t = pow_u64(self.b2 as f64, t as u64);
+            self.memo_lr = (self.lr_k * (1.0 - b2t).sqrt() / (1.0 - b1t)) as f32;
+            self.memo_t = t;
+        }
+        self.memo_lr
+    }
+
+    /// One scalar's Adam update (module doc).
+    #[inline]
+    fn update(&mut self, w: &mut f32, g: f32, m: &mut f32, v: &mut f32, t: &mut u32) {
+        if self.skip_zero && g == 0.0 {
+            return;
+        }
+        let g = if self.l2 != 0.0 { g + self.l2 * *w } else { g };
+        *m = self.b1 * *m + self.one_minus_b1 * g;
+        *v = self.b2 * *v + self.one_minus_b2 * (g * g);
+        *t = t.saturating_add(1);
+        let lr_t = self.lr_t(*t);
+        let eff = lr_t / (v.sqrt() + self.eps);
+        *w -= eff * *m;
+    }
+}
+
+/// One named parameter's place in the flat buffer.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct ParamSlot {
+    pub name: String,
+    pub shape: Vec<usize>,
+    pub offset: usize,
+}
+
+impl ParamSlot {
+    pub fn len(&self) -> usize {
+        self.shape.iter().product()
+    }
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+    pub fn range(&self) -> Range<usize> {
+        self.offset..self.offset + self.len()
+    }
+}
+
+/// Adam state over a flat parameter buffer: `m`, `v` (f32) and `t` (u32) per scalar parameter,
+/// laid out as the named parameters in `slots` (consecutive, in the order given).
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct AdamState {
+    pub m: Vec<f32>,
+    pub v: Vec<f32>,
+    pub t: Vec<u32>,
+    pub slots: Vec<ParamSlot>,
+}
+
+impl AdamState {
+    /// Zero state for named parameters `(name, shape)`, laid out consecutively in this order.
+    pub fn new<S: AsRef<str>>(params: &[(S, Vec<usize>)]) -> AdamState {
+        let mut slots = Vec::with_capacity(params.len());
+        let mut offset = 0;
+        for (name, shape) in params {
+            let slot = ParamSlot {
+                name: name.as_ref().to_string(),
+                shape: shape.clone(),
+                offset,
+            };
+            offset += slot.len();
+            slots.push(slot);
+        }
+        AdamState {
+            m: vec![0.0; offset],
+            v: vec![0.0; offset],
+            t: vec![0; offset],
+            slots,
+        }
+    }
+
+    /// Zero state for `n` unnamed scalars (no slots; cannot be saved by name).
+    pub fn with_len(n: usize) -> AdamState {
+        AdamState {
+            m: vec![0.0; n],
+            v: vec![0.0; n],
+            t: vec![0; n],
+            slots: Vec::new(),
+        }
+    }
+
+    /// Number of scalar parameters.
+    pub fn len(&self) -> usize {
+        self.m.len()
+    }
+    pub fn is_empty(&self) -> bool {
+        self.m.is_empty()
+    }
+
+    /// The slot of a named parameter.
+    pub fn slot(&self, name: &str) -> Result<&ParamSlot> {
+        self.slots.iter().find(|s| s.name == name).with_context(|| {
+            format!(
+                "Adam state has no parameter {name} (it has: {})",
+                self.slots
+                    .iter()
+                    .map(|s| s.name.as_str())
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            )
+        })
+    }
+
+    /// Flat range of a named parameter.
+    pub fn range(&self, name: &str) -> Result<Range<usize>> {
+        Ok(self.slot(name)?.range())
+    }
+
+    /// One Adam step on every scalar of a parameter. `params` and `grads` are that parameter's
+    /// own buffers (length `range.len()`); `range` locates it in the flat state. A sparse `cfg`
+    /// skips exactly-zero gradients. `global_step` is the 0-based step index `k` (schedule).
+    ///
+    /// # Panics
+    /// If the lengths disagree or `range` is outside the state (programming errors).
+    pub fn step_dense(
+        &mut self,
+        range: Range<usize>,
+        params: &mut [f32],
+        grads: &[f32],
+        cfg: &AdamGroup,
+        global_step: u64,
+    ) {
+        assert!(
+            params.len() == range.len() && grads.len() == range.len() && range.end <= self.len(),
+            "step_dense: params {} / grads {} / range {:?} / state {} disagree",
+            params.len(),
+            grads.len(),
+            range,
+            self.len()
+        );
+        let consts = StepConsts::new(cfg, global_step, cfg.sparse);
+        let m = &mut self.m[range.clone()];
+        let v = &mut self.v[range.clone()];
+        let t = &mut self.t[range];
+        let run = |(ci, (((w, m), v), t)): DenseChunk| {
+            let mut c = consts;
+            let g = &grads[ci * DENSE_CHUNK..ci * DENSE_CHUNK + w.len()];
+            for i in 0..w.len() {
+                c.update(&mut w[i], g[i], &mut m[i], &mut v[i], &mut t[i]);
+            }
+        };
+        if params.len() <= DENSE_CHUNK {
+            run((0, (((params, m), v), t)));
+        } else {
+            params
+                .par_chunks_mut(DENSE_CHUNK)
+                .zip(m.par_chunks_mut(DENSE_CHUNK))
+                .zip(v.par_chunks_mut(DENSE_CHUNK))
+                .zip(t.par_chunks_mut(DENSE_CHUNK))
+                .enumerate()
+                .for_each(run);
+        }
+    }
+
+    /// One Adam step on the listed entries of a table only (sparse semantics: exactly-zero
+    /// gradients skipped, no L2, whatever `cfg.sparse` says). Entry `e` is the `entry_len`
+    /// scalars `params[e*entry_len ..][..entry_len]` (e.g. one hash-table entry of F features);
+    /// its state lives at `base_offset + e*entry_len` in the flat state. `params` and `grads` are
+    /// the table's own buffers. `entries` must be strictly increasing (sorted, no duplicates), as
+    /// the grid backward's touched-entry list is. Cost: O(entries.len() * entry_len).
+    ///
+    /// # Panics
+    /// If `entries` is not strictly increasing, an entry is out of range, or lengths disagree.
+    #[allow(clippy::too_many_arguments)]
+    pub fn step_sparse(
+        &mut self,
+        params: &mut [f32],
+        grads: &[f32],
+        entries: &[u32],
+        entry_len: usize,
+        base_offset: usize,
+        cfg: &AdamGroup,
+        global_step: u64,
+    ) {
+        assert!(entry_len > 0, "step_sparse: entry_len must be > 0");
+        assert!(
+            grads.len() == params.len() && base_offset + params.len() <= self.len(),
+            "step_sparse: params {} / grads {} / base_offset {} / state {} disagree",
+            params.len(),
+            grads.len(),
+            base_offset,
+            self.len()
+        );
+        let n_entries = params.len() / entry_len;
+        assert!(
+            entries.windows(2).all(|w| w[0] < w[1]),
+            "step_sparse: entries must be strictly increasing"
+        );
+        if let Some(&last) = entries.last() {
+            assert!(
+                (last as usize) < n_entries,
+                "step_sparse: entry {last} out of range (table has {n_entries} entries)"
+            );
+        }
+        let consts = StepConsts::new(cfg, global_step, true);
+        let region = base_offset..base_offset + params.len();
+        // Split the table and its state into disjoint regions, one per chunk of entries.
+        let mut parts = Vec::with_capacity(entries.len().div_ceil(SPARSE_CHUNK));
+        let (mut w_rest, mut m_rest, mut v_rest, mut t_rest) = (
+            params,
+            &mut self.m[region.clone()],
+            &mut self.v[region.clone()],
+            &mut self.t[region],
+        );
+        let mut consumed = 0usize;
+        for chunk in entries.chunks(SPARSE_CHUNK) {
+            let start = chunk[0] as usize * entry_len;
+            let end = (*chunk.last().unwrap() as usize + 1) * entry_len;
+            let (_, w) = std::mem::take(&mut w_rest).split_at_mut(start - consumed);
+            let (w, wr) = w.split_at_mut(end - start);
+            let (_, m) = std::mem::take(&mut m_rest).split_at_mut(start - consumed);
+            let (m, mr) = m.split_at_mut(end - start);
+            let (_, v) = std::mem::take(&mut v_rest).split_at_mut(start - consumed);
+            let (v, vr) = v.split_at_mut(end - start);
+            let (_, t) = std::mem::take(&mut t_rest).split_at_mut(start - consumed);
+            let (t, tr) = t.split_at_mut(end - start);
+            (w_rest, m_rest, v_rest, t_rest) = (wr, mr, vr, tr);
+            consumed = end;
+            parts.push((chunk, start, w, m, v, t));
+        }
+        let run = |(chunk, start, w, m, v, t): SparseChunk| {
+            let mut c = consts;
+            for &e in chunk {
+                let base = e as usize * entry_len;
+                let local = base - start;
+                for f in 0..entry_len {
+                    let i = local + f;
+                    c.update(&mut w[i], grads[base + f], &mut m[i], &mut v[i], &mut t[i]);
+                }
+            }
+        };
+        if parts.len() <= 1 {
+            parts.into_iter().for_each(run);
+        } else {
+            parts.into_par_iter().for_each(run);
+        }
+    }
+
+    /// Write `adam.m.<name>`, `adam.v.<name>` (F32) and `adam.t.<name>` (U32) for every slot,
+    /// each with the parameter's shape.
+    pub fn save(&self, f: &mut TensorFile) -> Result<()> {
+        for s in &self.slots {
+            let r = s.range();
+            f.insert(
+                format!("adam.m.{}", s.name),
+                Tensor::f32(s.shape.clone(), &self.m[r.clone()])?,
+            );
+            f.insert(
+                format!("adam.v.{}", s.name),
+                Tensor::f32(s.shape.clone(), &self.v[r.clone()])?,
+            );
+            f.insert(
+                format!("adam.t.{}", s.name),
+                Tensor::u32(s.shape.clone(), &self.t[r])?,
+            );
+        }
+        Ok(())
+    }
+
+    /// Read the state of named parameters `(name, shape)` (laid out as [`AdamState::new`]) from a
+    /// file written by [`AdamState::save`]. Errors name the file, the tensor and the expected
+    /// dtype/shape.
+    pub fn load<S: AsRef<str>>(f: &TensorFile, params: &[(S, Vec<usize>)]) -> Result<AdamState> {
+        let mut st = AdamState::new(params);
+        for s in st.slots.clone() {
+            let r = s.range();
+            let m = f
+                .get_checked(&format!("adam.m.{}", s.name), DType::F32, &s.shape)?
+                .to_f32()?;
+            let v = f
+                .get_checked(&format!("adam.v.{}", s.name), DType::F32, &s.shape)?
+                .to_f32()?;
+            let t = f
+                .get_checked(&format!("adam.t.{}", s.name), DType::U32, &s.shape)?
+                .to_u32()?;
+            st.m[r.clone()].copy_from_slice(&m);
+            st.v[r.clone()].copy_from_slice(&v);
+            st.t[r].copy_from_slice(&t);
+        }
+        Ok(st)
+    }
+}
+
+/// Sort and deduplicate a touched-entry list into the form [`AdamState::step_sparse`] requires.
+pub fn normalize_entries(entries: &mut Vec<u32>) {
+    entries.sort_unstable();
+    entries.dedup();
+}
+
+/// Zero the gradients of the listed entries only (so clearing a sparse table's gradient costs
+/// O(entries), like the step).
+pub fn zero_entries(grads: &mut [f32], entries: &[u32], entry_len: usize) {
+    for &e in entries {
+        let b = e as usize * entry_len;
+        grads[b..b + entry_len].fill(0.0);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn pow_by_squaring() {
+        assert_eq!(pow_u64(0.5, 0), 1.0);
+        assert_eq!(pow_u64(0.5, 10), 1.0 / 1024.0);
+        assert!((pow_u64(0.999, 1000) - 0.999f64.powi(1000)).abs() < 1e-14);
+    }
+
+    #[test]
+    fn schedule_factors() {
+        let s = LrSchedule {
+            warmup_steps: 4,
+            ..Default::default()
+        };
+        let f: Vec<f64> = (0..6).map(|k| s.factor(k)).collect();
+        assert_eq!(f, vec![0.25, 0.5, 0.75, 1.0, 1.0, 1.0]);
+        let s = LrSchedule {
+            decay_start: 2,
+            decay_interval: 3,
+            decay_base: 0.5,
+            decay_end: 9,
+            ..Default::default()
+        };
+        let f: Vec<f64> = (0..14).map(|k| s.factor(k)).collect();
+        // Decays at k = 2, 5, 8 (not 11: past decay_end).
+        let want = [
+            1.0, 1.0, 0.5, 0.5, 0.5, 0.25, 0.25, 0.25, 0.125, 0.125, 0.125, 0.125, 0.125, 0.125,
+        ];
+        assert_eq!(f, want);
+    }
+
+    #[test]
+    fn config_toml_roundtrip_and_validation() {
+        let c = AdamConfig::default();
+        let text = toml::to_string(&c).unwrap();
+        let back: AdamConfig = toml::from_str(&text).unwrap();
+        assert_eq!(back, c);
+        let partial: AdamConfig = toml::from_str("[grid_h]\nlr = 0.5\n").unwrap();
+        assert_eq!(partial.grid_h.lr, 0.5);
+        assert!(
+            partial.grid_h.sparse,
+            "role sets sparse even when the group is given"
+        );
+        assert!(!partial.shader.sparse && partial.appearance.sparse);
+        assert!(toml::from_str::<AdamConfig>("[grid_h]\nsparse = false\n").is_err());
+        assert!(partial.validate().is_ok());
+        let mut bad = c.clone();
+        bad.grid_d.beta2 = 1.0;
+        assert!(format!("{:#}", bad.validate().unwrap_err()).contains("grid_d"));
+    }
+}

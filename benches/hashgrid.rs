@@ -28,7 +28,11 @@ fn surface_points(pixels: usize) -> Vec<[f64; 3]> {
         let r = 0.35 + 0.05 * (5.0 * z.acos()).sin() * (3.0 * phi).cos();
         let c = [0.5 + r * n[0], 0.5 + r * n[1], 0.5 + r * n[2]];
         // Tangent frame.
-        let a = if n[0].abs() < 0.9 { [1.0, 0.0, 0.0] } else { [0.0, 1.0, 0.0] };
+        let a = if n[0].abs() < 0.9 {
+            [1.0, 0.0, 0.0]
+        } else {
+            [0.0, 1.0, 0.0]
+        };
         let t1 = normalize(cross(n, a));
         let t2 = cross(n, t1);
         for (sa, sb) in [(0.25, 0.25), (0.75, 0.25), (0.25, 0.75), (0.75, 0.75)] {
@@ -44,7 +48,11 @@ fn surface_points(pixels: usize) -> Vec<[f64; 3]> {
 }
 
 fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
-    [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+    [
+        a[1] * b[2] - a[2] * b[1],
+        a[2] * b[0] - a[0] * b[2],
+        a[0] * b[1] - a[1] * b[0],
+    ]
 }
 fn normalize(a: [f64; 3]) -> [f64; 3] {
     let l = (a[0] * a[0] + a[1] * a[1] + a[2] * a[2]).sqrt();
@@ -74,7 +82,10 @@ fn best_of<F: FnMut()>(reps: usize, mut f: F) -> (f64, f64) {
             let w = t.elapsed().as_secs_f64();
             (w, cpu_seconds().unwrap_or(f64::NAN) - c)
         })
-        .fold((f64::INFINITY, f64::NAN), |a, b| if b.0 < a.0 { b } else { a })
+        .fold(
+            (f64::INFINITY, f64::NAN),
+            |a, b| if b.0 < a.0 { b } else { a },
+        )
 }
 
 fn main() {
@@ -83,7 +94,10 @@ fn main() {
         .and_then(|s| s.parse().ok())
         .unwrap_or(65_536);
     let mut cfg = ModelConfig::cpu().grid_h;
-    if let Some(t) = std::env::var("HASHGRID_BENCH_T").ok().and_then(|s| s.parse().ok()) {
+    if let Some(t) = std::env::var("HASHGRID_BENCH_T")
+        .ok()
+        .and_then(|s| s.parse().ok())
+    {
         cfg.log2_table_size = t; // e.g. 10: a cache-resident table, to see the compute cost
     }
     let g = HashGrid::new(&cfg);
@@ -108,7 +122,11 @@ fn main() {
         let mut o64 = vec![0.0f64; sub * lf];
         g.forward(&table, &pts[..sub], mode, &mut o32);
         g.forward(&t64, &pts[..sub], mode, &mut o64);
-        let err = o32.iter().zip(&o64).map(|(&a, &b)| (a as f64 - b).abs()).fold(0.0, f64::max);
+        let err = o32
+            .iter()
+            .zip(&o64)
+            .map(|(&a, &b)| (a as f64 - b).abs())
+            .fold(0.0, f64::max);
         assert!(err < 1e-5, "forward f32 vs f64: max abs error {err}");
         let d64: Vec<f64> = d_out[..sub * lf].iter().map(|&v| v as f64).collect();
         let mut p32 = vec![0.0f32; sub * 3];
@@ -123,7 +141,10 @@ fn main() {
             .zip(&p64)
             .map(|(&a, &b)| (a as f64 - b).abs() / pmax)
             .fold(0.0, f64::max);
-        assert!(perr < 1e-5, "backward_points f32 vs f64: max error / max |grad| = {perr}");
+        assert!(
+            perr < 1e-5,
+            "backward_points f32 vs f64: max error / max |grad| = {perr}"
+        );
         let mut dt32 = vec![0.0f32; g.n_params()];
         let mut dt64 = vec![0.0f64; g.n_params()];
         let (mut tc32, mut tc64) = (Touched::default(), Touched::default());
@@ -136,7 +157,10 @@ fn main() {
             .flat_map(|&e| [e as usize * 2, e as usize * 2 + 1])
             .map(|i| (dt32[i] as f64 - dt64[i]).abs())
             .fold(0.0, f64::max);
-        assert!(terr < 1e-4, "backward_table f32 vs f64: max abs error {terr}");
+        assert!(
+            terr < 1e-4,
+            "backward_table f32 vs f64: max abs error {terr}"
+        );
         println!(
             "validated on {sub} sub-samples: forward {err:.2e}, d_points {perr:.2e} (rel), d_table {terr:.2e}"
         );
@@ -158,7 +182,10 @@ fn main() {
     let mut touched = Touched::default();
     let mut results = Vec::new();
     for threads in [1usize, 2] {
-        let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap();
         pool.install(|| {
             let reps = 3;
             let fwd = best_of(reps, || g.forward(&table, &pts, mode, &mut out));
@@ -195,7 +222,11 @@ fn main() {
         });
     }
     if let [(_, f1, a1), (_, f2, a2)] = results[..] {
-        println!("speed-up 1→2 threads: forward {:.2}x, fwd+bwd {:.2}x", f1 / f2, a1 / a2);
+        println!(
+            "speed-up 1→2 threads: forward {:.2}x, fwd+bwd {:.2}x",
+            f1 / f2,
+            a1 / a2
+        );
     }
     let uptime = std::fs::read_to_string("/proc/loadavg").unwrap_or_default();
     println!("load average at end: {}", uptime.trim());

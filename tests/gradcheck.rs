@@ -521,6 +521,16 @@ fn pipeline_gradients_match_fd() {
     let mut rep = Report::default();
     for (ci, case) in cases().iter().enumerate() {
         let model = Hfm::new(&case.cfg).unwrap();
+        // Grid H of the tiny preset has dense levels and a hashed one (scale 31: 32³ > 2^12).
+        assert!(model.grid_h.dense.contains(&true) && model.grid_h.dense.contains(&false));
+        if ci == 0 {
+            let gd = model.grid_d.as_ref().unwrap();
+            assert!(
+                gd.dense.contains(&true) && gd.dense.contains(&false),
+                "{:?}",
+                gd.dense
+            );
+        }
         let params = random_params(&model, 70 + ci as u64);
         let batch = make_batch(&model, case, 80 + ci as u64);
         batch.validate().unwrap();

@@ -723,9 +723,21 @@ fn interp_block<R: Real>(smooth: bool, t: &mut [[R; BLOCK]; 3], dw: Option<&mut 
 fn corner_weights_block<R: Real>(w: &[[R; BLOCK]; 3], w8: &mut [[R; BLOCK]; 8]) {
     for (k, row) in w8.iter_mut().enumerate() {
         for j in 0..BLOCK {
-            let a = if k & 1 == 1 { w[0][j] } else { R::ONE - w[0][j] };
-            let b = if (k >> 1) & 1 == 1 { w[1][j] } else { R::ONE - w[1][j] };
-            let c = if k >> 2 == 1 { w[2][j] } else { R::ONE - w[2][j] };
+            let a = if k & 1 == 1 {
+                w[0][j]
+            } else {
+                R::ONE - w[0][j]
+            };
+            let b = if (k >> 1) & 1 == 1 {
+                w[1][j]
+            } else {
+                R::ONE - w[1][j]
+            };
+            let c = if k >> 2 == 1 {
+                w[2][j]
+            } else {
+                R::ONE - w[2][j]
+            };
             row[j] = a * b * c;
         }
     }
@@ -750,14 +762,46 @@ mod kernels {
     macro_rules! dispatch {
         ($nf:expr, $g:expr, |$F:ident, $ix:ident| $body:expr) => {
             match ($nf, $g.dense) {
-                (1, true) => { const $F: usize = 1; let $ix = $g.dense_ix(); $body }
-                (1, false) => { const $F: usize = 1; let $ix = $g.hash_ix(); $body }
-                (2, true) => { const $F: usize = 2; let $ix = $g.dense_ix(); $body }
-                (2, false) => { const $F: usize = 2; let $ix = $g.hash_ix(); $body }
-                (4, true) => { const $F: usize = 4; let $ix = $g.dense_ix(); $body }
-                (4, false) => { const $F: usize = 4; let $ix = $g.hash_ix(); $body }
-                (8, true) => { const $F: usize = 8; let $ix = $g.dense_ix(); $body }
-                (8, false) => { const $F: usize = 8; let $ix = $g.hash_ix(); $body }
+                (1, true) => {
+                    const $F: usize = 1;
+                    let $ix = $g.dense_ix();
+                    $body
+                }
+                (1, false) => {
+                    const $F: usize = 1;
+                    let $ix = $g.hash_ix();
+                    $body
+                }
+                (2, true) => {
+                    const $F: usize = 2;
+                    let $ix = $g.dense_ix();
+                    $body
+                }
+                (2, false) => {
+                    const $F: usize = 2;
+                    let $ix = $g.hash_ix();
+                    $body
+                }
+                (4, true) => {
+                    const $F: usize = 4;
+                    let $ix = $g.dense_ix();
+                    $body
+                }
+                (4, false) => {
+                    const $F: usize = 4;
+                    let $ix = $g.hash_ix();
+                    $body
+                }
+                (8, true) => {
+                    const $F: usize = 8;
+                    let $ix = $g.dense_ix();
+                    $body
+                }
+                (8, false) => {
+                    const $F: usize = 8;
+                    let $ix = $g.hash_ix();
+                    $body
+                }
                 _ => unreachable!("features validated to 1, 2, 4, 8"),
             }
         };
@@ -923,9 +967,9 @@ mod kernels {
     fn backward_points_level_impl<R: Real, const F: usize, I: BlockIndexer>(
         g: &Level,
         ix: I,
-        tab: &[R],          // [size, F], this level only
-        pts: &[[f64; 3]],   // [n]
-        d_out: &[R],        // [n, L*F]
+        tab: &[R],        // [size, F], this level only
+        pts: &[[f64; 3]], // [n]
+        d_out: &[R],      // [n, L*F]
         lf: usize,
         l: usize,
         acc: &mut [[R; 3]], // [>= n]

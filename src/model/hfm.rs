@@ -52,7 +52,8 @@ pub struct Hfm {
     pub grid_h: HashGrid,
     /// Grid D, when the deformation is enabled.
     pub grid_d: Option<HashGrid>,
-    /// ξ: `[L_D·F_D + 16] → hidden → [L·F]`.
+    /// ξ: `[L_D·F_D + 16] → hidden → [L·F]`, biases iff `cfg.shader.bias` (one switch for both
+    /// networks), last layer zero at initialisation.
     pub deform: Option<Mlp>,
     /// Shader: `[L·F + 16 + A] → width × hidden_layers → 3`.
     pub shader: Mlp,

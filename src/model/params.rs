@@ -92,6 +92,15 @@ impl ParamLayout {
         offset..offset + len
     }
 
+    /// `(name, shape)` of every tensor in layout order (what `train::adam::AdamState::new`
+    /// takes).
+    pub fn name_shapes(&self) -> Vec<(String, Vec<usize>)> {
+        self.tensors
+            .iter()
+            .map(|t| (t.name.clone(), t.shape.clone()))
+            .collect()
+    }
+
     pub fn get(&self, name: &str) -> Option<&TensorSpec> {
         self.tensors.iter().find(|t| t.name == name)
     }

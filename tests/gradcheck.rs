@@ -67,6 +67,7 @@ impl Report {
             self.worst = ratio;
             self.worst_label = format!("{label}: fd {fd:.12e} analytic {an:.12e}");
         }
+        #[allow(clippy::neg_cmp_op_on_partial_ord)] // written so that NaN fails
         if !(err <= ATOL + RTOL * an.abs()) {
             self.fails.push(format!(
                 "{label}: fd {fd:.12e} analytic {an:.12e} |diff| {err:.3e}"

@@ -117,7 +117,7 @@ impl ParamLayout {
         let mut it = self.tensors.iter().filter(|t| t.group == group);
         let first = it.next()?;
         let end = it
-            .last()
+            .next_back()
             .map_or(first.offset + first.len, |t| t.offset + t.len);
         Some(first.offset..end)
     }

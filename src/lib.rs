@@ -15,6 +15,7 @@
 //! | command-line front end | [`cli`] |
 
 pub mod cli;
+pub mod eval;
 pub mod io;
 pub mod model;
 pub mod raycast;

@@ -1,6 +1,21 @@
 //! Ray casting against the fixed mesh (SPEC §1, §2, §8): a BVH built once per scene in the
 //! local frame of SPEC §4.1, a watertight ray–triangle test, γ×γ rays per pixel, and the
 //! compacted per-view sample cache.
+//!
+//! Files: `triangle.rs` (watertight ray–triangle test), `bvh.rs` ([`Tracer`]: obvhs-built BVH,
+//! packet traversal, f64 refinement), `cast.rs` (γ² rays per pixel, view direction, footprint),
+//! `cache.rs` ([`SampleCache`]), `simd.rs` (4-lane f32 helper).
+
+pub mod bvh;
+pub mod cache;
+pub mod cast;
+pub mod meshes;
+mod simd;
+pub mod triangle;
+
+pub use bvh::{BuildPreset, Packet, Scratch, Tracer};
+pub use cache::{CacheEvent, CachedView, SampleCache};
+pub use cast::{cast_view, sub_offset, PixelSummary, SubSample, ViewCast};
 
 use crate::scene::Mesh;
 use glam::DVec3;
@@ -17,8 +32,8 @@ pub struct Hit {
     pub v: f64,
 }
 
-/// Reference closest-hit by testing every triangle (f64, Möller–Trumbore). For tests and as the
-/// placeholder until the BVH tracer lands; O(triangles) per ray.
+/// Reference closest-hit by testing every triangle (f64, Möller–Trumbore). For tests; O(triangles)
+/// per ray. `Hit::t` is in units of `|dir|`.
 pub fn brute_force_closest_hit(mesh: &Mesh, origin: DVec3, dir: DVec3) -> Option<Hit> {
     let mut best: Option<Hit> = None;
     for (i, tri) in mesh.triangles.iter().enumerate() {

@@ -1,0 +1,3 @@
+//! Evaluation: image metrics (SPEC §7) and the held-out protocol.
+
+pub mod metrics;

@@ -1,0 +1,613 @@
+//! The scene's ray tracer: a BVH built once per scene by obvhs 0.4 in the local frame of SPEC
+//! §4.1, traversed by our own 4-wide packet traversal with the watertight test of `triangle.rs`,
+//! and a final f64 refinement of the hit on the chosen triangle.
+//!
+//! ## Build
+//! Vertices are moved to the local frame in f64 (`v - normalization.center`) and only then cast
+//! to f32, so a scene at (5e5, 4e6, 300) keeps the precision of one at the origin. obvhs builds a
+//! BVH2 ([`BuildPreset`] picks its `BvhBuildParams` preset); we collapse it into a 4-wide BVH
+//! (each node holds the boxes of up to 4 children, structure-of-arrays, 128 bytes) and store the
+//! triangles' f32 vertices in leaf order. obvhs is used for construction only: its traversal
+//! floors `tmin` at 1e-4 (CWBVH) and its triangle test is not watertight (NOTES.md), and a
+//! packet traversal of the γ² coherent rays of a pixel is 2–3× faster than its single-ray one.
+//!
+//! ## Conservative boxes (why the closest hit is exact)
+//! All node boxes are recomputed here from the f32 vertices (exact min/max) and padded by
+//! `PAD_REL · S` (S = largest |local coordinate|), which covers the lateral error of the
+//! watertight test (≈ 8·2⁻²⁴·D at distance D) for cameras up to ~30·S from the centre. The slab
+//! test is pbrt's robust one (far distance scaled by `1 + 2⁻¹⁹` ≥ 1 + 2γ₃), and a box is culled
+//! only when its entry distance exceeds the current closest distance times the same factor.
+//! Hence every triangle the f32 test accepts with a distance not above the final closest one
+//! is visited, and the result is the lexicographic minimum of `(t_f32, triangle id)` over all
+//! accepted triangles: it does not depend on the BVH preset, the traversal order or the packet
+//! a ray is traced in (tested against an f32 brute force, bit for bit).
+//!
+//! ## Refinement
+//! The f32 traversal only picks the triangle. `t`, barycentrics and the hit point are then
+//! recomputed in f64 (Möller–Trumbore) on that triangle's f64 local-frame vertices from the
+//! f64 origin and direction: the normalised hit position is accurate to ~1e-15 relative to the
+//! extent (the triangle choice itself can differ from the exact one only within ~1e-7·D of an
+//! edge, where both neighbours give nearly the same point).
+
+use super::simd::F4;
+use super::triangle::{dominant_axis, intersect4, RayLanes4, WatertightRay};
+use super::Hit;
+use crate::scene::{Mesh, Normalization};
+use anyhow::{bail, Result};
+use glam::{DVec3, Vec3A};
+use obvhs::{bvh2::Bvh2, triangle::Triangle, BvhBuildParams};
+use std::time::Duration;
+
+/// Which obvhs `BvhBuildParams` preset builds the BVH2 that is collapsed to our BVH4. The hits
+/// do not depend on it (see the module docs); only build time and tracing speed do.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum BuildPreset {
+    /// `BvhBuildParams::fast_build()` with at most 4 triangles per leaf.
+    Fast,
+    /// `BvhBuildParams::medium_build()` with at most 4 triangles per leaf (the default).
+    Medium,
+}
+
+impl BuildPreset {
+    /// Every preset the crate uses (the tests check each one).
+    pub const ALL: [BuildPreset; 2] = [BuildPreset::Fast, BuildPreset::Medium];
+
+    /// The obvhs parameters.
+    pub fn params(self) -> BvhBuildParams {
+        let base = match self {
+            BuildPreset::Fast => BvhBuildParams::fast_build(),
+            BuildPreset::Medium => BvhBuildParams::medium_build(),
+        };
+        BvhBuildParams {
+            max_prims_per_leaf: 4,
+            ..base
+        }
+    }
+
+    pub fn name(self) -> &'static str {
+        match self {
+            BuildPreset::Fast => "fast",
+            BuildPreset::Medium => "medium",
+        }
+    }
+}
+
+impl Default for BuildPreset {
+    fn default() -> Self {
+        BuildPreset::Medium
+    }
+}
+
+/// Box padding relative to the largest |local coordinate| (see the module docs).
+pub const PAD_REL: f64 = 1.0 / 65536.0;
+/// Slack factor on far distances in the slab test: 1 + 2⁻¹⁹ (≥ pbrt's 1 + 2γ₃ ≈ 1 + 3.6e-7).
+const SLAB_SCALE: f32 = 1.0 + 1.0 / 524288.0;
+
+/// Leaf references: bit 31 set, bits 27..31 = count-1 (1..=16 triangles), bits 0..27 = first.
+const LEAF_BIT: u32 = 1 << 31;
+const LEAF_MAX: usize = 16;
+const MAX_TRIANGLES: usize = 1 << 27;
+
+#[inline(always)]
+fn leaf_ref(first: usize, count: usize) -> u32 {
+    debug_assert!((1..=LEAF_MAX).contains(&count) && first < MAX_TRIANGLES);
+    LEAF_BIT | (((count - 1) as u32) << 27) | first as u32
+}
+
+/// A 4-wide node: `b[0]` = child minima, `b[1]` = child maxima, `[axis][child]`. Empty child
+/// slots have min = +inf, max = -inf (never hit).
+#[derive(Clone, Copy, Debug)]
+#[repr(C, align(64))]
+struct Node4 {
+    b: [[[f32; 4]; 3]; 2],
+    child: [u32; 4],
+    _pad: [u32; 4],
+}
+
+impl Node4 {
+    fn empty() -> Node4 {
+        Node4 {
+            b: [[[f32::INFINITY; 4]; 3], [[f32::NEG_INFINITY; 4]; 3]],
+            child: [0; 4],
+            _pad: [0; 4],
+        }
+    }
+}
+
+/// Reusable traversal scratch (the stack). One per thread.
+#[derive(Default)]
+pub struct Scratch {
+    stack: Vec<(u32, f32)>,
+}
+
+/// Up to four rays in the local frame (f32) traced together. Inactive lanes are ignored.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct Packet {
+    pub origin: [[f32; 3]; 4],
+    pub dir: [[f32; 3]; 4],
+    /// Bit i set: lane i is a ray.
+    pub active: u32,
+}
+
+/// The BVH and the f64 local-frame mesh of one scene.
+pub struct Tracer {
+    nodes: Vec<Node4>,
+    root: Option<u32>,
+    /// Triangle vertices in the local frame (f32), in leaf order.
+    tris: Vec<[[f32; 3]; 3]>,
+    /// Leaf order → index into `Mesh::triangles`.
+    tri_ids: Vec<u32>,
+    /// f64 local-frame vertices and the mesh triangles (for the refinement).
+    verts: Vec<DVec3>,
+    triangles: Vec<[u32; 3]>,
+    normalization: Normalization,
+    preset: BuildPreset,
+    stack_capacity: usize,
+    build_time: Duration,
+}
+
+struct Builder<'a> {
+    bvh2: &'a Bvh2,
+    tris32: &'a [[[f32; 3]; 3]],
+    pad: f64,
+    nodes: Vec<Node4>,
+    tris: Vec<[[f32; 3]; 3]>,
+    tri_ids: Vec<u32>,
+    max_depth: usize,
+}
+
+type Bounds = ([f32; 3], [f32; 3]);
+
+fn union(a: Bounds, b: Bounds) -> Bounds {
+    (
+        std::array::from_fn(|i| a.0[i].min(b.0[i])),
+        std::array::from_fn(|i| a.1[i].max(b.1[i])),
+    )
+}
+
+const EMPTY_BOUNDS: Bounds = ([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]);
+
+impl Builder<'_> {
+    fn padded(&self, (lo, hi): Bounds) -> Bounds {
+        (
+            lo.map(|x| (x as f64 - self.pad) as f32),
+            hi.map(|x| (x as f64 + self.pad) as f32),
+        )
+    }
+
+    /// A leaf (or a small subtree of leaves when there are more than 16 primitives).
+    fn leaf(&mut self, prims: &[u32], depth: usize) -> (u32, Bounds) {
+        self.max_depth = self.max_depth.max(depth);
+        if prims.len() <= LEAF_MAX {
+            let first = self.tris.len();
+            let mut b = EMPTY_BOUNDS;
+            for &p in prims {
+                let t = self.tris32[p as usize];
+                for v in t {
+                    b = union(b, (v, v));
+                }
+                self.tris.push(t);
+                self.tri_ids.push(p);
+            }
+            return (leaf_ref(first, prims.len()), b);
+        }
+        let slot = self.nodes.len();
+        self.nodes.push(Node4::empty());
+        let chunk = prims.len().div_ceil(4);
+        let mut total = EMPTY_BOUNDS;
+        for (i, part) in prims.chunks(chunk).enumerate() {
+            let (r, b) = self.leaf(part, depth + 1);
+            self.set_child(slot, i, r, b);
+            total = union(total, b);
+        }
+        (slot as u32, total)
+    }
+
+    fn set_child(&mut self, slot: usize, i: usize, r: u32, b: Bounds) {
+        let (lo, hi) = self.padded(b);
+        let n = &mut self.nodes[slot];
+        for a in 0..3 {
+            n.b[0][a][i] = lo[a];
+            n.b[1][a][i] = hi[a];
+        }
+        n.child[i] = r;
+    }
+
+    fn node(&mut self, idx: usize, depth: usize) -> (u32, Bounds) {
+        let n = self.bvh2.nodes[idx];
+        if n.is_leaf() {
+            let (f, c) = (n.first_index as usize, n.prim_count as usize);
+            let prims = &self.bvh2.primitive_indices[f..f + c];
+            return self.leaf(prims, depth);
+        }
+        self.max_depth = self.max_depth.max(depth);
+        // Collapse: open the largest inner child until there are 4 children.
+        let mut kids: Vec<usize> = vec![n.first_index as usize, n.first_index as usize + 1];
+        while kids.len() < 4 {
+            let best = kids
+                .iter()
+                .enumerate()
+                .filter(|(_, &k)| !self.bvh2.nodes[k].is_leaf())
+                .max_by(|a, b| {
+                    let ha = self.bvh2.nodes[*a.1].aabb().half_area();
+                    let hb = self.bvh2.nodes[*b.1].aabb().half_area();
+                    ha.total_cmp(&hb)
+                })
+                .map(|(i, _)| i);
+            let Some(i) = best else { break };
+            let k = kids.remove(i);
+            let f = self.bvh2.nodes[k].first_index as usize;
+            kids.insert(i, f + 1);
+            kids.insert(i, f);
+        }
+        let slot = self.nodes.len();
+        self.nodes.push(Node4::empty());
+        let mut total = EMPTY_BOUNDS;
+        for (i, &k) in kids.iter().enumerate() {
+            let (r, b) = self.node(k, depth + 1);
+            self.set_child(slot, i, r, b);
+            total = union(total, b);
+        }
+        (slot as u32, total)
+    }
+}
+
+impl Tracer {
+    /// Build with the default preset.
+    pub fn new(mesh: &Mesh, normalization: &Normalization) -> Result<Tracer> {
+        Tracer::with_preset(mesh, normalization, BuildPreset::default())
+    }
+
+    /// Build with a given obvhs preset. Errors on out-of-range vertex indices, non-finite
+    /// vertices or more than 2^27 triangles.
+    pub fn with_preset(
+        mesh: &Mesh,
+        normalization: &Normalization,
+        preset: BuildPreset,
+    ) -> Result<Tracer> {
+        let start = std::time::Instant::now();
+        if mesh.triangles.len() >= MAX_TRIANGLES {
+            bail!(
+                "mesh has {} triangles; the tracer supports fewer than 2^27",
+                mesh.triangles.len()
+            );
+        }
+        let nv = mesh.vertices.len();
+        for (i, t) in mesh.triangles.iter().enumerate() {
+            if let Some(&k) = t.iter().find(|&&k| k as usize >= nv) {
+                bail!("mesh triangle {i}: vertex index {k} out of range ({nv} vertices)");
+            }
+        }
+        let verts: Vec<DVec3> = mesh
+            .vertices
+            .iter()
+            .map(|v| *v - normalization.center)
+            .collect();
+        if let Some(i) = verts.iter().position(|v| !v.is_finite()) {
+            bail!("mesh vertex {i}: coordinate is not finite");
+        }
+        let s = verts
+            .iter()
+            .fold(0.0f64, |m, v| m.max(v.abs().max_element()));
+        let pad = PAD_REL * s.max(f64::MIN_POSITIVE);
+        let v32: Vec<[f32; 3]> = verts
+            .iter()
+            .map(|v| [v.x as f32, v.y as f32, v.z as f32])
+            .collect();
+        let tris32: Vec<[[f32; 3]; 3]> = mesh
+            .triangles
+            .iter()
+            .map(|t| t.map(|k| v32[k as usize]))
+            .collect();
+
+        let mut tracer = Tracer {
+            nodes: Vec::new(),
+            root: None,
+            tris: Vec::new(),
+            tri_ids: Vec::new(),
+            verts,
+            triangles: mesh.triangles.clone(),
+            normalization: *normalization,
+            preset,
+            stack_capacity: 4,
+            build_time: Duration::ZERO,
+        };
+        if !tris32.is_empty() {
+            let otris: Vec<Triangle> = tris32
+                .iter()
+                .map(|t| Triangle {
+                    v0: Vec3A::from_array(t[0]),
+                    v1: Vec3A::from_array(t[1]),
+                    v2: Vec3A::from_array(t[2]),
+                })
+                .collect();
+            let bvh2 = obvhs::bvh2::builder::build_bvh2_from_tris(
+                &otris,
+                preset.params(),
+                &mut Duration::default(),
+            );
+            drop(otris);
+            let mut b = Builder {
+                bvh2: &bvh2,
+                tris32: &tris32,
+                pad,
+                nodes: Vec::with_capacity(tris32.len() / 4 + 1),
+                tris: Vec::with_capacity(tris32.len()),
+                tri_ids: Vec::with_capacity(tris32.len()),
+                max_depth: 0,
+            };
+            let (root, _) = b.node(0, 0);
+            tracer.root = Some(root);
+            tracer.stack_capacity = 3 * (b.max_depth + 2) + 4;
+            tracer.nodes = b.nodes;
+            tracer.tris = b.tris;
+            tracer.tri_ids = b.tri_ids;
+        }
+        tracer.build_time = start.elapsed();
+        Ok(tracer)
+    }
+
+    pub fn normalization(&self) -> &Normalization {
+        &self.normalization
+    }
+    pub fn preset(&self) -> BuildPreset {
+        self.preset
+    }
+    pub fn triangle_count(&self) -> usize {
+        self.triangles.len()
+    }
+    pub fn node_count(&self) -> usize {
+        self.nodes.len()
+    }
+    /// Wall time of [`Tracer::with_preset`].
+    pub fn build_time(&self) -> Duration {
+        self.build_time
+    }
+    /// A scratch sized for this BVH.
+    pub fn scratch(&self) -> Scratch {
+        Scratch {
+            stack: Vec::with_capacity(self.stack_capacity),
+        }
+    }
+
+    /// The f64 local-frame vertices of a mesh triangle.
+    #[inline]
+    pub fn triangle_local(&self, tri: u32) -> [DVec3; 3] {
+        self.triangles[tri as usize].map(|k| self.verts[k as usize])
+    }
+
+    /// Unit geometric normal of a mesh triangle (f64; zero for a degenerate triangle).
+    #[inline]
+    pub fn triangle_normal(&self, tri: u32) -> DVec3 {
+        let [a, b, c] = self.triangle_local(tri);
+        (b - a).cross(c - a).normalize_or_zero()
+    }
+
+    /// Closest hit of a world-space ray (`dir` need not be unit; `Hit::t` is the distance along
+    /// the normalised direction). `None` for a miss or a zero/non-finite direction.
+    pub fn closest_hit(&self, origin_world: DVec3, dir: DVec3) -> Option<Hit> {
+        let d = dir.normalize_or_zero();
+        if d == DVec3::ZERO || !origin_world.is_finite() {
+            return None;
+        }
+        let o = origin_world - self.normalization.center;
+        let p = Packet {
+            origin: [o.as_vec3().to_array(); 4],
+            dir: [d.as_vec3().to_array(); 4],
+            active: 1,
+        };
+        let mut s = self.scratch();
+        let (tri, t) = self.trace4(&p, &mut s)[0]?;
+        Some(self.refine(o, d, tri, t))
+    }
+
+    /// Refine a hit of triangle `tri` in f64 (module docs). `o` is the local-frame origin, `d`
+    /// the unit direction, `t32` the f32 distance of the traversal (used only if the ray lies in
+    /// the triangle's plane, where the f64 intersection is undefined).
+    pub fn refine(&self, o: DVec3, d: DVec3, tri: u32, t32: f32) -> Hit {
+        let [a, b, c] = self.triangle_local(tri);
+        let (e1, e2) = (b - a, c - a);
+        let p = d.cross(e2);
+        let det = e1.dot(p);
+        let s = o - a;
+        let q = s.cross(e1);
+        let inv = 1.0 / det;
+        let (t, u, v) = (e2.dot(q) * inv, s.dot(p) * inv, d.dot(q) * inv);
+        if det != 0.0 && t.is_finite() && t > 0.0 && u.is_finite() && v.is_finite() {
+            return Hit {
+                t,
+                triangle: tri,
+                u,
+                v,
+            };
+        }
+        // Ray in the triangle's plane: keep the f32 distance, project for barycentrics.
+        let t = t32 as f64;
+        let w = o + t * d - a;
+        let (d00, d01, d11) = (e1.dot(e1), e1.dot(e2), e2.dot(e2));
+        let (d20, d21) = (w.dot(e1), w.dot(e2));
+        let den = d00 * d11 - d01 * d01;
+        let (u, v) = if den != 0.0 {
+            ((d11 * d20 - d01 * d21) / den, (d00 * d21 - d01 * d20) / den)
+        } else {
+            (0.0, 0.0)
+        };
+        Hit {
+            t,
+            triangle: tri,
+            u,
+            v,
+        }
+    }
+
+    /// Trace up to four local-frame f32 rays. Lane i: `(mesh triangle id, f32 distance)` of the
+    /// closest hit (the lexicographic minimum of `(t, id)`, see the module docs) or `None`.
+    /// Lanes are grouped by dominant axis and direction signs; each group is one SIMD traversal.
+    pub fn trace4(&self, p: &Packet, scratch: &mut Scratch) -> [Option<(u32, f32)>; 4] {
+        let mut best_t = [f32::INFINITY; 4];
+        let mut best_id = [u32::MAX; 4];
+        let Some(root) = self.root else {
+            return [None; 4];
+        };
+        let mut rays = [None; 4];
+        let mut keys = [0u32; 4];
+        for i in 0..4 {
+            if p.active >> i & 1 != 0 {
+                rays[i] = WatertightRay::new(p.origin[i], p.dir[i]);
+                let d = p.dir[i];
+                keys[i] = dominant_axis(d) as u32
+                    | (d[0].is_sign_negative() as u32) << 2
+                    | (d[1].is_sign_negative() as u32) << 3
+                    | (d[2].is_sign_negative() as u32) << 4;
+            }
+        }
+        let mut todo: u32 = (0..4).filter(|&i| rays[i].is_some()).map(|i| 1 << i).sum();
+        while todo != 0 {
+            let lead = todo.trailing_zeros() as usize;
+            let group: u32 = (0..4)
+                .filter(|&i| todo >> i & 1 != 0 && keys[i] == keys[lead])
+                .map(|i| 1 << i)
+                .sum();
+            todo &= !group;
+            let lead_ray = rays[lead].unwrap();
+            let wr = std::array::from_fn(|i| {
+                rays[i].filter(|_| group >> i & 1 != 0).unwrap_or(lead_ray)
+            });
+            let dirs: [[f32; 3]; 4] = std::array::from_fn(|i| {
+                if group >> i & 1 != 0 {
+                    p.dir[i]
+                } else {
+                    p.dir[lead]
+                }
+            });
+            self.trace_group(
+                root,
+                &RayLanes4::new(wr),
+                &dirs,
+                group,
+                &mut best_t,
+                &mut best_id,
+                &mut scratch.stack,
+            );
+        }
+        std::array::from_fn(|i| (best_id[i] != u32::MAX).then(|| (best_id[i], best_t[i])))
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    #[inline(never)]
+    fn trace_group(
+        &self,
+        root: u32,
+        lanes: &RayLanes4,
+        dirs: &[[f32; 3]; 4],
+        active: u32,
+        best_t: &mut [f32; 4],
+        best_id: &mut [u32; 4],
+        stack: &mut Vec<(u32, f32)>,
+    ) {
+        // Box-test data, unpermuted axes. inv = 1/d, with ±f32::MAX for a zero component (the
+        // slab test then never sees 0·inf).
+        let o: [F4; 3] = std::array::from_fn(|a| F4::from_array(lanes.scalar.map(|r| r.origin[a])));
+        let inv: [F4; 3] = std::array::from_fn(|a| {
+            F4::from_array(dirs.map(|d| {
+                let x = 1.0 / d[a];
+                if x.is_finite() {
+                    x
+                } else {
+                    f32::MAX.copysign(d[a])
+                }
+            }))
+        });
+        // The group shares direction signs: near plane = min for +, max for -.
+        let near: [usize; 3] = std::array::from_fn(|a| dirs[0][a].is_sign_negative() as usize);
+        let far: [usize; 3] = near.map(|n| 1 - n);
+        let tmax_of = |bt: &[f32; 4]| {
+            F4::from_array(std::array::from_fn(|i| {
+                if active >> i & 1 != 0 {
+                    bt[i]
+                } else {
+                    f32::NEG_INFINITY
+                }
+            }))
+        };
+        let mut tmax = tmax_of(best_t);
+        let zero = F4::splat(0.0);
+        let scale = F4::splat(SLAB_SCALE);
+        let inf = F4::splat(f32::INFINITY);
+
+        stack.clear();
+        stack.push((root, 0.0));
+        while let Some((mut r, tn_entry)) = stack.pop() {
+            if tn_entry > tmax.hmax() * SLAB_SCALE {
+                continue;
+            }
+            loop {
+                if r & LEAF_BIT != 0 {
+                    let first = (r & (MAX_TRIANGLES as u32 - 1)) as usize;
+                    let count = ((r >> 27) & 15) as usize + 1;
+                    let mut changed = false;
+                    for j in first..first + count {
+                        let (hits, t) = intersect4(lanes, &self.tris[j], active);
+                        if hits != 0 {
+                            let ta = t.to_array();
+                            let id = self.tri_ids[j];
+                            for i in 0..4 {
+                                if hits >> i & 1 != 0
+                                    && (ta[i] < best_t[i]
+                                        || (ta[i] == best_t[i] && id < best_id[i]))
+                                {
+                                    best_t[i] = ta[i];
+                                    best_id[i] = id;
+                                    changed = true;
+                                }
+                            }
+                        }
+                    }
+                    if changed {
+                        tmax = tmax_of(best_t);
+                    }
+                    break;
+                }
+                let n = &self.nodes[r as usize];
+                let mut hit_d = [0.0f32; 4];
+                let mut hit_r = [0u32; 4];
+                let mut nh = 0;
+                for c in 0..4 {
+                    let tnx = (F4::splat(n.b[near[0]][0][c]) - o[0]) * inv[0];
+                    let tfx = (F4::splat(n.b[far[0]][0][c]) - o[0]) * inv[0];
+                    let tny = (F4::splat(n.b[near[1]][1][c]) - o[1]) * inv[1];
+                    let tfy = (F4::splat(n.b[far[1]][1][c]) - o[1]) * inv[1];
+                    let tnz = (F4::splat(n.b[near[2]][2][c]) - o[2]) * inv[2];
+                    let tfz = (F4::splat(n.b[far[2]][2][c]) - o[2]) * inv[2];
+                    let tn = tnx.max(tny).max(tnz.max(zero));
+                    let tf = tfx.min(tfy).min(tfz.min(tmax)) * scale;
+                    let m = tn.le(tf);
+                    if m.bits() != 0 {
+                        hit_d[nh] = F4::select(m, tn, inf).hmin();
+                        hit_r[nh] = n.child[c];
+                        nh += 1;
+                    }
+                }
+                match nh {
+                    0 => break,
+                    1 => r = hit_r[0],
+                    _ => {
+                        // Sort by entry distance (insertion sort, ≤ 4), descend into the nearest.
+                        let mut idx = [0usize, 1, 2, 3];
+                        for a in 1..nh {
+                            let mut b = a;
+                            while b > 0 && hit_d[idx[b - 1]] > hit_d[idx[b]] {
+                                idx.swap(b - 1, b);
+                                b -= 1;
+                            }
+                        }
+                        for k in (1..nh).rev() {
+                            stack.push((hit_r[idx[k]], hit_d[idx[k]]));
+                        }
+                        r = hit_r[idx[0]];
+                    }
+                }
+            }
+        }
+    }
+}

@@ -1,0 +1,257 @@
+//! Watertight ray–triangle intersection (Woop, Benthin, Wald 2013, "Watertight Ray/Triangle
+//! Intersection", JCGT 2(1); the formulation of pbrt-v4 §6.5.3), on f32 vertices in the local
+//! frame of SPEC §4.1. Two-sided.
+//!
+//! Algorithm: translate the vertices by the ray origin, permute the axes so that the ray's largest
+//! direction component becomes z (`kz`; `kx = kz+1 mod 3`, `ky = kx+1 mod 3`), shear x and y so the
+//! ray becomes the +z axis, and evaluate the three 2-D edge functions
+//! `e0 = p1×p2`, `e1 = p2×p0`, `e2 = p0×p1` (z component of the cross products). The ray hits when
+//! no two edge functions have opposite signs. An edge shared by two triangles evaluates to exactly
+//! the negated value in both (IEEE products commute and `a-b = -(b-a)` exactly), so a ray can
+//! never pass between two triangles that share the edge: this is what "watertight" means. When an
+//! edge function is exactly 0 in f32 the three are recomputed in f64 from the same f32 sheared
+//! coordinates (products of two f32 are exact in f64, so the sign is exact).
+//!
+//! Numerics: the accepted region deviates from the exact triangle by the rounding of the
+//! translated/sheared coordinates, ≈ a few f32 ulps of the distance `|p - o|` (≈ 8·2⁻²⁴·D
+//! laterally). The BVH pads its boxes to cover this (see `bvh.rs`). The returned `t` is the f32
+//! distance `t_scaled / det` along the (unit) direction; the tracer refines it in f64.
+//!
+//! Both the scalar [`intersect`] and the 4-lane [`intersect4`] compute identical f32 values per
+//! lane (same operations, no FMA), so packet and single-ray traversal agree bit for bit.
+
+use super::simd::F4;
+
+/// Index of the largest |component| (first one on ties), pbrt's `MaxComponentIndex(Abs(d))`.
+#[inline]
+pub fn dominant_axis(d: [f32; 3]) -> usize {
+    let a = d.map(f32::abs);
+    if a[0] >= a[1] && a[0] >= a[2] {
+        0
+    } else if a[1] >= a[2] {
+        1
+    } else {
+        2
+    }
+}
+
+/// The axis permutation `[kx, ky, kz]` for a dominant axis `kz`.
+#[inline]
+pub fn permutation(kz: usize) -> [usize; 3] {
+    let kx = (kz + 1) % 3;
+    let ky = (kx + 1) % 3;
+    [kx, ky, kz]
+}
+
+/// A ray prepared for the watertight test.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct WatertightRay {
+    /// Origin in the local frame (f32).
+    pub origin: [f32; 3],
+    /// `[kx, ky, kz]`.
+    pub k: [usize; 3],
+    /// Shear `[Sx, Sy, Sz] = [-d_kx/d_kz, -d_ky/d_kz, 1/d_kz]`.
+    pub shear: [f32; 3],
+}
+
+impl WatertightRay {
+    /// `None` when the direction is zero or not finite.
+    pub fn new(origin: [f32; 3], dir: [f32; 3]) -> Option<WatertightRay> {
+        if !dir.iter().chain(origin.iter()).all(|x| x.is_finite()) {
+            return None;
+        }
+        let kz = dominant_axis(dir);
+        if dir[kz] == 0.0 {
+            return None;
+        }
+        let k = permutation(kz);
+        let dz = dir[kz];
+        Some(WatertightRay {
+            origin,
+            k,
+            shear: [-dir[k[0]] / dz, -dir[k[1]] / dz, 1.0 / dz],
+        })
+    }
+}
+
+/// A hit of the f32 test: distance and barycentrics `[b0, b1, b2]` (weights of v0, v1, v2).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct TriHit {
+    pub t: f32,
+    pub b: [f32; 3],
+}
+
+/// Scalar watertight test. Returns every hit with `t > 0` (no `t_max`: the caller keeps the
+/// lexicographically smallest `(t, triangle id)`, which makes the closest hit independent of the
+/// order triangles are visited in).
+#[inline]
+pub fn intersect(r: &WatertightRay, v: &[[f32; 3]; 3]) -> Option<TriHit> {
+    let [kx, ky, kz] = r.k;
+    let [sx, sy, sz] = r.shear;
+    let o = r.origin;
+    // Translate, permute, shear (x and y only; z is scaled later, pbrt order).
+    let p = |i: usize| {
+        let x = v[i][kx] - o[kx];
+        let y = v[i][ky] - o[ky];
+        let z = v[i][kz] - o[kz];
+        (x + sx * z, y + sy * z, z)
+    };
+    let (p0x, p0y, p0z) = p(0);
+    let (p1x, p1y, p1z) = p(1);
+    let (p2x, p2y, p2z) = p(2);
+    // Edge functions.
+    let e0 = p1x * p2y - p1y * p2x;
+    let e1 = p2x * p0y - p2y * p0x;
+    let e2 = p0x * p1y - p0y * p1x;
+    let (z0, z1, z2) = (p0z * sz, p1z * sz, p2z * sz);
+    if e0 == 0.0 || e1 == 0.0 || e2 == 0.0 {
+        return intersect_f64_edges([p0x, p0y, p1x, p1y, p2x, p2y], [z0, z1, z2]);
+    }
+    if (e0 < 0.0 || e1 < 0.0 || e2 < 0.0) && (e0 > 0.0 || e1 > 0.0 || e2 > 0.0) {
+        return None;
+    }
+    let det = e0 + e1 + e2;
+    if det == 0.0 {
+        return None;
+    }
+    let ts = e0 * z0 + e1 * z1 + e2 * z2;
+    if (det < 0.0 && ts >= 0.0) || (det > 0.0 && ts <= 0.0) {
+        return None;
+    }
+    let t = ts / det;
+    if !(t > 0.0) {
+        return None;
+    }
+    Some(TriHit {
+        t,
+        b: [e0 / det, e1 / det, e2 / det],
+    })
+}
+
+/// The f64 fallback: edge functions, determinant and scaled distance in f64 from the f32 sheared
+/// coordinates `[p0x, p0y, p1x, p1y, p2x, p2y]` and scaled z values.
+#[cold]
+#[inline(never)]
+fn intersect_f64_edges(p: [f32; 6], z: [f32; 3]) -> Option<TriHit> {
+    let [p0x, p0y, p1x, p1y, p2x, p2y] = p.map(|x| x as f64);
+    let e0 = p1x * p2y - p1y * p2x;
+    let e1 = p2x * p0y - p2y * p0x;
+    let e2 = p0x * p1y - p0y * p1x;
+    if (e0 < 0.0 || e1 < 0.0 || e2 < 0.0) && (e0 > 0.0 || e1 > 0.0 || e2 > 0.0) {
+        return None;
+    }
+    let det = e0 + e1 + e2;
+    if det == 0.0 {
+        return None;
+    }
+    let [z0, z1, z2] = z.map(|x| x as f64);
+    let ts = e0 * z0 + e1 * z1 + e2 * z2;
+    if (det < 0.0 && ts >= 0.0) || (det > 0.0 && ts <= 0.0) {
+        return None;
+    }
+    let t = (ts / det) as f32;
+    if !(t > 0.0) {
+        return None;
+    }
+    Some(TriHit {
+        t,
+        b: [(e0 / det) as f32, (e1 / det) as f32, (e2 / det) as f32],
+    })
+}
+
+/// Up to four rays sharing the permutation `k`, in SIMD lanes (structure of arrays).
+#[derive(Clone, Copy)]
+pub struct RayLanes4 {
+    pub k: [usize; 3],
+    /// Origin, permuted: `[o_kx, o_ky, o_kz]` per lane.
+    pub o: [F4; 3],
+    /// Shear `[Sx, Sy, Sz]` per lane.
+    pub s: [F4; 3],
+    /// The scalar rays (for the rare f64 fallback); lanes that are inactive hold any valid ray.
+    pub scalar: [WatertightRay; 4],
+}
+
+impl RayLanes4 {
+    /// All rays must share `k` (the caller groups lanes by dominant axis).
+    pub fn new(rays: [WatertightRay; 4]) -> RayLanes4 {
+        let k = rays[0].k;
+        debug_assert!(rays.iter().all(|r| r.k == k));
+        let o = [0, 1, 2].map(|a| F4::from_array(rays.map(|r| r.origin[k[a]])));
+        let s = [0, 1, 2].map(|a| F4::from_array(rays.map(|r| r.shear[a])));
+        RayLanes4 {
+            k,
+            o,
+            s,
+            scalar: rays,
+        }
+    }
+}
+
+/// Four-lane watertight test of one triangle: returns the lanes that hit (among `active`) and
+/// their distances. Lane `i` equals `intersect(&r.scalar[i], v)` exactly.
+#[inline(always)]
+pub fn intersect4(r: &RayLanes4, v: &[[f32; 3]; 3], active: u32) -> (u32, F4) {
+    let [kx, ky, kz] = r.k;
+    let [sx, sy, sz] = r.s;
+    let p = |i: usize| {
+        let x = F4::splat(v[i][kx]) - r.o[0];
+        let y = F4::splat(v[i][ky]) - r.o[1];
+        let z = F4::splat(v[i][kz]) - r.o[2];
+        (x + sx * z, y + sy * z, z)
+    };
+    let (p0x, p0y, p0z) = p(0);
+    let (p1x, p1y, p1z) = p(1);
+    let (p2x, p2y, p2z) = p(2);
+    let e0 = p1x * p2y - p1y * p2x;
+    let e1 = p2x * p0y - p2y * p0x;
+    let e2 = p0x * p1y - p0y * p1x;
+    let zero = F4::splat(0.0);
+    let neg = e0.lt(zero).or(e1.lt(zero)).or(e2.lt(zero)).bits();
+    let pos = e0.gt(zero).or(e1.gt(zero)).or(e2.gt(zero)).bits();
+    let mut cand = active & !(neg & pos);
+    if cand == 0 {
+        return (0, zero);
+    }
+    let det = e0 + e1 + e2;
+    let z0 = p0z * sz;
+    let z1 = p1z * sz;
+    let z2 = p2z * sz;
+    let ts = e0 * z0 + e1 * z1 + e2 * z2;
+    // Same sign and both nonzero: ts*det > 0 could overflow, so compare signs instead.
+    let dpos = det.gt(zero).bits();
+    let dneg = det.lt(zero).bits();
+    let tpos = ts.gt(zero).bits();
+    let tneg = ts.lt(zero).bits();
+    cand &= (dpos & tpos) | (dneg & tneg);
+    let t = ts / det;
+    cand &= t.gt(zero).bits();
+    // Lanes with an edge function exactly 0: redo in the scalar path (f64 edges).
+    let ezero = e0.eq(zero).or(e1.eq(zero)).or(e2.eq(zero)).bits() & active;
+    if ezero != 0 {
+        return fallback4(r, v, active, cand & !ezero, t, ezero);
+    }
+    (cand, t)
+}
+
+#[cold]
+#[inline(never)]
+fn fallback4(
+    r: &RayLanes4,
+    v: &[[f32; 3]; 3],
+    _active: u32,
+    cand: u32,
+    t: F4,
+    redo: u32,
+) -> (u32, F4) {
+    let mut ta = t.to_array();
+    let mut hits = cand;
+    for i in 0..4 {
+        if redo >> i & 1 != 0 {
+            if let Some(h) = intersect(&r.scalar[i], v) {
+                hits |= 1 << i;
+                ta[i] = h.t;
+            }
+        }
+    }
+    (hits, F4::from_array(ta))
+}

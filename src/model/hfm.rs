@@ -52,7 +52,8 @@ pub struct Hfm {
     pub grid_h: HashGrid,
     /// Grid D, when the deformation is enabled.
     pub grid_d: Option<HashGrid>,
-    /// ξ: `[L_D·F_D + 16] → hidden → [L·F]`.
+    /// ξ: `[L_D·F_D + 16] → hidden → [L·F]`, biases iff `cfg.shader.bias` (one switch for both
+    /// networks), last layer zero at initialisation.
     pub deform: Option<Mlp>,
     /// Shader: `[L·F + 16 + A] → width × hidden_layers → 3`.
     pub shader: Mlp,
@@ -764,4 +765,80 @@ fn push_mlp(layout: &mut ParamLayout, net: &str, mlp: &Mlp, group: Group) -> Ran
         }
     }
     start..layout.total
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn bad_inputs_are_named_errors() {
+        let mut cfg = ModelConfig::tiny();
+        cfg.appearance_views = 2;
+        let m = Hfm::new(&cfg).unwrap();
+        let p: Vec<f64> = m.init_params(1).iter().map(|&v| v as f64).collect();
+        let mut b = Batch::random(1, 10, 4, 2, 0.3);
+        m.forward(&p, &b).unwrap();
+        b.view[4] = 2;
+        let e = m.forward(&p, &b).unwrap_err().to_string();
+        assert!(e.contains("pixel 4") && e.contains("view 2"), "{e}");
+        b.view[4] = 0;
+        let e = m.forward(&p[1..], &b).unwrap_err().to_string();
+        assert!(e.contains("parameters"), "{e}");
+        let mut bad = cfg.clone();
+        bad.grid_h.features = 3;
+        assert!(Hfm::new(&bad).is_err());
+    }
+
+    /// Switching parts off removes their tensors and changes the shader input width.
+    #[test]
+    fn layout_follows_switches() {
+        let mut cfg = ModelConfig::tiny();
+        cfg.appearance_views = 5;
+        let m = Hfm::new(&cfg).unwrap();
+        let names: Vec<&str> = m.layout.tensors.iter().map(|t| t.name.as_str()).collect();
+        assert_eq!(
+            names,
+            [
+                "grid_h.table",
+                "grid_d.table",
+                "deform.layers.0.weight",
+                "deform.layers.1.weight",
+                "shader.layers.0.weight",
+                "shader.layers.1.weight",
+                "appearance.codes"
+            ]
+        );
+        assert_eq!(
+            m.layout.get("shader.layers.0.weight").unwrap().shape,
+            [16, 8 + 16 + 2]
+        );
+        assert_eq!(
+            m.layout.get("deform.layers.0.weight").unwrap().shape,
+            [8, 4 + 16]
+        );
+        assert_eq!(
+            m.layout.get("deform.layers.1.weight").unwrap().shape,
+            [8, 8]
+        );
+        cfg.deform.enabled = false;
+        cfg.appearance_dim = 0;
+        cfg.shader.bias = true;
+        let m = Hfm::new(&cfg).unwrap();
+        let names: Vec<&str> = m.layout.tensors.iter().map(|t| t.name.as_str()).collect();
+        assert_eq!(
+            names,
+            [
+                "grid_h.table",
+                "shader.layers.0.weight",
+                "shader.layers.0.bias",
+                "shader.layers.1.weight",
+                "shader.layers.1.bias"
+            ]
+        );
+        assert_eq!(
+            m.layout.get("shader.layers.0.weight").unwrap().shape,
+            [16, 8 + 16]
+        );
+    }
 }

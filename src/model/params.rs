@@ -92,6 +92,15 @@ impl ParamLayout {
         offset..offset + len
     }
 
+    /// `(name, shape)` of every tensor in layout order (what `train::adam::AdamState::new`
+    /// takes).
+    pub fn name_shapes(&self) -> Vec<(String, Vec<usize>)> {
+        self.tensors
+            .iter()
+            .map(|t| (t.name.clone(), t.shape.clone()))
+            .collect()
+    }
+
     pub fn get(&self, name: &str) -> Option<&TensorSpec> {
         self.tensors.iter().find(|t| t.name == name)
     }
@@ -108,7 +117,7 @@ impl ParamLayout {
         let mut it = self.tensors.iter().filter(|t| t.group == group);
         let first = it.next()?;
         let end = it
-            .last()
+            .next_back()
             .map_or(first.offset + first.len, |t| t.offset + t.len);
         Some(first.offset..end)
     }

@@ -8,7 +8,7 @@ use xscale::raycast::meshes::{cube_grid, icosphere, random_soup, terrain};
 use xscale::raycast::triangle::{intersect, WatertightRay};
 use xscale::raycast::{
     brute_force_closest_hit, cast_view, sub_offset, BuildPreset, CacheEvent, Packet, SampleCache,
-    Tracer,
+    Tracer, MAX_LANES,
 };
 use xscale::rng::{self, Purpose};
 use xscale::scene::{Camera, Distortion, Image, Mesh, Normalization, NormalizeMode};
@@ -78,25 +78,40 @@ fn closest_hit_matches_brute_force_for_every_preset() {
         let mut near_edge = 0;
         for (mi, (name, mesh)) in test_meshes().into_iter().enumerate() {
             let n = norm(&mesh);
-            let tracer = Tracer::with_preset(&mesh, &n, preset).unwrap();
+            let mut tracer = Tracer::with_preset(&mesh, &n, preset).unwrap();
             let mut scratch = tracer.scratch();
-            for k in 0..3500u64 {
-                let seed = 1000 + mi as u64;
+            let seed = 1000 + mi as u64;
+            let ray = |k: u64| {
                 let origin = rand_vec(seed, k, 0, -3.0, 3.0);
                 let target = rand_vec(seed, k, 3, -1.1, 1.1);
-                let dir = (target - origin).normalize();
+                (origin, (target - origin).normalize())
+            };
+            // f32 path, bit-exact, 8 random rays per packet, with and without AVX.
+            for k0 in (0..3504u64).step_by(MAX_LANES) {
+                let mut p = Packet::default();
+                for l in 0..MAX_LANES {
+                    let (origin, dir) = ray(k0 + l as u64);
+                    p.origin[l] = (origin - n.center).as_vec3().to_array();
+                    p.dir[l] = dir.as_vec3().to_array();
+                    p.active |= 1 << l;
+                }
+                for avx in [true, false] {
+                    tracer.set_avx(avx);
+                    let got = tracer.trace(&p, &mut scratch);
+                    for l in 0..MAX_LANES {
+                        let want = brute_force_f32(&mesh, &n, p.origin[l], p.dir[l]);
+                        assert_eq!(
+                            got[l],
+                            want,
+                            "{name} preset {preset:?} ray {} avx {avx}",
+                            k0 + l as u64
+                        );
+                    }
+                }
+            }
+            for k in 0..3500u64 {
+                let (origin, dir) = ray(k);
                 total += 1;
-                // f32 path, bit-exact.
-                let o = origin - n.center;
-                let (o32, d32) = (o.as_vec3().to_array(), dir.as_vec3().to_array());
-                let p = Packet {
-                    origin: [o32; 4],
-                    dir: [d32; 4],
-                    active: 1,
-                };
-                let got = tracer.trace4(&p, &mut scratch)[0];
-                let want = brute_force_f32(&mesh, &n, o32, d32);
-                assert_eq!(got, want, "{name} preset {preset:?} ray {k}");
                 // World API vs f64 brute force.
                 let h = tracer.closest_hit(origin, dir);
                 let bf = brute_force_closest_hit(&mesh, origin, dir);
@@ -516,6 +531,10 @@ fn cache_identical_with_1_and_2_threads() {
     for gamma in [1, 2, 3] {
         let a = build(1, gamma);
         let b = build(2, gamma);
+        let mut no_avx = Tracer::new(&mesh, &n).unwrap();
+        no_avx.set_avx(false);
+        let c = SampleCache::build(&no_avx, &views, gamma, &mut |_| {}).unwrap();
+        assert_eq!(a, c, "γ={gamma}: SSE and AVX traversals differ");
         assert!(a.len() > 1000);
         assert_eq!(a, b, "γ={gamma}");
         let fa: Vec<u32> = (0..a.len()).map(|i| a.footprint(i).to_bits()).collect();
@@ -556,4 +575,3 @@ fn bad_input_is_an_error() {
     let t = Tracer::new(&empty, &n).unwrap();
     assert!(t.closest_hit(DVec3::ZERO, DVec3::X).is_none());
 }
-

@@ -22,7 +22,7 @@
 //! = 12γ² + 42 bytes: 54 (γ=1), 90 (γ=2), 234 (γ=4).
 
 use super::bvh::Tracer;
-use super::cast::{cast_strip, check_gamma, strips, CamCtx};
+use super::cast::{cast_strip, check_gamma, strips, CamCtx, PixelSummary, SubSample};
 use crate::scene::{Camera, Image};
 use anyhow::{bail, Result};
 use rayon::prelude::*;
@@ -155,16 +155,28 @@ impl SampleCache {
             let parts: Vec<Part> = strips(cam.height)
                 .into_par_iter()
                 .map_init(
-                    || tracer.scratch(),
-                    |s, (y0, rows)| {
-                        let strip = cast_strip(tracer, &ctx, gamma, y0, rows, s);
+                    || (tracer.scratch(), Vec::new(), Vec::new()),
+                    |(sc, subs, pixels), (y0, rows)| {
+                        let npix = (rows * cam.width) as usize;
+                        subs.resize(npix * g2, SubSample::default());
+                        pixels.resize(npix, PixelSummary::default());
+                        cast_strip(
+                            tracer,
+                            &ctx,
+                            gamma,
+                            y0,
+                            rows,
+                            sc,
+                            &mut subs[..npix * g2],
+                            &mut pixels[..npix],
+                        );
                         let mut p = Part::default();
-                        for (k, px) in strip.pixels.iter().enumerate() {
+                        for (k, px) in pixels[..npix].iter().enumerate() {
                             if px.valid == 0 {
                                 continue;
                             }
-                            let (u, v) = (k as u32 % cam.width, strip.y0 + k as u32 / cam.width);
-                            for ss in &strip.subs[k * g2..(k + 1) * g2] {
+                            let (u, v) = (k as u32 % cam.width, y0 + k as u32 / cam.width);
+                            for ss in &subs[k * g2..(k + 1) * g2] {
                                 p.positions.push(if ss.hit() {
                                     ss.position.to_array().map(encode_coord)
                                 } else {

@@ -230,6 +230,11 @@ fn main() {
         }
         (rays / best.0 / 1e6, rays / best.1 / 1e6)
     };
+    if std::env::var("XSCALE_BENCH_ONLY").as_deref() == Ok("cache") {
+        let (m1, c1) = time_cache(&tracers[0], 1);
+        println!("SampleCache::build: 1 thread {m1:.2} Mrays/s, {c1:.2} Mrays per CPU-second");
+        return;
+    }
     for t in &tracers {
         let (m1, c1) = time_cache(t, 1);
         let (m2, c2) = time_cache(t, 2);

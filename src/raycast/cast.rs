@@ -32,7 +32,7 @@ use glam::{DMat3, DVec3};
 use rayon::prelude::*;
 
 /// Pixel rows per parallel work item.
-pub const STRIP_ROWS: u32 = 4;
+pub const STRIP_ROWS: u32 = 2;
 /// Largest supported multisampling factor (the valid mask is 16 bits).
 pub const MAX_GAMMA: u32 = 4;
 
@@ -168,15 +168,30 @@ pub(crate) fn cast_strip(
     subs: &mut [SubSample],
     pixels: &mut [PixelSummary],
 ) {
+    // γ as a constant, so the sub-sample index arithmetic has no run-time divisions.
+    match gamma {
+        1 => cast_strip_g::<1>(tracer, ctx, y0, rows, scratch, subs, pixels),
+        2 => cast_strip_g::<2>(tracer, ctx, y0, rows, scratch, subs, pixels),
+        3 => cast_strip_g::<3>(tracer, ctx, y0, rows, scratch, subs, pixels),
+        4 => cast_strip_g::<4>(tracer, ctx, y0, rows, scratch, subs, pixels),
+        _ => unreachable!("γ is checked by the callers"),
+    }
+}
+
+fn cast_strip_g<const G: u32>(
+    tracer: &Tracer,
+    ctx: &CamCtx,
+    y0: u32,
+    rows: u32,
+    scratch: &mut Scratch,
+    subs: &mut [SubSample],
+    pixels: &mut [PixelSummary],
+) {
     let w = ctx.cam.width;
-    let g = gamma;
+    let g = G;
     let g2 = (g * g) as usize;
     let npix = (w * rows) as usize;
     assert!(subs.len() == npix * g2 && pixels.len() == npix);
-    subs.fill(SubSample {
-        triangle: MISS,
-        ..Default::default()
-    });
     let (sw, sh) = (w * g, rows * g);
     // Sub-sample (sx, sy) of the strip → index into `subs` and its continuous image point.
     let locate = |sx: u32, sy: u32| {
@@ -204,13 +219,21 @@ pub(crate) fn cast_strip(
                 let d = ctx.dir(x, y);
                 lane_idx[l] = idx;
                 lane_dir[l] = d;
-                subs[idx].dir = d;
                 p.origin[l] = ctx.origin32;
                 p.dir[l] = d.as_vec3().to_array();
                 p.active |= 1 << l;
             }
             let hits = tracer.trace(&p, scratch);
             for l in 0..MAX_LANES {
+                if p.active >> l & 1 == 0 {
+                    continue;
+                }
+                // Every sub-sample of the strip is in exactly one block: all are written here.
+                subs[lane_idx[l]] = SubSample {
+                    triangle: MISS,
+                    dir: lane_dir[l],
+                    ..Default::default()
+                };
                 if let Some((tri, t32)) = hits[l] {
                     let d = lane_dir[l];
                     let (h, normal) = tracer.refine_with_normal(ctx.origin, d, tri, t32);

@@ -10,11 +10,16 @@
 //! element, and what was expected. No loader panics on bad input.
 
 pub mod camera;
+pub mod colmap;
+pub mod image;
+pub mod mesh;
+pub mod mvsnet;
+pub mod transforms;
 
 pub use camera::{Camera, Distortion};
 
 use glam::DVec3;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 /// A triangle mesh in world coordinates (f64, so georeferenced scenes keep their precision).
 #[derive(Clone, Debug, Default, PartialEq)]
@@ -116,5 +121,405 @@ impl Scene {
         (0..self.views.len())
             .filter(|i| !self.test.contains(i))
             .collect()
+    }
+}
+
+// -------------------------------------------------------------------------------------------------
+// Loading a scene directory
+// -------------------------------------------------------------------------------------------------
+
+/// Which camera layout a scene directory uses (SPEC §3).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum CameraFormat {
+    /// COLMAP sparse model in `sparse/0/`, `sparse/` or the dir itself; images in `images/`.
+    Colmap,
+    /// `cams_<dsp>/NAME_cam.txt` + `images_<dsp>/NAME.ext` (official XScale-NVS layout).
+    MvsNet,
+    /// `transforms.json` (instant-ngp / nerfstudio), or NeRF-synthetic style
+    /// `transforms_train.json` + `transforms_test.json` (+ `transforms_val.json`, used for training).
+    Transforms,
+}
+
+impl CameraFormat {
+    pub fn name(self) -> &'static str {
+        match self {
+            CameraFormat::Colmap => "colmap",
+            CameraFormat::MvsNet => "mvsnet",
+            CameraFormat::Transforms => "transforms",
+        }
+    }
+}
+
+impl std::str::FromStr for CameraFormat {
+    type Err = anyhow::Error;
+    fn from_str(s: &str) -> anyhow::Result<Self> {
+        match s.to_ascii_lowercase().as_str() {
+            "colmap" => Ok(CameraFormat::Colmap),
+            "mvsnet" | "xscale" => Ok(CameraFormat::MvsNet),
+            "transforms" | "nerf" | "instant-ngp" | "nerfstudio" => Ok(CameraFormat::Transforms),
+            _ => anyhow::bail!("unknown camera format '{s}' (colmap, mvsnet, transforms)"),
+        }
+    }
+}
+
+/// Options for [`Scene::load`].
+#[derive(Clone, Debug)]
+pub struct LoadOptions {
+    /// Camera layout; `None` = auto-detect (an error if several are present).
+    pub format: Option<CameraFormat>,
+    /// Integer image downsample factor (≥ 1); cameras are scaled to match.
+    pub downsample: u32,
+    pub normalize: NormalizeMode,
+    /// Mesh file; `None` = look in the scene dir (see [`find_mesh`]). A relative path that does
+    /// not exist as given is tried relative to the scene dir.
+    pub mesh: Option<PathBuf>,
+    /// Also read every image's header at load time and check its size against the camera
+    /// (cheap: headers only). Existence of every image is always checked.
+    pub load_images_check: bool,
+    /// MVSNet layout: which `cams_<dsp>` to use when several exist (`None` = the smallest dsp).
+    pub mvsnet_dsp: Option<u32>,
+}
+
+impl Default for LoadOptions {
+    fn default() -> Self {
+        LoadOptions {
+            format: None,
+            downsample: 1,
+            normalize: NormalizeMode::PerAxis,
+            mesh: None,
+            load_images_check: true,
+            mvsnet_dsp: None,
+        }
+    }
+}
+
+/// Optional `scene.toml` in a scene dir: the train/test split.
+#[derive(Clone, Debug, Default, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+struct SceneToml {
+    /// Names of the held-out views (as in [`View::name`]).
+    test_views: Option<Vec<String>>,
+    /// Hold out indices 0, N, 2N, … (0 = no test views).
+    holdout_every: Option<usize>,
+}
+
+/// What [`Scene::load_report`] found.
+#[derive(Clone, Debug)]
+pub struct LoadReport {
+    pub format: CameraFormat,
+    pub mesh_path: PathBuf,
+    pub mesh_stats: mesh::MeshStats,
+}
+
+/// Default split: every 7th view held out (indices 0, 7, 14, …), the official protocol.
+pub const HOLDOUT_EVERY: usize = 7;
+
+/// Which camera formats are present in `dir`.
+pub fn detect_formats(dir: &Path) -> Vec<CameraFormat> {
+    let mut out = Vec::new();
+    if dir.join("transforms.json").is_file() || dir.join("transforms_train.json").is_file() {
+        out.push(CameraFormat::Transforms);
+    }
+    if colmap::find_model_dir(dir).is_some() {
+        out.push(CameraFormat::Colmap);
+    }
+    if !mvsnet::find_layouts(dir).is_empty() {
+        out.push(CameraFormat::MvsNet);
+    }
+    out
+}
+
+/// The mesh of a scene dir: `mesh.ply`, `mesh.obj`, `meshed-poisson.ply` (also under `dense/0/`
+/// and `dense/`), else the single `*.ply` / `*.obj` in the dir; an error lists the candidates
+/// otherwise.
+pub fn find_mesh(dir: &Path) -> anyhow::Result<PathBuf> {
+    let named = [
+        dir.join("mesh.ply"),
+        dir.join("mesh.obj"),
+        dir.join("meshed-poisson.ply"),
+        dir.join("dense").join("0").join("meshed-poisson.ply"),
+        dir.join("dense").join("meshed-poisson.ply"),
+    ];
+    if let Some(p) = named.iter().find(|p| p.is_file()) {
+        return Ok(p.clone());
+    }
+    let mut cands: Vec<PathBuf> = std::fs::read_dir(dir)
+        .map_err(|e| anyhow::anyhow!("{}: cannot list scene directory: {e}", dir.display()))?
+        .flatten()
+        .map(|e| e.path())
+        .filter(|p| {
+            p.is_file()
+                && p.extension()
+                    .and_then(|e| e.to_str())
+                    .is_some_and(|e| e.eq_ignore_ascii_case("ply") || e.eq_ignore_ascii_case("obj"))
+        })
+        .collect();
+    cands.sort();
+    match cands.len() {
+        1 => Ok(cands.pop().unwrap()),
+        0 => anyhow::bail!(
+            "{}: no mesh found (looked for mesh.ply, mesh.obj, meshed-poisson.ply, dense/0/meshed-poisson.ply, or a single *.ply/*.obj); pass the mesh explicitly",
+            dir.display()
+        ),
+        _ => anyhow::bail!(
+            "{}: several mesh candidates, pass one explicitly: {}",
+            dir.display(),
+            cands
+                .iter()
+                .map(|p| p.file_name().unwrap().to_string_lossy().to_string())
+                .collect::<Vec<_>>()
+                .join(", ")
+        ),
+    }
+}
+
+impl View {
+    /// Load this view's image, downsample it by `downsample`, and check that the result has the
+    /// camera's size (the camera is the downsampled one). Errors name the file and both sizes.
+    pub fn load_image(&self, downsample: u32) -> anyhow::Result<Image> {
+        anyhow::ensure!(downsample >= 1, "downsample factor must be >= 1");
+        let img = image::load_rgb(&self.image_path)?;
+        let (w, h) = (img.width / downsample, img.height / downsample);
+        if (w, h) != (self.camera.width, self.camera.height) {
+            anyhow::bail!(
+                "{}: image is {}x{}{} but the camera of view '{}' expects {}x{}",
+                self.image_path.display(),
+                img.width,
+                img.height,
+                if downsample > 1 {
+                    format!(" ({w}x{h} after downsampling by {downsample})")
+                } else {
+                    String::new()
+                },
+                self.name,
+                self.camera.width,
+                self.camera.height
+            );
+        }
+        Ok(image::downsample(&img, downsample))
+    }
+}
+
+impl Scene {
+    /// Load a scene directory: cameras (auto-detected or `opts.format`), the mesh, the split
+    /// (`scene.toml` or every 7th view), the normalisation, and check the images (existence,
+    /// and sizes if `opts.load_images_check`). Views keep the camera file's order (COLMAP: sorted
+    /// by image name; MVSNet: by cam file name; transforms: frame order).
+    pub fn load(dir: &Path, opts: &LoadOptions) -> anyhow::Result<Scene> {
+        Ok(Scene::load_report(dir, opts)?.0)
+    }
+
+    /// [`Scene::load`], also returning what was found (format, mesh file, mesh statistics such as
+    /// the number of degenerate triangles dropped) for the CLI to report.
+    pub fn load_report(dir: &Path, opts: &LoadOptions) -> anyhow::Result<(Scene, LoadReport)> {
+        use anyhow::{anyhow, bail};
+        if !dir.is_dir() {
+            bail!("{}: scene directory not found", dir.display());
+        }
+        if opts.downsample == 0 {
+            bail!("downsample factor must be >= 1");
+        }
+        let format = match opts.format {
+            Some(f) => f,
+            None => {
+                let found = detect_formats(dir);
+                match found.as_slice() {
+                    [f] => *f,
+                    [] => bail!(
+                        "{}: no cameras found (looked for transforms.json, a COLMAP model in sparse/0/, sparse/ or the dir itself, and MVSNet cams_<dsp>/*_cam.txt)",
+                        dir.display()
+                    ),
+                    many => bail!(
+                        "{}: several camera formats present ({}); choose one explicitly",
+                        dir.display(),
+                        many.iter().map(|f| f.name()).collect::<Vec<_>>().join(", ")
+                    ),
+                }
+            }
+        };
+        // (views, test view names given by the format itself)
+        let (mut views, format_test): (Vec<View>, Option<Vec<String>>) = match format {
+            CameraFormat::Colmap => {
+                let model = colmap::find_model_dir(dir).ok_or_else(|| {
+                    anyhow!(
+                        "{}: no COLMAP model (cameras + images .txt/.bin) in sparse/0/, sparse/ or the dir itself",
+                        dir.display()
+                    )
+                })?;
+                let images = dir.join("images");
+                if !images.is_dir() {
+                    bail!("{}: COLMAP image directory not found", images.display());
+                }
+                (colmap::load(&model, &images)?, None)
+            }
+            CameraFormat::MvsNet => {
+                let layouts = mvsnet::find_layouts(dir);
+                let layout = match opts.mvsnet_dsp {
+                    Some(d) => layouts
+                        .into_iter()
+                        .find(|l| l.dsp == Some(d))
+                        .ok_or_else(|| {
+                            anyhow!("{}: no cams_{d}/ with *_cam.txt files", dir.display())
+                        })?,
+                    None => layouts.into_iter().next().ok_or_else(|| {
+                        anyhow!("{}: no cams_<dsp>/ with *_cam.txt files", dir.display())
+                    })?,
+                };
+                (mvsnet::load(&layout)?, None)
+            }
+            CameraFormat::Transforms => {
+                let single = dir.join("transforms.json");
+                if single.is_file() {
+                    (transforms::load(&single)?, None)
+                } else {
+                    let train = dir.join("transforms_train.json");
+                    let test = dir.join("transforms_test.json");
+                    if !train.is_file() {
+                        bail!("{}: transforms.json not found", dir.display());
+                    }
+                    let mut v = transforms::load(&train)?;
+                    let val = dir.join("transforms_val.json");
+                    if val.is_file() {
+                        v.extend(transforms::load(&val)?);
+                    }
+                    let t = if test.is_file() {
+                        transforms::load(&test)?
+                    } else {
+                        Vec::new()
+                    };
+                    let names = t.iter().map(|x| x.name.clone()).collect();
+                    v.extend(t);
+                    (v, Some(names))
+                }
+            }
+        };
+        if views.is_empty() {
+            bail!("{}: the camera file has no views", dir.display());
+        }
+        {
+            let mut seen = std::collections::HashSet::new();
+            for v in &views {
+                if !seen.insert(v.name.as_str()) {
+                    bail!("{}: view name '{}' appears twice", dir.display(), v.name);
+                }
+            }
+        }
+
+        // Images: existence always; header sizes optionally.
+        for v in &views {
+            if !v.image_path.is_file() {
+                bail!(
+                    "{}: image of view '{}' not found",
+                    v.image_path.display(),
+                    v.name
+                );
+            }
+            if opts.load_images_check {
+                let (w, h) = image::dimensions(&v.image_path)?;
+                if (w, h) != (v.camera.width, v.camera.height) {
+                    bail!(
+                        "{}: image is {w}x{h} but the camera of view '{}' says {}x{}",
+                        v.image_path.display(),
+                        v.name,
+                        v.camera.width,
+                        v.camera.height
+                    );
+                }
+            }
+        }
+        let s = opts.downsample;
+        if s > 1 {
+            for v in &mut views {
+                if v.camera.width / s == 0 || v.camera.height / s == 0 {
+                    bail!(
+                        "view '{}': image {}x{} is smaller than the downsample factor {s}",
+                        v.name,
+                        v.camera.width,
+                        v.camera.height
+                    );
+                }
+                v.camera = v.camera.downsampled(s);
+            }
+        }
+
+        // Split.
+        let toml_path = dir.join("scene.toml");
+        let cfg: SceneToml = if toml_path.is_file() {
+            let text = std::fs::read_to_string(&toml_path)
+                .map_err(|e| anyhow!("{}: cannot read: {e}", toml_path.display()))?;
+            toml::from_str(&text).map_err(|e| anyhow!("{}: {e}", toml_path.display()))?
+        } else {
+            SceneToml::default()
+        };
+        let test: Vec<usize> = if let Some(names) = &cfg.test_views {
+            if cfg.holdout_every.is_some() {
+                bail!(
+                    "{}: give either test_views or holdout_every, not both",
+                    toml_path.display()
+                );
+            }
+            let mut t = Vec::with_capacity(names.len());
+            for n in names {
+                let i = views.iter().position(|v| &v.name == n).ok_or_else(|| {
+                    anyhow!(
+                        "{}: test view '{n}' is not a view of the scene",
+                        toml_path.display()
+                    )
+                })?;
+                t.push(i);
+            }
+            t.sort_unstable();
+            t.dedup();
+            t
+        } else if let Some(k) = cfg.holdout_every {
+            if k == 0 {
+                Vec::new()
+            } else {
+                (0..views.len()).step_by(k).collect()
+            }
+        } else if let Some(names) = format_test {
+            let mut t: Vec<usize> = names
+                .iter()
+                .filter_map(|n| views.iter().position(|v| &v.name == n))
+                .collect();
+            t.sort_unstable();
+            t
+        } else {
+            (0..views.len()).step_by(HOLDOUT_EVERY).collect()
+        };
+
+        // Mesh.
+        let mesh_path = match &opts.mesh {
+            Some(p) if p.exists() || p.is_absolute() => p.clone(),
+            Some(p) => dir.join(p),
+            None => find_mesh(dir)?,
+        };
+        let (mesh, mesh_stats) = mesh::load_mesh(&mesh_path)?;
+        let normalization = Normalization::from_mesh(&mesh, opts.normalize);
+        let scene = Scene {
+            root: dir.to_path_buf(),
+            mesh,
+            views,
+            test,
+            normalization,
+            downsample: s,
+        };
+        Ok((
+            scene,
+            LoadReport {
+                format,
+                mesh_path,
+                mesh_stats,
+            },
+        ))
+    }
+
+    /// Load view `i`'s image, downsampled by the scene's factor (see [`View::load_image`]).
+    pub fn load_image(&self, i: usize) -> anyhow::Result<Image> {
+        let v = self.views.get(i).ok_or_else(|| {
+            anyhow::anyhow!("view index {i} out of range ({} views)", self.views.len())
+        })?;
+        v.load_image(self.downsample)
     }
 }

@@ -1,0 +1,610 @@
+//! COLMAP sparse models (SPEC §3): read `cameras` + `images` in text (`.txt`) or binary
+//! (`.bin`) form, write both forms. `points3D` is ignored on read and written empty. Newer
+//! COLMAP layouts (3.12+) add `rigs.*` and `frames.*`; `images.*` keeps each image's
+//! world→camera pose, so those extra files are simply ignored.
+//!
+//! Camera models: SIMPLE_PINHOLE, PINHOLE (no distortion), SIMPLE_RADIAL, RADIAL, OPENCV (mapped
+//! to [`Distortion`]); any other model is an error that names it. COLMAP's pixel convention
+//! (centre of the top-left pixel at (0.5, 0.5)) is ours, so K is taken as is.
+//!
+//! Pose: `QW QX QY QZ TX TY TZ` is world→camera (`x_cam = R(q) x_world + t`), OpenCV axes; the
+//! quaternion is normalised before use.
+//!
+//! Order: views are sorted by image name (COLMAP image ids are arbitrary and not contiguous;
+//! sorting by name makes the scene order, and so the train/test split, deterministic).
+//!
+//! If both text and binary files are present, the text files are read.
+
+use super::{Camera, Distortion, View};
+use anyhow::{anyhow, bail, Context, Result};
+use glam::{DMat3, DQuat, DVec3};
+use std::collections::HashMap;
+use std::fmt::Write as _;
+use std::fs;
+use std::path::{Path, PathBuf};
+
+const SUPPORTED: &str = "SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV";
+
+/// COLMAP's camera model names by id, and their parameter counts.
+const MODELS: [(&str, usize); 12] = [
+    ("SIMPLE_PINHOLE", 3),
+    ("PINHOLE", 4),
+    ("SIMPLE_RADIAL", 4),
+    ("RADIAL", 5),
+    ("OPENCV", 8),
+    ("OPENCV_FISHEYE", 8),
+    ("FULL_OPENCV", 12),
+    ("FOV", 5),
+    ("SIMPLE_RADIAL_FISHEYE", 4),
+    ("RADIAL_FISHEYE", 5),
+    ("THIN_PRISM_FISHEYE", 12),
+    ("RAD_TAN_THIN_PRISM_FISHEYE", 16),
+];
+
+/// Intrinsics of one COLMAP camera (pose-free `Camera`).
+#[derive(Clone, Debug)]
+struct Intrinsics {
+    width: u32,
+    height: u32,
+    fx: f64,
+    fy: f64,
+    cx: f64,
+    cy: f64,
+    distortion: Distortion,
+}
+
+/// Build intrinsics from a model id and its parameters (count already checked). `where_` is
+/// prefixed to errors.
+fn intrinsics(where_: &str, model: usize, w: u64, h: u64, p: &[f64]) -> Result<Intrinsics> {
+    if p.iter().any(|v| !v.is_finite()) {
+        bail!("{where_}: non-finite camera parameter");
+    }
+    if w == 0 || h == 0 || w > u32::MAX as u64 || h > u32::MAX as u64 {
+        bail!("{where_}: bad image size {w}x{h}");
+    }
+    let (fx, fy, cx, cy, distortion) = match model {
+        0 => (p[0], p[0], p[1], p[2], Distortion::None),
+        1 => (p[0], p[1], p[2], p[3], Distortion::None),
+        2 => (p[0], p[0], p[1], p[2], Distortion::SimpleRadial { k: p[3] }),
+        3 => (
+            p[0],
+            p[0],
+            p[1],
+            p[2],
+            Distortion::Radial { k1: p[3], k2: p[4] },
+        ),
+        4 => (
+            p[0],
+            p[1],
+            p[2],
+            p[3],
+            Distortion::OpenCv {
+                k1: p[4],
+                k2: p[5],
+                p1: p[6],
+                p2: p[7],
+            },
+        ),
+        _ => {
+            let name = MODELS.get(model).map(|m| m.0).unwrap_or("(unknown id)");
+            bail!(
+                "{where_}: camera model {name} is not supported (supported: {SUPPORTED}); \
+                 undistort the images first, e.g. with `colmap image_undistorter`"
+            )
+        }
+    };
+    if !(fx > 0.0 && fy > 0.0) {
+        bail!("{where_}: focal length must be positive (fx={fx}, fy={fy})");
+    }
+    Ok(Intrinsics {
+        width: w as u32,
+        height: h as u32,
+        fx,
+        fy,
+        cx,
+        cy,
+        distortion,
+    })
+}
+
+/// COLMAP model id and parameters representing a camera exactly (SIMPLE_RADIAL/RADIAL need
+/// fx == fy; otherwise the equivalent OPENCV with zero extra terms is used).
+fn model_of(cam: &Camera) -> (usize, Vec<f64>) {
+    let same_f = cam.fx == cam.fy;
+    match cam.distortion {
+        Distortion::None => (1, vec![cam.fx, cam.fy, cam.cx, cam.cy]),
+        Distortion::SimpleRadial { k } if same_f => (2, vec![cam.fx, cam.cx, cam.cy, k]),
+        Distortion::SimpleRadial { k } => {
+            (4, vec![cam.fx, cam.fy, cam.cx, cam.cy, k, 0.0, 0.0, 0.0])
+        }
+        Distortion::Radial { k1, k2 } if same_f => (3, vec![cam.fx, cam.cx, cam.cy, k1, k2]),
+        Distortion::Radial { k1, k2 } => {
+            (4, vec![cam.fx, cam.fy, cam.cx, cam.cy, k1, k2, 0.0, 0.0])
+        }
+        Distortion::OpenCv { k1, k2, p1, p2 } => {
+            (4, vec![cam.fx, cam.fy, cam.cx, cam.cy, k1, k2, p1, p2])
+        }
+    }
+}
+
+/// World→camera rotation from a COLMAP quaternion (normalised first).
+fn rotation_from_q(where_: &str, q: [f64; 4]) -> Result<DMat3> {
+    let n = (q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]).sqrt();
+    if !(n.is_finite() && n > 1e-12) {
+        bail!("{where_}: quaternion {q:?} is zero or not finite");
+    }
+    let (w, x, y, z) = (q[0] / n, q[1] / n, q[2] / n, q[3] / n);
+    Ok(DMat3::from_quat(DQuat::from_xyzw(x, y, z, w)))
+}
+
+/// COLMAP quaternion (qw, qx, qy, qz) with qw >= 0 for a rotation matrix.
+fn q_from_rotation(r: &DMat3) -> [f64; 4] {
+    let q = DQuat::from_mat3(r).normalize();
+    let s = if q.w < 0.0 { -1.0 } else { 1.0 };
+    [s * q.w, s * q.x, s * q.y, s * q.z]
+}
+
+struct RawImage {
+    name: String,
+    q: [f64; 4],
+    t: [f64; 3],
+    camera_id: u64,
+    /// For error messages ("images.txt: line 7").
+    origin: String,
+}
+
+fn assemble(
+    dir: &Path,
+    cams: HashMap<u64, Intrinsics>,
+    imgs: Vec<RawImage>,
+    images_dir: &Path,
+) -> Result<Vec<View>> {
+    let mut views = Vec::with_capacity(imgs.len());
+    let mut seen = HashMap::new();
+    for im in imgs {
+        let k = cams.get(&im.camera_id).ok_or_else(|| {
+            anyhow!(
+                "{}: image '{}' refers to camera {} which is not in the cameras file of {}",
+                im.origin,
+                im.name,
+                im.camera_id,
+                dir.display()
+            )
+        })?;
+        if let Some(prev) = seen.insert(im.name.clone(), im.origin.clone()) {
+            bail!(
+                "{}: image name '{}' appears twice (also at {prev})",
+                im.origin,
+                im.name
+            );
+        }
+        if im.t.iter().any(|v| !v.is_finite()) {
+            bail!("{}: translation is not finite", im.origin);
+        }
+        let rotation = rotation_from_q(&im.origin, im.q)?;
+        views.push(View {
+            image_path: images_dir.join(&im.name),
+            name: im.name,
+            camera: Camera {
+                width: k.width,
+                height: k.height,
+                fx: k.fx,
+                fy: k.fy,
+                cx: k.cx,
+                cy: k.cy,
+                distortion: k.distortion,
+                rotation,
+                translation: DVec3::from_array(im.t),
+            },
+        });
+    }
+    views.sort_by(|a, b| a.name.cmp(&b.name));
+    Ok(views)
+}
+
+/// True if `dir` holds a COLMAP model (cameras + images, text or binary).
+pub fn is_model_dir(dir: &Path) -> bool {
+    (dir.join("cameras.txt").is_file() && dir.join("images.txt").is_file())
+        || (dir.join("cameras.bin").is_file() && dir.join("images.bin").is_file())
+}
+
+/// Find the model in a scene dir: `sparse/0/`, `sparse/`, or the dir itself.
+pub fn find_model_dir(scene: &Path) -> Option<PathBuf> {
+    [
+        scene.join("sparse").join("0"),
+        scene.join("sparse"),
+        scene.to_path_buf(),
+    ]
+    .into_iter()
+    .find(|d| is_model_dir(d))
+}
+
+/// Read a model directory (text preferred over binary); image paths are `images_dir/NAME`.
+pub fn load(dir: &Path, images_dir: &Path) -> Result<Vec<View>> {
+    if dir.join("cameras.txt").is_file() && dir.join("images.txt").is_file() {
+        read_text(dir, images_dir)
+    } else if dir.join("cameras.bin").is_file() && dir.join("images.bin").is_file() {
+        read_binary(dir, images_dir)
+    } else {
+        bail!(
+            "{}: no COLMAP model (expected cameras.txt + images.txt or cameras.bin + images.bin)",
+            dir.display()
+        )
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// Text
+// ---------------------------------------------------------------------------------------------
+
+fn read_text_file(path: &Path) -> Result<String> {
+    let b = fs::read(path).with_context(|| format!("{}: cannot read", path.display()))?;
+    String::from_utf8(b).map_err(|_| anyhow!("{}: not UTF-8 text", path.display()))
+}
+
+fn parse_num<T: std::str::FromStr>(s: &str, where_: &str, what: &str) -> Result<T> {
+    s.parse()
+        .map_err(|_| anyhow!("{where_}: {what} '{s}' is not a valid number"))
+}
+
+/// Read `cameras.txt` + `images.txt`.
+pub fn read_text(dir: &Path, images_dir: &Path) -> Result<Vec<View>> {
+    let cpath = dir.join("cameras.txt");
+    let ctext = read_text_file(&cpath)?;
+    let mut cams = HashMap::new();
+    for (ln, line) in ctext.lines().enumerate() {
+        let line = line.trim();
+        if line.is_empty() || line.starts_with('#') {
+            continue;
+        }
+        let wh = format!("{}: line {}", cpath.display(), ln + 1);
+        let tok: Vec<&str> = line.split_whitespace().collect();
+        if tok.len() < 4 {
+            bail!("{wh}: expected 'CAMERA_ID MODEL WIDTH HEIGHT PARAMS...', found '{line}'");
+        }
+        let id: u64 = parse_num(tok[0], &wh, "camera id")?;
+        let model = MODELS.iter().position(|m| m.0 == tok[1]).ok_or_else(|| {
+            anyhow!(
+                "{wh}: camera {id}: unknown camera model '{}' (supported: {SUPPORTED})",
+                tok[1]
+            )
+        })?;
+        let w: u64 = parse_num(tok[2], &wh, "width")?;
+        let h: u64 = parse_num(tok[3], &wh, "height")?;
+        let params = tok[4..]
+            .iter()
+            .map(|s| parse_num::<f64>(s, &wh, "parameter"))
+            .collect::<Result<Vec<_>>>()?;
+        let wh = format!("{wh}: camera {id}");
+        if params.len() != MODELS[model].1 && model <= 4 {
+            bail!(
+                "{wh}: model {} takes {} parameters, found {}",
+                MODELS[model].0,
+                MODELS[model].1,
+                params.len()
+            );
+        }
+        let k = intrinsics(&wh, model, w, h, &params)?;
+        if cams.insert(id, k).is_some() {
+            bail!("{wh}: camera id {id} defined twice");
+        }
+    }
+
+    let ipath = dir.join("images.txt");
+    let itext = read_text_file(&ipath)?;
+    let mut imgs = Vec::new();
+    // Two lines per image; the second (2D points) may be empty, so blank lines are significant
+    // there. A header line is never blank, so blank lines are skipped while looking for one. If
+    // the expected points line looks like a header (token count not a multiple of 3), it is
+    // taken as the next header (some tools drop empty points lines).
+    let lines: Vec<(usize, &str)> = itext
+        .lines()
+        .enumerate()
+        .filter(|(_, l)| !l.trim_start().starts_with('#'))
+        .map(|(i, l)| (i + 1, l.trim()))
+        .collect();
+    let mut i = 0;
+    while i < lines.len() {
+        let (ln, line) = lines[i];
+        i += 1;
+        if line.is_empty() {
+            continue;
+        }
+        let wh = format!("{}: line {ln}", ipath.display());
+        let tok: Vec<&str> = line.split_whitespace().collect();
+        if tok.len() < 10 {
+            bail!(
+                "{wh}: expected 'IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME', found {} fields",
+                tok.len()
+            );
+        }
+        let _id: u64 = parse_num(tok[0], &wh, "image id")?;
+        let mut v = [0f64; 7];
+        for k in 0..7 {
+            v[k] = parse_num(tok[1 + k], &wh, "pose value")?;
+        }
+        let camera_id: u64 = parse_num(tok[8], &wh, "camera id")?;
+        imgs.push(RawImage {
+            name: tok[9..].join(" "),
+            q: [v[0], v[1], v[2], v[3]],
+            t: [v[4], v[5], v[6]],
+            camera_id,
+            origin: wh,
+        });
+        // The points line.
+        if i < lines.len() {
+            let n = lines[i].1.split_whitespace().count();
+            if n % 3 == 0 {
+                i += 1;
+            }
+        }
+    }
+    assemble(dir, cams, imgs, images_dir)
+}
+
+fn fmt_params(p: &[f64]) -> String {
+    p.iter()
+        .map(|v| format!("{v}"))
+        .collect::<Vec<_>>()
+        .join(" ")
+}
+
+/// Write `cameras.txt`, `images.txt` and an empty `points3D.txt` into `dir` (created if
+/// needed): one camera per view (ids 1..=n in the given order), numbers with Rust's `{}`
+/// (shortest round-trip), an empty 2D-points line per image.
+pub fn write_text(dir: &Path, views: &[View]) -> Result<()> {
+    fs::create_dir_all(dir).with_context(|| format!("{}: cannot create", dir.display()))?;
+    check_names(views)?;
+    let mut cams = String::new();
+    writeln!(cams, "# Camera list with one line of data per camera:").unwrap();
+    writeln!(cams, "#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]").unwrap();
+    writeln!(cams, "# Number of cameras: {}", views.len()).unwrap();
+    let mut imgs = String::new();
+    writeln!(imgs, "# Image list with two lines of data per image:").unwrap();
+    writeln!(
+        imgs,
+        "#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME"
+    )
+    .unwrap();
+    writeln!(imgs, "#   POINTS2D[] as (X, Y, POINT3D_ID)").unwrap();
+    writeln!(
+        imgs,
+        "# Number of images: {}, mean observations per image: 0",
+        views.len()
+    )
+    .unwrap();
+    for (i, v) in views.iter().enumerate() {
+        let c = &v.camera;
+        let (model, params) = model_of(c);
+        writeln!(
+            cams,
+            "{} {} {} {} {}",
+            i + 1,
+            MODELS[model].0,
+            c.width,
+            c.height,
+            fmt_params(&params)
+        )
+        .unwrap();
+        let q = q_from_rotation(&c.rotation);
+        let t = c.translation;
+        writeln!(
+            imgs,
+            "{} {} {} {} {} {} {} {} {} {}\n",
+            i + 1,
+            q[0],
+            q[1],
+            q[2],
+            q[3],
+            t.x,
+            t.y,
+            t.z,
+            i + 1,
+            v.name
+        )
+        .unwrap();
+    }
+    let pts = "# 3D point list with one line of data per point:\n\
+               #   POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[] as (IMAGE_ID, POINT2D_IDX)\n\
+               # Number of points: 0, mean track length: 0\n";
+    for (name, text) in [
+        ("cameras.txt", cams.as_str()),
+        ("images.txt", imgs.as_str()),
+        ("points3D.txt", pts),
+    ] {
+        let p = dir.join(name);
+        fs::write(&p, text).with_context(|| format!("{}: cannot write", p.display()))?;
+    }
+    Ok(())
+}
+
+fn check_names(views: &[View]) -> Result<()> {
+    for v in views {
+        if v.name.is_empty() || v.name.contains(['\n', '\r', '\0']) {
+            bail!(
+                "cannot write COLMAP model: image name {:?} is empty or has a line break/NUL",
+                v.name
+            );
+        }
+    }
+    Ok(())
+}
+
+// ---------------------------------------------------------------------------------------------
+// Binary
+// ---------------------------------------------------------------------------------------------
+
+struct Reader<'a> {
+    data: &'a [u8],
+    pos: usize,
+    path: &'a Path,
+}
+
+impl Reader<'_> {
+    fn take(&mut self, n: usize, what: &str) -> Result<&[u8]> {
+        if self.pos + n > self.data.len() {
+            bail!(
+                "{}: truncated: file ends at byte {} while reading {what}",
+                self.path.display(),
+                self.data.len()
+            );
+        }
+        let s = &self.data[self.pos..self.pos + n];
+        self.pos += n;
+        Ok(s)
+    }
+    fn u64(&mut self, what: &str) -> Result<u64> {
+        Ok(u64::from_le_bytes(self.take(8, what)?.try_into().unwrap()))
+    }
+    fn u32(&mut self, what: &str) -> Result<u32> {
+        Ok(u32::from_le_bytes(self.take(4, what)?.try_into().unwrap()))
+    }
+    fn i32(&mut self, what: &str) -> Result<i32> {
+        Ok(i32::from_le_bytes(self.take(4, what)?.try_into().unwrap()))
+    }
+    fn f64(&mut self, what: &str) -> Result<f64> {
+        Ok(f64::from_le_bytes(self.take(8, what)?.try_into().unwrap()))
+    }
+    fn cstr(&mut self, what: &str) -> Result<String> {
+        let rest = &self.data[self.pos..];
+        let n = rest.iter().position(|&c| c == 0).ok_or_else(|| {
+            anyhow!(
+                "{}: truncated: no NUL terminator for {what}",
+                self.path.display()
+            )
+        })?;
+        let s = String::from_utf8(rest[..n].to_vec())
+            .map_err(|_| anyhow!("{}: {what}: name is not UTF-8", self.path.display()))?;
+        self.pos += n + 1;
+        Ok(s)
+    }
+}
+
+/// Read `cameras.bin` + `images.bin`.
+pub fn read_binary(dir: &Path, images_dir: &Path) -> Result<Vec<View>> {
+    let cpath = dir.join("cameras.bin");
+    let cdata = fs::read(&cpath).with_context(|| format!("{}: cannot read", cpath.display()))?;
+    let mut r = Reader {
+        data: &cdata,
+        pos: 0,
+        path: &cpath,
+    };
+    let n = r.u64("the camera count")?;
+    let mut cams = HashMap::new();
+    for k in 0..n {
+        let what = format!("camera {k} of {n}");
+        let id = r.u32(&what)? as u64;
+        let model = r.i32(&what)?;
+        let w = r.u64(&what)?;
+        let h = r.u64(&what)?;
+        let wh = format!("{}: camera {k} (id {id})", cpath.display());
+        if model < 0 || model as usize >= MODELS.len() {
+            bail!("{wh}: unknown camera model id {model} (supported: {SUPPORTED})");
+        }
+        let model = model as usize;
+        if model > 4 {
+            // Unsupported: report it (the parameter count is known, but there is no point reading on).
+            intrinsics(&wh, model, w, h, &[])?;
+        }
+        let mut p = Vec::with_capacity(MODELS[model].1);
+        for _ in 0..MODELS[model].1 {
+            p.push(r.f64(&what)?);
+        }
+        let k = intrinsics(&wh, model, w, h, &p)?;
+        if cams.insert(id, k).is_some() {
+            bail!("{wh}: camera id {id} defined twice");
+        }
+    }
+    if r.pos != cdata.len() {
+        bail!(
+            "{}: {} bytes after the {n} declared cameras (wrong count?)",
+            cpath.display(),
+            cdata.len() - r.pos
+        );
+    }
+
+    let ipath = dir.join("images.bin");
+    let idata = fs::read(&ipath).with_context(|| format!("{}: cannot read", ipath.display()))?;
+    let mut r = Reader {
+        data: &idata,
+        pos: 0,
+        path: &ipath,
+    };
+    let n = r.u64("the image count")?;
+    let mut imgs = Vec::new();
+    for k in 0..n {
+        let what = format!("image {k} of {n}");
+        let id = r.u32(&what)?;
+        let mut v = [0f64; 7];
+        for x in v.iter_mut() {
+            *x = r.f64(&what)?;
+        }
+        let camera_id = r.u32(&what)? as u64;
+        let name = r.cstr(&what)?;
+        let np = r.u64(&what)?;
+        // Each 2D point: x, y (f64) and a u64 point3D id.
+        let bytes = np.checked_mul(24).filter(|b| *b <= usize::MAX as u64);
+        match bytes {
+            Some(b) => {
+                r.take(b as usize, &format!("{what}: {np} 2D points"))?;
+            }
+            None => bail!("{}: {what}: absurd 2D point count {np}", ipath.display()),
+        }
+        imgs.push(RawImage {
+            name,
+            q: [v[0], v[1], v[2], v[3]],
+            t: [v[4], v[5], v[6]],
+            camera_id,
+            origin: format!("{}: image {k} (id {id})", ipath.display()),
+        });
+    }
+    if r.pos != idata.len() {
+        bail!(
+            "{}: {} bytes after the {n} declared images (wrong count?)",
+            ipath.display(),
+            idata.len() - r.pos
+        );
+    }
+    assemble(dir, cams, imgs, images_dir)
+}
+
+/// Write `cameras.bin`, `images.bin` and an empty `points3D.bin` (same content as
+/// [`write_text`]).
+pub fn write_binary(dir: &Path, views: &[View]) -> Result<()> {
+    fs::create_dir_all(dir).with_context(|| format!("{}: cannot create", dir.display()))?;
+    check_names(views)?;
+    let mut cams = Vec::new();
+    let mut imgs = Vec::new();
+    cams.extend((views.len() as u64).to_le_bytes());
+    imgs.extend((views.len() as u64).to_le_bytes());
+    for (i, v) in views.iter().enumerate() {
+        let c = &v.camera;
+        let (model, params) = model_of(c);
+        let id = (i + 1) as u32;
+        cams.extend(id.to_le_bytes());
+        cams.extend((model as i32).to_le_bytes());
+        cams.extend((c.width as u64).to_le_bytes());
+        cams.extend((c.height as u64).to_le_bytes());
+        for p in params {
+            cams.extend(p.to_le_bytes());
+        }
+        imgs.extend(id.to_le_bytes());
+        let q = q_from_rotation(&c.rotation);
+        for x in q.into_iter().chain(c.translation.to_array()) {
+            imgs.extend(x.to_le_bytes());
+        }
+        imgs.extend(id.to_le_bytes());
+        imgs.extend(v.name.as_bytes());
+        imgs.push(0);
+        imgs.extend(0u64.to_le_bytes());
+    }
+    for (name, data) in [
+        ("cameras.bin", cams),
+        ("images.bin", imgs),
+        ("points3D.bin", 0u64.to_le_bytes().to_vec()),
+    ] {
+        let p = dir.join(name);
+        fs::write(&p, data).with_context(|| format!("{}: cannot write", p.display()))?;
+    }
+    Ok(())
+}

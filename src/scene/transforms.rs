@@ -1,0 +1,302 @@
+//! instant-ngp / nerfstudio `transforms.json` (SPEC §3).
+//!
+//! Intrinsics `fl_x, fl_y, cx, cy, w, h` are read per frame, falling back to the top level;
+//! when `fl_x` is absent, `camera_angle_x` gives `fl_x = w / (2 tan(angle_x / 2))` (likewise
+//! `fl_y` from `camera_angle_y`, else `fl_y = fl_x`); `cx, cy` default to `w/2, h/2`; `w, h`
+//! default to the image header. `k1, k2, p1, p2` (non-zero) become OpenCV distortion; a
+//! non-zero `k3`/`k4` or a fisheye/equirectangular `camera_model` is an error.
+//!
+//! Poses: `transform_matrix` is camera→world in OpenGL axes (x right, y up, z backward). We
+//! convert to OpenCV world→camera: `R_c2w_cv = R_c2w_gl · diag(1,-1,-1)`, `R = R_c2w_cvᵀ`,
+//! `t = -R c`. The rotation block must be orthonormal to 1e-3 (files written in f32 are fine;
+//! scaled matrices are rejected).
+//!
+//! `file_path` is relative to the JSON file; instant-ngp often omits the extension, so if the
+//! path is not a file, `.png`, `.jpg`, `.jpeg`, `.exr` (and upper-case) are tried. The view
+//! name is `file_path` without a leading `./`, plus the extension found. Views keep the file's
+//! frame order.
+
+use super::{Camera, Distortion, View};
+use anyhow::{anyhow, bail, Context, Result};
+use glam::{DMat3, DVec3};
+use serde_json::{json, Map, Value};
+use std::fs;
+use std::path::{Path, PathBuf};
+
+/// Parse a JSON file with an error naming the file, line and column.
+fn read_json(path: &Path) -> Result<Value> {
+    let text =
+        fs::read_to_string(path).with_context(|| format!("{}: cannot read", path.display()))?;
+    serde_json::from_str(&text).map_err(|e| {
+        anyhow!(
+            "{}: line {} column {}: malformed JSON: {e}",
+            path.display(),
+            e.line(),
+            e.column()
+        )
+    })
+}
+
+/// A numeric field from the frame, else the top level.
+fn num(
+    p: &str,
+    frame: &Map<String, Value>,
+    top: &Map<String, Value>,
+    key: &str,
+) -> Result<Option<f64>> {
+    let v = frame.get(key).or_else(|| top.get(key));
+    match v {
+        None | Some(Value::Null) => Ok(None),
+        Some(Value::Number(n)) => {
+            let x = n.as_f64().unwrap_or(f64::NAN);
+            if !x.is_finite() {
+                bail!("{p}: '{key}' is not finite");
+            }
+            Ok(Some(x))
+        }
+        Some(other) => bail!("{p}: '{key}' must be a number, found {other}"),
+    }
+}
+
+/// Resolve a frame's image path relative to `base`; returns (path, view name).
+fn resolve_image(base: &Path, file_path: &str) -> Option<(PathBuf, String)> {
+    let rel = file_path.strip_prefix("./").unwrap_or(file_path);
+    let direct = base.join(rel);
+    if direct.is_file() {
+        return Some((direct, rel.to_string()));
+    }
+    for e in super::mvsnet::IMAGE_EXTS {
+        let name = format!("{rel}.{e}");
+        let p = base.join(&name);
+        if p.is_file() {
+            return Some((p, name));
+        }
+    }
+    None
+}
+
+/// Load all frames of a transforms file.
+pub fn load(path: &Path) -> Result<Vec<View>> {
+    let pd = path.display().to_string();
+    let root = read_json(path)?;
+    let top = root
+        .as_object()
+        .ok_or_else(|| anyhow!("{pd}: expected a JSON object at the top level"))?;
+    let base = path.parent().unwrap_or(Path::new("."));
+    if let Some(m) = top.get("camera_model").and_then(|v| v.as_str()) {
+        if !matches!(m, "OPENCV" | "PINHOLE" | "SIMPLE_PINHOLE") {
+            bail!("{pd}: camera_model '{m}' is not supported (OPENCV, PINHOLE, SIMPLE_PINHOLE)");
+        }
+    }
+    let frames = top
+        .get("frames")
+        .and_then(|f| f.as_array())
+        .ok_or_else(|| anyhow!("{pd}: no 'frames' array"))?;
+    let mut views = Vec::with_capacity(frames.len());
+    for (i, f) in frames.iter().enumerate() {
+        let wh = format!("{pd}: frame {i}");
+        let fr = f
+            .as_object()
+            .ok_or_else(|| anyhow!("{wh}: expected an object"))?;
+        let file_path = fr
+            .get("file_path")
+            .and_then(|v| v.as_str())
+            .ok_or_else(|| anyhow!("{wh}: missing string 'file_path'"))?;
+        let wh = format!("{wh} ('{file_path}')");
+        if let Some(m) = fr.get("camera_model").and_then(|v| v.as_str()) {
+            if !matches!(m, "OPENCV" | "PINHOLE" | "SIMPLE_PINHOLE") {
+                bail!("{wh}: camera_model '{m}' is not supported");
+            }
+        }
+        let (image_path, name) = resolve_image(base, file_path).ok_or_else(|| {
+            anyhow!(
+                "{wh}: image not found: tried {} and with extensions {}",
+                base.join(file_path).display(),
+                super::mvsnet::IMAGE_EXTS.join(",")
+            )
+        })?;
+
+        // transform_matrix: 4x4 (a 3x4 is accepted too) camera→world, OpenGL axes.
+        let m = fr
+            .get("transform_matrix")
+            .and_then(|v| v.as_array())
+            .ok_or_else(|| anyhow!("{wh}: missing 'transform_matrix' (4x4 array)"))?;
+        if m.len() != 4 && m.len() != 3 {
+            bail!(
+                "{wh}: 'transform_matrix' must have 4 rows, found {}",
+                m.len()
+            );
+        }
+        let mut a = [[0f64; 4]; 4];
+        for (r, row) in m.iter().enumerate() {
+            let row = row
+                .as_array()
+                .filter(|row| row.len() == 4)
+                .ok_or_else(|| anyhow!("{wh}: 'transform_matrix' row {r} must have 4 numbers"))?;
+            for (c, v) in row.iter().enumerate() {
+                a[r][c] = v.as_f64().filter(|x| x.is_finite()).ok_or_else(|| {
+                    anyhow!("{wh}: 'transform_matrix'[{r}][{c}] is not a finite number")
+                })?;
+            }
+        }
+        if m.len() == 4 && (a[3] != [0.0, 0.0, 0.0, 1.0]) {
+            bail!(
+                "{wh}: 'transform_matrix' last row must be [0,0,0,1], found {:?}",
+                a[3]
+            );
+        }
+        // Columns of the camera→world rotation in OpenCV axes: x, -y, -z of the GL one.
+        let col = |c: usize, s: f64| DVec3::new(s * a[0][c], s * a[1][c], s * a[2][c]);
+        let c2w = DMat3::from_cols(col(0, 1.0), col(1, -1.0), col(2, -1.0));
+        let ortho = (c2w.transpose() * c2w - DMat3::IDENTITY)
+            .to_cols_array()
+            .iter()
+            .fold(0f64, |mx, v| mx.max(v.abs()));
+        if ortho > 1e-3 || c2w.determinant() <= 0.0 {
+            bail!("{wh}: the rotation part of 'transform_matrix' is not a rotation (|RᵀR − I| = {ortho:.2e})");
+        }
+        let center = DVec3::new(a[0][3], a[1][3], a[2][3]);
+        let rotation = c2w.transpose();
+        let translation = -(rotation * center);
+
+        // Intrinsics.
+        let mut w = num(&wh, fr, top, "w")?;
+        let mut h = num(&wh, fr, top, "h")?;
+        if w.is_none() || h.is_none() {
+            let (iw, ih) = super::image::dimensions(&image_path)?;
+            w = w.or(Some(iw as f64));
+            h = h.or(Some(ih as f64));
+        }
+        let (w, h) = (w.unwrap(), h.unwrap());
+        if !(w >= 1.0
+            && h >= 1.0
+            && w.fract() == 0.0
+            && h.fract() == 0.0
+            && w <= u32::MAX as f64
+            && h <= u32::MAX as f64)
+        {
+            bail!("{wh}: image size w={w}, h={h} must be positive integers");
+        }
+        let fx = match num(&wh, fr, top, "fl_x")? {
+            Some(f) => f,
+            None => match num(&wh, fr, top, "camera_angle_x")? {
+                Some(ax) => 0.5 * w / (0.5 * ax).tan(),
+                None => bail!("{wh}: no focal length: neither 'fl_x' nor 'camera_angle_x' given"),
+            },
+        };
+        let fy = match num(&wh, fr, top, "fl_y")? {
+            Some(f) => f,
+            None => match num(&wh, fr, top, "camera_angle_y")? {
+                Some(ay) => 0.5 * h / (0.5 * ay).tan(),
+                None => fx,
+            },
+        };
+        if !(fx > 0.0 && fy > 0.0 && fx.is_finite() && fy.is_finite()) {
+            bail!("{wh}: focal lengths must be positive (fl_x={fx}, fl_y={fy})");
+        }
+        let cx = num(&wh, fr, top, "cx")?.unwrap_or(0.5 * w);
+        let cy = num(&wh, fr, top, "cy")?.unwrap_or(0.5 * h);
+        for key in ["k3", "k4"] {
+            if num(&wh, fr, top, key)?.unwrap_or(0.0) != 0.0 {
+                bail!("{wh}: distortion term '{key}' is not supported (k1, k2, p1, p2 only)");
+            }
+        }
+        let k1 = num(&wh, fr, top, "k1")?.unwrap_or(0.0);
+        let k2 = num(&wh, fr, top, "k2")?.unwrap_or(0.0);
+        let p1 = num(&wh, fr, top, "p1")?.unwrap_or(0.0);
+        let p2 = num(&wh, fr, top, "p2")?.unwrap_or(0.0);
+        let distortion = if k1 == 0.0 && k2 == 0.0 && p1 == 0.0 && p2 == 0.0 {
+            Distortion::None
+        } else {
+            Distortion::OpenCv { k1, k2, p1, p2 }
+        };
+        views.push(View {
+            name,
+            camera: Camera {
+                width: w as u32,
+                height: h as u32,
+                fx,
+                fy,
+                cx,
+                cy,
+                distortion,
+                rotation,
+                translation,
+            },
+            image_path,
+        });
+    }
+    Ok(views)
+}
+
+/// Intrinsics as JSON fields (`camera_model`, `fl_x`, …, `k1, k2, p1, p2`).
+fn intrinsics_json(c: &Camera) -> Map<String, Value> {
+    let (k1, k2, p1, p2) = match c.distortion {
+        Distortion::None => (0.0, 0.0, 0.0, 0.0),
+        Distortion::SimpleRadial { k } => (k, 0.0, 0.0, 0.0),
+        Distortion::Radial { k1, k2 } => (k1, k2, 0.0, 0.0),
+        Distortion::OpenCv { k1, k2, p1, p2 } => (k1, k2, p1, p2),
+    };
+    let v = json!({
+        "camera_model": "OPENCV",
+        "fl_x": c.fx, "fl_y": c.fy, "cx": c.cx, "cy": c.cy,
+        "w": c.width, "h": c.height,
+        "k1": k1, "k2": k2, "p1": p1, "p2": p2,
+    });
+    v.as_object().unwrap().clone()
+}
+
+/// Write a transforms.json: intrinsics at the top level when all views share them, else per
+/// frame; `file_path = image_prefix + view.name`; camera→world OpenGL `transform_matrix`.
+/// Numbers are written by serde_json (shortest round-trip f64). Distortion is written as
+/// OpenCV `k1, k2, p1, p2` (SIMPLE_RADIAL/RADIAL map onto it exactly; it reads back as
+/// `Distortion::OpenCv`).
+pub fn write(path: &Path, views: &[View], image_prefix: &str) -> Result<()> {
+    let shared = views.windows(2).all(|w| {
+        let (a, b) = (&w[0].camera, &w[1].camera);
+        a.width == b.width
+            && a.height == b.height
+            && a.fx == b.fx
+            && a.fy == b.fy
+            && a.cx == b.cx
+            && a.cy == b.cy
+            && a.distortion == b.distortion
+    });
+    let mut top = Map::new();
+    if shared {
+        if let Some(v) = views.first() {
+            top.extend(intrinsics_json(&v.camera));
+        }
+    }
+    let frames: Vec<Value> = views
+        .iter()
+        .map(|v| {
+            let c = &v.camera;
+            let c2w = c.rotation.transpose(); // columns: camera axes in world (OpenCV)
+            let center = c.center();
+            let (x, y, z) = (c2w.x_axis, -c2w.y_axis, -c2w.z_axis); // OpenGL axes
+            let m = json!([
+                [x.x, y.x, z.x, center.x],
+                [x.y, y.y, z.y, center.y],
+                [x.z, y.z, z.z, center.z],
+                [0.0, 0.0, 0.0, 1.0]
+            ]);
+            let mut f = Map::new();
+            f.insert(
+                "file_path".into(),
+                json!(format!("{image_prefix}{}", v.name)),
+            );
+            f.insert("transform_matrix".into(), m);
+            if !shared {
+                f.extend(intrinsics_json(c));
+            }
+            Value::Object(f)
+        })
+        .collect();
+    top.insert("frames".into(), Value::Array(frames));
+    let text = serde_json::to_string_pretty(&Value::Object(top))?;
+    if let Some(d) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+        fs::create_dir_all(d).with_context(|| format!("{}: cannot create", d.display()))?;
+    }
+    fs::write(path, text).with_context(|| format!("{}: cannot write", path.display()))
+}

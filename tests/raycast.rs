@@ -89,8 +89,16 @@ fn closest_hit_matches_brute_force_for_every_preset() {
             // f32 path, bit-exact, 8 random rays per packet, with and without AVX.
             for k0 in (0..3504u64).step_by(MAX_LANES) {
                 let mut p = Packet::default();
+                // Every other packet shares one origin (the camera-ray fast path).
+                let shared = (k0 / MAX_LANES as u64) % 2 == 0;
                 for l in 0..MAX_LANES {
                     let (origin, dir) = ray(k0 + l as u64);
+                    let origin = if shared { ray(k0).0 } else { origin };
+                    let dir = if shared {
+                        (rand_vec(seed, k0 + l as u64, 3, -1.1, 1.1) - origin).normalize()
+                    } else {
+                        dir
+                    };
                     p.origin[l] = (origin - n.center).as_vec3().to_array();
                     p.dir[l] = dir.as_vec3().to_array();
                     p.active |= 1 << l;

@@ -514,24 +514,44 @@ impl Tracer {
                 }
             }
             let st = &mut scratch.stack;
+            let shared = g
+                .rays
+                .iter()
+                .all(|r| r.origin.map(f32::to_bits) == lead_ray.origin.map(f32::to_bits));
             #[cfg(target_arch = "x86_64")]
             if self.avx && group > 0xF {
                 // SAFETY: `self.avx` is only true when the CPU reports AVX.
-                unsafe { self.trace_group_avx(root, &g, &mut best_t, &mut best_id, st) };
+                unsafe {
+                    if shared {
+                        self.trace_group_avx::<true>(root, &g, &mut best_t, &mut best_id, st)
+                    } else {
+                        self.trace_group_avx::<false>(root, &g, &mut best_t, &mut best_id, st)
+                    }
+                };
                 continue;
             }
-            if group & 0xF != 0 {
-                self.trace_group_sse(root, &g, 0, &mut best_t, &mut best_id, st);
-            }
-            if group >> 4 != 0 {
-                self.trace_group_sse(root, &g, 4, &mut best_t, &mut best_id, st);
+            for base in [0, 4] {
+                if (group >> base) & 0xF != 0 {
+                    if shared {
+                        self.trace_group_sse::<true>(root, &g, base, &mut best_t, &mut best_id, st);
+                    } else {
+                        self.trace_group_sse::<false>(
+                            root,
+                            &g,
+                            base,
+                            &mut best_t,
+                            &mut best_id,
+                            st,
+                        );
+                    }
+                }
             }
         }
         std::array::from_fn(|i| (best_id[i] != u32::MAX).then(|| (best_id[i], best_t[i])))
     }
 
     #[inline(never)]
-    fn trace_group_sse(
+    fn trace_group_sse<const SHARED: bool>(
         &self,
         root: u32,
         g: &Group,
@@ -540,13 +560,13 @@ impl Tracer {
         best_id: &mut [u32; MAX_LANES],
         stack: &mut Vec<(u32, f32)>,
     ) {
-        self.trace_group::<F4>(root, g, base, best_t, best_id, stack)
+        self.trace_group::<F4, SHARED>(root, g, base, best_t, best_id, stack)
     }
 
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx")]
     #[inline(never)]
-    unsafe fn trace_group_avx(
+    unsafe fn trace_group_avx<const SHARED: bool>(
         &self,
         root: u32,
         g: &Group,
@@ -554,13 +574,14 @@ impl Tracer {
         best_id: &mut [u32; MAX_LANES],
         stack: &mut Vec<(u32, f32)>,
     ) {
-        self.trace_group::<F8>(root, g, 0, best_t, best_id, stack)
+        self.trace_group::<F8, SHARED>(root, g, 0, best_t, best_id, stack)
     }
 
     /// One SIMD traversal of lanes `base .. base + L::N` of a group (rays sharing the dominant
-    /// axis and the direction signs).
+    /// axis and the direction signs). `SHARED`: all of the group's rays have the same origin
+    /// (camera rays); box and vertex translations are then scalar (same IEEE results).
     #[inline(always)]
-    fn trace_group<L: Lanes>(
+    fn trace_group<L: Lanes, const SHARED: bool>(
         &self,
         root: u32,
         g: &Group,
@@ -593,6 +614,7 @@ impl Tracer {
             }
         }
         let o: [L; 3] = [L::load(&oa[0]), L::load(&oa[1]), L::load(&oa[2])];
+        let os = [oa[0][0], oa[1][0], oa[2][0]];
         let inv: [L; 3] = [L::load(&ia[0]), L::load(&ia[1]), L::load(&ia[2])];
         // The group shares direction signs: near plane = min for +, max for -.
         let near: [usize; 3] = std::array::from_fn(|a| dirs[0][a].is_sign_negative() as usize);
@@ -614,7 +636,7 @@ impl Tracer {
                     let count = ((r >> 27) & 15) as usize + 1;
                     let mut changed = false;
                     for j in first..first + count {
-                        let (hits, t) = intersect_lanes(&lanes, &self.tris[j], active);
+                        let (hits, t) = intersect_lanes::<L, SHARED>(&lanes, &self.tris[j], active);
                         if hits != 0 {
                             let mut ta = [0.0f32; MAX_LANES];
                             t.store(&mut ta);
@@ -639,13 +661,32 @@ impl Tracer {
                 let mut hit_d = [0.0f32; 4];
                 let mut hit_r = [0u32; 4];
                 let mut nh = 0;
+                // Box planes relative to the origin: one 4-wide subtraction per plane for all
+                // four children when the origin is shared, else per lane.
+                let mut rel = [[[0.0f32; 4]; 3]; 2];
+                if SHARED {
+                    for side in 0..2 {
+                        for a in 0..3 {
+                            for c in 0..4 {
+                                rel[side][a][c] = nd.b[side][a][c] - os[a];
+                            }
+                        }
+                    }
+                }
                 for c in 0..4 {
-                    let tnx = (L::splat(nd.b[near[0]][0][c]) - o[0]) * inv[0];
-                    let tfx = (L::splat(nd.b[far[0]][0][c]) - o[0]) * inv[0];
-                    let tny = (L::splat(nd.b[near[1]][1][c]) - o[1]) * inv[1];
-                    let tfy = (L::splat(nd.b[far[1]][1][c]) - o[1]) * inv[1];
-                    let tnz = (L::splat(nd.b[near[2]][2][c]) - o[2]) * inv[2];
-                    let tfz = (L::splat(nd.b[far[2]][2][c]) - o[2]) * inv[2];
+                    let slab = |side: usize, a: usize| {
+                        if SHARED {
+                            L::splat(rel[side][a][c]) * inv[a]
+                        } else {
+                            (L::splat(nd.b[side][a][c]) - o[a]) * inv[a]
+                        }
+                    };
+                    let tnx = slab(near[0], 0);
+                    let tfx = slab(far[0], 0);
+                    let tny = slab(near[1], 1);
+                    let tfy = slab(far[1], 1);
+                    let tnz = slab(near[2], 2);
+                    let tfz = slab(far[2], 2);
                     let tn = tnx.max(tny).max(tnz.max(zero));
                     let tf = tfx.min(tfy).min(tfz.min(tmax)) * scale;
                     let m = tn.le(tf);

@@ -172,6 +172,9 @@ pub struct RayLanes<L: Lanes> {
     pub s: [L; 3],
     /// The scalar rays (for the rare f64 fallback); inactive lanes hold any valid ray.
     pub scalar: [WatertightRay; MAX_LANES],
+    /// The permuted origin when every lane has the same one (camera rays): the vertex
+    /// translation is then one scalar subtraction instead of one per lane (same IEEE result).
+    pub shared: [f32; 3],
 }
 
 impl<L: Lanes> RayLanes<L> {
@@ -191,27 +194,49 @@ impl<L: Lanes> RayLanes<L> {
         }
         let o = [L::load(&oa[0]), L::load(&oa[1]), L::load(&oa[2])];
         let s = [L::load(&sa[0]), L::load(&sa[1]), L::load(&sa[2])];
-        RayLanes { k, o, s, scalar }
+        let shared = [oa[0][0], oa[1][0], oa[2][0]];
+        RayLanes {
+            k,
+            o,
+            s,
+            scalar,
+            shared,
+        }
     }
 }
 
-/// A vertex translated, permuted and sheared into each lane's ray space.
+/// A vertex translated, permuted and sheared into each lane's ray space. `SHARED`: all lanes
+/// have the origin `r.shared`.
 #[inline(always)]
-fn vertex_lanes<L: Lanes>(r: &RayLanes<L>, v: [f32; 3]) -> (L, L, L) {
+fn vertex_lanes<L: Lanes, const SHARED: bool>(r: &RayLanes<L>, v: [f32; 3]) -> (L, L, L) {
     let [kx, ky, kz] = r.k;
-    let x = L::splat(v[kx]) - r.o[0];
-    let y = L::splat(v[ky]) - r.o[1];
-    let z = L::splat(v[kz]) - r.o[2];
+    let (x, y, z) = if SHARED {
+        (
+            L::splat(v[kx] - r.shared[0]),
+            L::splat(v[ky] - r.shared[1]),
+            L::splat(v[kz] - r.shared[2]),
+        )
+    } else {
+        (
+            L::splat(v[kx]) - r.o[0],
+            L::splat(v[ky]) - r.o[1],
+            L::splat(v[kz]) - r.o[2],
+        )
+    };
     (x + r.s[0] * z, y + r.s[1] * z, z)
 }
 
 /// SIMD watertight test of one triangle against `L::N` rays: returns the lanes that hit (among
 /// `active`) and their distances. Lane `i` equals `intersect(&r.scalar[i], v)` exactly.
 #[inline(always)]
-pub fn intersect_lanes<L: Lanes>(r: &RayLanes<L>, v: &[[f32; 3]; 3], active: u32) -> (u32, L) {
-    let (p0x, p0y, p0z) = vertex_lanes(r, v[0]);
-    let (p1x, p1y, p1z) = vertex_lanes(r, v[1]);
-    let (p2x, p2y, p2z) = vertex_lanes(r, v[2]);
+pub fn intersect_lanes<L: Lanes, const SHARED: bool>(
+    r: &RayLanes<L>,
+    v: &[[f32; 3]; 3],
+    active: u32,
+) -> (u32, L) {
+    let (p0x, p0y, p0z) = vertex_lanes::<L, SHARED>(r, v[0]);
+    let (p1x, p1y, p1z) = vertex_lanes::<L, SHARED>(r, v[1]);
+    let (p2x, p2y, p2z) = vertex_lanes::<L, SHARED>(r, v[2]);
     let sz = r.s[2];
     let e0 = p1x * p2y - p1y * p2x;
     let e1 = p2x * p0y - p2y * p0x;

@@ -5,11 +5,21 @@
 //! ## Build
 //! Vertices are moved to the local frame in f64 (`v - normalization.center`) and only then cast
 //! to f32, so a scene at (5e5, 4e6, 300) keeps the precision of one at the origin. obvhs builds a
-//! BVH2 ([`BuildPreset`] picks its `BvhBuildParams` preset); we collapse it into a 4-wide BVH
-//! (each node holds the boxes of up to 4 children, structure-of-arrays, 128 bytes) and store the
-//! triangles' f32 vertices in leaf order. obvhs is used for construction only: its traversal
-//! floors `tmin` at 1e-4 (CWBVH) and its triangle test is not watertight (NOTES.md), and a
-//! packet traversal of the γ² coherent rays of a pixel is 2–3× faster than its single-ray one.
+//! BVH2 ([`BuildPreset`] picks its `BvhBuildParams` preset, leaves of ≤ 4 triangles); we collapse
+//! it into a 4-wide BVH (each node holds the boxes of up to 4 children, structure-of-arrays, 128
+//! bytes) and store the triangles' f32 vertices in leaf order. obvhs is used for construction
+//! only: its traversal floors `tmin` at 1e-4 (CWBVH), its triangle test is not watertight
+//! (NOTES.md), and it has no packet traversal.
+//!
+//! ## Traversal
+//! Rays are traced in packets of up to 8 ([`Packet`]); lanes are grouped by dominant axis and
+//! direction signs (so near/far slab planes are fixed per group), and each group is one SIMD
+//! traversal: 8 lanes with AVX (runtime-detected, `is_x86_feature_detected!`), else two 4-lane
+//! SSE traversals. A child is visited if any lane hits its box; children are visited
+//! front-to-back by their smallest lane entry distance. When all lanes share the origin (camera
+//! rays), box planes and vertices are translated once per node/triangle in scalar code. On the
+//! 1.3M-triangle bench scene this traces ~3.5–4× more rays per CPU-second than obvhs's own
+//! `Bvh2::ray_traverse` with the same watertight closure.
 //!
 //! ## Conservative boxes (why the closest hit is exact)
 //! All node boxes are recomputed here from the f32 vertices (exact min/max) and padded by
@@ -29,6 +39,8 @@
 //! extent (the triangle choice itself can differ from the exact one only within ~1e-7·D of an
 //! edge, where both neighbours give nearly the same point).
 
+#![allow(clippy::needless_range_loop)]
+
 #[cfg(target_arch = "x86_64")]
 use super::simd::F8;
 use super::simd::{Lanes, Mask, F4};
@@ -43,11 +55,12 @@ use std::time::Duration;
 
 /// Which obvhs `BvhBuildParams` preset builds the BVH2 that is collapsed to our BVH4. The hits
 /// do not depend on it (see the module docs); only build time and tracing speed do.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
 pub enum BuildPreset {
     /// `BvhBuildParams::fast_build()` with at most 4 triangles per leaf.
     Fast,
     /// `BvhBuildParams::medium_build()` with at most 4 triangles per leaf (the default).
+    #[default]
     Medium,
 }
 
@@ -72,12 +85,6 @@ impl BuildPreset {
             BuildPreset::Fast => "fast",
             BuildPreset::Medium => "medium",
         }
-    }
-}
-
-impl Default for BuildPreset {
-    fn default() -> Self {
-        BuildPreset::Medium
     }
 }
 

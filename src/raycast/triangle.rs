@@ -20,6 +20,9 @@
 //! Both the scalar [`intersect`] and the 4-lane [`intersect4`] compute identical f32 values per
 //! lane (same operations, no FMA), so packet and single-ray traversal agree bit for bit.
 
+// Index loops over lanes read best; `!(t > 0)` also rejects NaN on purpose.
+#![allow(clippy::needless_range_loop, clippy::neg_cmp_op_on_partial_ord)]
+
 use super::simd::{Lanes, Mask};
 
 /// Index of the largest |component| (first one on ties), pbrt's `MaxComponentIndex(Abs(d))`.

@@ -578,6 +578,25 @@ fn bad_input_is_an_error() {
     };
     let e = Tracer::new(&bad, &n).err().unwrap().to_string();
     assert!(e.contains("triangle 0") && e.contains("3"), "{e}");
+    // 2,000 copies of one triangle (a degenerate BVH input): every copy is hit at the same
+    // distance and the tie goes to the lowest triangle id, whatever the traversal order.
+    let dup = Mesh {
+        vertices: vec![
+            DVec3::new(-1.0, -1.0, 0.0),
+            DVec3::new(1.0, -1.0, 0.0),
+            DVec3::new(0.0, 1.0, 0.0),
+        ],
+        triangles: vec![[0, 1, 2]; 2_000],
+    };
+    let nd = norm(&dup);
+    for preset in BuildPreset::ALL {
+        let t = Tracer::with_preset(&dup, &nd, preset).unwrap();
+        let h = t
+            .closest_hit(DVec3::new(0.1, 0.0, 2.0), DVec3::new(0.0, 0.0, -1.0))
+            .unwrap();
+        assert_eq!(h.triangle, 0);
+        assert!((h.t - 2.0).abs() < 1e-12);
+    }
     // An empty mesh is fine: everything misses.
     let empty = Mesh::default();
     let t = Tracer::new(&empty, &n).unwrap();

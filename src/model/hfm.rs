@@ -463,17 +463,18 @@ impl Hfm {
             self.layout.total,
             "gradient buffer layout"
         );
-        if grads.positions.len() != n * s * 3 {
+        let inputs = grads.inputs;
+        if inputs && grads.positions.len() != n * s * 3 {
             grads.positions = vec![R::ZERO; n * s * 3];
         }
-        if grads.dirs.len() != n * 3 {
+        if inputs && grads.dirs.len() != n * 3 {
             grads.dirs = vec![R::ZERO; n * 3];
         }
         let scale = R::ONE / R::from_f64((3 * n) as f64);
         let cg: Vec<ChunkGrad<R>> = fwd
             .chunks
             .par_iter()
-            .map(|ch| self.backward_chunk(params, batch, fwd, ch, scale))
+            .map(|ch| self.backward_chunk(params, batch, fwd, ch, scale, inputs))
             .collect();
 
         // Combine MLP weight gradients in chunk order.
@@ -484,7 +485,7 @@ impl Hfm {
             }
         }
         // Direction and position gradients (each pixel / sub-sample written by one chunk).
-        for (ch, c) in fwd.chunks.iter().zip(&cg) {
+        for (ch, c) in fwd.chunks.iter().zip(&cg).filter(|_| inputs) {
             add_into(
                 &mut grads.dirs[ch.pixels.start * 3..ch.pixels.end * 3],
                 &c.d_dirs,
@@ -558,6 +559,7 @@ impl Hfm {
         fwd: &Forward<R>,
         ch: &ChunkFwd<R>,
         scale: R,
+        inputs: bool,
     ) -> ChunkGrad<R> {
         let mode = self.cfg.positions;
         let lf = self.feat_dim();
@@ -603,7 +605,7 @@ impl Hfm {
             .map(|&x| x - ch.samples.start)
             .collect();
         pool_backward(&local_start, &d_in, din, lf, &mut d_feat);
-        let mut d_points = vec![R::ZERO; v * 3];
+        let mut d_points = vec![R::ZERO; if inputs { v * 3 } else { 0 }];
         // Eq. 5 backward through ξ and into SH(d) and F_D.
         let mut d_deform = Vec::new();
         let mut d_grid_d = Vec::new();
@@ -631,21 +633,23 @@ impl Hfm {
                 }
             }
             // Position gradient: grid H first (below), then grid D — keep that order.
-            self.grid_h.backward_points(
-                &params[self.r_grid_h.clone()],
-                pts,
-                mode,
-                &d_feat,
-                &mut d_points,
-            );
-            gd.backward_points(
-                &params[self.r_grid_d.clone()],
-                pts,
-                mode,
-                &d_grid_d,
-                &mut d_points,
-            );
-        } else {
+            if inputs {
+                self.grid_h.backward_points(
+                    &params[self.r_grid_h.clone()],
+                    pts,
+                    mode,
+                    &d_feat,
+                    &mut d_points,
+                );
+                gd.backward_points(
+                    &params[self.r_grid_d.clone()],
+                    pts,
+                    mode,
+                    &d_grid_d,
+                    &mut d_points,
+                );
+            }
+        } else if inputs {
             self.grid_h.backward_points(
                 &params[self.r_grid_h.clone()],
                 pts,
@@ -655,8 +659,10 @@ impl Hfm {
             );
         }
         // SH backward into the directions.
-        let mut d_dirs = vec![R::ZERO; n * 3];
-        sh_backward(&batch.dirs[ch.pixels.clone()], &d_sh, &mut d_dirs);
+        let mut d_dirs = vec![R::ZERO; if inputs { n * 3 } else { 0 }];
+        if inputs {
+            sh_backward(&batch.dirs[ch.pixels.clone()], &d_sh, &mut d_dirs);
+        }
         ChunkGrad {
             d_shader,
             d_deform,

@@ -153,6 +153,10 @@ pub struct Grads<R> {
     pub positions: Vec<R>,
     /// ∂L/∂batch.dirs `[N, 3]`.
     pub dirs: Vec<R>,
+    /// Compute `positions` and `dirs` (default). Training turns this off: positions and
+    /// directions are fixed data there, and the grids' position backward is their most
+    /// expensive pass. Parameter gradients are identical either way.
+    pub inputs: bool,
     /// Grid H entries that received gradient since the last zeroing (unique, sorted).
     pub touched_h: Touched,
     /// The same for grid D.
@@ -166,6 +170,7 @@ impl<R: Copy + Default> Grads<R> {
             params: vec![R::default(); layout.total],
             positions: Vec::new(),
             dirs: Vec::new(),
+            inputs: true,
             touched_h: Touched::default(),
             touched_d: Touched::default(),
         }

@@ -96,9 +96,9 @@ pub struct Params {
 
 impl Params {
     pub fn preset(p: Preset) -> Params {
-        let (width, height, n_aerial, n_close, cells) = match p {
-            Preset::Tiny => (64, 48, 4, 4, 256),
-            Preset::Small => (200, 150, 24, 16, 512),
+        let (width, height, n_aerial, n_close, cells, close_cluster) = match p {
+            Preset::Tiny => (64, 48, 4, 4, 256, 1),
+            Preset::Small => (200, 150, 24, 16, 512, 4),
         };
         let hfov_deg = 60.0;
         let aerial_distance = 120.0;
@@ -141,6 +141,7 @@ impl Params {
                 aerial_target_jitter: 10.0,
                 close_distance,
                 close_region: 40.0,
+                close_cluster,
                 min_hit_fraction: 0.97,
             },
             proxy: ProxyParams {

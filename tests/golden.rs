@@ -166,6 +166,19 @@ fn f32_grids_equal_reference_fma_chain_bit_for_bit() {
                 name(&case)
             );
         }
+        // The same through the committed exact-grid tolerance file (what a backend author runs).
+        let report = compare(&reference, &ours, &tolerances("tolerances-grid-exact.toml"));
+        assert_eq!(
+            report.exit_code(),
+            0,
+            "{}:\n{}",
+            name(&case),
+            report.to_table()
+        );
+        assert!(report
+            .tensors
+            .iter()
+            .any(|t| t.name == "fwd.grid_h" && t.status == Status::Pass));
         if ck.model.cfg.positions == PositionMode::Tcnn {
             tcnn_cases += 1;
         }

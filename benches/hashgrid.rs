@@ -114,6 +114,23 @@ fn main() {
         .map(|i| (2.0 * uniform_f64(2, Purpose::Test, 0, i as u64) - 1.0) as f32)
         .collect();
 
+    // Instruction-count mode (for `valgrind --tool=cachegrind`, whose counts do not depend on
+    // the machine's load): run one pass once and exit. `none` measures the set-up alone.
+    if let Ok(op) = std::env::var("HASHGRID_BENCH_ONLY") {
+        let mut out = vec![0.0f32; n * lf];
+        let mut d_table = vec![0.0f32; g.n_params()];
+        let mut d_pts = vec![0.0f32; n * 3];
+        let mut touched = Touched::default();
+        match op.as_str() {
+            "forward" => g.forward(&table, &pts, mode, &mut out),
+            "backward_table" => g.backward_table(&pts, mode, &d_out, &mut d_table, &mut touched),
+            "backward_points" => g.backward_points(&table, &pts, mode, &d_out, &mut d_pts),
+            _ => {}
+        }
+        std::hint::black_box((&out, &d_table, &d_pts));
+        return;
+    }
+
     // ---- validation: f32 path against the f64 path on a subset.
     {
         let sub = 4096.min(n);
@@ -180,6 +197,17 @@ fn main() {
     let mut d_table = vec![0.0f32; g.n_params()];
     let mut d_pts = vec![0.0f32; n * 3];
     let mut touched = Touched::default();
+    let zero = |d_table: &mut [f32], touched: &mut Touched| {
+        for &e in &touched.entries {
+            d_table[e as usize * 2] = 0.0;
+            d_table[e as usize * 2 + 1] = 0.0;
+        }
+        touched.entries.clear();
+    };
+    println!(
+        "whole batch: best of 3 wall (cpu) ns per sub-sample; slices: median / min over {} slices of {SLICE}",
+        n / SLICE
+    );
     let mut results = Vec::new();
     for threads in [1usize, 2] {
         let pool = rayon::ThreadPoolBuilder::new()
@@ -189,13 +217,6 @@ fn main() {
         pool.install(|| {
             let reps = 3;
             let fwd = best_of(reps, || g.forward(&table, &pts, mode, &mut out));
-            let zero = |d_table: &mut [f32], touched: &mut Touched| {
-                for &e in &touched.entries {
-                    d_table[e as usize * 2] = 0.0;
-                    d_table[e as usize * 2 + 1] = 0.0;
-                }
-                touched.entries.clear();
-            };
             let bt = best_of(reps, || {
                 zero(&mut d_table, &mut touched);
                 g.backward_table(&pts, mode, &d_out, &mut d_table, &mut touched)
@@ -207,27 +228,56 @@ fn main() {
                 g.backward_table(&pts, mode, &d_out, &mut d_table, &mut touched);
                 g.backward_points(&table, &pts, mode, &d_out, &mut d_pts);
             });
+            let n_touched = touched.entries.len();
+            // Per-slice timings: each slice is short enough to usually run without being
+            // preempted on a shared machine; the median is robust to the slices that were.
+            zero(&mut d_table, &mut touched);
+            let sl = slice_stats(n, |r| {
+                g.forward(&table, &pts[r.clone()], mode, &mut out[r.start * lf..r.end * lf])
+            });
+            let sl_bp = slice_stats(n, |r| {
+                let dd = &d_out[r.start * lf..r.end * lf];
+                g.backward_points(&table, &pts[r.clone()], mode, dd, &mut d_pts[r.start * 3..r.end * 3]);
+            });
             let ns = |s: (f64, f64)| format!("{:6.1} ({:6.1})", s.0 * 1e9 / n as f64, s.1 * 1e9 / n as f64);
             println!(
-                "{threads} thread(s), ns per sub-sample, wall (cpu): forward {}  backward_table {}  \
-                 backward_points {}  fwd+bwd {}  [{:.2} M sub-samples/s fwd+bwd; touched {} entries]",
+                "{threads} thread(s): forward {}  backward_table {}  backward_points {}  fwd+bwd {}  \
+                 [{:.2} M sub-samples/s fwd+bwd; touched {n_touched} entries]",
                 ns(fwd),
                 ns(bt),
                 ns(bp),
                 ns(all),
                 n as f64 / all.0 / 1e6,
-                touched.entries.len()
+            );
+            println!(
+                "{threads} thread(s) slices: forward {:6.1} / {:6.1}   backward_points {:6.1} / {:6.1}",
+                sl.0, sl.1, sl_bp.0, sl_bp.1
             );
             results.push((threads, fwd.0, all.0));
         });
     }
     if let [(_, f1, a1), (_, f2, a2)] = results[..] {
         println!(
-            "speed-up 1→2 threads: forward {:.2}x, fwd+bwd {:.2}x",
+            "speed-up 1→2 threads (whole batch, wall): forward {:.2}x, fwd+bwd {:.2}x",
             f1 / f2,
             a1 / a2
         );
     }
     let uptime = std::fs::read_to_string("/proc/loadavg").unwrap_or_default();
     println!("load average at end: {}", uptime.trim());
+}
+
+const SLICE: usize = 4096;
+
+/// (median, min) ns per sub-sample of `f` over consecutive slices of SLICE sub-samples.
+fn slice_stats<F: FnMut(std::ops::Range<usize>)>(n: usize, mut f: F) -> (f64, f64) {
+    let mut v: Vec<f64> = (0..n / SLICE)
+        .map(|s| {
+            let t = Instant::now();
+            f(s * SLICE..(s + 1) * SLICE);
+            t.elapsed().as_secs_f64() * 1e9 / SLICE as f64
+        })
+        .collect();
+    v.sort_by(f64::total_cmp);
+    (v[v.len() / 2], v[0])
 }

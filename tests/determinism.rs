@@ -101,3 +101,29 @@ fn gradients_bit_identical_across_threads_and_runs() {
         );
     }
 }
+
+/// Turning the input gradients off (as training does) leaves the parameter gradients and the
+/// touched sets bit-identical, and computes no input gradients.
+#[test]
+fn parameter_gradients_do_not_depend_on_input_gradients() {
+    let mut cfg = ModelConfig::tiny();
+    cfg.appearance_views = 3;
+    let model = Hfm::new(&cfg).unwrap();
+    let mut params = model.init_params(5);
+    // Non-zero ξ output layer so every path carries gradient.
+    for (i, p) in params.iter_mut().enumerate() {
+        *p += 0.05 * (uniform_f32(9, Purpose::Test, 0, i as u64) - 0.5);
+    }
+    let batch = Batch::random(11, 700, 4, 3, 0.2);
+    let mut with = Grads::<f32>::new(&model.layout);
+    let mut without = Grads::<f32>::new(&model.layout);
+    without.inputs = false;
+    let l1 = model.loss_and_grad(&params, &batch, &mut with).unwrap();
+    let l2 = model.loss_and_grad(&params, &batch, &mut without).unwrap();
+    assert_eq!(l1.to_bits(), l2.to_bits());
+    assert_eq!(bits(&with.params), bits(&without.params));
+    assert_eq!(with.touched_h.entries, without.touched_h.entries);
+    assert_eq!(with.touched_d.entries, without.touched_d.entries);
+    assert!(without.positions.is_empty() && without.dirs.is_empty());
+    assert!(with.positions.iter().any(|&x| x != 0.0));
+}

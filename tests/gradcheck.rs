@@ -67,6 +67,7 @@ impl Report {
             self.worst = ratio;
             self.worst_label = format!("{label}: fd {fd:.12e} analytic {an:.12e}");
         }
+        #[allow(clippy::neg_cmp_op_on_partial_ord)] // written so that NaN fails
         if !(err <= ATOL + RTOL * an.abs()) {
             self.fails.push(format!(
                 "{label}: fd {fd:.12e} analytic {an:.12e} |diff| {err:.3e}"
@@ -521,6 +522,16 @@ fn pipeline_gradients_match_fd() {
     let mut rep = Report::default();
     for (ci, case) in cases().iter().enumerate() {
         let model = Hfm::new(&case.cfg).unwrap();
+        // Grid H of the tiny preset has dense levels and a hashed one (scale 31: 32³ > 2^12).
+        assert!(model.grid_h.dense.contains(&true) && model.grid_h.dense.contains(&false));
+        if ci == 0 {
+            let gd = model.grid_d.as_ref().unwrap();
+            assert!(
+                gd.dense.contains(&true) && gd.dense.contains(&false),
+                "{:?}",
+                gd.dense
+            );
+        }
         let params = random_params(&model, 70 + ci as u64);
         let batch = make_batch(&model, case, 80 + ci as u64);
         batch.validate().unwrap();

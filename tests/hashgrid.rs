@@ -226,7 +226,7 @@ fn reference_f64(grid: &HashGrid, table: &[f64], x: &[f64; 3]) -> Vec<f64> {
         assert_eq!(scale, grid.scales[l]);
         let res = scale.ceil() as u32 + 1;
         let cube = (res as u64).pow(3);
-        let size = ((cube.min(2147483647) + 7) / 8 * 8).min(1 << c.log2_table_size) as u32;
+        let size = (cube.min(2147483647).div_ceil(8) * 8).min(1 << c.log2_table_size) as u32;
         let dense = res <= 1625 && cube <= size as u64;
         let mut cell = [0u32; 3];
         let mut w = [0.0f64; 3];
@@ -394,6 +394,74 @@ fn f32_model_with_f64_positions_tracks_f64() {
         .map(|(a, &b)| (a - b as f64).abs())
         .fold(0.0, f64::max);
     assert!(worst < 2e-6, "worst {worst}");
+}
+
+/// tiny-cuda-nn's position gradient, written plainly (f64, PositionMode::F64): per level and
+/// feature `dy_dx[d] = Σ_{4 edges along d} ((scale·w'_a)·w'_b)·(v_hi - v_lo)·dw_d/dt` (other
+/// axes ascending, edge bits in that order), then `d_x[d] = fma-chain over (l, f) of
+/// d_out·dy_dx[d]` starting from 0.
+fn reference_points_f64(grid: &HashGrid, table: &[f64], x: &[f64; 3], d_out: &[f64]) -> [f64; 3] {
+    let c = &grid.cfg;
+    let nf = c.features as usize;
+    let smooth = c.interpolation == Interpolation::Smoothstep;
+    let mut res = [0.0f64; 3];
+    for l in 0..c.levels as usize {
+        let scale = grid.scales[l];
+        let (mut w, mut dw) = ([0.0f64; 3], [1.0f64; 3]);
+        for d in 0..3 {
+            let p = (scale as f64).mul_add(x[d], 0.5);
+            let t = p - p.floor();
+            if smooth {
+                w[d] = t * t * (3.0 - 2.0 * t);
+                dw[d] = 6.0 * t * (1.0 - t);
+            } else {
+                w[d] = t;
+            }
+        }
+        let (idx, _) = grid.corners::<f64>(l, x, PositionMode::F64);
+        for f in 0..nf {
+            let val = |k: usize| table[idx[k] as usize * nf + f];
+            let mut dydx = [0.0f64; 3];
+            for d in 0..3 {
+                let others: Vec<usize> = (0..3).filter(|&o| o != d).collect();
+                for e in 0..4usize {
+                    let mut weight = scale as f64;
+                    let mut lo = 0usize;
+                    for (bit, &o) in others.iter().enumerate() {
+                        if e >> bit & 1 == 1 {
+                            weight *= w[o];
+                            lo |= 1 << o;
+                        } else {
+                            weight *= 1.0 - w[o];
+                        }
+                    }
+                    let hi = lo | 1 << d;
+                    dydx[d] += weight * (val(hi) - val(lo)) * dw[d];
+                }
+            }
+            for d in 0..3 {
+                res[d] = d_out[l * nf + f].mul_add(dydx[d], res[d]);
+            }
+        }
+    }
+    res
+}
+
+#[test]
+fn backward_points_matches_scalar_reference_f64_bitwise() {
+    for (ci, c) in test_configs().into_iter().enumerate() {
+        let g = HashGrid::new(&c);
+        let table = values(g.n_params(), 900 + ci as u64, 1.0);
+        let pts = points(CHUNK_POINTS + 70, 910 + ci as u64, 0.0, 1.0);
+        let d_out = values(pts.len() * g.out_dim(), 920 + ci as u64, 1.0);
+        let mut d_pts = vec![0.0; pts.len() * 3];
+        g.backward_points(&table, &pts, PositionMode::F64, &d_out, &mut d_pts);
+        let lf = g.out_dim();
+        for (i, x) in pts.iter().enumerate() {
+            let r = reference_points_f64(&g, &table, x, &d_out[i * lf..(i + 1) * lf]);
+            assert_eq!(&d_pts[i * 3..i * 3 + 3], &r[..], "config {ci} point {i}");
+        }
+    }
 }
 
 // ------------------------------------------------------------------------------------------
@@ -598,6 +666,40 @@ fn bit_identical_across_thread_counts() {
         assert!(r.1 == r1.1, "backward_table differs with {t} threads");
         assert!(r.2 == r1.2, "touched differs with {t} threads");
         assert!(r.3 == r1.3, "backward_points differs with {t} threads");
+    }
+}
+
+#[test]
+fn portable_and_fma_builds_agree_bitwise() {
+    // The kernels are compiled for baseline x86-64 and for fma+avx2 and picked at run time; both
+    // must compute the same bits (FMA is exactly rounded in hardware and in libm). This is the
+    // only test that switches the process-wide flag, and it compares within itself.
+    let c = cfg(8, 2, 12, 4.0, 1.5, Interpolation::Smoothstep);
+    let g = HashGrid::new(&c);
+    let table: Vec<f32> = values(g.n_params(), 31, 1.0)
+        .iter()
+        .map(|&v| v as f32)
+        .collect();
+    let pts = points(CHUNK_POINTS + 99, 32, -0.02, 1.02);
+    let d_out: Vec<f32> = values(pts.len() * g.out_dim(), 33, 1.0)
+        .iter()
+        .map(|&v| v as f32)
+        .collect();
+    let run = |portable: bool, mode: PositionMode| {
+        xscale::model::hashgrid::force_portable_kernels(portable);
+        let mut out = vec![0.0f32; pts.len() * g.out_dim()];
+        g.forward(&table, &pts, mode, &mut out);
+        let mut d_table = vec![0.0f32; g.n_params()];
+        let mut touched = Touched::default();
+        g.backward_table(&pts, mode, &d_out, &mut d_table, &mut touched);
+        let mut d_pts = vec![0.0f32; pts.len() * 3];
+        g.backward_points(&table, &pts, mode, &d_out, &mut d_pts);
+        xscale::model::hashgrid::force_portable_kernels(false);
+        let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<u32>>();
+        (bits(&out), bits(&d_table), touched.entries, bits(&d_pts))
+    };
+    for mode in [PositionMode::F64, PositionMode::Tcnn] {
+        assert!(run(false, mode) == run(true, mode), "{mode:?}");
     }
 }
 

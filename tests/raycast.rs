@@ -8,7 +8,7 @@ use xscale::raycast::meshes::{cube_grid, icosphere, random_soup, terrain};
 use xscale::raycast::triangle::{intersect, WatertightRay};
 use xscale::raycast::{
     brute_force_closest_hit, cast_view, sub_offset, BuildPreset, CacheEvent, Packet, SampleCache,
-    Tracer,
+    Tracer, MAX_LANES,
 };
 use xscale::rng::{self, Purpose};
 use xscale::scene::{Camera, Distortion, Image, Mesh, Normalization, NormalizeMode};
@@ -78,25 +78,48 @@ fn closest_hit_matches_brute_force_for_every_preset() {
         let mut near_edge = 0;
         for (mi, (name, mesh)) in test_meshes().into_iter().enumerate() {
             let n = norm(&mesh);
-            let tracer = Tracer::with_preset(&mesh, &n, preset).unwrap();
+            let mut tracer = Tracer::with_preset(&mesh, &n, preset).unwrap();
             let mut scratch = tracer.scratch();
-            for k in 0..3500u64 {
-                let seed = 1000 + mi as u64;
+            let seed = 1000 + mi as u64;
+            let ray = |k: u64| {
                 let origin = rand_vec(seed, k, 0, -3.0, 3.0);
                 let target = rand_vec(seed, k, 3, -1.1, 1.1);
-                let dir = (target - origin).normalize();
+                (origin, (target - origin).normalize())
+            };
+            // f32 path, bit-exact, 8 random rays per packet, with and without AVX.
+            for k0 in (0..3504u64).step_by(MAX_LANES) {
+                let mut p = Packet::default();
+                // Every other packet shares one origin (the camera-ray fast path).
+                let shared = (k0 / MAX_LANES as u64) % 2 == 0;
+                for l in 0..MAX_LANES {
+                    let (origin, dir) = ray(k0 + l as u64);
+                    let origin = if shared { ray(k0).0 } else { origin };
+                    let dir = if shared {
+                        (rand_vec(seed, k0 + l as u64, 3, -1.1, 1.1) - origin).normalize()
+                    } else {
+                        dir
+                    };
+                    p.origin[l] = (origin - n.center).as_vec3().to_array();
+                    p.dir[l] = dir.as_vec3().to_array();
+                    p.active |= 1 << l;
+                }
+                for avx in [true, false] {
+                    tracer.set_avx(avx);
+                    let got = tracer.trace(&p, &mut scratch);
+                    for l in 0..MAX_LANES {
+                        let want = brute_force_f32(&mesh, &n, p.origin[l], p.dir[l]);
+                        assert_eq!(
+                            got[l],
+                            want,
+                            "{name} preset {preset:?} ray {} avx {avx}",
+                            k0 + l as u64
+                        );
+                    }
+                }
+            }
+            for k in 0..3500u64 {
+                let (origin, dir) = ray(k);
                 total += 1;
-                // f32 path, bit-exact.
-                let o = origin - n.center;
-                let (o32, d32) = (o.as_vec3().to_array(), dir.as_vec3().to_array());
-                let p = Packet {
-                    origin: [o32; 4],
-                    dir: [d32; 4],
-                    active: 1,
-                };
-                let got = tracer.trace4(&p, &mut scratch)[0];
-                let want = brute_force_f32(&mesh, &n, o32, d32);
-                assert_eq!(got, want, "{name} preset {preset:?} ray {k}");
                 // World API vs f64 brute force.
                 let h = tracer.closest_hit(origin, dir);
                 let bf = brute_force_closest_hit(&mesh, origin, dir);
@@ -516,6 +539,10 @@ fn cache_identical_with_1_and_2_threads() {
     for gamma in [1, 2, 3] {
         let a = build(1, gamma);
         let b = build(2, gamma);
+        let mut no_avx = Tracer::new(&mesh, &n).unwrap();
+        no_avx.set_avx(false);
+        let c = SampleCache::build(&no_avx, &views, gamma, &mut |_| {}).unwrap();
+        assert_eq!(a, c, "γ={gamma}: SSE and AVX traversals differ");
         assert!(a.len() > 1000);
         assert_eq!(a, b, "γ={gamma}");
         let fa: Vec<u32> = (0..a.len()).map(|i| a.footprint(i).to_bits()).collect();
@@ -551,6 +578,25 @@ fn bad_input_is_an_error() {
     };
     let e = Tracer::new(&bad, &n).err().unwrap().to_string();
     assert!(e.contains("triangle 0") && e.contains("3"), "{e}");
+    // 2,000 copies of one triangle (a degenerate BVH input): every copy is hit at the same
+    // distance and the tie goes to the lowest triangle id, whatever the traversal order.
+    let dup = Mesh {
+        vertices: vec![
+            DVec3::new(-1.0, -1.0, 0.0),
+            DVec3::new(1.0, -1.0, 0.0),
+            DVec3::new(0.0, 1.0, 0.0),
+        ],
+        triangles: vec![[0, 1, 2]; 2_000],
+    };
+    let nd = norm(&dup);
+    for preset in BuildPreset::ALL {
+        let t = Tracer::with_preset(&dup, &nd, preset).unwrap();
+        let h = t
+            .closest_hit(DVec3::new(0.1, 0.0, 2.0), DVec3::new(0.0, 0.0, -1.0))
+            .unwrap();
+        assert_eq!(h.triangle, 0);
+        assert!((h.t - 2.0).abs() < 1e-12);
+    }
     // An empty mesh is fine: everything misses.
     let empty = Mesh::default();
     let t = Tracer::new(&empty, &n).unwrap();

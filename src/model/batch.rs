@@ -146,7 +146,7 @@ mod tests {
     fn random_batch_is_valid_and_bad_ones_are_named() {
         let b = Batch::random(1, 50, 4, 3, 0.5);
         b.validate().unwrap();
-        assert!(b.valid.iter().any(|&v| v == 0));
+        assert!(b.valid.contains(&0));
         assert!(b.view.contains(&-1) && b.view.contains(&2));
 
         let mut bad = b.clone();

@@ -18,7 +18,8 @@
 //! res_l   = (u32)ceilf(scale_l) + 1
 //! size_l  = min(next_multiple_of_8(min(res_l^3, 2^31-1)), 2^T)
 //! dense_l = res_l <= 1625 && res_l^3 <= size_l           (else hashed, size_l = 2^T)
-//! p = fma(scale_l, x, 0.5); c = (u32)(i32)floor(p); t = p - c   (exact)
+//! p = fma(scale_l, x, 0.5); c = (u32)(i32)floor(p); t = p - c   (exact; the i32 conversion
+//!                                             saturates, NaN → i32::MIN, output NaN)
 //! w = t | t*t*(3-2t) ;  corner k: bit d of k → c_d+1 with w_d, else c_d with 1-w_d
 //! weight_k = ((w_0' * w_1') * w_2')                      (d = 0, 1, 2 order; tcnn starts at 1*)
 //! index_k  = dense:  (c_x + c_y*res + c_z*res^2) mod size   (u32 wrapping, no clamping:
@@ -51,11 +52,15 @@
 //!
 //! # Speed
 //! Within a chunk the work is level-major (one level's constants in registers, one level's table
-//! slice hot in cache), the dense/hashed choice and F are compile-time in the inner loops, and the
-//! kernels are compiled twice: once for baseline x86-64 and once with `fma,avx2` enabled, selected
-//! at run time (`is_x86_feature_detected!`). Both give identical bits (an FMA is exactly rounded
-//! whether done in hardware or by libm); without the feature `mul_add` is a libm call, which is
-//! slow.
+//! slice hot in cache) and F and the dense/hashed choice are compile-time in the inner loops.
+//! Points go through in blocks of 64: pass 1 computes cells, weights and corner indices for the
+//! whole block in structure-of-arrays form (vectorised by the compiler) and prefetches the table
+//! rows; pass 2 gathers/scatters, so many cache misses are in flight at once (the `cpu` preset's
+//! table is 49 MB). The kernels are compiled twice, for baseline x86-64 and with `fma,avx2`,
+//! selected at run time (`is_x86_feature_detected!`); both give identical bits (an FMA is exactly
+//! rounded whether done in hardware or by libm; without the feature `mul_add` is a slow libm
+//! call). No per-call allocation beyond a few per-level descriptors; the touched bitmap of
+//! `backward_table` is a reused thread-local buffer.
 
 use crate::model::config::{GridConfig, Interpolation, PositionMode};
 use crate::model::Real;
@@ -344,10 +349,12 @@ impl HashGrid {
         // Entries already recorded (an earlier backward in the same step) join the union.
         for &e in &touched.entries {
             let l = self.offsets.partition_point(|&o| o <= e) - 1;
-            if l < nl {
-                let local = (e - self.offsets[l]) as usize;
-                bits[word_off[l] + local / 64] |= 1u64 << (local % 64);
-            }
+            assert!(
+                l < nl,
+                "hashgrid backward_table: touched entry {e} is not in this grid"
+            );
+            let local = (e - self.offsets[l]) as usize;
+            bits[word_off[l] + local / 64] |= 1u64 << (local % 64);
         }
 
         // Split the gradient and the bitmap into disjoint per-level slices.
@@ -452,9 +459,21 @@ thread_local! {
     static BITMAP: RefCell<Vec<u64>> = const { RefCell::new(Vec::new()) };
 }
 
+static FORCE_PORTABLE: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
+
+/// Use the baseline (portable) build of the kernels even where `fma,avx2` is available. For
+/// tests, which check that both builds give identical bits; process-wide.
+#[doc(hidden)]
+pub fn force_portable_kernels(on: bool) {
+    FORCE_PORTABLE.store(on, std::sync::atomic::Ordering::Relaxed);
+}
+
 /// Whether the `fma,avx2` build of the kernels can run here (checked once, cached by std).
 #[inline]
 fn has_fma() -> bool {
+    if FORCE_PORTABLE.load(std::sync::atomic::Ordering::Relaxed) {
+        return false;
+    }
     #[cfg(any(target_arch = "x86", target_arch = "x86_64"))]
     {
         std::arch::is_x86_feature_detected!("fma") && std::arch::is_x86_feature_detected!("avx2")
@@ -507,7 +526,7 @@ fn locate<R: Real>(scale: f32, tcnn: bool, x: &[f64; 3]) -> ([u32; 3], [R; 3]) {
         for d in 0..3 {
             let p = scale.mul_add(x[d] as f32, 0.5);
             let fl = p.floor();
-            c[d] = fl as i32 as u32;
+            c[d] = to_i32_clamped(fl as f64) as u32;
             t[d] = R::from_f32(p - fl);
         }
     } else {
@@ -515,11 +534,21 @@ fn locate<R: Real>(scale: f32, tcnn: bool, x: &[f64; 3]) -> ([u32; 3], [R; 3]) {
         for d in 0..3 {
             let p = s.mul_add(x[d], 0.5);
             let fl = p.floor();
-            c[d] = fl as i32 as u32;
+            c[d] = to_i32_clamped(fl) as u32;
             t[d] = R::from_f64(p - fl);
         }
     }
     (c, t)
+}
+
+/// `v as i32` for an integer-valued `v`: saturating at the i32 range like `as i32` (and like
+/// CUDA's float→int conversion); NaN → i32::MIN (the output is NaN anyway, as t is NaN).
+/// Cheaper than Rust's `as` once vectorised. Used by both the scalar and the block paths.
+#[inline(always)]
+fn to_i32_clamped(v: f64) -> i32 {
+    let v = v.max(i32::MIN as f64).min(i32::MAX as f64);
+    // SAFETY: v is finite and within the i32 range after the clamp (max/min drop NaN).
+    unsafe { v.to_int_unchecked::<i32>() }
 }
 
 /// `w(t)`: t (linear) or `(t*t)*(3-2t)` (smoothstep).
@@ -622,15 +651,15 @@ impl Indexer for HashIx {
 /// Corner indices of a block of points, one corner at a time over all points (SoA, so the
 /// compiler can vectorise the hash).
 trait BlockIndexer: Indexer {
-    fn corners_block(self, c: &[[u32; BLOCK]; 3], idx: &mut [[u32; BLOCK]; 8]);
+    fn corners_block(self, n: usize, c: &[[u32; BLOCK]; 3], idx: &mut [[u32; BLOCK]; 8]);
 }
 
 impl BlockIndexer for HashIx {
     #[inline(always)]
-    fn corners_block(self, c: &[[u32; BLOCK]; 3], idx: &mut [[u32; BLOCK]; 8]) {
+    fn corners_block(self, n: usize, c: &[[u32; BLOCK]; 3], idx: &mut [[u32; BLOCK]; 8]) {
         for (k, row) in idx.iter_mut().enumerate() {
             let (bx, by, bz) = ((k & 1) as u32, ((k >> 1) & 1) as u32, (k >> 2) as u32);
-            for j in 0..BLOCK {
+            for j in 0..n {
                 let x = c[0][j].wrapping_add(bx);
                 let y = c[1][j].wrapping_add(by).wrapping_mul(PRIME_Y);
                 let z = c[2][j].wrapping_add(bz).wrapping_mul(PRIME_Z);
@@ -642,8 +671,37 @@ impl BlockIndexer for HashIx {
 
 impl BlockIndexer for DenseIx {
     #[inline(always)]
-    fn corners_block(self, c: &[[u32; BLOCK]; 3], idx: &mut [[u32; BLOCK]; 8]) {
-        for j in 0..BLOCK {
+    fn corners_block(self, n: usize, c: &[[u32; BLOCK]; 3], idx: &mut [[u32; BLOCK]; 8]) {
+        // Fast path: for x in [0,1] every corner index is below 2*size (c_d <= res-1, so the
+        // index is at most res + res^2 + res^3 < 2 res^3 <= 2 size), and `mod size` is one
+        // conditional subtraction. If any lane of the block falls outside, redo the block with
+        // the exact general modulo. Same results either way (wrapping adds are associative).
+        let mut base = [0u32; BLOCK];
+        for j in 0..n {
+            base[j] = c[0][j]
+                .wrapping_add(c[1][j].wrapping_mul(self.res))
+                .wrapping_add(c[2][j].wrapping_mul(self.res2));
+        }
+        let mut ok = true;
+        for (k, row) in idx.iter_mut().enumerate() {
+            let off = (k & 1) as u32
+                + if (k >> 1) & 1 == 1 { self.res } else { 0 }
+                + if k >> 2 == 1 { self.res2 } else { 0 };
+            for j in 0..n {
+                let i = base[j].wrapping_add(off);
+                let r = if i >= self.size {
+                    i.wrapping_sub(self.size)
+                } else {
+                    i
+                };
+                ok &= r < self.size;
+                row[j] = r;
+            }
+        }
+        if ok {
+            return;
+        }
+        for j in 0..n {
             let ids = self.corners([c[0][j], c[1][j], c[2][j]]);
             for k in 0..8 {
                 idx[k][j] = ids[k];
@@ -657,8 +715,15 @@ impl BlockIndexer for DenseIx {
 /// that does not fit the cache. Does not affect results.
 const BLOCK: usize = 64;
 
-/// `locate` for a block, SoA: `c[d][j]`, `t[d][j]`; entries past `xs.len()` are computed from
-/// x = 0 and ignored.
+/// The block loops run over `xs.len()` rounded up to a multiple of 8 (a runtime bound, so the
+/// compiler emits one vector loop instead of unrolling 64 iterations); lanes past `xs.len()`
+/// are computed from x = 0 and ignored.
+#[inline(always)]
+fn block_len(n: usize) -> usize {
+    n.next_multiple_of(8).min(BLOCK)
+}
+
+/// `locate` for a block, SoA: `c[d][j]`, `t[d][j]` for `j < block_len(xs.len())`.
 #[inline(always)]
 fn locate_block<R: Real>(
     scale: f32,
@@ -667,6 +732,7 @@ fn locate_block<R: Real>(
     c: &mut [[u32; BLOCK]; 3],
     t: &mut [[R; BLOCK]; 3],
 ) {
+    let n = block_len(xs.len());
     let mut xd = [[0.0f64; BLOCK]; 3];
     for (j, x) in xs.iter().enumerate() {
         xd[0][j] = x[0];
@@ -675,18 +741,18 @@ fn locate_block<R: Real>(
     }
     for d in 0..3 {
         if tcnn {
-            for j in 0..BLOCK {
+            for j in 0..n {
                 let p = scale.mul_add(xd[d][j] as f32, 0.5);
                 let fl = p.floor();
-                c[d][j] = fl as i32 as u32;
+                c[d][j] = to_i32_clamped(fl as f64) as u32;
                 t[d][j] = R::from_f32(p - fl);
             }
         } else {
             let s = scale as f64;
-            for j in 0..BLOCK {
+            for j in 0..n {
                 let p = s.mul_add(xd[d][j], 0.5);
                 let fl = p.floor();
-                c[d][j] = fl as i32 as u32;
+                c[d][j] = to_i32_clamped(fl) as u32;
                 t[d][j] = R::from_f64(p - fl);
             }
         }
@@ -695,7 +761,12 @@ fn locate_block<R: Real>(
 
 /// Per-axis `w(t)` (in place) and, if asked, `dw/dt`, for a block.
 #[inline(always)]
-fn interp_block<R: Real>(smooth: bool, t: &mut [[R; BLOCK]; 3], dw: Option<&mut [[R; BLOCK]; 3]>) {
+fn interp_block<R: Real>(
+    n: usize,
+    smooth: bool,
+    t: &mut [[R; BLOCK]; 3],
+    dw: Option<&mut [[R; BLOCK]; 3]>,
+) {
     if !smooth {
         if let Some(dw) = dw {
             *dw = [[R::ONE; BLOCK]; 3];
@@ -705,14 +776,14 @@ fn interp_block<R: Real>(smooth: bool, t: &mut [[R; BLOCK]; 3], dw: Option<&mut 
     let (two, three, six) = (R::from_f32(2.0), R::from_f32(3.0), R::from_f32(6.0));
     if let Some(dw) = dw {
         for d in 0..3 {
-            for j in 0..BLOCK {
+            for j in 0..n {
                 let v = t[d][j];
                 dw[d][j] = six * v * (R::ONE - v);
             }
         }
     }
     for row in t.iter_mut() {
-        for v in row.iter_mut() {
+        for v in row[..n].iter_mut() {
             *v = *v * *v * (three - two * *v);
         }
     }
@@ -720,25 +791,19 @@ fn interp_block<R: Real>(smooth: bool, t: &mut [[R; BLOCK]; 3], dw: Option<&mut 
 
 /// Trilinear corner weights for a block: `w8[k][j]`, each the product in axis order 0, 1, 2.
 #[inline(always)]
-fn corner_weights_block<R: Real>(w: &[[R; BLOCK]; 3], w8: &mut [[R; BLOCK]; 8]) {
+fn corner_weights_block<R: Real>(n: usize, w: &[[R; BLOCK]; 3], w8: &mut [[R; BLOCK]; 8]) {
+    let mut om = [[R::ZERO; BLOCK]; 3];
+    for d in 0..3 {
+        for j in 0..n {
+            om[d][j] = R::ONE - w[d][j];
+        }
+    }
     for (k, row) in w8.iter_mut().enumerate() {
-        for j in 0..BLOCK {
-            let a = if k & 1 == 1 {
-                w[0][j]
-            } else {
-                R::ONE - w[0][j]
-            };
-            let b = if (k >> 1) & 1 == 1 {
-                w[1][j]
-            } else {
-                R::ONE - w[1][j]
-            };
-            let c = if k >> 2 == 1 {
-                w[2][j]
-            } else {
-                R::ONE - w[2][j]
-            };
-            row[j] = a * b * c;
+        let a = if k & 1 == 1 { &w[0] } else { &om[0] };
+        let b = if (k >> 1) & 1 == 1 { &w[1] } else { &om[1] };
+        let c = if k >> 2 == 1 { &w[2] } else { &om[2] };
+        for j in 0..n {
+            row[j] = a[j] * b[j] * c[j];
         }
     }
 }
@@ -754,7 +819,22 @@ fn prefetch<T>(p: *const T) {
     let _ = p;
 }
 
+/// Prefetch the table rows of point j's corners. The x-neighbours k and k+1 are the same or
+/// adjacent entries (dense) or differ only in their lowest bits (hashed: `c ^ h` vs `(c+1) ^ h`),
+/// so they usually share a cache line: the odd corners are prefetched only when an entry is at
+/// least half a line.
+#[inline(always)]
+fn prefetch_corners<R, const F: usize>(tab: &[R], idx: &[[u32; BLOCK]; 8], j: usize) {
+    let both = F * std::mem::size_of::<R>() >= 32;
+    for (k, row) in idx.iter().enumerate() {
+        if k % 2 == 0 || both {
+            prefetch(tab.as_ptr().wrapping_add(row[j] as usize * F));
+        }
+    }
+}
+
 /// The inner loops, generic over R, F and the indexer, with a runtime-selected `fma,avx2` build.
+#[allow(clippy::needless_range_loop)] // index loops over SoA blocks read best as they are
 mod kernels {
     use super::*;
 
@@ -865,13 +945,11 @@ mod kernels {
         for (b, xs) in pts.chunks(BLOCK).enumerate() {
             // Pass 1: corners and weights of the block, prefetching the table rows.
             locate_block(g.scale, g.tcnn, xs, &mut c, &mut w);
-            interp_block(g.smooth, &mut w, None);
-            corner_weights_block(&w, &mut w8);
-            ix.corners_block(&c, &mut idx);
+            interp_block(block_len(xs.len()), g.smooth, &mut w, None);
+            corner_weights_block(block_len(xs.len()), &w, &mut w8);
+            ix.corners_block(block_len(xs.len()), &c, &mut idx);
             for j in 0..xs.len() {
-                for row in &idx {
-                    prefetch(tab.as_ptr().wrapping_add(row[j] as usize * F));
-                }
+                prefetch_corners::<R, F>(tab, &idx, j);
             }
             // Pass 2: gather and interpolate (Eq. 2), fma chain in corner order.
             for j in 0..xs.len() {
@@ -920,17 +998,15 @@ mod kernels {
         for (b, xs) in pts.chunks(BLOCK).enumerate() {
             // Pass 1: corners and weights, prefetching the gradient rows.
             locate_block(g.scale, g.tcnn, xs, &mut c, &mut w);
-            interp_block(g.smooth, &mut w, None);
-            corner_weights_block(&w, &mut w8);
-            ix.corners_block(&c, &mut idx);
+            interp_block(block_len(xs.len()), g.smooth, &mut w, None);
+            corner_weights_block(block_len(xs.len()), &w, &mut w8);
+            ix.corners_block(block_len(xs.len()), &c, &mut idx);
             for j in 0..xs.len() {
                 grs[j].copy_from_slice(&d_out[(b * BLOCK + j) * lf + l * F..][..F]);
                 // An all-zero d_out slice contributes nothing and is not recorded as touched.
                 live[j] = grs[j].iter().any(|&v| v != R::ZERO);
                 if live[j] {
-                    for row in &idx {
-                        prefetch(d_tab.as_ptr().wrapping_add(row[j] as usize * F));
-                    }
+                    prefetch_corners::<R, F>(d_tab, &idx, j);
                 }
             }
             // Pass 2: scatter, in point order.
@@ -982,52 +1058,63 @@ mod kernels {
         let mut w = [[R::ZERO; BLOCK]; 3];
         let mut dw = [[R::ZERO; BLOCK]; 3];
         let mut idx = [[0u32; BLOCK]; 8];
+        let mut v = [[[R::ZERO; BLOCK]; F]; 8];
         for (b, xs) in pts.chunks(BLOCK).enumerate() {
             // Pass 1: corners, weights and dw/dt, prefetching the table rows.
             locate_block(g.scale, g.tcnn, xs, &mut c, &mut w);
-            interp_block(g.smooth, &mut w, Some(&mut dw));
-            ix.corners_block(&c, &mut idx);
+            interp_block(block_len(xs.len()), g.smooth, &mut w, Some(&mut dw));
+            ix.corners_block(block_len(xs.len()), &c, &mut idx);
             for j in 0..xs.len() {
-                for row in &idx {
-                    prefetch(tab.as_ptr().wrapping_add(row[j] as usize * F));
-                }
+                prefetch_corners::<R, F>(tab, &idx, j);
             }
-            // Pass 2: gather and differentiate.
-            for j in 0..xs.len() {
-                let i = b * BLOCK + j;
-                let mut gr = [R::ZERO; F];
-                gr.copy_from_slice(&d_out[i * lf + l * F..][..F]);
-                let ws = [
-                    [R::ONE - w[0][j], w[0][j]],
-                    [R::ONE - w[1][j], w[1][j]],
-                    [R::ONE - w[2][j], w[2][j]],
-                ];
-                let mut v = [[R::ZERO; F]; 8];
+            // Pass 2a: gather the corner values, SoA `v[k][f][j]` (padding lanes have valid
+            // indices too: they were computed from x = 0).
+            let nb = block_len(xs.len());
+            for j in 0..nb {
                 for k in 0..8 {
                     let e = idx[k][j] as usize * F;
                     // SAFETY: idx < size (mod / mask), and tab.len() == size * F.
-                    v[k].copy_from_slice(unsafe { tab.get_unchecked(e..e + F) });
+                    let s = unsafe { tab.get_unchecked(e..e + F) };
+                    for f in 0..F {
+                        v[k][f][j] = s[f];
+                    }
                 }
-                for d in 0..3 {
-                    // The two other axes, ascending (tcnn's non_grad_dim order).
-                    let (a, b) = match d {
-                        0 => (1, 2),
-                        1 => (0, 2),
-                        _ => (0, 1),
-                    };
-                    let mut gd = [R::ZERO; F];
-                    for e in 0..4 {
-                        let (ba, bb) = (e & 1, (e >> 1) & 1);
-                        let wt = scale * ws[a][ba] * ws[b][bb];
-                        let lo = (ba << a) | (bb << b);
-                        let hi = lo | (1 << d);
-                        for f in 0..F {
-                            gd[f] += wt * (v[hi][f] - v[lo][f]) * dw[d][j];
+            }
+            let mut om = [[R::ZERO; BLOCK]; 3];
+            for d in 0..3 {
+                for j in 0..nb {
+                    om[d][j] = R::ONE - w[d][j];
+                }
+            }
+            // Pass 2b: differentiate, one axis at a time across the block's points.
+            for d in 0..3 {
+                // The two other axes, ascending (tcnn's non_grad_dim order).
+                let (a, b2) = match d {
+                    0 => (1, 2),
+                    1 => (0, 2),
+                    _ => (0, 1),
+                };
+                let mut gd = [[R::ZERO; BLOCK]; F];
+                for e in 0..4 {
+                    let (ba, bb) = (e & 1, (e >> 1) & 1);
+                    let wa = if ba == 1 { &w[a] } else { &om[a] };
+                    let wb = if bb == 1 { &w[b2] } else { &om[b2] };
+                    let lo = (ba << a) | (bb << b2);
+                    let hi = lo | (1 << d);
+                    for f in 0..F {
+                        let (vh, vl, g) = (&v[hi][f], &v[lo][f], &mut gd[f]);
+                        for j in 0..nb {
+                            let wt = scale * wa[j] * wb[j];
+                            g[j] += wt * (vh[j] - vl[j]) * dw[d][j];
                         }
                     }
+                }
+                for j in 0..xs.len() {
+                    let i = b * BLOCK + j;
+                    let gr = &d_out[i * lf + l * F..][..F];
                     let mut s = acc[i][d];
                     for f in 0..F {
-                        s = gr[f].mul_add(gd[f], s);
+                        s = gr[f].mul_add(gd[f][j], s);
                     }
                     acc[i][d] = s;
                 }

@@ -52,7 +52,8 @@ pub struct Hfm {
     pub grid_h: HashGrid,
     /// Grid D, when the deformation is enabled.
     pub grid_d: Option<HashGrid>,
-    /// ξ: `[L_D·F_D + 16] → hidden → [L·F]`.
+    /// ξ: `[L_D·F_D + 16] → hidden → [L·F]`, biases iff `cfg.shader.bias` (one switch for both
+    /// networks), last layer zero at initialisation.
     pub deform: Option<Mlp>,
     /// Shader: `[L·F + 16 + A] → width × hidden_layers → 3`.
     pub shader: Mlp,
@@ -462,17 +463,18 @@ impl Hfm {
             self.layout.total,
             "gradient buffer layout"
         );
-        if grads.positions.len() != n * s * 3 {
+        let inputs = grads.inputs;
+        if inputs && grads.positions.len() != n * s * 3 {
             grads.positions = vec![R::ZERO; n * s * 3];
         }
-        if grads.dirs.len() != n * 3 {
+        if inputs && grads.dirs.len() != n * 3 {
             grads.dirs = vec![R::ZERO; n * 3];
         }
         let scale = R::ONE / R::from_f64((3 * n) as f64);
         let cg: Vec<ChunkGrad<R>> = fwd
             .chunks
             .par_iter()
-            .map(|ch| self.backward_chunk(params, batch, fwd, ch, scale))
+            .map(|ch| self.backward_chunk(params, batch, fwd, ch, scale, inputs))
             .collect();
 
         // Combine MLP weight gradients in chunk order.
@@ -483,7 +485,7 @@ impl Hfm {
             }
         }
         // Direction and position gradients (each pixel / sub-sample written by one chunk).
-        for (ch, c) in fwd.chunks.iter().zip(&cg) {
+        for (ch, c) in fwd.chunks.iter().zip(&cg).filter(|_| inputs) {
             add_into(
                 &mut grads.dirs[ch.pixels.start * 3..ch.pixels.end * 3],
                 &c.d_dirs,
@@ -557,6 +559,7 @@ impl Hfm {
         fwd: &Forward<R>,
         ch: &ChunkFwd<R>,
         scale: R,
+        inputs: bool,
     ) -> ChunkGrad<R> {
         let mode = self.cfg.positions;
         let lf = self.feat_dim();
@@ -602,7 +605,7 @@ impl Hfm {
             .map(|&x| x - ch.samples.start)
             .collect();
         pool_backward(&local_start, &d_in, din, lf, &mut d_feat);
-        let mut d_points = vec![R::ZERO; v * 3];
+        let mut d_points = vec![R::ZERO; if inputs { v * 3 } else { 0 }];
         // Eq. 5 backward through ξ and into SH(d) and F_D.
         let mut d_deform = Vec::new();
         let mut d_grid_d = Vec::new();
@@ -630,21 +633,23 @@ impl Hfm {
                 }
             }
             // Position gradient: grid H first (below), then grid D — keep that order.
-            self.grid_h.backward_points(
-                &params[self.r_grid_h.clone()],
-                pts,
-                mode,
-                &d_feat,
-                &mut d_points,
-            );
-            gd.backward_points(
-                &params[self.r_grid_d.clone()],
-                pts,
-                mode,
-                &d_grid_d,
-                &mut d_points,
-            );
-        } else {
+            if inputs {
+                self.grid_h.backward_points(
+                    &params[self.r_grid_h.clone()],
+                    pts,
+                    mode,
+                    &d_feat,
+                    &mut d_points,
+                );
+                gd.backward_points(
+                    &params[self.r_grid_d.clone()],
+                    pts,
+                    mode,
+                    &d_grid_d,
+                    &mut d_points,
+                );
+            }
+        } else if inputs {
             self.grid_h.backward_points(
                 &params[self.r_grid_h.clone()],
                 pts,
@@ -654,8 +659,10 @@ impl Hfm {
             );
         }
         // SH backward into the directions.
-        let mut d_dirs = vec![R::ZERO; n * 3];
-        sh_backward(&batch.dirs[ch.pixels.clone()], &d_sh, &mut d_dirs);
+        let mut d_dirs = vec![R::ZERO; if inputs { n * 3 } else { 0 }];
+        if inputs {
+            sh_backward(&batch.dirs[ch.pixels.clone()], &d_sh, &mut d_dirs);
+        }
         ChunkGrad {
             d_shader,
             d_deform,
@@ -764,4 +771,80 @@ fn push_mlp(layout: &mut ParamLayout, net: &str, mlp: &Mlp, group: Group) -> Ran
         }
     }
     start..layout.total
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn bad_inputs_are_named_errors() {
+        let mut cfg = ModelConfig::tiny();
+        cfg.appearance_views = 2;
+        let m = Hfm::new(&cfg).unwrap();
+        let p: Vec<f64> = m.init_params(1).iter().map(|&v| v as f64).collect();
+        let mut b = Batch::random(1, 10, 4, 2, 0.3);
+        m.forward(&p, &b).unwrap();
+        b.view[4] = 2;
+        let e = m.forward(&p, &b).unwrap_err().to_string();
+        assert!(e.contains("pixel 4") && e.contains("view 2"), "{e}");
+        b.view[4] = 0;
+        let e = m.forward(&p[1..], &b).unwrap_err().to_string();
+        assert!(e.contains("parameters"), "{e}");
+        let mut bad = cfg.clone();
+        bad.grid_h.features = 3;
+        assert!(Hfm::new(&bad).is_err());
+    }
+
+    /// Switching parts off removes their tensors and changes the shader input width.
+    #[test]
+    fn layout_follows_switches() {
+        let mut cfg = ModelConfig::tiny();
+        cfg.appearance_views = 5;
+        let m = Hfm::new(&cfg).unwrap();
+        let names: Vec<&str> = m.layout.tensors.iter().map(|t| t.name.as_str()).collect();
+        assert_eq!(
+            names,
+            [
+                "grid_h.table",
+                "grid_d.table",
+                "deform.layers.0.weight",
+                "deform.layers.1.weight",
+                "shader.layers.0.weight",
+                "shader.layers.1.weight",
+                "appearance.codes"
+            ]
+        );
+        assert_eq!(
+            m.layout.get("shader.layers.0.weight").unwrap().shape,
+            [16, 8 + 16 + 2]
+        );
+        assert_eq!(
+            m.layout.get("deform.layers.0.weight").unwrap().shape,
+            [8, 4 + 16]
+        );
+        assert_eq!(
+            m.layout.get("deform.layers.1.weight").unwrap().shape,
+            [8, 8]
+        );
+        cfg.deform.enabled = false;
+        cfg.appearance_dim = 0;
+        cfg.shader.bias = true;
+        let m = Hfm::new(&cfg).unwrap();
+        let names: Vec<&str> = m.layout.tensors.iter().map(|t| t.name.as_str()).collect();
+        assert_eq!(
+            names,
+            [
+                "grid_h.table",
+                "shader.layers.0.weight",
+                "shader.layers.0.bias",
+                "shader.layers.1.weight",
+                "shader.layers.1.bias"
+            ]
+        );
+        assert_eq!(
+            m.layout.get("shader.layers.0.weight").unwrap().shape,
+            [16, 8 + 16]
+        );
+    }
 }

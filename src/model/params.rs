@@ -92,6 +92,15 @@ impl ParamLayout {
         offset..offset + len
     }
 
+    /// `(name, shape)` of every tensor in layout order (what `train::adam::AdamState::new`
+    /// takes).
+    pub fn name_shapes(&self) -> Vec<(String, Vec<usize>)> {
+        self.tensors
+            .iter()
+            .map(|t| (t.name.clone(), t.shape.clone()))
+            .collect()
+    }
+
     pub fn get(&self, name: &str) -> Option<&TensorSpec> {
         self.tensors.iter().find(|t| t.name == name)
     }
@@ -108,7 +117,7 @@ impl ParamLayout {
         let mut it = self.tensors.iter().filter(|t| t.group == group);
         let first = it.next()?;
         let end = it
-            .last()
+            .next_back()
             .map_or(first.offset + first.len, |t| t.offset + t.len);
         Some(first.offset..end)
     }
@@ -144,6 +153,10 @@ pub struct Grads<R> {
     pub positions: Vec<R>,
     /// ∂L/∂batch.dirs `[N, 3]`.
     pub dirs: Vec<R>,
+    /// Compute `positions` and `dirs` (default). Training turns this off: positions and
+    /// directions are fixed data there, and the grids' position backward is their most
+    /// expensive pass. Parameter gradients are identical either way.
+    pub inputs: bool,
     /// Grid H entries that received gradient since the last zeroing (unique, sorted).
     pub touched_h: Touched,
     /// The same for grid D.
@@ -157,6 +170,7 @@ impl<R: Copy + Default> Grads<R> {
             params: vec![R::default(); layout.total],
             positions: Vec::new(),
             dirs: Vec::new(),
+            inputs: true,
             touched_h: Touched::default(),
             touched_d: Touched::default(),
         }

@@ -16,16 +16,27 @@ use crate::model::Real;
 pub const SH_DIM: usize = 16;
 
 // Constants of the real SH basis (tiny-cuda-nn's `sh_enc`, degree ≤ 4).
+#[allow(clippy::excessive_precision)]
 const C0: f64 = 0.28209479177387814; // 1/(2√π)
+#[allow(clippy::excessive_precision)]
 const C1: f64 = 0.48860251190291987; // √3/(2√π)
+#[allow(clippy::excessive_precision)]
 const C2: f64 = 1.0925484305920792; // √15/(2√π)
+#[allow(clippy::excessive_precision)]
 const C3: f64 = 0.94617469575755997; // 3√5/(4√π)
+#[allow(clippy::excessive_precision)]
 const C4: f64 = 0.31539156525251999; // √5/(4√π)
+#[allow(clippy::excessive_precision)]
 const C5: f64 = 0.54627421529603959; // √15/(4√π)
+#[allow(clippy::excessive_precision)]
 const C6: f64 = 0.59004358992664352; // √70/(8√π)
+#[allow(clippy::excessive_precision)]
 const C7: f64 = 2.8906114426405538; // √105/(2√π)
+#[allow(clippy::excessive_precision)]
 const C8: f64 = 0.45704579946446572; // √42/(8√π)
+#[allow(clippy::excessive_precision)]
 const C9: f64 = 0.3731763325901154; // √7/(4√π)
+#[allow(clippy::excessive_precision)]
 const C10: f64 = 1.4453057213202769; // √105/(4√π)
 
 #[inline(always)]

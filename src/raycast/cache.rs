@@ -22,7 +22,7 @@
 //! = 12γ² + 42 bytes: 54 (γ=1), 90 (γ=2), 234 (γ=4).
 
 use super::bvh::Tracer;
-use super::cast::{cast_strip, check_gamma, strips, CamCtx};
+use super::cast::{cast_strip, check_gamma, strips, CamCtx, PixelSummary, SubSample};
 use crate::scene::{Camera, Image};
 use anyhow::{bail, Result};
 use rayon::prelude::*;
@@ -93,6 +93,66 @@ pub fn decode_coord(q: u32) -> f64 {
     q as f64 / SCALE
 }
 
+fn check_image(i: usize, cam: &Camera, img: Option<&Image>) -> Result<()> {
+    if let Some(img) = img {
+        if img.width != cam.width || img.height != cam.height {
+            bail!(
+                "view {i}: image is {}×{} but the camera is {}×{}",
+                img.width,
+                img.height,
+                cam.width,
+                cam.height
+            );
+        }
+        if img.data.len() != 3 * img.width as usize * img.height as usize {
+            bail!(
+                "view {i}: image data has {} values, expected 3×{}×{}",
+                img.data.len(),
+                img.width,
+                img.height
+            );
+        }
+    }
+    Ok(())
+}
+
+/// Keep the pixels of one cast strip that see the mesh.
+fn compact(
+    cam: &Camera,
+    img: Option<&Image>,
+    y0: u32,
+    g2: usize,
+    subs: &[SubSample],
+    pixels: &[PixelSummary],
+) -> Part {
+    let mut p = Part::default();
+    for (k, px) in pixels.iter().enumerate() {
+        if px.valid == 0 {
+            continue;
+        }
+        let (u, v) = (k as u32 % cam.width, y0 + k as u32 / cam.width);
+        for ss in &subs[k * g2..(k + 1) * g2] {
+            p.positions.push(if ss.hit() {
+                ss.position.to_array().map(encode_coord)
+            } else {
+                [0; 3]
+            });
+        }
+        p.valid.push(px.valid);
+        p.dirs.push(px.dir.as_vec3().to_array());
+        p.footprint.push(px.footprint as f32);
+        p.pixel.push([u, v]);
+        p.target.push(match img {
+            Some(im) => {
+                let o = 3 * (v as usize * im.width as usize + u as usize);
+                [im.data[o], im.data[o + 1], im.data[o + 2]]
+            }
+            None => [0.0; 3],
+        });
+    }
+    p
+}
+
 /// Per-strip compacted output.
 #[derive(Default)]
 struct Part {
@@ -105,40 +165,10 @@ struct Part {
 }
 
 impl SampleCache {
-    /// Cast every view and keep the pixels that see the mesh. `views[i]` is a camera and,
-    /// optionally, its image (same size as the camera). `on_event` receives one event per view,
-    /// in order. Views are cast one after another, each in parallel over constant-size strips,
-    /// so the cache is bit-identical for any thread count.
-    pub fn build(
-        tracer: &Tracer,
-        views: &[(&Camera, Option<&Image>)],
-        gamma: u32,
-        on_event: &mut dyn FnMut(CacheEvent),
-    ) -> Result<SampleCache> {
+    /// An empty cache for multisampling factor `gamma` (1..=4).
+    pub fn new(gamma: u32) -> Result<SampleCache> {
         check_gamma(gamma)?;
-        for (i, (cam, img)) in views.iter().enumerate() {
-            if let Some(img) = img {
-                if img.width != cam.width || img.height != cam.height {
-                    bail!(
-                        "view {i}: image is {}×{} but the camera is {}×{}",
-                        img.width,
-                        img.height,
-                        cam.width,
-                        cam.height
-                    );
-                }
-                if img.data.len() != 3 * img.width as usize * img.height as usize {
-                    bail!(
-                        "view {i}: image data has {} values, expected 3×{}×{}",
-                        img.data.len(),
-                        img.width,
-                        img.height
-                    );
-                }
-            }
-        }
-        let g2 = (gamma * gamma) as usize;
-        let mut c = SampleCache {
+        Ok(SampleCache {
             gamma,
             views: Vec::new(),
             dropped: Vec::new(),
@@ -149,80 +179,101 @@ impl SampleCache {
             pixel: Vec::new(),
             view: Vec::new(),
             target: Vec::new(),
-        };
-        for (vi, (cam, img)) in views.iter().enumerate() {
-            let ctx = CamCtx::new(tracer, cam);
-            let parts: Vec<Part> = strips(cam.height)
-                .into_par_iter()
-                .map_init(
-                    || tracer.scratch(),
-                    |s, (y0, rows)| {
-                        let strip = cast_strip(tracer, &ctx, gamma, y0, rows, s);
-                        let mut p = Part::default();
-                        for (k, px) in strip.pixels.iter().enumerate() {
-                            if px.valid == 0 {
-                                continue;
-                            }
-                            let (u, v) = (k as u32 % cam.width, strip.y0 + k as u32 / cam.width);
-                            for ss in &strip.subs[k * g2..(k + 1) * g2] {
-                                p.positions.push(if ss.hit() {
-                                    ss.position.to_array().map(encode_coord)
-                                } else {
-                                    [0; 3]
-                                });
-                            }
-                            p.valid.push(px.valid);
-                            p.dirs.push(px.dir.as_vec3().to_array());
-                            p.footprint.push(px.footprint as f32);
-                            p.pixel.push([u, v]);
-                            p.target.push(match img {
-                                Some(im) => {
-                                    let o = 3 * (v as usize * im.width as usize + u as usize);
-                                    [im.data[o], im.data[o + 1], im.data[o + 2]]
-                                }
-                                None => [0.0; 3],
-                            });
-                        }
-                        p
-                    },
-                )
-                .collect();
-            let start = c.valid.len();
-            for p in parts {
-                c.positions.extend_from_slice(&p.positions);
-                c.valid.extend_from_slice(&p.valid);
-                c.dirs.extend_from_slice(&p.dirs);
-                c.footprint.extend_from_slice(&p.footprint);
-                c.pixel.extend_from_slice(&p.pixel);
-                c.target.extend_from_slice(&p.target);
-            }
-            let len = c.valid.len() - start;
-            c.view.resize(c.valid.len(), vi as u32);
-            on_event(CacheEvent::ViewCast {
-                view: vi,
-                kept: len,
-                pixels: (cam.width * cam.height) as usize,
-            });
-            if len == 0 {
-                c.dropped.push(vi);
-                on_event(CacheEvent::ViewDropped { view: vi });
-                continue;
-            }
-            let footprint_min = c.footprint[start..]
-                .iter()
-                .copied()
-                .fold(f32::INFINITY, f32::min);
-            c.views.push(CachedView {
-                view: vi,
-                width: cam.width,
-                height: cam.height,
-                start,
-                len,
-                footprint_min,
-                has_target: img.is_some(),
-            });
+        })
+    }
+
+    /// Cast every view and keep the pixels that see the mesh. `views[i]` is a camera and,
+    /// optionally, its image (same size as the camera); `i` is the view index stored in the
+    /// cache. `on_event` receives the events of each view, in order. Views are cast one after
+    /// another, each in parallel over constant-size strips, so the cache is bit-identical for
+    /// any thread count.
+    pub fn build(
+        tracer: &Tracer,
+        views: &[(&Camera, Option<&Image>)],
+        gamma: u32,
+        on_event: &mut dyn FnMut(CacheEvent),
+    ) -> Result<SampleCache> {
+        let mut c = SampleCache::new(gamma)?;
+        for (i, (cam, img)) in views.iter().enumerate() {
+            check_image(i, cam, *img)?;
+        }
+        for (i, (cam, img)) in views.iter().enumerate() {
+            c.add_view(tracer, i, cam, *img, on_event)?;
         }
         Ok(c)
+    }
+
+    /// Cast one view and append its kept pixels (so a caller can load one image at a time).
+    /// `view` is the index stored with its pixels (e.g. the scene's view index). Returns the
+    /// number of kept pixels; a view with none is recorded in [`SampleCache::dropped`].
+    pub fn add_view(
+        &mut self,
+        tracer: &Tracer,
+        view: usize,
+        cam: &Camera,
+        img: Option<&Image>,
+        on_event: &mut dyn FnMut(CacheEvent),
+    ) -> Result<usize> {
+        check_image(view, cam, img)?;
+        let (gamma, g2) = (self.gamma, self.samples_per_pixel());
+        let ctx = CamCtx::new(tracer, cam);
+        let parts: Vec<Part> = strips(cam.height)
+            .into_par_iter()
+            .map_init(
+                || (tracer.scratch(), Vec::new(), Vec::new()),
+                |(sc, subs, pixels), (y0, rows)| {
+                    let npix = (rows * cam.width) as usize;
+                    subs.resize(npix * g2, SubSample::default());
+                    pixels.resize(npix, PixelSummary::default());
+                    cast_strip(
+                        tracer,
+                        &ctx,
+                        gamma,
+                        y0,
+                        rows,
+                        sc,
+                        &mut subs[..npix * g2],
+                        &mut pixels[..npix],
+                    );
+                    compact(cam, img, y0, g2, &subs[..npix * g2], &pixels[..npix])
+                },
+            )
+            .collect();
+        let start = self.valid.len();
+        for p in parts {
+            self.positions.extend_from_slice(&p.positions);
+            self.valid.extend_from_slice(&p.valid);
+            self.dirs.extend_from_slice(&p.dirs);
+            self.footprint.extend_from_slice(&p.footprint);
+            self.pixel.extend_from_slice(&p.pixel);
+            self.target.extend_from_slice(&p.target);
+        }
+        let len = self.valid.len() - start;
+        self.view.resize(self.valid.len(), view as u32);
+        on_event(CacheEvent::ViewCast {
+            view,
+            kept: len,
+            pixels: (cam.width * cam.height) as usize,
+        });
+        if len == 0 {
+            self.dropped.push(view);
+            on_event(CacheEvent::ViewDropped { view });
+            return Ok(0);
+        }
+        let footprint_min = self.footprint[start..]
+            .iter()
+            .copied()
+            .fold(f32::INFINITY, f32::min);
+        self.views.push(CachedView {
+            view,
+            width: cam.width,
+            height: cam.height,
+            start,
+            len,
+            footprint_min,
+            has_target: img.is_some(),
+        });
+        Ok(len)
     }
 
     /// Number of kept pixels.

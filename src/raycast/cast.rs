@@ -25,14 +25,14 @@
 //! normalisation extent (the smallest normalised size along any axis, so level dropping stays
 //! conservative). Lens distortion's local magnification is ignored (a few % for real lenses).
 
-use super::bvh::{Packet, Scratch, Tracer};
+use super::bvh::{Packet, Scratch, Tracer, MAX_LANES};
 use crate::scene::Camera;
 use anyhow::{bail, Result};
 use glam::{DMat3, DVec3};
 use rayon::prelude::*;
 
 /// Pixel rows per parallel work item.
-pub const STRIP_ROWS: u32 = 4;
+pub const STRIP_ROWS: u32 = 2;
 /// Largest supported multisampling factor (the valid mask is 16 bits).
 pub const MAX_GAMMA: u32 = 4;
 
@@ -53,6 +53,8 @@ pub struct SubSample {
     pub position: DVec3,
     /// Unit world direction of the ray.
     pub dir: DVec3,
+    /// Footprint of this ray's pixel at its hit (module docs), normalised units; 0 for a miss.
+    pub footprint: f64,
 }
 
 impl SubSample {
@@ -153,14 +155,9 @@ pub fn check_gamma(gamma: u32) -> Result<()> {
     Ok(())
 }
 
-/// Output of one strip: `[rows][width][γ²]` sub-samples and `[rows][width]` summaries.
-pub(crate) struct Strip {
-    pub y0: u32,
-    pub subs: Vec<SubSample>,
-    pub pixels: Vec<PixelSummary>,
-}
-
-/// Cast the strip of pixel rows `y0 .. y0+rows`.
+#[allow(clippy::too_many_arguments)]
+/// Cast the strip of pixel rows `y0 .. y0+rows` into `subs` (`[rows][width][γ²]`) and `pixels`
+/// (`[rows][width]`); every element is overwritten.
 pub(crate) fn cast_strip(
     tracer: &Tracer,
     ctx: &CamCtx,
@@ -168,18 +165,33 @@ pub(crate) fn cast_strip(
     y0: u32,
     rows: u32,
     scratch: &mut Scratch,
-) -> Strip {
+    subs: &mut [SubSample],
+    pixels: &mut [PixelSummary],
+) {
+    // γ as a constant, so the sub-sample index arithmetic has no run-time divisions.
+    match gamma {
+        1 => cast_strip_g::<1>(tracer, ctx, y0, rows, scratch, subs, pixels),
+        2 => cast_strip_g::<2>(tracer, ctx, y0, rows, scratch, subs, pixels),
+        3 => cast_strip_g::<3>(tracer, ctx, y0, rows, scratch, subs, pixels),
+        4 => cast_strip_g::<4>(tracer, ctx, y0, rows, scratch, subs, pixels),
+        _ => unreachable!("γ is checked by the callers"),
+    }
+}
+
+fn cast_strip_g<const G: u32>(
+    tracer: &Tracer,
+    ctx: &CamCtx,
+    y0: u32,
+    rows: u32,
+    scratch: &mut Scratch,
+    subs: &mut [SubSample],
+    pixels: &mut [PixelSummary],
+) {
     let w = ctx.cam.width;
-    let g = gamma;
+    let g = G;
     let g2 = (g * g) as usize;
     let npix = (w * rows) as usize;
-    let mut subs = vec![
-        SubSample {
-            triangle: MISS,
-            ..Default::default()
-        };
-        npix * g2
-    ];
+    assert!(subs.len() == npix * g2 && pixels.len() == npix);
     let (sw, sh) = (w * g, rows * g);
     // Sub-sample (sx, sy) of the strip → index into `subs` and its continuous image point.
     let locate = |sx: u32, sy: u32| {
@@ -190,13 +202,16 @@ pub(crate) fn cast_strip(
         let y = (y0 + vr) as f64 + (b as f64 + 0.5) / g as f64;
         (idx, x, y)
     };
-    for by in (0..sh).step_by(2) {
-        for bx in (0..sw).step_by(2) {
+    // 4×2 blocks of the sub-sample grid, one packet each (γ = 2: two neighbouring pixels).
+    const BW: u32 = 4;
+    const BH: u32 = 2;
+    for by in (0..sh).step_by(BH as usize) {
+        for bx in (0..sw).step_by(BW as usize) {
             let mut p = Packet::default();
-            let mut lane_idx = [0usize; 4];
-            let mut lane_dir = [DVec3::ZERO; 4];
-            for (l, (dx, dy)) in [(0, 0), (1, 0), (0, 1), (1, 1)].into_iter().enumerate() {
-                let (sx, sy) = (bx + dx, by + dy);
+            let mut lane_idx = [0usize; MAX_LANES];
+            let mut lane_dir = [DVec3::ZERO; MAX_LANES];
+            for l in 0..(BW * BH) as usize {
+                let (sx, sy) = (bx + l as u32 % BW, by + l as u32 / BW);
                 if sx >= sw || sy >= sh {
                     continue;
                 }
@@ -204,17 +219,29 @@ pub(crate) fn cast_strip(
                 let d = ctx.dir(x, y);
                 lane_idx[l] = idx;
                 lane_dir[l] = d;
-                subs[idx].dir = d;
                 p.origin[l] = ctx.origin32;
                 p.dir[l] = d.as_vec3().to_array();
                 p.active |= 1 << l;
             }
-            let hits = tracer.trace4(&p, scratch);
-            for l in 0..4 {
+            let hits = tracer.trace(&p, scratch);
+            for l in 0..MAX_LANES {
+                if p.active >> l & 1 == 0 {
+                    continue;
+                }
+                // Every sub-sample of the strip is in exactly one block: all are written here.
+                subs[lane_idx[l]] = SubSample {
+                    triangle: MISS,
+                    dir: lane_dir[l],
+                    ..Default::default()
+                };
                 if let Some((tri, t32)) = hits[l] {
                     let d = lane_dir[l];
-                    let h = tracer.refine(ctx.origin, d, tri, t32);
+                    let (h, normal) = tracer.refine_with_normal(ctx.origin, d, tri, t32);
                     let local = ctx.origin + h.t * d;
+                    // Footprint (module docs): r · sqrt(Ω / |cos θ_n|), Ω = cos³θ_c / (fx fy).
+                    let cos_c = d.dot(ctx.axis).abs();
+                    let cos_n = d.dot(normal).abs().max(1e-6);
+                    let fp = h.t * ctx.inv_sqrt_f * (cos_c * cos_c * cos_c / cos_n).sqrt();
                     subs[lane_idx[l]] = SubSample {
                         triangle: tri,
                         t: h.t,
@@ -222,14 +249,14 @@ pub(crate) fn cast_strip(
                         v: h.v,
                         position: local * ctx.inv_extent + DVec3::splat(0.5),
                         dir: d,
+                        footprint: fp * ctx.inv_extent_max,
                     };
                 }
             }
         }
     }
     // Per-pixel summaries.
-    let mut pixels = Vec::with_capacity(npix);
-    for px in subs.chunks_exact(g2) {
+    for (px, out) in subs.chunks_exact(g2).zip(pixels.iter_mut()) {
         let mut s = PixelSummary::default();
         let mut dsum = DVec3::ZERO;
         let mut fsum = 0.0;
@@ -240,23 +267,15 @@ pub(crate) fn cast_strip(
             }
             s.valid |= 1 << j;
             dsum += ss.dir;
-            // Eq. of the module docs: r · sqrt(Ω / |cos θ_n|), Ω = cos³θ_c / (fx fy).
-            let cos_c = ss.dir.dot(ctx.axis).abs();
-            let cos_n = ss
-                .dir
-                .dot(tracer.triangle_normal(ss.triangle))
-                .abs()
-                .max(1e-6);
-            fsum += ss.t * ctx.inv_sqrt_f * (cos_c * cos_c * cos_c / cos_n).sqrt();
+            fsum += ss.footprint;
             n += 1;
         }
         if n > 0 {
             s.dir = dsum.normalize_or_zero();
-            s.footprint = fsum / n as f64 * ctx.inv_extent_max;
+            s.footprint = fsum / n as f64;
         }
-        pixels.push(s);
+        *out = s;
     }
-    Strip { y0, subs, pixels }
 }
 
 /// Strip start rows of an image.
@@ -271,19 +290,22 @@ pub(crate) fn strips(height: u32) -> Vec<(u32, u32)> {
 pub fn cast_view(tracer: &Tracer, camera: &Camera, gamma: u32) -> Result<ViewCast> {
     check_gamma(gamma)?;
     let ctx = CamCtx::new(tracer, camera);
-    let parts: Vec<Strip> = strips(camera.height)
-        .into_par_iter()
-        .map_init(
+    let (w, h) = (camera.width as usize, camera.height as usize);
+    let g2 = (gamma * gamma) as usize;
+    let mut subs = vec![SubSample::default(); w * h * g2];
+    let mut pixels = vec![PixelSummary::default(); w * h];
+    let rows = STRIP_ROWS as usize;
+    subs.par_chunks_mut(rows * w * g2)
+        .zip(pixels.par_chunks_mut(rows * w))
+        .enumerate()
+        .for_each_init(
             || tracer.scratch(),
-            |s, (y0, rows)| cast_strip(tracer, &ctx, gamma, y0, rows, s),
-        )
-        .collect();
-    let mut subs = Vec::with_capacity((camera.width * camera.height * gamma * gamma) as usize);
-    let mut pixels = Vec::with_capacity((camera.width * camera.height) as usize);
-    for p in parts {
-        subs.extend_from_slice(&p.subs);
-        pixels.extend_from_slice(&p.pixels);
-    }
+            |sc, (k, (s, p))| {
+                let y0 = (k * rows) as u32;
+                let r = (p.len() / w.max(1)) as u32;
+                cast_strip(tracer, &ctx, gamma, y0, r, sc, s, p)
+            },
+        );
     Ok(ViewCast {
         width: camera.width,
         height: camera.height,

@@ -13,7 +13,7 @@ pub mod meshes;
 mod simd;
 pub mod triangle;
 
-pub use bvh::{BuildPreset, Packet, Scratch, Tracer};
+pub use bvh::{BuildPreset, Packet, Scratch, Tracer, MAX_LANES};
 pub use cache::{CacheEvent, CachedView, SampleCache};
 pub use cast::{cast_view, sub_offset, PixelSummary, SubSample, ViewCast};
 

@@ -1,82 +1,131 @@
-//! A minimal 4-lane f32 vector for the packet traversal: SSE/SSE2 on x86_64 (part of the
-//! x86_64 baseline, so no runtime detection and no `target-cpu` flag is needed), plain arrays
-//! elsewhere. Every lane operation is the IEEE single-precision operation of the scalar code
-//! (no FMA contraction), so a lane computes bit-identically to the scalar path.
+//! Lane vectors for the packet traversal: [`F4`] (SSE/SSE2 on x86_64 — part of the x86_64
+//! baseline, no detection needed — plain arrays elsewhere) and [`F8`] (AVX, x86_64 only, used
+//! behind a runtime `is_x86_feature_detected!("avx")` check; never `target-cpu=native`).
 //!
-//! `min`/`max` follow SSE semantics (`a < b ? a : b`); the traversal never feeds them NaNs.
+//! Every lane operation is the IEEE single-precision operation of the scalar code (no FMA
+//! contraction, Rust never contracts), so a lane computes bit-identically to the scalar path
+//! and F4 and F8 packets give identical results. `min`/`max` follow SSE semantics
+//! (`a < b ? a : b`); the traversal never feeds them NaNs.
 
 #![allow(unused_unsafe)]
 
+use std::ops::{Add, Div, Mul, Sub};
+
+/// A vector of `N` f32 lanes with a lane mask type.
+pub trait Lanes:
+    Copy + Add<Output = Self> + Sub<Output = Self> + Mul<Output = Self> + Div<Output = Self>
+{
+    const N: usize;
+    type M: Mask;
+    fn splat(x: f32) -> Self;
+    /// Load `N` values (`a.len() >= N`).
+    fn load(a: &[f32]) -> Self;
+    /// Store `N` values (`out.len() >= N`).
+    fn store(self, out: &mut [f32]);
+    fn min(self, o: Self) -> Self;
+    fn max(self, o: Self) -> Self;
+    fn lt(self, o: Self) -> Self::M;
+    fn le(self, o: Self) -> Self::M;
+    fn gt(self, o: Self) -> Self::M;
+    fn eq(self, o: Self) -> Self::M;
+    /// `m ? a : b` per lane.
+    fn select(m: Self::M, a: Self, b: Self) -> Self;
+    fn hmin(self) -> f32;
+    fn hmax(self) -> f32;
+}
+
+/// A lane mask.
+pub trait Mask: Copy {
+    /// Bit i set when lane i is true.
+    fn bits(self) -> u32;
+    fn and(self, o: Self) -> Self;
+    fn or(self, o: Self) -> Self;
+}
+
 #[cfg(target_arch = "x86_64")]
-mod imp {
+mod x86 {
+    use super::{Lanes, Mask};
     use std::arch::x86_64::*;
 
-    /// Four f32 lanes.
+    /// Four f32 lanes (SSE).
     #[derive(Clone, Copy)]
     #[repr(transparent)]
     pub struct F4(__m128);
 
-    /// A lane mask (all bits set = true).
     #[derive(Clone, Copy)]
     #[repr(transparent)]
     pub struct M4(__m128);
 
-    impl F4 {
+    impl Mask for M4 {
         #[inline(always)]
-        pub fn splat(x: f32) -> F4 {
+        fn bits(self) -> u32 {
+            unsafe { _mm_movemask_ps(self.0) as u32 }
+        }
+        #[inline(always)]
+        fn and(self, o: M4) -> M4 {
+            unsafe { M4(_mm_and_ps(self.0, o.0)) }
+        }
+        #[inline(always)]
+        fn or(self, o: M4) -> M4 {
+            unsafe { M4(_mm_or_ps(self.0, o.0)) }
+        }
+    }
+
+    impl Lanes for F4 {
+        const N: usize = 4;
+        type M = M4;
+        #[inline(always)]
+        fn splat(x: f32) -> F4 {
             unsafe { F4(_mm_set1_ps(x)) }
         }
         #[inline(always)]
-        pub fn from_array(a: [f32; 4]) -> F4 {
+        fn load(a: &[f32]) -> F4 {
+            assert!(a.len() >= 4);
             unsafe { F4(_mm_loadu_ps(a.as_ptr())) }
         }
         #[inline(always)]
-        pub fn to_array(self) -> [f32; 4] {
-            let mut a = [0.0f32; 4];
-            unsafe { _mm_storeu_ps(a.as_mut_ptr(), self.0) };
-            a
+        fn store(self, out: &mut [f32]) {
+            assert!(out.len() >= 4);
+            unsafe { _mm_storeu_ps(out.as_mut_ptr(), self.0) }
         }
         #[inline(always)]
-        pub fn min(self, o: F4) -> F4 {
+        fn min(self, o: F4) -> F4 {
             unsafe { F4(_mm_min_ps(self.0, o.0)) }
         }
         #[inline(always)]
-        pub fn max(self, o: F4) -> F4 {
+        fn max(self, o: F4) -> F4 {
             unsafe { F4(_mm_max_ps(self.0, o.0)) }
         }
         #[inline(always)]
-        pub fn lt(self, o: F4) -> M4 {
+        fn lt(self, o: F4) -> M4 {
             unsafe { M4(_mm_cmplt_ps(self.0, o.0)) }
         }
         #[inline(always)]
-        pub fn le(self, o: F4) -> M4 {
+        fn le(self, o: F4) -> M4 {
             unsafe { M4(_mm_cmple_ps(self.0, o.0)) }
         }
         #[inline(always)]
-        pub fn gt(self, o: F4) -> M4 {
+        fn gt(self, o: F4) -> M4 {
             unsafe { M4(_mm_cmpgt_ps(self.0, o.0)) }
         }
         #[inline(always)]
-        pub fn eq(self, o: F4) -> M4 {
+        fn eq(self, o: F4) -> M4 {
             unsafe { M4(_mm_cmpeq_ps(self.0, o.0)) }
         }
-        /// `m ? a : b` per lane.
         #[inline(always)]
-        pub fn select(m: M4, a: F4, b: F4) -> F4 {
+        fn select(m: M4, a: F4, b: F4) -> F4 {
             unsafe { F4(_mm_or_ps(_mm_and_ps(m.0, a.0), _mm_andnot_ps(m.0, b.0))) }
         }
-        /// Smallest lane.
         #[inline(always)]
-        pub fn hmin(self) -> f32 {
+        fn hmin(self) -> f32 {
             unsafe {
                 let a = _mm_min_ps(self.0, _mm_movehl_ps(self.0, self.0));
                 let b = _mm_min_ss(a, _mm_shuffle_ps(a, a, 1));
                 _mm_cvtss_f32(b)
             }
         }
-        /// Largest lane.
         #[inline(always)]
-        pub fn hmax(self) -> f32 {
+        fn hmax(self) -> f32 {
             unsafe {
                 let a = _mm_max_ps(self.0, _mm_movehl_ps(self.0, self.0));
                 let b = _mm_max_ss(a, _mm_shuffle_ps(a, a, 1));
@@ -85,147 +134,214 @@ mod imp {
         }
     }
 
-    impl M4 {
+    /// Eight f32 lanes (AVX). Only call inside a function compiled with
+    /// `#[target_feature(enable = "avx")]` after `is_x86_feature_detected!("avx")`.
+    #[derive(Clone, Copy)]
+    #[repr(transparent)]
+    pub struct F8(__m256);
+
+    #[derive(Clone, Copy)]
+    #[repr(transparent)]
+    pub struct M8(__m256);
+
+    impl Mask for M8 {
         #[inline(always)]
-        pub fn from_bits(bits: u32) -> M4 {
-            let f = |i: u32| if bits >> i & 1 != 0 { -1i32 } else { 0 };
-            unsafe { M4(_mm_castsi128_ps(_mm_setr_epi32(f(0), f(1), f(2), f(3)))) }
+        fn bits(self) -> u32 {
+            unsafe { _mm256_movemask_ps(self.0) as u32 }
         }
-        /// Bit i set when lane i is true.
         #[inline(always)]
-        pub fn bits(self) -> u32 {
-            unsafe { _mm_movemask_ps(self.0) as u32 }
+        fn and(self, o: M8) -> M8 {
+            unsafe { M8(_mm256_and_ps(self.0, o.0)) }
         }
         #[inline(always)]
-        pub fn and(self, o: M4) -> M4 {
-            unsafe { M4(_mm_and_ps(self.0, o.0)) }
-        }
-        #[inline(always)]
-        pub fn or(self, o: M4) -> M4 {
-            unsafe { M4(_mm_or_ps(self.0, o.0)) }
+        fn or(self, o: M8) -> M8 {
+            unsafe { M8(_mm256_or_ps(self.0, o.0)) }
         }
     }
 
-    impl std::ops::Add for F4 {
-        type Output = F4;
+    impl Lanes for F8 {
+        const N: usize = 8;
+        type M = M8;
         #[inline(always)]
-        fn add(self, o: F4) -> F4 {
-            unsafe { F4(_mm_add_ps(self.0, o.0)) }
+        fn splat(x: f32) -> F8 {
+            unsafe { F8(_mm256_set1_ps(x)) }
+        }
+        #[inline(always)]
+        fn load(a: &[f32]) -> F8 {
+            assert!(a.len() >= 8);
+            unsafe { F8(_mm256_loadu_ps(a.as_ptr())) }
+        }
+        #[inline(always)]
+        fn store(self, out: &mut [f32]) {
+            assert!(out.len() >= 8);
+            unsafe { _mm256_storeu_ps(out.as_mut_ptr(), self.0) }
+        }
+        #[inline(always)]
+        fn min(self, o: F8) -> F8 {
+            unsafe { F8(_mm256_min_ps(self.0, o.0)) }
+        }
+        #[inline(always)]
+        fn max(self, o: F8) -> F8 {
+            unsafe { F8(_mm256_max_ps(self.0, o.0)) }
+        }
+        #[inline(always)]
+        fn lt(self, o: F8) -> M8 {
+            unsafe { M8(_mm256_cmp_ps::<_CMP_LT_OQ>(self.0, o.0)) }
+        }
+        #[inline(always)]
+        fn le(self, o: F8) -> M8 {
+            unsafe { M8(_mm256_cmp_ps::<_CMP_LE_OQ>(self.0, o.0)) }
+        }
+        #[inline(always)]
+        fn gt(self, o: F8) -> M8 {
+            unsafe { M8(_mm256_cmp_ps::<_CMP_GT_OQ>(self.0, o.0)) }
+        }
+        #[inline(always)]
+        fn eq(self, o: F8) -> M8 {
+            unsafe { M8(_mm256_cmp_ps::<_CMP_EQ_OQ>(self.0, o.0)) }
+        }
+        #[inline(always)]
+        fn select(m: M8, a: F8, b: F8) -> F8 {
+            unsafe { F8(_mm256_blendv_ps(b.0, a.0, m.0)) }
+        }
+        #[inline(always)]
+        fn hmin(self) -> f32 {
+            unsafe {
+                let h = _mm_min_ps(
+                    _mm256_castps256_ps128(self.0),
+                    _mm256_extractf128_ps::<1>(self.0),
+                );
+                let a = _mm_min_ps(h, _mm_movehl_ps(h, h));
+                _mm_cvtss_f32(_mm_min_ss(a, _mm_shuffle_ps(a, a, 1)))
+            }
+        }
+        #[inline(always)]
+        fn hmax(self) -> f32 {
+            unsafe {
+                let h = _mm_max_ps(
+                    _mm256_castps256_ps128(self.0),
+                    _mm256_extractf128_ps::<1>(self.0),
+                );
+                let a = _mm_max_ps(h, _mm_movehl_ps(h, h));
+                _mm_cvtss_f32(_mm_max_ss(a, _mm_shuffle_ps(a, a, 1)))
+            }
         }
     }
-    impl std::ops::Sub for F4 {
-        type Output = F4;
-        #[inline(always)]
-        fn sub(self, o: F4) -> F4 {
-            unsafe { F4(_mm_sub_ps(self.0, o.0)) }
-        }
+
+    macro_rules! ops {
+        ($t:ident, $add:ident, $sub:ident, $mul:ident, $div:ident) => {
+            impl std::ops::Add for $t {
+                type Output = $t;
+                #[inline(always)]
+                fn add(self, o: $t) -> $t {
+                    unsafe { $t($add(self.0, o.0)) }
+                }
+            }
+            impl std::ops::Sub for $t {
+                type Output = $t;
+                #[inline(always)]
+                fn sub(self, o: $t) -> $t {
+                    unsafe { $t($sub(self.0, o.0)) }
+                }
+            }
+            impl std::ops::Mul for $t {
+                type Output = $t;
+                #[inline(always)]
+                fn mul(self, o: $t) -> $t {
+                    unsafe { $t($mul(self.0, o.0)) }
+                }
+            }
+            impl std::ops::Div for $t {
+                type Output = $t;
+                #[inline(always)]
+                fn div(self, o: $t) -> $t {
+                    unsafe { $t($div(self.0, o.0)) }
+                }
+            }
+        };
     }
-    impl std::ops::Mul for F4 {
-        type Output = F4;
-        #[inline(always)]
-        fn mul(self, o: F4) -> F4 {
-            unsafe { F4(_mm_mul_ps(self.0, o.0)) }
-        }
-    }
-    impl std::ops::Div for F4 {
-        type Output = F4;
-        #[inline(always)]
-        fn div(self, o: F4) -> F4 {
-            unsafe { F4(_mm_div_ps(self.0, o.0)) }
-        }
-    }
+    ops!(F4, _mm_add_ps, _mm_sub_ps, _mm_mul_ps, _mm_div_ps);
+    ops!(
+        F8,
+        _mm256_add_ps,
+        _mm256_sub_ps,
+        _mm256_mul_ps,
+        _mm256_div_ps
+    );
 }
 
 #[cfg(not(target_arch = "x86_64"))]
-mod imp {
+mod portable {
+    use super::{Lanes, Mask};
+
     /// Four f32 lanes (portable fallback).
     #[derive(Clone, Copy)]
     pub struct F4([f32; 4]);
 
-    /// A lane mask.
     #[derive(Clone, Copy)]
     pub struct M4([bool; 4]);
 
-    #[inline(always)]
-    fn map2(a: [f32; 4], b: [f32; 4], f: impl Fn(f32, f32) -> f32) -> F4 {
-        F4([f(a[0], b[0]), f(a[1], b[1]), f(a[2], b[2]), f(a[3], b[3])])
-    }
-    #[inline(always)]
-    fn cmp(a: [f32; 4], b: [f32; 4], f: impl Fn(f32, f32) -> bool) -> M4 {
-        M4([f(a[0], b[0]), f(a[1], b[1]), f(a[2], b[2]), f(a[3], b[3])])
+    impl Mask for M4 {
+        fn bits(self) -> u32 {
+            (0..4).map(|i| (self.0[i] as u32) << i).sum()
+        }
+        fn and(self, o: M4) -> M4 {
+            M4(std::array::from_fn(|i| self.0[i] && o.0[i]))
+        }
+        fn or(self, o: M4) -> M4 {
+            M4(std::array::from_fn(|i| self.0[i] || o.0[i]))
+        }
     }
 
-    impl F4 {
-        #[inline(always)]
-        pub fn splat(x: f32) -> F4 {
+    fn map2(a: [f32; 4], b: [f32; 4], f: impl Fn(f32, f32) -> f32) -> F4 {
+        F4(std::array::from_fn(|i| f(a[i], b[i])))
+    }
+    fn cmp(a: [f32; 4], b: [f32; 4], f: impl Fn(f32, f32) -> bool) -> M4 {
+        M4(std::array::from_fn(|i| f(a[i], b[i])))
+    }
+
+    impl Lanes for F4 {
+        const N: usize = 4;
+        type M = M4;
+        fn splat(x: f32) -> F4 {
             F4([x; 4])
         }
-        #[inline(always)]
-        pub fn from_array(a: [f32; 4]) -> F4 {
-            F4(a)
+        fn load(a: &[f32]) -> F4 {
+            F4([a[0], a[1], a[2], a[3]])
         }
-        #[inline(always)]
-        pub fn to_array(self) -> [f32; 4] {
-            self.0
+        fn store(self, out: &mut [f32]) {
+            out[..4].copy_from_slice(&self.0);
         }
-        #[inline(always)]
-        pub fn min(self, o: F4) -> F4 {
+        fn min(self, o: F4) -> F4 {
             map2(self.0, o.0, |a, b| if a < b { a } else { b })
         }
-        #[inline(always)]
-        pub fn max(self, o: F4) -> F4 {
+        fn max(self, o: F4) -> F4 {
             map2(self.0, o.0, |a, b| if a > b { a } else { b })
         }
-        #[inline(always)]
-        pub fn lt(self, o: F4) -> M4 {
+        fn lt(self, o: F4) -> M4 {
             cmp(self.0, o.0, |a, b| a < b)
         }
-        #[inline(always)]
-        pub fn le(self, o: F4) -> M4 {
+        fn le(self, o: F4) -> M4 {
             cmp(self.0, o.0, |a, b| a <= b)
         }
-        #[inline(always)]
-        pub fn gt(self, o: F4) -> M4 {
+        fn gt(self, o: F4) -> M4 {
             cmp(self.0, o.0, |a, b| a > b)
         }
-        #[inline(always)]
-        pub fn eq(self, o: F4) -> M4 {
+        fn eq(self, o: F4) -> M4 {
             cmp(self.0, o.0, |a, b| a == b)
         }
-        #[inline(always)]
-        pub fn select(m: M4, a: F4, b: F4) -> F4 {
+        fn select(m: M4, a: F4, b: F4) -> F4 {
             F4(std::array::from_fn(
                 |i| if m.0[i] { a.0[i] } else { b.0[i] },
             ))
         }
-        #[inline(always)]
-        pub fn hmin(self) -> f32 {
+        fn hmin(self) -> f32 {
             let m = |a: f32, b: f32| if a < b { a } else { b };
             m(m(self.0[0], self.0[2]), m(self.0[1], self.0[3]))
         }
-        #[inline(always)]
-        pub fn hmax(self) -> f32 {
+        fn hmax(self) -> f32 {
             let m = |a: f32, b: f32| if a > b { a } else { b };
             m(m(self.0[0], self.0[2]), m(self.0[1], self.0[3]))
-        }
-    }
-
-    impl M4 {
-        #[inline(always)]
-        pub fn from_bits(bits: u32) -> M4 {
-            M4(std::array::from_fn(|i| bits >> i & 1 != 0))
-        }
-        #[inline(always)]
-        pub fn bits(self) -> u32 {
-            (0..4).map(|i| (self.0[i] as u32) << i).sum()
-        }
-        #[inline(always)]
-        pub fn and(self, o: M4) -> M4 {
-            M4(std::array::from_fn(|i| self.0[i] && o.0[i]))
-        }
-        #[inline(always)]
-        pub fn or(self, o: M4) -> M4 {
-            M4(std::array::from_fn(|i| self.0[i] || o.0[i]))
         }
     }
 
@@ -255,6 +371,7 @@ mod imp {
     }
 }
 
-pub use imp::F4;
-#[allow(unused_imports)]
-pub use imp::M4;
+#[cfg(not(target_arch = "x86_64"))]
+pub use portable::F4;
+#[cfg(target_arch = "x86_64")]
+pub use x86::{F4, F8};

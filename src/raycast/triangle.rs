@@ -20,7 +20,10 @@
 //! Both the scalar [`intersect`] and the 4-lane [`intersect4`] compute identical f32 values per
 //! lane (same operations, no FMA), so packet and single-ray traversal agree bit for bit.
 
-use super::simd::F4;
+// Index loops over lanes read best; `!(t > 0)` also rejects NaN on purpose.
+#![allow(clippy::needless_range_loop, clippy::neg_cmp_op_on_partial_ord)]
+
+use super::simd::{Lanes, Mask};
 
 /// Index of the largest |component| (first one on ties), pbrt's `MaxComponentIndex(Abs(d))`.
 #[inline]
@@ -159,93 +162,128 @@ fn intersect_f64_edges(p: [f32; 6], z: [f32; 3]) -> Option<TriHit> {
     })
 }
 
-/// Up to four rays sharing the permutation `k`, in SIMD lanes (structure of arrays).
+/// Most lanes a packet has.
+pub const MAX_LANES: usize = 8;
+
+/// Up to [`MAX_LANES`] rays sharing the permutation `k`, in SIMD lanes (structure of arrays).
 #[derive(Clone, Copy)]
-pub struct RayLanes4 {
+pub struct RayLanes<L: Lanes> {
     pub k: [usize; 3],
     /// Origin, permuted: `[o_kx, o_ky, o_kz]` per lane.
-    pub o: [F4; 3],
+    pub o: [L; 3],
     /// Shear `[Sx, Sy, Sz]` per lane.
-    pub s: [F4; 3],
-    /// The scalar rays (for the rare f64 fallback); lanes that are inactive hold any valid ray.
-    pub scalar: [WatertightRay; 4],
+    pub s: [L; 3],
+    /// The scalar rays (for the rare f64 fallback); inactive lanes hold any valid ray.
+    pub scalar: [WatertightRay; MAX_LANES],
+    /// The permuted origin when every lane has the same one (camera rays): the vertex
+    /// translation is then one scalar subtraction instead of one per lane (same IEEE result).
+    pub shared: [f32; 3],
 }
 
-impl RayLanes4 {
-    /// All rays must share `k` (the caller groups lanes by dominant axis).
-    pub fn new(rays: [WatertightRay; 4]) -> RayLanes4 {
+impl<L: Lanes> RayLanes<L> {
+    /// All of the first `L::N` rays must share `k` (the caller groups lanes by dominant axis).
+    #[inline(always)]
+    pub fn new(rays: &[WatertightRay]) -> RayLanes<L> {
         let k = rays[0].k;
-        debug_assert!(rays.iter().all(|r| r.k == k));
-        let o = [0, 1, 2].map(|a| F4::from_array(rays.map(|r| r.origin[k[a]])));
-        let s = [0, 1, 2].map(|a| F4::from_array(rays.map(|r| r.shear[a])));
-        RayLanes4 {
+        let mut scalar = [rays[0]; MAX_LANES];
+        scalar[..L::N].copy_from_slice(&rays[..L::N]);
+        let mut oa = [[0.0f32; MAX_LANES]; 3];
+        let mut sa = [[0.0f32; MAX_LANES]; 3];
+        for i in 0..MAX_LANES {
+            for a in 0..3 {
+                oa[a][i] = scalar[i].origin[k[a]];
+                sa[a][i] = scalar[i].shear[a];
+            }
+        }
+        let o = [L::load(&oa[0]), L::load(&oa[1]), L::load(&oa[2])];
+        let s = [L::load(&sa[0]), L::load(&sa[1]), L::load(&sa[2])];
+        let shared = [oa[0][0], oa[1][0], oa[2][0]];
+        RayLanes {
             k,
             o,
             s,
-            scalar: rays,
+            scalar,
+            shared,
         }
     }
 }
 
-/// Four-lane watertight test of one triangle: returns the lanes that hit (among `active`) and
-/// their distances. Lane `i` equals `intersect(&r.scalar[i], v)` exactly.
+/// A vertex translated, permuted and sheared into each lane's ray space. `SHARED`: all lanes
+/// have the origin `r.shared`.
 #[inline(always)]
-pub fn intersect4(r: &RayLanes4, v: &[[f32; 3]; 3], active: u32) -> (u32, F4) {
+fn vertex_lanes<L: Lanes, const SHARED: bool>(r: &RayLanes<L>, v: [f32; 3]) -> (L, L, L) {
     let [kx, ky, kz] = r.k;
-    let [sx, sy, sz] = r.s;
-    let p = |i: usize| {
-        let x = F4::splat(v[i][kx]) - r.o[0];
-        let y = F4::splat(v[i][ky]) - r.o[1];
-        let z = F4::splat(v[i][kz]) - r.o[2];
-        (x + sx * z, y + sy * z, z)
+    let (x, y, z) = if SHARED {
+        (
+            L::splat(v[kx] - r.shared[0]),
+            L::splat(v[ky] - r.shared[1]),
+            L::splat(v[kz] - r.shared[2]),
+        )
+    } else {
+        (
+            L::splat(v[kx]) - r.o[0],
+            L::splat(v[ky]) - r.o[1],
+            L::splat(v[kz]) - r.o[2],
+        )
     };
-    let (p0x, p0y, p0z) = p(0);
-    let (p1x, p1y, p1z) = p(1);
-    let (p2x, p2y, p2z) = p(2);
+    (x + r.s[0] * z, y + r.s[1] * z, z)
+}
+
+/// SIMD watertight test of one triangle against `L::N` rays: returns the lanes that hit (among
+/// `active`) and their distances. Lane `i` equals `intersect(&r.scalar[i], v)` exactly.
+#[inline(always)]
+pub fn intersect_lanes<L: Lanes, const SHARED: bool>(
+    r: &RayLanes<L>,
+    v: &[[f32; 3]; 3],
+    active: u32,
+) -> (u32, L) {
+    let (p0x, p0y, p0z) = vertex_lanes::<L, SHARED>(r, v[0]);
+    let (p1x, p1y, p1z) = vertex_lanes::<L, SHARED>(r, v[1]);
+    let (p2x, p2y, p2z) = vertex_lanes::<L, SHARED>(r, v[2]);
+    let sz = r.s[2];
     let e0 = p1x * p2y - p1y * p2x;
     let e1 = p2x * p0y - p2y * p0x;
     let e2 = p0x * p1y - p0y * p1x;
-    let zero = F4::splat(0.0);
+    let zero = L::splat(0.0);
     let neg = e0.lt(zero).or(e1.lt(zero)).or(e2.lt(zero)).bits();
     let pos = e0.gt(zero).or(e1.gt(zero)).or(e2.gt(zero)).bits();
+    // An f32 edge function has the exact sign or is 0 (rounding is monotonic), so mixed
+    // nonzero signs are a certain miss even when another edge function is 0.
     let mut cand = active & !(neg & pos);
     if cand == 0 {
         return (0, zero);
     }
+    // Lanes with an edge function exactly 0 are redone in the scalar path (f64 edges).
+    let redo = e0.eq(zero).or(e1.eq(zero)).or(e2.eq(zero)).bits() & cand;
     let det = e0 + e1 + e2;
     let z0 = p0z * sz;
     let z1 = p1z * sz;
     let z2 = p2z * sz;
     let ts = e0 * z0 + e1 * z1 + e2 * z2;
-    // Same sign and both nonzero: ts*det > 0 could overflow, so compare signs instead.
+    // Same sign and both nonzero (ts·det > 0 could overflow, so compare signs).
     let dpos = det.gt(zero).bits();
     let dneg = det.lt(zero).bits();
     let tpos = ts.gt(zero).bits();
     let tneg = ts.lt(zero).bits();
     cand &= (dpos & tpos) | (dneg & tneg);
+    if cand | redo == 0 {
+        return (0, zero);
+    }
     let t = ts / det;
     cand &= t.gt(zero).bits();
-    // Lanes with an edge function exactly 0: redo in the scalar path (f64 edges).
-    let ezero = e0.eq(zero).or(e1.eq(zero)).or(e2.eq(zero)).bits() & active;
-    if ezero != 0 {
-        return fallback4(r, v, active, cand & !ezero, t, ezero);
+    if redo != 0 {
+        return fallback(r, v, cand & !redo, t, redo);
     }
     (cand, t)
 }
 
 #[cold]
 #[inline(never)]
-fn fallback4(
-    r: &RayLanes4,
-    v: &[[f32; 3]; 3],
-    _active: u32,
-    cand: u32,
-    t: F4,
-    redo: u32,
-) -> (u32, F4) {
-    let mut ta = t.to_array();
+fn fallback<L: Lanes>(r: &RayLanes<L>, v: &[[f32; 3]; 3], cand: u32, t: L, redo: u32) -> (u32, L) {
+    let mut ta = [0.0f32; MAX_LANES];
+    t.store(&mut ta);
     let mut hits = cand;
-    for i in 0..4 {
+    for i in 0..L::N {
         if redo >> i & 1 != 0 {
             if let Some(h) = intersect(&r.scalar[i], v) {
                 hits |= 1 << i;
@@ -253,5 +291,5 @@ fn fallback4(
             }
         }
     }
-    (hits, F4::from_array(ta))
+    (hits, L::load(&ta))
 }

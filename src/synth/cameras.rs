@@ -72,6 +72,11 @@ pub struct CameraParams {
     pub close_distance: f64,
     /// Close-up targets lie within this half-width of the centre (m).
     pub close_region: f64,
+    /// Close-ups come in clusters of this many views of one target from nearby positions, so a
+    /// held-out close-up has training views of the same surface at the same scale (1 = every
+    /// close-up has its own target; omitted from `synth.toml` then).
+    #[serde(skip_serializing_if = "is_one")]
+    pub close_cluster: usize,
     pub min_hit_fraction: f64,
 }
 
@@ -117,14 +122,30 @@ fn eye_ok(surface: &TrueSurface, eye: DVec3) -> bool {
         && eye.z > surface.terrain.height_at(eye.x, eye.y) + 0.5
 }
 
+fn is_one(n: &usize) -> bool {
+    *n == 1
+}
+
 /// Place every camera. `close[i]` says whether view i is a close-up (interleaved by the caller).
+/// Close-up `c` belongs to cluster `c / close_cluster`: the first of a cluster picks a target,
+/// the others look at the same target from nearby eyes ([`place_near`]).
 pub fn place(seed: u64, p: &CameraParams, surface: &TrueSurface, close: &[bool]) -> Vec<Placed> {
     let mut out = Vec::with_capacity(close.len());
     let (mut ia, mut ic) = (0usize, 0usize);
+    let cluster = p.close_cluster.max(1);
+    let mut anchor: Option<Placed> = None;
     for &is_close in close {
         let placed = if is_close {
             ic += 1;
-            place_close(seed, p, surface, ic - 1)
+            let c = ic - 1;
+            let placed = match &anchor {
+                Some(a) if c % cluster != 0 => place_near(seed, p, surface, a, c),
+                _ => place_close(seed, p, surface, c / cluster),
+            };
+            if c % cluster == 0 {
+                anchor = Some(placed.clone());
+            }
+            placed
         } else {
             ia += 1;
             place_aerial(seed, p, surface, ia - 1)
@@ -259,6 +280,48 @@ fn place_close(seed: u64, p: &CameraParams, s: &TrueSurface, k: usize) -> Placed
         fallback.get_or_insert(placed);
     }
     fallback.expect("no admissible close-up camera")
+}
+
+/// A close-up of `anchor`'s target from a nearby eye: azimuth within ±25°, elevation within
+/// ±12° (kept in 10°..85°), distance 0.8–1.2 × the close-up distance; the same admissibility
+/// checks as [`place_close`]. Falls back to the anchor's own camera.
+fn place_near(seed: u64, p: &CameraParams, s: &TrueSurface, anchor: &Placed, k: usize) -> Placed {
+    let r = |attempt: u64, c: u64| {
+        rng::uniform_f64(
+            seed,
+            Purpose::Synth,
+            stream::CAMERAS + 3,
+            (k as u64) << 16 | attempt << 4 | c,
+        )
+    };
+    let target = anchor.target;
+    let off = anchor.camera.center() - target;
+    let (az0, el0) = (off.y.atan2(off.x), (off.z / off.length()).asin());
+    for attempt in 0..MAX_ATTEMPTS {
+        let az = az0 + (50.0 * r(attempt, 0) - 25.0).to_radians();
+        let el = (el0 + (24.0 * r(attempt, 1) - 12.0).to_radians())
+            .clamp(10f64.to_radians(), 85f64.to_radians());
+        let d = p.close_distance * (0.8 + 0.4 * r(attempt, 2));
+        let eye = target + d * DVec3::new(el.cos() * az.cos(), el.cos() * az.sin(), el.sin());
+        if !eye_ok(s, eye) {
+            continue;
+        }
+        let dir = (target - eye).normalize();
+        match s.trace(eye, dir, 0.0, f64::INFINITY) {
+            Some(h) if (h.t - d).abs() < 1e-6 * d.max(1.0) + 1e-6 => {}
+            _ => continue,
+        }
+        let placed = Placed {
+            kind: ViewKind::Close,
+            camera: camera(p, eye, target),
+            target,
+            distance: d,
+        };
+        if hit_fraction(s, &placed.camera) >= p.min_hit_fraction {
+            return placed;
+        }
+    }
+    anchor.clone()
 }
 
 #[cfg(test)]

@@ -335,6 +335,7 @@ pub fn train(
     };
     let t0 = Instant::now();
     let mut grads = Grads::new(&state.ckpt.model.layout);
+    grads.inputs = false; // positions and directions are data, not parameters
     let mut ema_mse: Option<f64> = None;
     let (mut win_t, mut win_samples, mut win_pixels) = (Instant::now(), 0usize, 0usize);
     let mut interrupted = false;

@@ -1,0 +1,59 @@
+//! `xscale cast` end to end on the COLMAP fixture scene (a cube seen by three cameras).
+
+use std::process::Command;
+
+fn xscale(args: &[&str]) -> (i32, String, String) {
+    let out = Command::new(env!("CARGO_BIN_EXE_xscale"))
+        .args(args)
+        .output()
+        .unwrap();
+    (
+        out.status.code().unwrap_or(-1),
+        String::from_utf8_lossy(&out.stdout).into_owned(),
+        String::from_utf8_lossy(&out.stderr).into_owned(),
+    )
+}
+
+fn field(stdout: &str, name: &str) -> String {
+    stdout
+        .lines()
+        .find(|l| l.starts_with(name))
+        .unwrap_or_else(|| panic!("no '{name}' in:\n{stdout}"))[name.len()..]
+        .trim()
+        .to_string()
+}
+
+#[test]
+fn cast_reports_the_cache() {
+    let scene = concat!(env!("CARGO_MANIFEST_DIR"), "/fixtures/formats/colmap");
+    let (code, out, err) = xscale(&["cast", "--scene", scene, "--views", "all", "--gamma", "2"]);
+    assert_eq!(code, 0, "{err}");
+    assert_eq!(field(&out, "views cast:"), "3");
+    assert_eq!(field(&out, "views kept:"), "3");
+    // 3 views of 8×6 pixels, 4 rays each.
+    assert_eq!(field(&out, "rays cast:"), "576");
+    let kept: usize = field(&out, "pixels kept:")
+        .split(' ')
+        .next()
+        .unwrap()
+        .parse()
+        .unwrap();
+    assert!(kept > 0 && kept < 144, "{out}");
+    assert!(err.contains("see the mesh"), "{err}");
+    // γ = 1 casts a quarter of the rays; the training split drops the held-out view 0.
+    let (code, out, _) = xscale(&["cast", "--scene", scene, "--gamma", "1", "--no-images"]);
+    assert_eq!(code, 0);
+    assert_eq!(field(&out, "views cast:"), "2");
+    assert_eq!(field(&out, "rays cast:"), "96");
+}
+
+#[test]
+fn cast_rejects_bad_arguments() {
+    let scene = concat!(env!("CARGO_MANIFEST_DIR"), "/fixtures/formats/colmap");
+    let (code, _, err) = xscale(&["cast", "--scene", scene, "--gamma", "7"]);
+    assert_eq!(code, 2);
+    assert!(err.contains("γ = 7"), "{err}");
+    let (code, _, err) = xscale(&["cast", "--scene", "/nonexistent/scene"]);
+    assert_eq!(code, 2);
+    assert!(err.contains("/nonexistent/scene"), "{err}");
+}

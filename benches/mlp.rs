@@ -154,9 +154,27 @@ fn main() {
                 std::hint::black_box(model.loss_and_grad(&params, &batch, &mut grads).unwrap());
             })
         });
+        // As training runs it: no input-position / direction gradients.
+        let mut train_grads = Grads::<f32>::new(&model.layout);
+        train_grads.inputs = false;
+        let t_train = pool.install(|| {
+            time(3, || {
+                train_grads.zero_sparse(&model.layout, fh, fd);
+                std::hint::black_box(
+                    model
+                        .loss_and_grad(&params, &batch, &mut train_grads)
+                        .unwrap(),
+                );
+            })
+        });
         if threads == 1 {
             base = (t_mlp.0, t_pipe.0);
         }
+        println!(
+            "threads {threads}: training step fwd+bwd (no input gradients) {:8.1} ns/pixel wall ({:8.1} CPU-ns)",
+            t_train.0 / n as f64 * 1e9,
+            t_train.1 / n as f64 * 1e9
+        );
         let ns = |t: f64| t / n as f64 * 1e9;
         println!(
             "threads {threads}: shader MLP fwd+bwd {:8.1} ns/pixel wall ({:8.1} CPU-ns, speed-up ×{:.2}) | \

@@ -29,12 +29,15 @@ pub struct Args {
     pub out: Option<PathBuf>,
     #[arg(long)]
     pub downsample: Option<u32>,
+    /// Mesh file instead of the scene's (default: the run's `train.mesh`, else the scene's).
+    #[arg(long)]
+    pub mesh: Option<PathBuf>,
 }
 
 pub fn run(a: Args) -> Result<ExitCode> {
     let ck_path = checkpoint_path(&a.run, &a.checkpoint)?;
     let (ck, cfg) = load_model(&ck_path)?;
-    let s = scene_for_model(&a.scene, &ck, cfg.as_ref(), a.downsample)?;
+    let s = scene_for_model(&a.scene, &ck, cfg.as_ref(), a.downsample, a.mesh.as_deref())?;
     let views = select_views(&s.scene, &a.views)?;
     anyhow::ensure!(
         !views.is_empty(),

@@ -52,6 +52,9 @@ pub struct Args {
     /// Integer image downsample factor (default: the run's).
     #[arg(long)]
     pub downsample: Option<u32>,
+    /// Mesh file instead of the scene's (default: the run's `train.mesh`, else the scene's).
+    #[arg(long)]
+    pub mesh: Option<PathBuf>,
 }
 
 fn write(path: &Path, img: &Image, format: Format) -> Result<()> {
@@ -64,7 +67,7 @@ fn write(path: &Path, img: &Image, format: Format) -> Result<()> {
 pub fn run(a: Args) -> Result<ExitCode> {
     let ck_path = checkpoint_path(&a.run, &a.checkpoint)?;
     let (ck, cfg) = load_model(&ck_path)?;
-    let s = scene_for_model(&a.scene, &ck, cfg.as_ref(), a.downsample)?;
+    let s = scene_for_model(&a.scene, &ck, cfg.as_ref(), a.downsample, a.mesh.as_deref())?;
     let gamma = a.gamma.unwrap_or(ck.model.cfg.gamma);
     std::fs::create_dir_all(&a.out)
         .with_context(|| format!("{}: cannot create", a.out.display()))?;

@@ -75,8 +75,7 @@ pub fn scene_for_model(
     };
     let mut scene = Scene::load(dir, &opts)?;
     if let Some(vt) = &ckpt.model.vertex {
-        if scene.mesh.vertices.len() != vt.n_vertices || scene.mesh.triangles[..] != vt.faces[..]
-        {
+        if scene.mesh.vertices.len() != vt.n_vertices || scene.mesh.triangles[..] != vt.faces[..] {
             bail!(
                 "the model has vertex features for a mesh of {} vertices / {} triangles, but the scene's mesh has {} / {} (or other triangles): pass the training mesh with --mesh",
                 vt.n_vertices,

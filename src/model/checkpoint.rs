@@ -225,8 +225,7 @@ impl Checkpoint {
             "{label}: normalization {normalization:?} must be finite with positive extents"
         );
         let model = if cfg.featurization.is_hash() {
-            let grid_h =
-                grid_from(file, "grid_h", &cfg.grid_h).with_context(|| label.clone())?;
+            let grid_h = grid_from(file, "grid_h", &cfg.grid_h).with_context(|| label.clone())?;
             let grid_d = if cfg.deform.enabled {
                 Some(grid_from(file, "grid_d", &cfg.deform.grid).with_context(|| label.clone())?)
             } else {

@@ -241,7 +241,10 @@ mod tests {
     fn featurization_switch_is_absent_from_hash_configs() {
         let c = ModelConfig::cpu();
         let s = toml::to_string(&c).unwrap();
-        assert!(!s.contains("featurization") && !s.contains("vertex_"), "{s}");
+        assert!(
+            !s.contains("featurization") && !s.contains("vertex_"),
+            "{s}"
+        );
         let mut v = c.clone();
         v.featurization = Featurization::Vertex;
         v.vertex_features = 12;

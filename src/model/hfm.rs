@@ -221,9 +221,7 @@ impl Hfm {
         let fh = cfg.grid_h.features as usize;
         let (mut r_grid_h, mut r_vertex) = (0..0, 0..0);
         match &vertex {
-            None => {
-                r_grid_h = layout.push("grid_h.table", &[grid_h.n_entries(), fh], Group::GridH)
-            }
+            None => r_grid_h = layout.push("grid_h.table", &[grid_h.n_entries(), fh], Group::GridH),
             Some(vt) => {
                 r_vertex = layout.push(
                     "vertex.features",

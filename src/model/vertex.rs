@@ -44,8 +44,14 @@ pub struct VertexTable {
 impl VertexTable {
     /// Checks Z > 0, V > 0 and every face index < V (errors name the face).
     pub fn new(n_vertices: usize, features: usize, faces: Arc<[[u32; 3]]>) -> Result<VertexTable> {
-        ensure!(features > 0, "vertex featurization: vertex_features must be > 0");
-        ensure!(n_vertices > 0, "vertex featurization: the mesh has no vertices");
+        ensure!(
+            features > 0,
+            "vertex featurization: vertex_features must be > 0"
+        );
+        ensure!(
+            n_vertices > 0,
+            "vertex featurization: the mesh has no vertices"
+        );
         ensure!(
             n_vertices <= u32::MAX as usize,
             "vertex featurization: too many vertices"
@@ -145,7 +151,11 @@ pub fn vertex_backward<R: Real>(
     touched: &mut Touched,
 ) {
     let z = vt.features;
-    assert_eq!(d_table.len(), vt.n_params(), "vertex_backward: d_table length");
+    assert_eq!(
+        d_table.len(),
+        vt.n_params(),
+        "vertex_backward: d_table length"
+    );
     assert_eq!(tri.len(), bary.len(), "vertex_backward: tri / bary lengths");
     assert_eq!(d_out.len(), tri.len() * z, "vertex_backward: d_out length");
     touched.entries.reserve(tri.len() * 3);
@@ -198,7 +208,14 @@ mod tests {
         let mut touched = Touched {
             entries: vec![4, 0],
         };
-        vertex_backward(&vt, &[1], &[[0.25, 0.5]], &[1.0, -2.0], &mut d, &mut touched);
+        vertex_backward(
+            &vt,
+            &[1],
+            &[[0.25, 0.5]],
+            &[1.0, -2.0],
+            &mut d,
+            &mut touched,
+        );
         assert_eq!(touched.entries, [0, 2, 3, 4]);
         assert_eq!(&d[4..10], &[0.25, -0.5, 0.25, -0.5, 0.5, -1.0]);
         assert!(d[..4].iter().all(|&v| v == 0.0));

@@ -390,7 +390,10 @@ impl SampleCache {
     /// pixel `i`: `(MISS, [0, 0])` for an invalid slot. Panics if the cache does not keep them.
     #[inline]
     pub fn surface_id(&self, i: usize, j: usize) -> (u32, [f64; 2]) {
-        assert!(self.keep_triangles, "the sample cache keeps no triangle ids");
+        assert!(
+            self.keep_triangles,
+            "the sample cache keeps no triangle ids"
+        );
         let k = i * self.samples_per_pixel() + j;
         (self.triangles[k], self.bary[k].map(decode_coord))
     }

@@ -57,7 +57,8 @@ pub fn render_camera(
                 b.valid.push(sub.hit() as u8);
                 if ids {
                     b.triangle.push(sub.triangle);
-                    b.bary.push(if sub.hit() { [sub.u, sub.v] } else { [0.0; 2] });
+                    b.bary
+                        .push(if sub.hit() { [sub.u, sub.v] } else { [0.0; 2] });
                 }
             }
             b.dirs.push(px.dir.as_vec3().to_array());

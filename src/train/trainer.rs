@@ -335,7 +335,11 @@ pub fn train(
     say(format!(
         "model: {} parameters ({feat}, deformation {}, γ={}, A={}); {} steps of {} pixels",
         state.ckpt.model.layout.total,
-        if state.cfg.model.deform.enabled { "on" } else { "off" },
+        if state.cfg.model.deform.enabled {
+            "on"
+        } else {
+            "off"
+        },
         state.cfg.model.gamma,
         state.cfg.model.appearance_dim,
         tc.steps,

@@ -19,8 +19,9 @@ Model (per pixel n with sub-samples j, SPEC §4):
   loss = mean over pixels and channels of L1 / L2 / smooth-L1 of (rgb - target)
 
 Precision (--dtype):
-  float64: everything float64; f32 tables/weights are widened exactly; p = fma(scale, x, 0.5) is a correctly
-           rounded float64 fma (the positions mode is irrelevant in float64).
+  float64: everything float64; f32 tables/weights are widened exactly. positions "f64": p = fma(scale, x, 0.5) is
+           a correctly rounded float64 fma. positions "tcnn": c and t come from the float32 fma exactly as below
+           (the mode is part of the model's definition), t widened exactly; everything after t is float64.
   float32: tables, weights, activations float32. positions "f64": p is the float64 fma, t = RN32(p - floor(p));
            positions "tcnn": x -> RN32(x), p = fma32(scale, x, 0.5), t = p - floor(p) (exact).
            The grid outputs are replaced (value only, gradients untouched) by the SPEC's float32 fma-chain, so
@@ -390,13 +391,16 @@ def corner_index(cc: np.ndarray, lvl: Level) -> np.ndarray:
 
 
 def level_coords(x: np.ndarray, lvl: Level, dtype: str, positions: str) -> tuple[np.ndarray, np.ndarray]:
-    """x: [M,3] float64 normalized positions. Returns (t [M,3] in dtype, c [M,3] int64) per SPEC §4.2."""
-    if dtype == "float32" and positions == "tcnn":
+    """x: [M,3] float64 normalized positions. Returns (t [M,3] in dtype, c [M,3] int64) per SPEC §4.2.
+    positions "tcnn" defines the cell and fraction in float32 whatever the model's dtype (the mode is part of the
+    model: a float64 evaluation of a "tcnn" model uses the same c and t as its float32 evaluation, t widened
+    exactly), so a float64 dump of a "tcnn" checkpoint is the oracle for an fp32 tiny-cuda-nn backend."""
+    if positions == "tcnn":
         x32 = x.astype(np.float32)
         p = fma_f32(lvl.scale, x32, np.float32(0.5))  # float32, fused
         c = np.floor(p)
         t = p - c  # exact in float32
-        return t.astype(np.float32), c.astype(np.int64)
+        return t.astype(np.float32 if dtype == "float32" else np.float64), c.astype(np.int64)
     p = fma_f64(np.float64(lvl.scale), x, 0.5)  # float64, fused
     c = np.floor(p)
     t = p - c  # exact in float64

@@ -10,6 +10,42 @@ use anyhow::{bail, Context, Result};
 use glam::DVec3;
 use std::path::{Path, PathBuf};
 
+/// A trained model and the scene to use it on (`--run RUN | --checkpoint FILE --scene DIR`).
+#[derive(clap::Args, Debug)]
+pub struct ModelArgs {
+    /// Run folder (uses RUN/checkpoint.safetensors).
+    #[arg(long)]
+    pub run: Option<PathBuf>,
+    /// A checkpoint file instead of a run folder.
+    #[arg(long)]
+    pub checkpoint: Option<PathBuf>,
+    /// Scene directory.
+    #[arg(long)]
+    pub scene: PathBuf,
+    /// Integer image downsample factor (default: the run's).
+    #[arg(long)]
+    pub downsample: Option<u32>,
+    /// Mesh file instead of the scene's (default: the run's `train.mesh`, else the scene's own).
+    #[arg(long)]
+    pub mesh: Option<PathBuf>,
+}
+
+impl ModelArgs {
+    /// The checkpoint path, the model, its run configuration (if any) and the scene for it.
+    pub fn load(&self) -> Result<(PathBuf, Checkpoint, SceneForModel)> {
+        let path = checkpoint_path(&self.run, &self.checkpoint)?;
+        let (ck, cfg) = load_model(&path)?;
+        let s = scene_for_model(
+            &self.scene,
+            &ck,
+            cfg.as_ref(),
+            self.downsample,
+            self.mesh.as_deref(),
+        )?;
+        Ok((path, ck, s))
+    }
+}
+
 /// `--run RUN` or `--checkpoint FILE` (exactly one).
 pub fn checkpoint_path(run: &Option<PathBuf>, checkpoint: &Option<PathBuf>) -> Result<PathBuf> {
     match (run, checkpoint) {

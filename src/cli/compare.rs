@@ -14,7 +14,7 @@ pub struct Args {
     /// Second file (e.g. the backend's dump).
     pub b: PathBuf,
     /// Tolerance rules (TOML: `[[rule]] pattern = "fwd.*"`, `max_abs`, `max_rel`, `max_ulp`,
-    /// `reason`, `required`, `ignore`; `[default]`; `strict`).
+    /// `max_rel_peak`, `reason`, `required`, `ignore`; `[default]`; `strict`).
     #[arg(long)]
     pub tolerances: Option<PathBuf>,
     /// Also write the report as JSON to this file.
@@ -32,6 +32,9 @@ pub struct Args {
     /// Default rule's ULP limit.
     #[arg(long)]
     pub max_ulp: Option<u64>,
+    /// Default rule's limit on abs error / the tensor's largest |value|.
+    #[arg(long)]
+    pub max_rel_peak: Option<f64>,
     /// Print only failures and the summary.
     #[arg(long, short)]
     pub quiet: bool,
@@ -45,12 +48,17 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     if args.strict {
         tol.strict = true;
     }
-    if args.max_abs.is_some() || args.max_rel.is_some() || args.max_ulp.is_some() {
+    if args.max_abs.is_some()
+        || args.max_rel.is_some()
+        || args.max_ulp.is_some()
+        || args.max_rel_peak.is_some()
+    {
         tol.default = Some(Rule {
             pattern: String::new(),
             max_abs: args.max_abs,
             max_rel: args.max_rel,
             max_ulp: args.max_ulp,
+            max_rel_peak: args.max_rel_peak,
             reason: Some("command line".into()),
             ..Rule::default()
         });

@@ -2,7 +2,7 @@
 //! SSIM (SPEC §7), full image and masked, per held-out view and mean; a printed table; one
 //! side-by-side PNG per view (prediction | ground truth | error heat map) when `--out` is given.
 
-use super::common::{checkpoint_path, load_model, scene_for_model, select_views};
+use super::common::{select_views, ModelArgs};
 use crate::eval::protocol::{mean_score, score_view, table};
 use crate::render::{heat_map, render_camera, side_by_side};
 use crate::scene::image::write_png8;
@@ -12,12 +12,8 @@ use std::process::ExitCode;
 
 #[derive(clap::Args, Debug)]
 pub struct Args {
-    #[arg(long)]
-    pub run: Option<PathBuf>,
-    #[arg(long)]
-    pub checkpoint: Option<PathBuf>,
-    #[arg(long)]
-    pub scene: PathBuf,
+    #[command(flatten)]
+    pub model: ModelArgs,
     /// Views to score (default: the held-out ones).
     #[arg(long, default_value = "test")]
     pub views: String,
@@ -27,17 +23,10 @@ pub struct Args {
     /// Write side-by-side images here.
     #[arg(long)]
     pub out: Option<PathBuf>,
-    #[arg(long)]
-    pub downsample: Option<u32>,
-    /// Mesh file instead of the scene's (default: the run's `train.mesh`, else the scene's).
-    #[arg(long)]
-    pub mesh: Option<PathBuf>,
 }
 
 pub fn run(a: Args) -> Result<ExitCode> {
-    let ck_path = checkpoint_path(&a.run, &a.checkpoint)?;
-    let (ck, cfg) = load_model(&ck_path)?;
-    let s = scene_for_model(&a.scene, &ck, cfg.as_ref(), a.downsample, a.mesh.as_deref())?;
+    let (ck_path, ck, s) = a.model.load()?;
     let views = select_views(&s.scene, &a.views)?;
     anyhow::ensure!(
         !views.is_empty(),

@@ -4,7 +4,7 @@
 //! `--gamma` is the multisampling factor γ used for rendering (default: the model's); pixels
 //! whose rays all miss are white.
 
-use super::common::{checkpoint_path, load_model, scene_for_model, select_views};
+use super::common::{select_views, ModelArgs};
 use crate::render::{footprint_image, interpolate_camera, mask_image, render_camera};
 use crate::scene::image::{write_exr, write_png8};
 use crate::scene::{Camera, Image};
@@ -20,13 +20,8 @@ pub enum Format {
 
 #[derive(clap::Args, Debug)]
 pub struct Args {
-    /// Run folder (uses RUN/checkpoint.safetensors).
-    #[arg(long)]
-    pub run: Option<PathBuf>,
-    #[arg(long)]
-    pub checkpoint: Option<PathBuf>,
-    #[arg(long)]
-    pub scene: PathBuf,
+    #[command(flatten)]
+    pub model: ModelArgs,
     #[arg(long)]
     pub out: PathBuf,
     /// test, train, all, or a comma-separated list of view names / indices.
@@ -49,12 +44,6 @@ pub struct Args {
     /// Also write NAME_footprint.png (log pixel footprint on the surface).
     #[arg(long)]
     pub footprint: bool,
-    /// Integer image downsample factor (default: the run's).
-    #[arg(long)]
-    pub downsample: Option<u32>,
-    /// Mesh file instead of the scene's (default: the run's `train.mesh`, else the scene's).
-    #[arg(long)]
-    pub mesh: Option<PathBuf>,
 }
 
 fn write(path: &Path, img: &Image, format: Format) -> Result<()> {
@@ -65,9 +54,7 @@ fn write(path: &Path, img: &Image, format: Format) -> Result<()> {
 }
 
 pub fn run(a: Args) -> Result<ExitCode> {
-    let ck_path = checkpoint_path(&a.run, &a.checkpoint)?;
-    let (ck, cfg) = load_model(&ck_path)?;
-    let s = scene_for_model(&a.scene, &ck, cfg.as_ref(), a.downsample, a.mesh.as_deref())?;
+    let (_, ck, s) = a.model.load()?;
     let gamma = a.gamma.unwrap_or(ck.model.cfg.gamma);
     std::fs::create_dir_all(&a.out)
         .with_context(|| format!("{}: cannot create", a.out.display()))?;

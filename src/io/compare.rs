@@ -22,9 +22,14 @@
 //! Tolerances (TOML, see [`Tolerances`]): rules matched by tensor-name glob (`*` any run of
 //! characters, dots included; `?` one character); the first matching rule in file order wins, then
 //! `[default]`. **An element is within tolerance if it meets at least one of the limits the rule
-//! gives** (`abs <= max_abs` or `rel <= max_rel` or `ulp <= max_ulp`), like `numpy.isclose`'s
-//! atol-or-rtol: a pure relative limit is useless for values crossing zero, a pure absolute limit
-//! for large values. A tensor fails if any element meets none of them.
+//! gives** (`abs <= max_abs` or `rel <= max_rel` or `ulp <= max_ulp` or
+//! `abs <= max_rel_peak * peak`), like `numpy.isclose`'s atol-or-rtol: a pure relative limit is
+//! useless for values crossing zero, a pure absolute limit for large values. A tensor fails if any
+//! element meets none of them.
+//! - **peak** of a tensor pair: the largest finite `|value|` in either tensor. `max_rel_peak` is an
+//!   absolute limit that scales with the tensor (`abs / peak`, the ∞-norm-relative error): the right
+//!   floor for elements near zero (sums that cancel, gradients of entries few samples touch), where
+//!   the element-wise rel is meaningless, without a fixed `max_abs` that fits one batch size only.
 //!
 //! Exit codes ([`Report::exit_code`]): 0 = everything within limits; 1 = a limit exceeded (the
 //! report names the tensor and the worst element); 2 = bad input: a shape mismatch, a tensor a
@@ -48,6 +53,8 @@ pub struct Rule {
     pub max_abs: Option<f64>,
     pub max_rel: Option<f64>,
     pub max_ulp: Option<u64>,
+    /// Limit on `abs / peak` (peak = largest finite |value| in either tensor; see module doc).
+    pub max_rel_peak: Option<f64>,
     /// Why this tolerance is what it is (shown in the report).
     pub reason: Option<String>,
     /// The matched tensors must exist in both files, and at least one must match (else exit 2).
@@ -60,7 +67,10 @@ pub struct Rule {
 
 impl Rule {
     fn has_limits(&self) -> bool {
-        self.max_abs.is_some() || self.max_rel.is_some() || self.max_ulp.is_some()
+        self.max_abs.is_some()
+            || self.max_rel.is_some()
+            || self.max_ulp.is_some()
+            || self.max_rel_peak.is_some()
     }
 
     /// `abs 1e-6 | rel 1e-5 | ulp 4`
@@ -75,6 +85,9 @@ impl Rule {
         if let Some(x) = self.max_ulp {
             parts.push(format!("ulp {x}"));
         }
+        if let Some(x) = self.max_rel_peak {
+            parts.push(format!("rel-peak {x:e}"));
+        }
         if parts.is_empty() {
             "exact".to_string()
         } else {
@@ -83,14 +96,22 @@ impl Rule {
     }
 
     /// Whether one element's errors are within this rule (any given limit suffices; a rule
-    /// without limits demands exact equality).
+    /// without limits demands exact equality). Without the tensor's peak a `max_rel_peak` limit
+    /// is never met: use [`Rule::accepts_with_peak`].
     pub fn accepts(&self, e: &ElementError) -> bool {
+        self.accepts_with_peak(e, f64::NAN)
+    }
+
+    /// As [`Rule::accepts`], with the tensor pair's peak (largest finite |value| in either
+    /// tensor) for `max_rel_peak`.
+    pub fn accepts_with_peak(&self, e: &ElementError, peak: f64) -> bool {
         if !self.has_limits() {
             return e.ulp == 0;
         }
         self.max_abs.is_some_and(|l| e.abs <= l)
             || self.max_rel.is_some_and(|l| e.rel <= l)
             || self.max_ulp.is_some_and(|l| e.ulp <= l)
+            || self.max_rel_peak.is_some_and(|l| e.abs <= l * peak)
     }
 }
 
@@ -105,6 +126,7 @@ impl Rule {
 /// max_abs = 1e-6
 /// max_rel = 1e-5
 /// max_ulp = 4
+/// max_rel_peak = 1e-6    # abs <= 1e-6 * largest |value| of the tensor
 /// reason = "fp32 fma chain vs reference"
 /// required = true         # optional
 /// [[rule]]
@@ -133,7 +155,11 @@ impl Tolerances {
         }
         let all = t.rules.iter().chain(t.default.iter());
         for r in all {
-            for (what, v) in [("max_abs", r.max_abs), ("max_rel", r.max_rel)] {
+            for (what, v) in [
+                ("max_abs", r.max_abs),
+                ("max_rel", r.max_rel),
+                ("max_rel_peak", r.max_rel_peak),
+            ] {
                 if let Some(x) = v {
                     if x.is_nan() || x < 0.0 {
                         bail!(
@@ -342,6 +368,10 @@ pub struct Stats {
     pub max_abs: f64,
     pub max_rel: f64,
     pub max_ulp: u64,
+    /// Largest finite |value| in either tensor.
+    pub peak: f64,
+    /// `max_abs / peak` (0 when equal; ∞ if peak is 0 and the tensors differ).
+    pub max_rel_peak: f64,
     /// The element with the largest abs error (first one on ties).
     pub worst_abs: Option<Element>,
     /// The element with the largest ULP distance (first one on ties).
@@ -605,12 +635,18 @@ fn fmt_ulp(x: u64) -> String {
 pub fn compare_tensors(a: &Tensor, b: &Tensor, rule: Option<&Rule>) -> Stats {
     let mode = CompareIn::for_dtypes(a.dtype, b.dtype);
     let n = a.numel().min(b.numel());
+    let peak = (0..n)
+        .flat_map(|i| [elem(a, i), elem(b, i)])
+        .filter(|v| v.is_finite())
+        .fold(0.0f64, |m, v| m.max(v.abs()));
     let mut st = Stats {
         numel: n,
         compare_in: mode,
         max_abs: 0.0,
         max_rel: 0.0,
         max_ulp: 0,
+        peak,
+        max_rel_peak: 0.0,
         worst_abs: None,
         worst_ulp: None,
         n_fail: 0,
@@ -634,7 +670,7 @@ pub fn compare_tensors(a: &Tensor, b: &Tensor, rule: Option<&Rule>) -> Stats {
             i_ulp = Some(i);
         }
         if let Some(r) = rule {
-            if !r.accepts(&e) {
+            if !r.accepts_with_peak(&e, peak) {
                 st.n_fail += 1;
                 let worse = match &i_fail {
                     None => true,
@@ -657,6 +693,11 @@ pub fn compare_tensors(a: &Tensor, b: &Tensor, rule: Option<&Rule>) -> Stats {
             rel: e.rel,
             ulp: e.ulp,
         }
+    };
+    st.max_rel_peak = if st.max_abs == 0.0 {
+        0.0
+    } else {
+        st.max_abs / peak
     };
     st.worst_abs = i_abs.map(element);
     st.worst_ulp = i_ulp.map(element);
@@ -814,6 +855,39 @@ mod tests {
         assert!(glob_match("*", ""));
         assert!(glob_match("a*b*c", "axxbyyc"));
         assert!(!glob_match("a*b*c", "axxbyy"));
+    }
+
+    #[test]
+    fn rel_peak_limit_scales_with_the_tensor() {
+        let rule = Rule {
+            pattern: "x".into(),
+            max_rel: Some(1e-12),
+            max_rel_peak: Some(1e-6),
+            ..Rule::default()
+        };
+        // An element near zero (rel 0.5) within 1e-6 of the tensor's peak 10 passes ...
+        let a = Tensor::f64(vec![3], &[10.0, 1e-6, -3.0]).unwrap();
+        let b = Tensor::f64(vec![3], &[10.0, 1.5e-6, -3.0]).unwrap();
+        let st = compare_tensors(&a, &b, Some(&rule));
+        assert_eq!((st.peak, st.n_fail), (10.0, 0));
+        assert!((st.max_rel_peak - 5e-8).abs() < 1e-20);
+        // ... the same abs error in a tensor whose peak is 1e-6 does not.
+        let a = Tensor::f64(vec![2], &[1e-6, 0.0]).unwrap();
+        let b = Tensor::f64(vec![2], &[1.5e-6, 0.0]).unwrap();
+        let st = compare_tensors(&a, &b, Some(&rule));
+        assert_eq!(st.n_fail, 1);
+        assert_eq!(st.peak, 1.5e-6);
+        // Without the peak, a rel-peak limit alone accepts nothing inexact.
+        let e = element_error(1.0, 1.0 + 1e-9, CompareIn::F64);
+        let only = Rule {
+            max_rel_peak: Some(1.0),
+            ..Rule::default()
+        };
+        assert!(!only.accepts(&e) && only.accepts_with_peak(&e, 1.0));
+        assert_eq!(only.describe_limits(), "rel-peak 1e0");
+        assert!(
+            Tolerances::from_toml("[[rule]]\npattern = \"a\"\nmax_rel_peak = -1\n", "t").is_err()
+        );
     }
 
     #[test]

@@ -258,23 +258,10 @@ fn place_close(seed: u64, p: &CameraParams, s: &TrueSurface, k: usize) -> Placed
                 t + d * DVec3::new(el.cos() * az.cos(), el.cos() * az.sin(), el.sin()),
             )
         };
-        if !eye_ok(s, eye) {
+        let Some((placed, enough)) = close_candidate(p, s, eye, target, d) else {
             continue;
-        }
-        // The target must be visible from the eye (nothing in between).
-        let dir = (target - eye).normalize();
-        match s.trace(eye, dir, 0.0, f64::INFINITY) {
-            Some(h) if (h.t - d).abs() < 1e-6 * d.max(1.0) + 1e-6 => {}
-            _ => continue,
-        }
-        let cam = camera(p, eye, target);
-        let placed = Placed {
-            kind: ViewKind::Close,
-            camera: cam,
-            target,
-            distance: d,
         };
-        if hit_fraction(s, &placed.camera) >= p.min_hit_fraction {
+        if enough {
             return placed;
         }
         fallback.get_or_insert(placed);
@@ -303,25 +290,39 @@ fn place_near(seed: u64, p: &CameraParams, s: &TrueSurface, anchor: &Placed, k: 
             .clamp(10f64.to_radians(), 85f64.to_radians());
         let d = p.close_distance * (0.8 + 0.4 * r(attempt, 2));
         let eye = target + d * DVec3::new(el.cos() * az.cos(), el.cos() * az.sin(), el.sin());
-        if !eye_ok(s, eye) {
-            continue;
-        }
-        let dir = (target - eye).normalize();
-        match s.trace(eye, dir, 0.0, f64::INFINITY) {
-            Some(h) if (h.t - d).abs() < 1e-6 * d.max(1.0) + 1e-6 => {}
-            _ => continue,
-        }
-        let placed = Placed {
-            kind: ViewKind::Close,
-            camera: camera(p, eye, target),
-            target,
-            distance: d,
-        };
-        if hit_fraction(s, &placed.camera) >= p.min_hit_fraction {
+        if let Some((placed, true)) = close_candidate(p, s, eye, target, d) {
             return placed;
         }
     }
     anchor.clone()
+}
+
+/// A close-up from `eye` at `target` (distance `d`): `None` if the eye is inside something or
+/// the target is hidden from it; else the camera and whether enough of its pixels see surface.
+fn close_candidate(
+    p: &CameraParams,
+    s: &TrueSurface,
+    eye: DVec3,
+    target: DVec3,
+    d: f64,
+) -> Option<(Placed, bool)> {
+    if !eye_ok(s, eye) {
+        return None;
+    }
+    // The target must be visible from the eye (nothing in between).
+    let dir = (target - eye).normalize();
+    match s.trace(eye, dir, 0.0, f64::INFINITY) {
+        Some(h) if (h.t - d).abs() < 1e-6 * d.max(1.0) + 1e-6 => {}
+        _ => return None,
+    }
+    let placed = Placed {
+        kind: ViewKind::Close,
+        camera: camera(p, eye, target),
+        target,
+        distance: d,
+    };
+    let enough = hit_fraction(s, &placed.camera) >= p.min_hit_fraction;
+    Some((placed, enough))
 }
 
 #[cfg(test)]

@@ -5,7 +5,7 @@
 //!   tints, per-building wall and roof colours — what the aerial views resolve;
 //! - mid (`mid_wavelength` and a quarter of it, metres): mottling, weathering, roof seams —
 //!   resolved by the larger aerial images and by every close-up;
-//! - fine (`fine_period`, set per preset to ~3× the close-up pixel footprint): pavement tiles
+//! - fine (`fine_period`, set per preset: ~3× the close-up pixel footprint, at least 2.5 `cpu`-grid cells in `small`): pavement tiles
 //!   and bricks with per-tile colour and mortar joints, plus grass grain at half that period —
 //!   only the close-ups resolve it.
 //!

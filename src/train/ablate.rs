@@ -10,8 +10,9 @@
 //! - `mesh10`: the full model on the scene mesh decimated to `ratio` (10%) of its faces with
 //!   quadric error metrics (`scene::mesh::decimate`) — Table 5.
 //! - `vertex`: the Fig. 2b baseline on the scene mesh: Z features per vertex, Z chosen so the
-//!   parameter count matches the full model's, clamped to `1..=Z_MAX` (64: wider vectors add
-//!   little, since a triangle's features span a 2-D affine patch whatever Z is).
+//!   parameter count matches the full model's, clamped to `1..=Z_MAX` (256; beyond a few dozen,
+//!   width buys little expressiveness — a triangle's interpolated features span a 2-D affine
+//!   patch whatever Z is — so the cap only matters for meshes far too coarse for parity).
 //! - `vertex_subdiv`: the same on the mesh midpoint-subdivided `k` times, `k` the smallest level
 //!   with `P_full / V_k ≤ Z_SUBDIV` (16), so the baseline gets a parameter budget comparable to
 //!   the hash grid's at a moderate Z (the small proxy meshes are far too coarse for that). The
@@ -35,7 +36,7 @@ use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
 /// Largest vertex feature width the `vertex` variant uses.
-pub const Z_MAX: u32 = 64;
+pub const Z_MAX: u32 = 256;
 /// Target vertex feature width of the `vertex_subdiv` variant.
 pub const Z_SUBDIV: u32 = 16;
 /// Most subdivision levels `vertex_subdiv` will use (× 1024 faces).

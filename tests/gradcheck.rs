@@ -20,17 +20,24 @@
 //!   fraction t ∈ [1e-3, 1−1e-3]; a step of h moves t by at most 31·h ≈ 3e-5); a case whose ±h
 //!   evaluation changes any ReLU pattern or loss branch (sign of r for L1, |r| < δ for smooth-L1)
 //!   is skipped and counted, and the test asserts that few cases were skipped.
+//! - The vertex featurization (Fig. 2b baseline, `model/vertex.rs`) is checked per op and
+//!   through the whole pipeline (vertex table, shader, codes, directions; positions must get an
+//!   exactly zero gradient since they do not enter that model). It is linear in the table, so
+//!   only the shader's ReLUs and the loss branches can straddle a kink.
 //! - Positions are checked in `positions = "f64"` mode (the "tcnn" mode rounds x to f32, a
 //!   staircase that finite differences cannot see through).
 
 use xscale::model::batch::Batch;
-use xscale::model::config::{GridConfig, Interpolation, LossKind, ModelConfig, PositionMode};
+use xscale::model::config::{
+    Featurization, GridConfig, Interpolation, LossKind, ModelConfig, PositionMode,
+};
 use xscale::model::hashgrid::{HashGrid, Touched};
 use xscale::model::hfm::{pool_backward, pool_forward, Forward, Hfm};
 use xscale::model::loss::{loss_backward, loss_forward, sigmoid_backward, sigmoid_forward};
 use xscale::model::mlp::{Mlp, MlpActs};
 use xscale::model::params::{Grads, Group};
 use xscale::model::sh::{sh_backward_one, sh_forward_one, SH_DIM};
+use xscale::model::vertex::{vertex_backward, vertex_forward, VertexTable};
 use xscale::rng::{uniform_f64, Purpose};
 
 const H: f64 = 1e-6;
@@ -462,6 +469,7 @@ fn random_params(model: &Hfm, seed: u64) -> Vec<f64> {
         let amp = match t.group {
             Group::GridH | Group::GridD => 0.5,
             Group::Appearance => 0.5,
+            Group::Vertex => 0.5,
             _ => {
                 if t.name.ends_with(".bias") {
                     0.2
@@ -652,4 +660,214 @@ fn pipeline_gradients_match_fd() {
         }
     }
     rep.finish("pipeline", 400);
+}
+
+// ---------------------------------------------------------------------------------------------
+// Vertex featurization (Fig. 2b baseline)
+// ---------------------------------------------------------------------------------------------
+
+/// A small random "mesh": `nv` vertices, `nt` faces with distinct random corners.
+fn random_faces(seed: u64, nv: usize, nt: usize) -> Vec<[u32; 3]> {
+    (0..nt as u64)
+        .map(|t| {
+            let a = (u(seed, 200, t) * nv as f64) as u32;
+            let b = (a + 1 + (u(seed, 201, t) * (nv - 2) as f64) as u32) % nv as u32;
+            let mut c = (u(seed, 202, t) * nv as f64) as u32;
+            while c == a || c == b {
+                c = (c + 1) % nv as u32;
+            }
+            [a, b, c]
+        })
+        .collect()
+}
+
+/// Barycentrics (u, v) uniform in the triangle.
+fn random_bary(seed: u64, k: u64) -> [f64; 2] {
+    let (mut a, mut b) = (u(seed, 210, k), u(seed, 211, k));
+    if a + b > 1.0 {
+        (a, b) = (1.0 - a, 1.0 - b);
+    }
+    [a, b]
+}
+
+#[test]
+fn vertex_backward_matches_fd() {
+    let mut rep = Report::default();
+    let (nv, z, m) = (9usize, 3usize, 14usize);
+    let vt = VertexTable::new(nv, z, random_faces(30, nv, 6).into()).unwrap();
+    let table: Vec<f64> = (0..(nv * z) as u64).map(|i| sym(31, 0, i)).collect();
+    // Repeated triangles, corners and an edge point (w = 0 for one corner) included.
+    let tri: Vec<u32> = (0..m as u64).map(|k| (k % 6) as u32).collect();
+    let mut bary: Vec<[f64; 2]> = (0..m as u64).map(|k| random_bary(32, k)).collect();
+    bary[3] = [0.0, 0.4];
+    let w: Vec<f64> = (0..(m * z) as u64).map(|i| sym(33, 0, i)).collect();
+    let f = |table: &[f64]| {
+        let mut out = vec![0.0; m * z];
+        vertex_forward(&vt, table, &tri, &bary, &mut out);
+        out.iter().zip(&w).map(|(a, b)| a * b).sum::<f64>()
+    };
+    let mut d = vec![0.0; nv * z];
+    let mut touched = Touched::default();
+    vertex_backward(&vt, &tri, &bary, &w, &mut d, &mut touched);
+    // Touched = exactly the vertices of the triangles used, sorted and unique.
+    let mut want: Vec<u32> = tri.iter().flat_map(|&t| vt.faces[t as usize]).collect();
+    want.sort_unstable();
+    want.dedup();
+    assert_eq!(touched.entries, want);
+    for i in 0..nv * z {
+        let fd = central(table[i], |x| {
+            let mut t = table.clone();
+            t[i] = x;
+            f(&t)
+        });
+        rep.check(&format!("vertex table {i}"), fd, d[i]);
+        if !want.contains(&((i / z) as u32)) {
+            assert_eq!(d[i], 0.0, "untouched row {} has gradient", i / z);
+        }
+    }
+    // Backward accumulates.
+    let d0 = d.clone();
+    vertex_backward(&vt, &tri, &bary, &w, &mut d, &mut touched);
+    assert!(d
+        .iter()
+        .zip(&d0)
+        .all(|(a, b)| (a - 2.0 * b).abs() <= 1e-12 * (1.0 + b.abs())));
+    assert_eq!(touched.entries, want);
+    rep.finish("vertex", 27);
+}
+
+#[test]
+fn vertex_pipeline_gradients_match_fd() {
+    let mut rep = Report::default();
+    let (nv, nt) = (11usize, 8usize);
+    for (ci, (gamma, p_invalid, loss, bias, a)) in [
+        (2u32, 0.35, LossKind::L1, false, 2u32),
+        (1, 0.0, LossKind::SmoothL1, true, 0),
+    ]
+    .into_iter()
+    .enumerate()
+    {
+        let mut cfg = ModelConfig::tiny();
+        cfg.featurization = Featurization::Vertex;
+        cfg.vertex_features = 5;
+        cfg.vertex_count = nv as u32;
+        cfg.deform.enabled = false;
+        cfg.gamma = gamma;
+        cfg.loss = loss;
+        cfg.smooth_l1_delta = 0.15;
+        cfg.shader.bias = bias;
+        cfg.appearance_dim = a;
+        cfg.appearance_views = if a > 0 { 3 } else { 0 };
+        let faces = random_faces(40 + ci as u64, nv, nt);
+        let model = Hfm::with_vertex(&cfg, faces.into()).unwrap();
+        assert!(model.layout.get("grid_h.table").is_none());
+        assert_eq!(model.layout.get("vertex.features").unwrap().shape, [nv, 5]);
+        let params = random_params(&model, 41 + ci as u64);
+        let s = (gamma * gamma) as usize;
+        let n = 7;
+        let mut batch = Batch::random(42 + ci as u64, n, s, model.appearance_views(), p_invalid);
+        batch.triangle = (0..(n * s) as u64)
+            .map(|k| {
+                if batch.valid[k as usize] == 0 {
+                    u32::MAX
+                } else {
+                    (u(43, ci as u64, k) * nt as f64) as u32
+                }
+            })
+            .collect();
+        batch.bary = (0..(n * s) as u64).map(|k| random_bary(44, k)).collect();
+        for d in batch.dirs.iter_mut() {
+            for v in d.iter_mut() {
+                *v = ((*v as f64 / DIR_STEP).round() * DIR_STEP) as f32;
+            }
+        }
+        if a > 0 {
+            batch.view[0] = -1;
+            batch.view[1] = 2;
+        }
+        batch.validate().unwrap();
+        // A batch without triangle ids is an error naming what is missing.
+        let mut no_ids = batch.clone();
+        no_ids.triangle.clear();
+        no_ids.bary.clear();
+        let e = model.forward(&params, &no_ids).unwrap_err().to_string();
+        assert!(e.contains("batch.triangle"), "{e}");
+
+        let mut grads = Grads::<f64>::new(&model.layout);
+        let fwd = model.forward(&params, &batch).unwrap();
+        let base_sig = signature(&model, &fwd, &batch);
+        model.backward(&params, &batch, &fwd, &mut grads);
+        assert!(!grads.touched_v.entries.is_empty());
+        assert!(grads.touched_h.entries.is_empty() && grads.touched_d.entries.is_empty());
+        let eval = |params: &[f64], batch: &Batch| {
+            let f = model.forward(params, batch).unwrap();
+            (f.loss, signature(&model, &f, batch))
+        };
+        let name = format!("vertex case {ci}");
+        let mut fd_case =
+            |label: String, an: f64, fp: (f64, Vec<bool>), fm: (f64, Vec<bool>), h: f64| {
+                if fp.1 != base_sig || fm.1 != base_sig {
+                    rep.skipped += 1;
+                    return;
+                }
+                rep.check(&format!("{name}: {label}"), (fp.0 - fm.0) / (2.0 * h), an);
+            };
+        // Every parameter of every tensor (the tables are small here).
+        for t in &model.layout.tensors {
+            for i in 0..t.len {
+                let g = t.offset + i;
+                let (mut pp, mut pm) = (params.clone(), params.clone());
+                pp[g] += H;
+                pm[g] -= H;
+                fd_case(
+                    format!("{}[{i}]", t.name),
+                    grads.params[g],
+                    eval(&pp, &batch),
+                    eval(&pm, &batch),
+                    H,
+                );
+            }
+        }
+        // Untouched vertex rows have exactly zero gradient; touched rows are the valid
+        // sub-samples' triangles' corners.
+        let r = model.layout.range("vertex.features");
+        let mut want: Vec<u32> = batch
+            .triangle
+            .iter()
+            .zip(&batch.valid)
+            .filter(|(_, &v)| v == 1)
+            .flat_map(|(&t, _)| model.vertex.as_ref().unwrap().faces[t as usize])
+            .collect();
+        want.sort_unstable();
+        want.dedup();
+        assert_eq!(grads.touched_v.entries, want);
+        for (e, row) in grads.params[r].chunks_exact(5).enumerate() {
+            if !want.contains(&(e as u32)) {
+                assert!(row.iter().all(|&v| v == 0.0), "row {e}");
+            }
+        }
+        // Positions do not enter this model: zero gradient, and the loss does not move.
+        assert!(grads.positions.iter().all(|&v| v == 0.0));
+        let mut bp = batch.clone();
+        for p in bp.positions.iter_mut() {
+            p[0] = 0.5 * p[0] + 0.1;
+        }
+        assert_eq!(eval(&params, &bp).0, fwd.loss);
+        // Directions (quantised to DIR_STEP as in the hash pipeline test).
+        for i in 0..n {
+            for a in 0..3 {
+                let (mut bp, mut bm) = (batch.clone(), batch.clone());
+                bp.dirs[i][a] += DIR_STEP as f32;
+                bm.dirs[i][a] -= DIR_STEP as f32;
+                fd_case(
+                    format!("dirs[{i}][{a}]"),
+                    grads.dirs[i * 3 + a],
+                    eval(&params, &bp),
+                    eval(&params, &bm),
+                    DIR_STEP,
+                );
+            }
+        }
+    }
+    rep.finish("vertex pipeline", 500);
 }

@@ -25,6 +25,9 @@ pub struct ModelArgs {
     /// Integer image downsample factor (default: the run's).
     #[arg(long)]
     pub downsample: Option<u32>,
+    /// Mesh file instead of the scene's (default: the run's `train.mesh`, else the scene's own).
+    #[arg(long)]
+    pub mesh: Option<PathBuf>,
 }
 
 impl ModelArgs {
@@ -32,7 +35,13 @@ impl ModelArgs {
     pub fn load(&self) -> Result<(PathBuf, Checkpoint, SceneForModel)> {
         let path = checkpoint_path(&self.run, &self.checkpoint)?;
         let (ck, cfg) = load_model(&path)?;
-        let s = scene_for_model(&self.scene, &ck, cfg.as_ref(), self.downsample)?;
+        let s = scene_for_model(
+            &self.scene,
+            &ck,
+            cfg.as_ref(),
+            self.downsample,
+            self.mesh.as_deref(),
+        )?;
         Ok((path, ck, s))
     }
 }
@@ -71,18 +80,47 @@ pub struct SceneForModel {
     pub rows: Vec<i32>,
 }
 
+/// A `--mesh` path made absolute: as given if it exists, else relative to the scene dir (as
+/// `LoadOptions::mesh` resolves it), so a run config keeps pointing at the same file.
+pub fn absolute_mesh_path(mesh: &Path, scene: &Path) -> PathBuf {
+    let p = if mesh.exists() || mesh.is_absolute() {
+        mesh.to_path_buf()
+    } else {
+        scene.join(mesh)
+    };
+    std::fs::canonicalize(&p).unwrap_or(p)
+}
+
+/// `mesh`: a mesh file overriding the scene's (default: the run config's `train.mesh`, else the
+/// scene's own). A vertex-featurization model checks that the mesh's triangles are the ones it
+/// was trained on (its table is indexed by them).
 pub fn scene_for_model(
     dir: &Path,
     ckpt: &Checkpoint,
     cfg: Option<&RunConfig>,
     downsample: Option<u32>,
+    mesh: Option<&Path>,
 ) -> Result<SceneForModel> {
     let opts = LoadOptions {
         downsample: downsample.or(cfg.map(|c| c.train.downsample)).unwrap_or(1),
         normalize: cfg.map(|c| c.train.normalize).unwrap_or_default(),
+        mesh: mesh
+            .map(Path::to_path_buf)
+            .or_else(|| cfg.and_then(|c| c.train.mesh.clone())),
         ..LoadOptions::default()
     };
     let mut scene = Scene::load(dir, &opts)?;
+    if let Some(vt) = &ckpt.model.vertex {
+        if scene.mesh.vertices.len() != vt.n_vertices || scene.mesh.triangles[..] != vt.faces[..] {
+            bail!(
+                "the model has vertex features for a mesh of {} vertices / {} triangles, but the scene's mesh has {} / {} (or other triangles): pass the training mesh with --mesh",
+                vt.n_vertices,
+                vt.faces.len(),
+                scene.mesh.vertices.len(),
+                scene.mesh.triangles.len()
+            );
+        }
+    }
     scene.normalization = Normalization {
         center: DVec3::from_array(ckpt.normalization.center),
         extent: DVec3::from_array(ckpt.normalization.extent),

@@ -1,7 +1,7 @@
 //! `xscale init --scene DIR --preset P --seed S --out FILE`: a freshly initialised checkpoint for a
 //! scene (appearance rows = its training views, hash levels dropped as SPEC §8 says).
 
-use crate::model::checkpoint::{init_checkpoint, Normalization};
+use crate::model::checkpoint::{init_checkpoint_for_mesh, Normalization};
 use crate::train::config::RunConfig;
 use crate::train::setup::{drop_fine_levels, prepare};
 use std::path::PathBuf;
@@ -26,7 +26,7 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
     let mut cfg = RunConfig::resolve(&a.preset, a.config.as_deref())?;
     cfg.train.seed = a.seed;
     let p = prepare(&a.scene, &cfg, false, &mut |m| eprintln!("{m}"))?;
-    if cfg.train.drop_fine_levels {
+    if cfg.train.drop_fine_levels && cfg.model.featurization.is_hash() {
         if let Some(fp) = p.cache.footprint_min() {
             if let Some(msg) = drop_fine_levels(&mut cfg.model, fp as f64) {
                 eprintln!("{msg}");
@@ -38,7 +38,13 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
         center: n.center.to_array(),
         extent: n.extent.to_array(),
     };
-    let ck = init_checkpoint(&cfg.model, a.seed, norm, p.train_views.len())?;
+    let ck = init_checkpoint_for_mesh(
+        &cfg.model,
+        a.seed,
+        norm,
+        p.train_views.len(),
+        Some(&p.scene.mesh),
+    )?;
     let mut f = ck.to_tensor_file()?;
     f.set_meta("run_config", cfg.to_toml());
     f.write_atomic(&a.out)?;

@@ -4,10 +4,12 @@
 use clap::{Parser, Subcommand};
 use std::process::ExitCode;
 
+pub mod ablate;
 pub mod batch;
 pub mod cast;
 pub mod common;
 pub mod compare;
+pub mod decimate;
 pub mod dump;
 pub mod eval;
 pub mod init;
@@ -49,6 +51,12 @@ pub enum Command {
     Render(render::Args),
     /// PSNR / SSIM on held-out views.
     Eval(eval::Args),
+    /// Decimate a mesh to a fraction of its faces (quadric error metrics).
+    Decimate(decimate::Args),
+    /// Subdivide a mesh (midpoint, 1→4 per level).
+    Subdivide(decimate::SubdivideArgs),
+    /// Train the paper's ablations and the vertex-feature baseline; write a comparison table.
+    Ablate(ablate::Args),
 }
 
 /// Run a parsed command line. `Ok(code)` is the process exit code; errors exit with 2.
@@ -68,5 +76,8 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Train(a) => train::run(a),
         Command::Render(a) => render::run(a),
         Command::Eval(a) => eval::run(a),
+        Command::Decimate(a) => decimate::run(a),
+        Command::Subdivide(a) => decimate::run_subdivide(a),
+        Command::Ablate(a) => ablate::run(a),
     }
 }

@@ -20,6 +20,11 @@ pub struct Args {
     /// TOML file overriding any field of the preset (`[model]`, `[train]` tables).
     #[arg(long)]
     pub config: Option<PathBuf>,
+    /// Mesh file to train on instead of the scene's own (e.g. from `xscale decimate`); stored
+    /// (absolute) in the run config, so `eval`/`render --run` use it too. The normalisation is
+    /// that of this mesh.
+    #[arg(long)]
+    pub mesh: Option<PathBuf>,
     /// Number of steps (overrides the config).
     #[arg(long)]
     pub steps: Option<u64>,
@@ -55,6 +60,9 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
     }
     if let Some(s) = a.seed {
         cfg.train.seed = s;
+    }
+    if let Some(m) = &a.mesh {
+        cfg.train.mesh = Some(super::common::absolute_mesh_path(m, &a.scene));
     }
     cfg.validate()?;
     // First Ctrl-C: finish the step, write a checkpoint, exit. Second: exit at once.

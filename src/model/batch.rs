@@ -4,6 +4,11 @@
 //! view directions (f32), `view [N]` the appearance-code row (−1: mean code), `target [N]` RGB.
 //! A batch never holds a pixel without a valid sub-sample; invalid sub-samples are never
 //! evaluated (their position is ignored).
+//!
+//! Optional (only for the vertex-feature featurization, `src/model/vertex.rs`; empty otherwise,
+//! so the hash model's batch tensors are exactly SPEC §6's): `triangle [N*S]` the mesh triangle
+//! each sub-sample hit and `bary [N*S]` its barycentrics `(u, v)` of vertices 1 and 2 (f64).
+//! Invalid sub-samples hold `u32::MAX` and `(0, 0)`.
 
 use anyhow::{bail, ensure, Result};
 
@@ -19,6 +24,10 @@ pub struct Batch {
     pub view: Vec<i32>,
     /// `[N]` target RGB.
     pub target: Vec<[f32; 3]>,
+    /// `[N*S]` triangle hit by each sub-sample (optional, see the module doc).
+    pub triangle: Vec<u32>,
+    /// `[N*S]` barycentrics `(u, v)` of each sub-sample (optional, with `triangle`).
+    pub bary: Vec<[f64; 2]>,
 }
 
 impl Batch {
@@ -62,6 +71,18 @@ impl Batch {
             "batch: target has {} entries, expected N = {n}",
             self.target.len()
         );
+        ensure!(
+            self.triangle.len() == self.bary.len(),
+            "batch: triangle has {} entries but bary has {}",
+            self.triangle.len(),
+            self.bary.len()
+        );
+        ensure!(
+            self.triangle.is_empty() || self.triangle.len() == n * s,
+            "batch: triangle has {} entries, expected N*S = {}",
+            self.triangle.len(),
+            n * s
+        );
         for i in 0..n {
             let mut any = false;
             for j in 0..s {
@@ -72,6 +93,11 @@ impl Batch {
                         let p = self.positions[i * s + j];
                         if !p.iter().all(|v| v.is_finite()) {
                             bail!("batch: pixel {i} sub-sample {j}: position {p:?} is not finite");
+                        }
+                        if let Some(b) = self.bary.get(i * s + j) {
+                            if !b.iter().all(|v| v.is_finite()) {
+                                bail!("batch: pixel {i} sub-sample {j}: barycentrics {b:?} are not finite");
+                            }
                         }
                     }
                     v => {

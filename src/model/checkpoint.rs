@@ -6,6 +6,8 @@
 //!   `normalization` (JSON `{"center":[..],"extent":[..]}`, f64). Loading uses the SAVED scale
 //!   table (`HashGrid::with_scales`) and checks the saved offsets against it. Other tensors in the
 //!   file (e.g. the trainer's `adam.*`) are ignored by [`Checkpoint::from_tensor_file`].
+//!   A vertex-featurization model (the Fig. 2b baseline) has `vertex.features` [V, Z] instead
+//!   of `grid_h.*`, plus `vertex.faces` [T, 3] u32 (the mesh's triangles, see `model/vertex.rs`).
 //! - Batch: `batch.positions` [N,S,3] f64, `batch.valid` [N,S] u8, `batch.dirs` [N,3] f32,
 //!   `batch.view` [N] i32, `batch.target` [N,3] f32.
 //! - Dump ([`dump`]): the checkpoint and batch tensors copied in, every intermediate `fwd.*`,
@@ -61,13 +63,31 @@ pub fn init_checkpoint(
     normalization: Normalization,
     n_train_views: usize,
 ) -> Result<Checkpoint> {
+    init_checkpoint_for_mesh(cfg, seed, normalization, n_train_views, None)
+}
+
+/// [`init_checkpoint`] with the scene's mesh, which a vertex-featurization model needs (its
+/// table gets one row per vertex, `cfg.vertex_count` is set from it); ignored by a hash model.
+pub fn init_checkpoint_for_mesh(
+    cfg: &ModelConfig,
+    seed: u64,
+    normalization: Normalization,
+    n_train_views: usize,
+    mesh: Option<&crate::scene::Mesh>,
+) -> Result<Checkpoint> {
     let mut cfg = cfg.clone();
     cfg.appearance_views = if cfg.appearance_dim > 0 {
         u32::try_from(n_train_views).context("too many training views")?
     } else {
         0
     };
-    let model = Hfm::new(&cfg)?;
+    let model = if cfg.featurization.is_hash() {
+        Hfm::new(&cfg)?
+    } else {
+        let mesh = mesh.context("the vertex featurization needs the scene's mesh")?;
+        cfg.vertex_count = u32::try_from(mesh.vertices.len()).context("too many vertices")?;
+        Hfm::with_vertex(&cfg, mesh.triangles.clone().into())?
+    };
     let params = model.init_params(seed);
     Ok(Checkpoint {
         model,
@@ -161,6 +181,14 @@ impl Checkpoint {
         f.set_meta("config", toml::to_string(&self.model.cfg)?);
         f.set_meta("normalization", serde_json::to_string(&self.normalization)?);
         layout_to_tensors(&mut f, &self.model.layout, "", &self.params)?;
+        if let Some(vt) = &self.model.vertex {
+            let faces: Vec<u32> = vt.faces.iter().flatten().copied().collect();
+            f.insert(
+                "vertex.faces",
+                Tensor::u32(vec![vt.faces.len(), 3], &faces)?,
+            );
+            return Ok(f);
+        }
         grid_tensors(&mut f, "grid_h", &self.model.grid_h)?;
         if let Some(g) = &self.model.grid_d {
             grid_tensors(&mut f, "grid_d", g)?;
@@ -196,13 +224,29 @@ impl Checkpoint {
                 && normalization.extent.iter().all(|&e| e > 0.0),
             "{label}: normalization {normalization:?} must be finite with positive extents"
         );
-        let grid_h = grid_from(file, "grid_h", &cfg.grid_h).with_context(|| label.clone())?;
-        let grid_d = if cfg.deform.enabled {
-            Some(grid_from(file, "grid_d", &cfg.deform.grid).with_context(|| label.clone())?)
+        let model = if cfg.featurization.is_hash() {
+            let grid_h = grid_from(file, "grid_h", &cfg.grid_h).with_context(|| label.clone())?;
+            let grid_d = if cfg.deform.enabled {
+                Some(grid_from(file, "grid_d", &cfg.deform.grid).with_context(|| label.clone())?)
+            } else {
+                None
+            };
+            Hfm::with_grids(&cfg, grid_h, grid_d).with_context(|| label.clone())?
         } else {
-            None
+            let t = file.get("vertex.faces").with_context(|| label.clone())?;
+            ensure!(
+                t.dtype == DType::U32 && t.shape.len() == 2 && t.shape[1] == 3,
+                "{label}: vertex.faces is {} {:?}, expected U32 [T, 3]",
+                t.dtype,
+                t.shape
+            );
+            let faces: Vec<[u32; 3]> = t
+                .to_u32()?
+                .chunks_exact(3)
+                .map(|c| [c[0], c[1], c[2]])
+                .collect();
+            Hfm::with_vertex(&cfg, faces.into()).with_context(|| label.clone())?
         };
-        let model = Hfm::with_grids(&cfg, grid_h, grid_d).with_context(|| label.clone())?;
         let params = layout_from_tensors(file, &model.layout, "")?;
         if let Some(i) = params.iter().position(|v| !v.is_finite()) {
             let t = model
@@ -245,6 +289,12 @@ pub fn batch_to_tensors(file: &mut TensorFile, batch: &Batch) -> Result<()> {
     file.insert("batch.view", Tensor::i32(vec![n], &batch.view)?);
     let tgt: Vec<f32> = batch.target.iter().flatten().copied().collect();
     file.insert("batch.target", Tensor::f32(vec![n, 3], &tgt)?);
+    if !batch.triangle.is_empty() {
+        // Vertex featurization only (not part of SPEC §6's hash-model batch).
+        file.insert("batch.triangle", Tensor::u32(vec![n, s], &batch.triangle)?);
+        let bary: Vec<f64> = batch.bary.iter().flatten().copied().collect();
+        file.insert("batch.bary", Tensor::f64(vec![n, s, 2], &bary)?);
+    }
     Ok(())
 }
 
@@ -279,7 +329,18 @@ pub fn batch_from_tensors(file: &TensorFile) -> Result<Batch> {
         dirs: dirs.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect(),
         view,
         target: target.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect(),
+        ..Batch::default()
     };
+    let mut b = b;
+    if file.tensors.contains_key("batch.triangle") {
+        b.triangle = file
+            .get_checked("batch.triangle", DType::U32, &[n, s])?
+            .to_u32()?;
+        let bary = file
+            .get_checked("batch.bary", DType::F64, &[n, s, 2])?
+            .to_f64()?;
+        b.bary = bary.chunks_exact(2).map(|c| [c[0], c[1]]).collect();
+    }
     b.validate().with_context(|| label.clone())?;
     Ok(b)
 }
@@ -343,7 +404,11 @@ pub fn dump<R: Real>(ckpt: &Checkpoint, batch: &Batch) -> Result<TensorFile> {
     let s = batch.samples_per_pixel();
     let lf = model.feat_dim();
     f.insert(
-        "fwd.grid_h",
+        if model.vertex.is_some() {
+            "fwd.vertex"
+        } else {
+            "fwd.grid_h"
+        },
         tensor_of(vec![n, s, lf], &expand(&fwd, n * s, lf, |c| &c.grid_h))?,
     );
     if let (Some(gd), Some(mlp)) = (&model.grid_d, &model.deform) {

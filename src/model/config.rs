@@ -68,6 +68,29 @@ pub enum LossKind {
     SmoothL1,
 }
 
+/// What is queried at each surface sub-sample before pooling (the paper's Fig. 2).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "lowercase")]
+pub enum Featurization {
+    /// The hash featurized manifold: grid H at the hit position (Fig. 2d, Eq. 2).
+    #[default]
+    Hash,
+    /// The 3D-surface-based baseline (Fig. 2b): one learnable `vertex_features`-vector per mesh
+    /// vertex, interpolated with the hit's barycentrics (`src/model/vertex.rs`). Grid H, grid D
+    /// and ξ are not used (deformation must be off).
+    Vertex,
+}
+
+impl Featurization {
+    pub fn is_hash(&self) -> bool {
+        *self == Featurization::Hash
+    }
+}
+
+fn is_zero(v: &u32) -> bool {
+    *v == 0
+}
+
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct ModelConfig {
@@ -85,6 +108,18 @@ pub struct ModelConfig {
     pub loss: LossKind,
     /// δ of smooth-L1.
     pub smooth_l1_delta: f64,
+    /// `hash` (default) or `vertex` (the Fig. 2b baseline). Absent from a hash model's TOML, so
+    /// hash configs and checkpoints are unchanged by the switch's existence.
+    #[serde(default, skip_serializing_if = "Featurization::is_hash")]
+    pub featurization: Featurization,
+    /// Z: features per mesh vertex (vertex featurization only; the shader input is
+    /// `[Z, SH(d), code]`).
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub vertex_features: u32,
+    /// Rows of the vertex table: the mesh's vertex count (set when a vertex model is initialised
+    /// for a scene, like `appearance_views`).
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub vertex_count: u32,
 }
 
 /// `(finest / base)^(1/(levels-1))`, the per-level scale that reaches `finest` at the last level.
@@ -127,6 +162,9 @@ impl ModelConfig {
             positions: PositionMode::F64,
             loss: LossKind::L1,
             smooth_l1_delta: 0.01,
+            featurization: Featurization::Hash,
+            vertex_features: 0,
+            vertex_count: 0,
         }
     }
 
@@ -164,6 +202,9 @@ impl ModelConfig {
             positions: PositionMode::F64,
             loss: LossKind::L1,
             smooth_l1_delta: 0.01,
+            featurization: Featurization::Hash,
+            vertex_features: 0,
+            vertex_count: 0,
         }
     }
 
@@ -195,6 +236,23 @@ impl ModelConfig {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn featurization_switch_is_absent_from_hash_configs() {
+        let c = ModelConfig::cpu();
+        let s = toml::to_string(&c).unwrap();
+        assert!(
+            !s.contains("featurization") && !s.contains("vertex_"),
+            "{s}"
+        );
+        let mut v = c.clone();
+        v.featurization = Featurization::Vertex;
+        v.vertex_features = 12;
+        v.vertex_count = 99;
+        let s = toml::to_string(&v).unwrap();
+        assert!(s.contains("featurization = \"vertex\""), "{s}");
+        assert_eq!(toml::from_str::<ModelConfig>(&s).unwrap(), v);
+    }
 
     #[test]
     fn toml_roundtrip() {

@@ -12,6 +12,12 @@
 //! ```
 //! `code(−1)` is the mean of all appearance rows (a view without a code).
 //!
+//! Featurization switch (`cfg.featurization`): with `vertex`, F_H(x_j) is replaced by the
+//! vertex-feature baseline F_V(x_j) of Fig. 2b (`src/model/vertex.rs`, barycentric interpolation
+//! of per-vertex vectors, from the batch's `triangle`/`bary`); ξ must be off; the rest is the
+//! same code. In that mode `grid_h` is structure only (not in the layout, not evaluated, not
+//! saved) and ∂L/∂positions is zero (positions do not enter the model).
+//!
 //! Determinism (SPEC §5): pixels are processed in chunks of [`PIXEL_CHUNK`] (a constant), in
 //! parallel; every per-chunk partial (MLP weight gradients, loss sums) is combined in chunk
 //! order afterwards; grid-table gradients are scattered by the grid's own `backward_table` over
@@ -30,10 +36,12 @@ use crate::model::loss::{loss_backward, loss_forward, sigmoid_backward, sigmoid_
 use crate::model::mlp::{Mlp, MlpActs};
 use crate::model::params::{Grads, Group, ParamLayout};
 use crate::model::sh::{sh_backward, sh_forward, SH_DIM};
+use crate::model::vertex::{vertex_backward, vertex_forward, VertexTable};
 use crate::model::Real;
 use anyhow::{ensure, Context, Result};
 use rayon::prelude::*;
 use std::ops::Range;
+use std::sync::Arc;
 
 /// Pixels per parallel work item. A constant of the code (never derived from the thread count).
 pub const PIXEL_CHUNK: usize = 128;
@@ -41,6 +49,7 @@ pub const PIXEL_CHUNK: usize = 128;
 /// Tensor ids of the initialisation streams (`rng::Purpose::InitTable/InitWeights`, `a` = id).
 pub const TENSOR_ID_GRID_H: u64 = 0;
 pub const TENSOR_ID_GRID_D: u64 = 1;
+pub const TENSOR_ID_VERTEX: u64 = 2;
 pub const TENSOR_ID_DEFORM: u64 = 100; // + layer index
 pub const TENSOR_ID_SHADER: u64 = 200; // + layer index
 
@@ -49,7 +58,10 @@ pub const TENSOR_ID_SHADER: u64 = 200; // + layer index
 #[derive(Clone, Debug)]
 pub struct Hfm {
     pub cfg: ModelConfig,
+    /// Grid H (structure only when `vertex` is set, see the module doc).
     pub grid_h: HashGrid,
+    /// The vertex-feature table, when `cfg.featurization = "vertex"`.
+    pub vertex: Option<VertexTable>,
     /// Grid D, when the deformation is enabled.
     pub grid_d: Option<HashGrid>,
     /// ξ: `[L_D·F_D + 16] → hidden → [L·F]`, biases iff `cfg.shader.bias` (one switch for both
@@ -59,6 +71,7 @@ pub struct Hfm {
     pub shader: Mlp,
     pub layout: ParamLayout,
     r_grid_h: Range<usize>,
+    r_vertex: Range<usize>,
     r_grid_d: Range<usize>,
     r_deform: Range<usize>,
     r_shader: Range<usize>,
@@ -103,6 +116,9 @@ pub struct Forward<R> {
     pub points: Vec<[f64; 3]>,
     /// `[V]` index into the batch's `[N*S]` sub-samples of each valid sub-sample.
     pub sample_index: Vec<usize>,
+    /// `[V]` triangle and barycentrics of each valid sub-sample (vertex featurization only).
+    pub triangles: Vec<u32>,
+    pub bary: Vec<[f64; 2]>,
     /// `[A]` mean of all appearance rows (used for view −1).
     pub code_mean: Vec<R>,
     /// Loss (mean over pixels and channels), f64.
@@ -126,8 +142,13 @@ struct ChunkGrad<R> {
 }
 
 impl Hfm {
-    /// Structure for a config, with grid scales computed as tiny-cuda-nn does.
+    /// Structure for a config, with grid scales computed as tiny-cuda-nn does. A vertex
+    /// featurization needs the mesh: use [`Hfm::with_vertex`].
     pub fn new(cfg: &ModelConfig) -> Result<Hfm> {
+        ensure!(
+            cfg.featurization.is_hash(),
+            "config: featurization = \"vertex\" needs the mesh's faces (Hfm::with_vertex)"
+        );
         let gh = HashGrid::try_new(&cfg.grid_h).context("config: grid_h")?;
         let gd = if cfg.deform.enabled {
             Some(HashGrid::try_new(&cfg.deform.grid).context("config: deform.grid")?)
@@ -137,11 +158,45 @@ impl Hfm {
         Hfm::with_grids(cfg, gh, gd)
     }
 
+    /// The vertex-feature baseline (Fig. 2b) over a mesh with `cfg.vertex_count` vertices and
+    /// these faces (triangle ids of a ray cast index them).
+    pub fn with_vertex(cfg: &ModelConfig, faces: Arc<[[u32; 3]]>) -> Result<Hfm> {
+        ensure!(
+            !cfg.featurization.is_hash(),
+            "config: Hfm::with_vertex needs featurization = \"vertex\""
+        );
+        ensure!(
+            !cfg.deform.enabled,
+            "config: the vertex featurization runs without deformation (set [model.deform] enabled = false)"
+        );
+        let vt = VertexTable::new(
+            cfg.vertex_count as usize,
+            cfg.vertex_features as usize,
+            faces,
+        )
+        .context("config")?;
+        let gh = HashGrid::try_new(&cfg.grid_h).context("config: grid_h")?;
+        Hfm::build(cfg, gh, None, Some(vt))
+    }
+
     /// Structure with given grids (e.g. built from a checkpoint's saved scales).
     pub fn with_grids(
         cfg: &ModelConfig,
         grid_h: HashGrid,
         grid_d: Option<HashGrid>,
+    ) -> Result<Hfm> {
+        ensure!(
+            cfg.featurization.is_hash(),
+            "config: featurization = \"vertex\" needs the mesh's faces (Hfm::with_vertex)"
+        );
+        Hfm::build(cfg, grid_h, grid_d, None)
+    }
+
+    fn build(
+        cfg: &ModelConfig,
+        grid_h: HashGrid,
+        grid_d: Option<HashGrid>,
+        vertex: Option<VertexTable>,
     ) -> Result<Hfm> {
         ensure!(
             cfg.grid_h.levels > 0 && cfg.grid_h.features > 0,
@@ -157,11 +212,24 @@ impl Hfm {
                 "absent"
             }
         );
-        let lf = grid_h.out_dim();
+        let lf = match &vertex {
+            Some(vt) => vt.features,
+            None => grid_h.out_dim(),
+        };
         let a = cfg.appearance_dim as usize;
         let mut layout = ParamLayout::default();
         let fh = cfg.grid_h.features as usize;
-        let r_grid_h = layout.push("grid_h.table", &[grid_h.n_entries(), fh], Group::GridH);
+        let (mut r_grid_h, mut r_vertex) = (0..0, 0..0);
+        match &vertex {
+            None => r_grid_h = layout.push("grid_h.table", &[grid_h.n_entries(), fh], Group::GridH),
+            Some(vt) => {
+                r_vertex = layout.push(
+                    "vertex.features",
+                    &[vt.n_vertices, vt.features],
+                    Group::Vertex,
+                )
+            }
+        }
         let mut r_grid_d = 0..0;
         let mut r_deform = 0..0;
         let mut deform = None;
@@ -199,11 +267,13 @@ impl Hfm {
         Ok(Hfm {
             cfg: cfg.clone(),
             grid_h,
+            vertex,
             grid_d,
             deform,
             shader,
             layout,
             r_grid_h,
+            r_vertex,
             r_grid_d,
             r_deform,
             r_shader,
@@ -215,7 +285,13 @@ impl Hfm {
     /// ξ's last layer zero, biases zero, appearance codes zero.
     pub fn init_params(&self, seed: u64) -> Vec<f32> {
         let mut p = vec![0.0f32; self.layout.total];
-        p[self.r_grid_h.clone()].copy_from_slice(&self.grid_h.init_table(seed, TENSOR_ID_GRID_H));
+        match &self.vertex {
+            None => p[self.r_grid_h.clone()]
+                .copy_from_slice(&self.grid_h.init_table(seed, TENSOR_ID_GRID_H)),
+            Some(vt) => {
+                p[self.r_vertex.clone()].copy_from_slice(&vt.init_table(seed, TENSOR_ID_VERTEX))
+            }
+        }
         if let (Some(gd), Some(mlp)) = (&self.grid_d, &self.deform) {
             p[self.r_grid_d.clone()].copy_from_slice(&gd.init_table(seed, TENSOR_ID_GRID_D));
             let ids: Vec<u64> = (0..mlp.layers.len() as u64)
@@ -230,9 +306,12 @@ impl Hfm {
         p
     }
 
-    /// `L·F` of grid H.
+    /// Width of the per-sub-sample feature: `L·F` of grid H, or Z (vertex featurization).
     pub fn feat_dim(&self) -> usize {
-        self.grid_h.out_dim()
+        match &self.vertex {
+            Some(vt) => vt.features,
+            None => self.grid_h.out_dim(),
+        }
     }
     pub fn appearance_dim(&self) -> usize {
         self.cfg.appearance_dim as usize
@@ -248,6 +327,19 @@ impl Hfm {
     /// Check a batch against this model (shapes, validity, view rows).
     pub fn check_batch(&self, batch: &Batch) -> Result<()> {
         batch.validate()?;
+        if let Some(vt) = &self.vertex {
+            ensure!(
+                !batch.triangle.is_empty(),
+                "batch: the vertex featurization needs batch.triangle and batch.bary"
+            );
+            for (k, (&t, &v)) in batch.triangle.iter().zip(&batch.valid).enumerate() {
+                ensure!(
+                    v == 0 || (t as usize) < vt.faces.len(),
+                    "batch: sub-sample {k}: triangle {t} is not one of the model's {} faces",
+                    vt.faces.len()
+                );
+            }
+        }
         let views = self.appearance_views() as i32;
         if self.appearance_dim() > 0 {
             for (i, &v) in batch.view.iter().enumerate() {
@@ -275,6 +367,8 @@ impl Hfm {
         let mut start = Vec::with_capacity(n + 1);
         let mut points = Vec::new();
         let mut sample_index = Vec::new();
+        let (mut triangles, mut bary) = (Vec::new(), Vec::new());
+        let ids = self.vertex.is_some();
         start.push(0);
         for i in 0..n {
             for j in 0..s {
@@ -282,6 +376,10 @@ impl Hfm {
                 if batch.valid[k] != 0 {
                     points.push(batch.positions[k]);
                     sample_index.push(k);
+                    if ids {
+                        triangles.push(batch.triangle[k]);
+                        bary.push(batch.bary[k]);
+                    }
                 }
             }
             start.push(points.len());
@@ -305,6 +403,7 @@ impl Hfm {
                     batch,
                     &start,
                     &points,
+                    (&triangles, &bary),
                     &code_mean,
                     &wt_shader,
                     wt_deform.as_deref(),
@@ -321,6 +420,8 @@ impl Hfm {
             start,
             points,
             sample_index,
+            triangles,
+            bary,
             code_mean,
             loss: sum / (3 * n) as f64,
         })
@@ -354,6 +455,7 @@ impl Hfm {
         batch: &Batch,
         start: &[usize],
         points: &[[f64; 3]],
+        ids: (&[u32], &[[f64; 2]]),
         code_mean: &[R],
         wt_shader: &[Vec<R>],
         wt_deform: Option<&[Vec<R>]>,
@@ -370,10 +472,20 @@ impl Hfm {
             samples: samples.clone(),
             ..Default::default()
         };
-        // Eq. 2: F_H at every valid sub-sample.
+        // Eq. 2: F_H at every valid sub-sample (or Fig. 2b's F_V: vertex featurization).
         f.grid_h = vec![R::ZERO; v * lf];
-        self.grid_h
-            .forward(&params[self.r_grid_h.clone()], pts, mode, &mut f.grid_h);
+        match &self.vertex {
+            None => self
+                .grid_h
+                .forward(&params[self.r_grid_h.clone()], pts, mode, &mut f.grid_h),
+            Some(vt) => vertex_forward(
+                vt,
+                &params[self.r_vertex.clone()],
+                &ids.0[samples.clone()],
+                &ids.1[samples.clone()],
+                &mut f.grid_h,
+            ),
+        }
         // SH(d_n).
         f.sh = vec![R::ZERO; n * SH_DIM];
         sh_forward(&batch.dirs[pixels.clone()], &mut f.sh);
@@ -530,9 +642,24 @@ impl Hfm {
         // disjoint buffers, so they run concurrently).
         let mode = self.cfg.positions;
         let d_feat: Vec<R> = cg.iter().flat_map(|c| c.d_feat.iter().copied()).collect();
-        let (before_d, from_d) = grads
-            .params
-            .split_at_mut(self.r_grid_d.start.max(self.r_grid_h.end));
+        let (before_d, from_d) = grads.params.split_at_mut(
+            self.r_grid_d
+                .start
+                .max(self.r_grid_h.end)
+                .max(self.r_vertex.end),
+        );
+        if let Some(vt) = &self.vertex {
+            // Fig. 2b backward (no grid D: deformation is off in this mode).
+            vertex_backward(
+                vt,
+                &fwd.triangles,
+                &fwd.bary,
+                &d_feat,
+                &mut before_d[self.r_vertex.clone()],
+                &mut grads.touched_v,
+            );
+            return;
+        }
         let d_table_h = &mut before_d[self.r_grid_h.clone()];
         let touched_h = &mut grads.touched_h;
         let touched_d = &mut grads.touched_d;
@@ -649,7 +776,8 @@ impl Hfm {
                     &mut d_points,
                 );
             }
-        } else if inputs {
+        } else if inputs && self.vertex.is_none() {
+            // (Vertex featurization: positions do not enter the model; their gradient is 0.)
             self.grid_h.backward_points(
                 &params[self.r_grid_h.clone()],
                 pts,

@@ -12,6 +12,7 @@ pub mod mlp;
 pub mod params;
 pub mod real;
 pub mod sh;
+pub mod vertex;
 
 pub use batch::Batch;
 pub use config::ModelConfig;

@@ -2,7 +2,8 @@
 //! in the same layout.
 //!
 //! Layout order (each group contiguous, so an optimiser can take one slice per group):
-//! `grid_h.table` [entries, F] · `grid_d.table` [entries, F] · `deform.layers.{i}.weight`
+//! `grid_h.table` [entries, F] (or, with the vertex featurization, `vertex.features` [V, Z]) ·
+//! `grid_d.table` [entries, F] · `deform.layers.{i}.weight`
 //! [out, in] (+ `.bias` [out]) · `shader.layers.{i}.weight` (+ `.bias`) · `appearance.codes`
 //! [views, A]. Parts that are switched off have no tensors.
 //!
@@ -21,15 +22,18 @@ pub enum Group {
     Deform,
     Shader,
     Appearance,
+    /// The vertex-feature table (the Fig. 2b baseline, `src/model/vertex.rs`).
+    Vertex,
 }
 
 impl Group {
-    pub const ALL: [Group; 5] = [
+    pub const ALL: [Group; 6] = [
         Group::GridH,
         Group::GridD,
         Group::Deform,
         Group::Shader,
         Group::Appearance,
+        Group::Vertex,
     ];
     pub fn name(self) -> &'static str {
         match self {
@@ -38,12 +42,16 @@ impl Group {
             Group::Deform => "deform",
             Group::Shader => "shader",
             Group::Appearance => "appearance",
+            Group::Vertex => "vertex",
         }
     }
-    /// Grid tables and appearance codes are "sparse" groups: Adam skips their entries whose
-    /// gradient is exactly zero (SPEC §4.8).
+    /// Grid tables, the vertex table and appearance codes are "sparse" groups: Adam skips their
+    /// entries whose gradient is exactly zero (SPEC §4.8).
     pub fn is_sparse(self) -> bool {
-        matches!(self, Group::GridH | Group::GridD | Group::Appearance)
+        matches!(
+            self,
+            Group::GridH | Group::GridD | Group::Appearance | Group::Vertex
+        )
     }
 }
 
@@ -161,6 +169,8 @@ pub struct Grads<R> {
     pub touched_h: Touched,
     /// The same for grid D.
     pub touched_d: Touched,
+    /// Rows of the vertex table (vertex featurization) that received gradient.
+    pub touched_v: Touched,
 }
 
 impl<R: Copy + Default> Grads<R> {
@@ -173,6 +183,7 @@ impl<R: Copy + Default> Grads<R> {
             inputs: true,
             touched_h: Touched::default(),
             touched_d: Touched::default(),
+            touched_v: Touched::default(),
         }
     }
 
@@ -183,16 +194,19 @@ impl<R: Copy + Default> Grads<R> {
         self.dirs.fill(R::default());
         self.touched_h.entries.clear();
         self.touched_d.entries.clear();
+        self.touched_v.entries.clear();
     }
 
     /// Zero only what a backward can have written: the touched entries of each grid table
-    /// (`features` floats per entry) and every non-grid tensor densely. Costs what the batch
-    /// touched, not the table size.
+    /// (`features` floats per entry), the touched rows of the vertex table (its shape's second
+    /// axis floats per row) and every other tensor densely. Costs what the batch touched, not
+    /// the table size.
     pub fn zero_sparse(&mut self, layout: &ParamLayout, features_h: usize, features_d: usize) {
         for t in &layout.tensors {
             let (touched, f) = match t.group {
                 Group::GridH => (&mut self.touched_h, features_h),
                 Group::GridD => (&mut self.touched_d, features_d),
+                Group::Vertex => (&mut self.touched_v, t.shape[1]),
                 _ => {
                     self.params[t.range()].fill(R::default());
                     continue;

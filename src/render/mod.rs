@@ -47,12 +47,19 @@ pub fn render_camera(
             dirs: Vec::with_capacity(chunk.len()),
             view: vec![view_row; chunk.len()],
             target: vec![[0.0; 3]; chunk.len()],
+            ..Batch::default()
         };
+        let ids = model.vertex.is_some();
         for &i in chunk {
             let px = &cast.pixels[i];
             for sub in &cast.subs[i * s..(i + 1) * s] {
                 b.positions.push(sub.position.to_array());
                 b.valid.push(sub.hit() as u8);
+                if ids {
+                    b.triangle.push(sub.triangle);
+                    b.bary
+                        .push(if sub.hit() { [sub.u, sub.v] } else { [0.0; 2] });
+                }
             }
             b.dirs.push(px.dir.as_vec3().to_array());
         }

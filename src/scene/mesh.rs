@@ -838,3 +838,5 @@ fn load_ply_binary(
     }
     Ok((mesh, stats))
 }
+
+pub use super::remesh::{decimate, decimate_report, subdivide, DecimateReport};

@@ -14,6 +14,7 @@ pub mod colmap;
 pub mod image;
 pub mod mesh;
 pub mod mvsnet;
+pub mod remesh;
 pub mod transforms;
 
 pub use camera::{Camera, Distortion};

@@ -201,6 +201,8 @@ pub struct AdamConfig {
     pub grid_h: AdamGroup,
     pub grid_d: AdamGroup,
     pub appearance: AdamGroup,
+    /// The vertex-feature table of the Fig. 2b baseline (sparse, like the grids).
+    pub vertex: AdamGroup,
 }
 
 impl Default for AdamConfig {
@@ -220,6 +222,7 @@ struct AdamConfigFile {
     grid_h: AdamGroup,
     grid_d: AdamGroup,
     appearance: AdamGroup,
+    vertex: AdamGroup,
 }
 
 impl From<AdamConfigFile> for AdamConfig {
@@ -231,6 +234,7 @@ impl From<AdamConfigFile> for AdamConfig {
             grid_h: role(f.grid_h, true),
             grid_d: role(f.grid_d, true),
             appearance: role(f.appearance, true),
+            vertex: role(f.vertex, true),
         }
     }
 }
@@ -244,6 +248,7 @@ impl AdamConfig {
             ("grid_h", &self.grid_h),
             ("grid_d", &self.grid_d),
             ("appearance", &self.appearance),
+            ("vertex", &self.vertex),
         ] {
             g.check().with_context(|| format!("adam.{name}"))?;
         }

@@ -44,6 +44,11 @@ pub struct TrainConfig {
     /// Drop hash levels finer than the finest pixel footprint of any training view (SPEC §8).
     pub drop_fine_levels: bool,
     pub adam: AdamConfig,
+    /// Mesh file to use instead of the scene's own (e.g. a decimated one, `xscale decimate`);
+    /// `xscale train --mesh` stores it absolute, so `eval`/`render --run` find it again. The
+    /// normalisation is that of the mesh used (SPEC §4.1).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub mesh: Option<std::path::PathBuf>,
 }
 
 impl TrainConfig {
@@ -65,6 +70,7 @@ impl TrainConfig {
             normalize: NormalizeMode::PerAxis,
             drop_fine_levels: true,
             adam,
+            mesh: None,
         };
         Ok(match name {
             "tiny" => TrainConfig {
@@ -169,6 +175,15 @@ impl RunConfig {
             bail!("model.gamma must be 1..=4, got {}", self.model.gamma);
         }
         t.adam.validate().context("train.adam")?;
+        if !self.model.featurization.is_hash() {
+            if self.model.vertex_features == 0 {
+                bail!("model.vertex_features must be > 0 with featurization = \"vertex\"");
+            }
+            if self.model.deform.enabled {
+                bail!("featurization = \"vertex\" runs without deformation: set [model.deform] enabled = false");
+            }
+            return Ok(());
+        }
         crate::model::hashgrid::validate_config(&self.model.grid_h).context("model.grid_h")?;
         if self.model.deform.enabled {
             crate::model::hashgrid::validate_config(&self.model.deform.grid)

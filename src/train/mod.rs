@@ -9,6 +9,7 @@
 //! | `adam.rs` | the optimizer |
 //! | `trainer.rs` | the loop, metrics, checkpoints, exact resume, Ctrl-C |
 
+pub mod ablate;
 pub mod adam;
 pub mod config;
 pub mod sampler;

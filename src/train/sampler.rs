@@ -6,7 +6,8 @@ use crate::model::batch::Batch;
 use crate::raycast::SampleCache;
 use crate::rng::{below, Purpose};
 
-/// Fill `batch` with the cached pixels `pixels` (their appearance row = the cache's view index).
+/// Fill `batch` with the cached pixels `pixels` (their appearance row = the cache's view index);
+/// with triangle ids and barycentrics when the cache keeps them.
 pub fn batch_from_pixels(cache: &SampleCache, pixels: &[usize]) -> Batch {
     let s = cache.samples_per_pixel();
     let n = pixels.len();
@@ -16,7 +17,12 @@ pub fn batch_from_pixels(cache: &SampleCache, pixels: &[usize]) -> Batch {
         dirs: Vec::with_capacity(n),
         view: Vec::with_capacity(n),
         target: Vec::with_capacity(n),
+        ..Batch::default()
     };
+    if cache.has_triangles() {
+        b.triangle = vec![u32::MAX; n * s];
+        b.bary = vec![[0.0; 2]; n * s];
+    }
     for (slot, &p) in pixels.iter().enumerate() {
         cache.positions_into(p, &mut b.positions[slot * s..(slot + 1) * s]);
         let mask = cache.valid(p);
@@ -26,6 +32,11 @@ pub fn batch_from_pixels(cache: &SampleCache, pixels: &[usize]) -> Batch {
         b.dirs.push(cache.dir(p));
         b.view.push(cache.view_index(p) as i32);
         b.target.push(cache.target(p));
+        if cache.has_triangles() {
+            for j in 0..s {
+                (b.triangle[slot * s + j], b.bary[slot * s + j]) = cache.surface_id(p, j);
+            }
+        }
     }
     b
 }

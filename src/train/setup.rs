@@ -42,6 +42,7 @@ pub fn prepare(
     let opts = LoadOptions {
         downsample: cfg.train.downsample,
         normalize: cfg.train.normalize,
+        mesh: cfg.train.mesh.clone(),
         ..LoadOptions::default()
     };
     let (scene, report) = Scene::load_report(dir, &opts)?;
@@ -79,14 +80,20 @@ pub fn prepare(
         .map(|(&i, img)| (&scene.views[i].camera, img.as_ref()))
         .collect();
     let t0 = std::time::Instant::now();
-    let cache = SampleCache::build(&tracer, &views, cfg.model.gamma, &mut |e| {
+    let mut on_event = |e| {
         if let CacheEvent::ViewDropped { view } = e {
             log(format!(
                 "warning: view {} ({}) sees no part of the mesh: dropped",
                 train_views[view], scene.views[train_views[view]].name
             ));
         }
-    })?;
+    };
+    // The vertex featurization needs each sub-sample's triangle and barycentrics.
+    let cache = if cfg.model.featurization.is_hash() {
+        SampleCache::build(&tracer, &views, cfg.model.gamma, &mut on_event)?
+    } else {
+        SampleCache::build_with_triangles(&tracer, &views, cfg.model.gamma, &mut on_event)?
+    };
     if cache.is_empty() {
         bail!(
             "{}: no training pixel sees the mesh (check the cameras' convention)",

@@ -18,7 +18,7 @@
 use crate::eval::protocol::{mean_score, score_view, table, ViewScore};
 use crate::io::tensors::TensorFile;
 use crate::model::batch::Batch;
-use crate::model::checkpoint::{init_checkpoint, Checkpoint, Normalization as CkptNorm};
+use crate::model::checkpoint::{init_checkpoint_for_mesh, Checkpoint, Normalization as CkptNorm};
 use crate::model::params::{Grads, Group, ParamLayout};
 use crate::render::{heat_map, render_camera, side_by_side};
 use crate::scene::image::write_png8;
@@ -67,7 +67,13 @@ impl TrainState {
             center: n.center.to_array(),
             extent: n.extent.to_array(),
         };
-        let ckpt = init_checkpoint(&cfg.model, cfg.train.seed, norm, prepared.train_views.len())?;
+        let ckpt = init_checkpoint_for_mesh(
+            &cfg.model,
+            cfg.train.seed,
+            norm,
+            prepared.train_views.len(),
+            Some(&prepared.scene.mesh),
+        )?;
         let adam = AdamState::new(&param_specs(&ckpt.model.layout));
         Ok(TrainState {
             cfg,
@@ -147,6 +153,15 @@ impl TrainState {
                 Group::Shader => self.adam.step_dense(r, p, g, &a.shader, k),
                 Group::Deform => self.adam.step_dense(r, p, g, &a.deform, k),
                 Group::Appearance => self.adam.step_dense(r, p, g, &a.appearance, k),
+                Group::Vertex => self.adam.step_sparse(
+                    p,
+                    g,
+                    &grads.touched_v.entries,
+                    t.shape[1],
+                    r.start,
+                    &a.vertex,
+                    k,
+                ),
             }
         }
         grads.zero_sparse(&model.layout, fh, fd);
@@ -287,7 +302,7 @@ pub fn train(
         Some(s) => s,
         None => {
             let mut cfg = run_cfg;
-            if cfg.train.drop_fine_levels {
+            if cfg.train.drop_fine_levels && cfg.model.featurization.is_hash() {
                 if let Some(fp) = prepared.cache.footprint_min() {
                     if let Some(msg) = drop_fine_levels(&mut cfg.model, fp as f64) {
                         say(msg);
@@ -310,11 +325,21 @@ pub fn train(
         .open(&metrics_path)
         .with_context(|| format!("{}: cannot open", metrics_path.display()))?;
     let tc = state.cfg.train.clone();
+    let feat = match &state.ckpt.model.vertex {
+        Some(vt) => format!(
+            "vertex features Z={} on {} vertices",
+            vt.features, vt.n_vertices
+        ),
+        None => format!("{} grid H levels", state.cfg.model.grid_h.levels),
+    };
     say(format!(
-        "model: {} parameters ({} grid H levels, deformation {}, γ={}, A={}); {} steps of {} pixels",
+        "model: {} parameters ({feat}, deformation {}, γ={}, A={}); {} steps of {} pixels",
         state.ckpt.model.layout.total,
-        state.cfg.model.grid_h.levels,
-        if state.cfg.model.deform.enabled { "on" } else { "off" },
+        if state.cfg.model.deform.enabled {
+            "on"
+        } else {
+            "off"
+        },
         state.cfg.model.gamma,
         state.cfg.model.appearance_dim,
         tc.steps,

@@ -1,0 +1,97 @@
+//! `xscale ablate --scene DIR --out DIR [--preset P] [--config FILE] [--steps N | --minutes M]
+//! [--variants LIST] [--ratio R] [--subdivide K]`: train the paper's ablations (Table 4: without
+//! deformation, without multisampling; Table 5: decimated mesh) and the vertex-feature baseline
+//! (Fig. 2b) on one scene with one step budget, score the held-out views and write
+//! `DIR/ablation.md` (a table like the paper's) and `DIR/ablation.json`. See
+//! `src/train/ablate.rs` for the variants and how the baseline's feature width is chosen.
+
+use crate::train::ablate::{run_ablation, AblateOptions, VARIANTS};
+use crate::train::config::RunConfig;
+use anyhow::Result;
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+#[derive(clap::Args, Debug)]
+pub struct Args {
+    /// Scene directory.
+    #[arg(long)]
+    pub scene: PathBuf,
+    /// Output directory: one run folder per variant, meshes/, ablation.md, ablation.json.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Base preset shared by every variant (tiny, cpu, paper).
+    #[arg(long, default_value = "cpu")]
+    pub preset: String,
+    /// TOML overriding the base preset for every variant (e.g. configs/ablations/full.toml).
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// Training steps per variant (default: the preset's).
+    #[arg(long)]
+    pub steps: Option<u64>,
+    /// Instead of --steps: pick the step count so the full model trains about this many minutes
+    /// (from a 20-step timing probe); every variant then uses that step count.
+    #[arg(long, conflicts_with = "steps")]
+    pub minutes: Option<f64>,
+    /// Pixels per batch (default: the preset's).
+    #[arg(long)]
+    pub batch: Option<usize>,
+    #[arg(long)]
+    pub seed: Option<u64>,
+    /// Comma-separated subset of: full, no_deform, no_multisampling, mesh10, vertex, vertex_subdiv.
+    #[arg(
+        long,
+        default_value = "full,no_deform,no_multisampling,mesh10,vertex,vertex_subdiv"
+    )]
+    pub variants: String,
+    /// Fraction of faces kept by the decimated-mesh variant.
+    #[arg(long, default_value_t = 0.1)]
+    pub ratio: f64,
+    /// Subdivision levels of the vertex_subdiv variant (default: automatic).
+    #[arg(long)]
+    pub subdivide: Option<u32>,
+    /// Only errors and the final table.
+    #[arg(long, short)]
+    pub quiet: bool,
+}
+
+pub fn run(a: Args) -> Result<ExitCode> {
+    let mut base = RunConfig::resolve(&a.preset, a.config.as_deref())?;
+    if let Some(s) = a.steps {
+        base.train.steps = s;
+    }
+    if let Some(b) = a.batch {
+        base.train.batch_pixels = b;
+    }
+    if let Some(s) = a.seed {
+        base.train.seed = s;
+    }
+    let variants: Vec<String> = a
+        .variants
+        .split(',')
+        .map(|s| s.trim().to_string())
+        .filter(|s| !s.is_empty())
+        .collect();
+    for v in &variants {
+        anyhow::ensure!(
+            VARIANTS.contains(&v.as_str()),
+            "--variants: unknown variant {v:?} (expected some of {})",
+            VARIANTS.join(", ")
+        );
+    }
+    let opts = AblateOptions {
+        base,
+        variants,
+        ratio: a.ratio,
+        subdivide: a.subdivide,
+        minutes: a.minutes,
+        quiet: a.quiet,
+    };
+    let rep = run_ablation(&a.scene, &a.out, &opts)?;
+    print!("{}", crate::train::ablate::markdown(&rep));
+    eprintln!(
+        "wrote {} and {}",
+        a.out.join("ablation.md").display(),
+        a.out.join("ablation.json").display()
+    );
+    Ok(ExitCode::SUCCESS)
+}

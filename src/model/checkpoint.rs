@@ -481,6 +481,36 @@ mod tests {
         init_checkpoint(&ModelConfig::tiny(), 7, norm, 3).unwrap()
     }
 
+    /// The normalisation survives save → load → save bit for bit. (serde_json's default float
+    /// parser is not correctly rounded: 3.8783797363020547 came back 1 ulp off and a resumed run
+    /// wrote different metadata; the `float_roundtrip` feature fixes it.)
+    #[test]
+    fn normalization_metadata_roundtrips_exactly() {
+        let mut rng = 0x9E37_79B9_7F4A_7C15u64;
+        let mut vals = vec![
+            3.8783797363020547,
+            0.1,
+            1e6 + 0.1,
+            200.000001,
+            20.74016173978561,
+        ];
+        for _ in 0..2000 {
+            rng = rng
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            vals.push(f64::from_bits((rng >> 2) & 0x3FFF_FFFF_FFFF_FFFF) % 1e7);
+        }
+        for w in vals.chunks(3).filter(|w| w.len() == 3) {
+            let n = Normalization {
+                center: [w[0], w[1], w[2]],
+                extent: [w[2], w[1], w[0]],
+            };
+            let back: Normalization =
+                serde_json::from_str(&serde_json::to_string(&n).unwrap()).unwrap();
+            assert_eq!(back, n, "{}", serde_json::to_string(&n).unwrap());
+        }
+    }
+
     #[test]
     fn checkpoint_roundtrip_exact() {
         let c = tiny_ckpt();

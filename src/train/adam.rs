@@ -269,7 +269,12 @@ fn pow_u64(x: f64, mut n: u64) -> f64 {
     acc
 }
 
-/// Per-step constants of a group, with a one-entry memo of `lr_t` by step count.
+/// Slots of the `lr_t` memo (direct-mapped by `t mod MEMO`).
+const MEMO: usize = 1024;
+
+/// Per-step constants of a group, with a direct-mapped memo of `lr_t` by step count: in a sparse
+/// group every entry has its own `t`, and recomputing `β^t` per scalar cost more than the rest of
+/// the update. The memo only caches values; results are the same bits as without it.
 #[derive(Clone, Copy)]
 struct StepConsts {
     lr_k: f64,
@@ -280,8 +285,9 @@ struct StepConsts {
     eps: f32,
     l2: f32,
     skip_zero: bool,
-    memo_t: u32,
-    memo_lr: f32,
+    /// `memo_t[t % MEMO] == t` ⇒ `memo_lr[t % MEMO]` is `lr_t(t)`; 0 = empty (t ≥ 1).
+    memo_t: [u32; MEMO],
+    memo_lr: [f32; MEMO],
 }
 
 impl StepConsts {
@@ -295,21 +301,22 @@ impl StepConsts {
             eps: cfg.epsilon,
             l2: if sparse { 0.0 } else { cfg.l2 },
             skip_zero: sparse,
-            memo_t: 0,
-            memo_lr: 0.0,
+            memo_t: [0; MEMO],
+            memo_lr: [0.0; MEMO],
         }
     }
 
     /// `lr_k * sqrt(1 - β2^t) / (1 - β1^t)` in f64, rounded to f32.
     #[inline]
     fn lr_t(&mut self, t: u32) -> f32 {
-        if t != self.memo_t {
+        let slot = t as usize % MEMO;
+        if self.memo_t[slot] != t {
             let b1t = pow_u64(self.b1 as f64, t as u64);
             let b2t = pow_u64(self.b2 as f64, t as u64);
-            self.memo_lr = (self.lr_k * (1.0 - b2t).sqrt() / (1.0 - b1t)) as f32;
-            self.memo_t = t;
+            self.memo_lr[slot] = (self.lr_k * (1.0 - b2t).sqrt() / (1.0 - b1t)) as f32;
+            self.memo_t[slot] = t;
         }
-        self.memo_lr
+        self.memo_lr[slot]
     }
 
     /// One scalar's Adam update (module doc).

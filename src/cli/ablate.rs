@@ -5,8 +5,8 @@
 //! `DIR/ablation.md` (a table like the paper's) and `DIR/ablation.json`. See
 //! `src/train/ablate.rs` for the variants and how the baseline's feature width is chosen.
 
+use super::common::RunArgs;
 use crate::train::ablate::{run_ablation, AblateOptions, VARIANTS};
-use crate::train::config::RunConfig;
 use anyhow::Result;
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -19,24 +19,13 @@ pub struct Args {
     /// Output directory: one run folder per variant, meshes/, ablation.md, ablation.json.
     #[arg(long)]
     pub out: PathBuf,
-    /// Base preset shared by every variant (tiny, cpu, paper).
-    #[arg(long, default_value = "cpu")]
-    pub preset: String,
-    /// TOML overriding the base preset for every variant (e.g. configs/ablations/full.toml).
-    #[arg(long)]
-    pub config: Option<PathBuf>,
-    /// Training steps per variant (default: the preset's).
-    #[arg(long)]
-    pub steps: Option<u64>,
+    /// Base configuration shared by every variant (`--steps` = training steps per variant).
+    #[command(flatten)]
+    pub run: RunArgs,
     /// Instead of --steps: pick the step count so the full model trains about this many minutes
     /// (from a 20-step timing probe); every variant then uses that step count.
     #[arg(long, conflicts_with = "steps")]
     pub minutes: Option<f64>,
-    /// Pixels per batch (default: the preset's).
-    #[arg(long)]
-    pub batch: Option<usize>,
-    #[arg(long)]
-    pub seed: Option<u64>,
     /// Comma-separated subset of: full, no_deform, no_multisampling, mesh10, vertex, vertex_subdiv.
     #[arg(
         long,
@@ -55,16 +44,7 @@ pub struct Args {
 }
 
 pub fn run(a: Args) -> Result<ExitCode> {
-    let mut base = RunConfig::resolve(&a.preset, a.config.as_deref())?;
-    if let Some(s) = a.steps {
-        base.train.steps = s;
-    }
-    if let Some(b) = a.batch {
-        base.train.batch_pixels = b;
-    }
-    if let Some(s) = a.seed {
-        base.train.seed = s;
-    }
+    let base = a.run.resolve()?;
     let variants: Vec<String> = a
         .variants
         .split(',')

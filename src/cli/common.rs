@@ -10,6 +10,44 @@ use anyhow::{bail, Context, Result};
 use glam::DVec3;
 use std::path::{Path, PathBuf};
 
+/// A run configuration from the command line: preset, TOML overrides, and the most common
+/// fields (`--steps`, `--batch`, `--seed`) on top.
+#[derive(clap::Args, Debug)]
+pub struct RunArgs {
+    /// Preset: tiny, cpu or paper (SPEC §9).
+    #[arg(long, default_value = "cpu")]
+    pub preset: String,
+    /// TOML file overriding any field of the preset (`[model]`, `[train]` tables).
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// Number of steps (overrides the config).
+    #[arg(long)]
+    pub steps: Option<u64>,
+    /// Pixels per batch (overrides the config).
+    #[arg(long)]
+    pub batch: Option<usize>,
+    /// Seed (overrides the config).
+    #[arg(long)]
+    pub seed: Option<u64>,
+}
+
+impl RunArgs {
+    /// The preset, the file's overrides, then the flags (not yet validated).
+    pub fn resolve(&self) -> Result<RunConfig> {
+        let mut cfg = RunConfig::resolve(&self.preset, self.config.as_deref())?;
+        if let Some(s) = self.steps {
+            cfg.train.steps = s;
+        }
+        if let Some(b) = self.batch {
+            cfg.train.batch_pixels = b;
+        }
+        if let Some(s) = self.seed {
+            cfg.train.seed = s;
+        }
+        Ok(cfg)
+    }
+}
+
 /// A trained model and the scene to use it on (`--run RUN | --checkpoint FILE --scene DIR`).
 #[derive(clap::Args, Debug)]
 pub struct ModelArgs {

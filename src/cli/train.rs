@@ -1,6 +1,6 @@
 //! `xscale train`: train on a scene directory into a run folder (see `train/trainer.rs`).
 
-use crate::train::config::RunConfig;
+use super::common::RunArgs;
 use crate::train::trainer::{train, TrainOptions};
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -14,26 +14,13 @@ pub struct Args {
     /// Run folder (created): checkpoint, metrics.jsonl, config.toml, renders, eval.
     #[arg(long)]
     pub out: PathBuf,
-    /// Preset: tiny, cpu or paper (SPEC §9).
-    #[arg(long, default_value = "cpu")]
-    pub preset: String,
-    /// TOML file overriding any field of the preset (`[model]`, `[train]` tables).
-    #[arg(long)]
-    pub config: Option<PathBuf>,
+    #[command(flatten)]
+    pub run: RunArgs,
     /// Mesh file to train on instead of the scene's own (e.g. from `xscale decimate`); stored
     /// (absolute) in the run config, so `eval`/`render --run` use it too. The normalisation is
     /// that of this mesh.
     #[arg(long)]
     pub mesh: Option<PathBuf>,
-    /// Number of steps (overrides the config).
-    #[arg(long)]
-    pub steps: Option<u64>,
-    /// Pixels per batch (overrides the config).
-    #[arg(long)]
-    pub batch: Option<usize>,
-    /// Seed (overrides the config).
-    #[arg(long)]
-    pub seed: Option<u64>,
     /// Continue from RUN/checkpoint.safetensors, bit-identically to an uninterrupted run.
     #[arg(long)]
     pub resume: bool,
@@ -51,16 +38,7 @@ pub struct Args {
 static INTERRUPTED: AtomicBool = AtomicBool::new(false);
 
 pub fn run(a: Args) -> anyhow::Result<ExitCode> {
-    let mut cfg = RunConfig::resolve(&a.preset, a.config.as_deref())?;
-    if let Some(s) = a.steps {
-        cfg.train.steps = s;
-    }
-    if let Some(b) = a.batch {
-        cfg.train.batch_pixels = b;
-    }
-    if let Some(s) = a.seed {
-        cfg.train.seed = s;
-    }
+    let mut cfg = a.run.resolve()?;
     if let Some(m) = &a.mesh {
         cfg.train.mesh = Some(super::common::absolute_mesh_path(m, &a.scene));
     }

@@ -3,11 +3,10 @@
 use crate::io::tensors::TensorFile;
 use crate::model::checkpoint::Checkpoint;
 use crate::raycast::Tracer;
-use crate::scene::{LoadOptions, Normalization, Scene};
+use crate::scene::{LoadOptions, Scene};
 use crate::train::config::RunConfig;
 use crate::train::trainer::run_checkpoint;
 use anyhow::{bail, Context, Result};
-use glam::DVec3;
 use std::path::{Path, PathBuf};
 
 /// A run configuration from the command line: preset, TOML overrides, and the most common
@@ -159,10 +158,7 @@ pub fn scene_for_model(
             );
         }
     }
-    scene.normalization = Normalization {
-        center: DVec3::from_array(ckpt.normalization.center),
-        extent: DVec3::from_array(ckpt.normalization.extent),
-    };
+    scene.normalization = ckpt.normalization;
     let tracer = Tracer::new(&scene.mesh, &scene.normalization).context("building the BVH")?;
     let train = scene.train();
     let mut rows = vec![-1; scene.views.len()];

@@ -1,7 +1,7 @@
 //! `xscale init --scene DIR --preset P --seed S --out FILE`: a freshly initialised checkpoint for a
 //! scene (appearance rows = its training views, hash levels dropped as SPEC §8 says).
 
-use crate::model::checkpoint::{init_checkpoint_for_mesh, Normalization};
+use crate::model::checkpoint::init_checkpoint_for_mesh;
 use crate::train::config::RunConfig;
 use crate::train::setup::{drop_fine_levels, prepare};
 use std::path::PathBuf;
@@ -33,11 +33,7 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
             }
         }
     }
-    let n = &p.scene.normalization;
-    let norm = Normalization {
-        center: n.center.to_array(),
-        extent: n.extent.to_array(),
-    };
+    let norm = p.scene.normalization;
     let ck = init_checkpoint_for_mesh(
         &cfg.model,
         a.seed,

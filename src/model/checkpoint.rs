@@ -23,28 +23,13 @@ use crate::model::params::{Grads, ParamLayout};
 use crate::model::sh::SH_DIM;
 use crate::model::Real;
 use anyhow::{bail, ensure, Context, Result};
-use serde::{Deserialize, Serialize};
 use std::path::Path;
 
 /// Version string in every checkpoint / dump header (`format`).
 pub const FORMAT: &str = "xscale-1";
 
-/// World → normalised coordinates: `x_n = (x − center) / extent + 0.5` (SPEC §4.1).
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct Normalization {
-    pub center: [f64; 3],
-    pub extent: [f64; 3],
-}
-
-impl Normalization {
-    /// The identity map of `[0,1]^3` (center 0.5, extent 1).
-    pub fn unit() -> Normalization {
-        Normalization {
-            center: [0.5; 3],
-            extent: [1.0; 3],
-        }
-    }
-}
+/// World → normalised coordinates (SPEC §4.1): the scene's type, saved as JSON metadata.
+pub use crate::scene::Normalization;
 
 /// A model with its parameters (f32, the training precision) and normalisation.
 #[derive(Clone, Debug)]
@@ -216,12 +201,9 @@ impl Checkpoint {
                 format!("{label}: header metadata \"normalization\" is not {{\"center\":[x,y,z],\"extent\":[x,y,z]}}")
             })?;
         ensure!(
-            normalization
-                .center
-                .iter()
-                .chain(&normalization.extent)
-                .all(|v| v.is_finite())
-                && normalization.extent.iter().all(|&e| e > 0.0),
+            normalization.center.is_finite()
+                && normalization.extent.is_finite()
+                && normalization.extent.min_element() > 0.0,
             "{label}: normalization {normalization:?} must be finite with positive extents"
         );
         let model = if cfg.featurization.is_hash() {
@@ -475,8 +457,8 @@ mod tests {
 
     fn tiny_ckpt() -> Checkpoint {
         let norm = Normalization {
-            center: [1.25, -3.0, 1e6 + 0.1],
-            extent: [2.0, 0.5, 3.000001],
+            center: glam::DVec3::new(1.25, -3.0, 1e6 + 0.1),
+            extent: glam::DVec3::new(2.0, 0.5, 3.000001),
         };
         init_checkpoint(&ModelConfig::tiny(), 7, norm, 3).unwrap()
     }
@@ -502,8 +484,8 @@ mod tests {
         }
         for w in vals.chunks(3).filter(|w| w.len() == 3) {
             let n = Normalization {
-                center: [w[0], w[1], w[2]],
-                extent: [w[2], w[1], w[0]],
+                center: glam::DVec3::new(w[0], w[1], w[2]),
+                extent: glam::DVec3::new(w[2], w[1], w[0]),
             };
             let back: Normalization =
                 serde_json::from_str(&serde_json::to_string(&n).unwrap()).unwrap();

@@ -159,6 +159,24 @@ fn level_size(res: u32, log2_table_size: u32) -> u32 {
     padded.min(1u64 << log2_table_size) as u32
 }
 
+/// `n` values U(-1e-4, 1e-4) from the counter-based generator (`Purpose::InitTable`,
+/// a = `tensor_id`, b = element index; `-1e-4 + 2e-4*u` in f64, rounded once to f32): the
+/// initialisation of every feature table (hash grids, vertex features).
+pub fn init_uniform_table(n: usize, seed: u64, tensor_id: u64) -> Vec<f32> {
+    const INIT_CHUNK: usize = 1 << 16;
+    let mut t = vec![0.0f32; n];
+    t.par_chunks_mut(INIT_CHUNK)
+        .enumerate()
+        .for_each(|(ci, c)| {
+            for (j, v) in c.iter_mut().enumerate() {
+                let e = (ci * INIT_CHUNK + j) as u64;
+                let u = rng::uniform_f64(seed, Purpose::InitTable, tensor_id, e);
+                *v = (-1e-4 + 2e-4 * u) as f32;
+            }
+        });
+    t
+}
+
 impl HashGrid {
     /// Scales computed as tiny-cuda-nn does (log2(b) in f32). Panics on an invalid config (see
     /// [`validate_config`]; use [`HashGrid::try_new`] to get an error instead).
@@ -232,18 +250,7 @@ impl HashGrid {
     /// (`Purpose::InitTable`, a = tensor_id, b = element index; `-1e-4 + 2e-4*u` in f64, rounded
     /// once to f32).
     pub fn init_table(&self, seed: u64, tensor_id: u64) -> Vec<f32> {
-        const INIT_CHUNK: usize = 1 << 16;
-        let mut t = vec![0.0f32; self.n_params()];
-        t.par_chunks_mut(INIT_CHUNK)
-            .enumerate()
-            .for_each(|(ci, c)| {
-                for (j, v) in c.iter_mut().enumerate() {
-                    let e = (ci * INIT_CHUNK + j) as u64;
-                    let u = rng::uniform_f64(seed, Purpose::InitTable, tensor_id, e);
-                    *v = (-1e-4 + 2e-4 * u) as f32;
-                }
-            });
-        t
+        init_uniform_table(self.n_params(), seed, tensor_id)
     }
 
     /// The 8 corners of `x` at level `l`: global entry indices (`offsets[l] + local`) and

@@ -25,9 +25,9 @@
 
 use crate::model::hashgrid::Touched;
 use crate::model::Real;
-use crate::rng::{self, Purpose};
+
 use anyhow::{ensure, Result};
-use rayon::prelude::*;
+
 use std::sync::Arc;
 
 /// The structure of a vertex-feature table (the numbers live in the flat parameter buffer).
@@ -79,18 +79,7 @@ impl VertexTable {
 
     /// U(−1e-4, 1e-4) per element from `rng` (InitTable, `tensor_id`, element index).
     pub fn init_table(&self, seed: u64, tensor_id: u64) -> Vec<f32> {
-        const INIT_CHUNK: usize = 1 << 16;
-        let mut t = vec![0.0f32; self.n_params()];
-        t.par_chunks_mut(INIT_CHUNK)
-            .enumerate()
-            .for_each(|(ci, c)| {
-                for (j, v) in c.iter_mut().enumerate() {
-                    let e = (ci * INIT_CHUNK + j) as u64;
-                    let u = rng::uniform_f64(seed, Purpose::InitTable, tensor_id, e);
-                    *v = (-1e-4 + 2e-4 * u) as f32;
-                }
-            });
-        t
+        crate::model::hashgrid::init_uniform_table(self.n_params(), seed, tensor_id)
     }
 
     /// Every triangle id below T (for batch checks); returns the first offending position.

@@ -536,13 +536,50 @@ fn check_index(path: &Path, where_: impl Fn() -> String, i: f64, nv: usize) -> R
     Ok(i as u32)
 }
 
+/// A PLY file's rows assembled into a mesh. Faces listed before the vertex element wait until
+/// the vertices are read (the degenerate-triangle test needs them).
+#[derive(Default)]
+struct PlyMesh {
+    mesh: Mesh,
+    stats: MeshStats,
+    faces_pending: Vec<Vec<u32>>,
+    vertex_seen: bool,
+}
+
+impl PlyMesh {
+    fn face(&mut self, face: &[u32]) {
+        if self.vertex_seen {
+            push_face(
+                &self.mesh.vertices,
+                face,
+                &mut self.mesh.triangles,
+                &mut self.stats,
+            );
+        } else {
+            self.faces_pending.push(face.to_vec());
+        }
+    }
+
+    /// The vertex element has been read: triangulate the faces that were waiting.
+    fn vertices_done(&mut self) {
+        self.vertex_seen = true;
+        for f in std::mem::take(&mut self.faces_pending) {
+            push_face(
+                &self.mesh.vertices,
+                &f,
+                &mut self.mesh.triangles,
+                &mut self.stats,
+            );
+        }
+    }
+}
+
 fn load_ply_ascii(path: &Path, data: &[u8], h: &Header, lay: &Layout) -> Result<(Mesh, MeshStats)> {
     let p = path.display();
     let body = std::str::from_utf8(&data[h.body..])
         .map_err(|_| anyhow!("{p}: ASCII PLY body is not valid UTF-8 text"))?;
     let mut lines = body.lines().enumerate().map(|(i, l)| (i + h.lines + 1, l));
-    let mut mesh = Mesh::default();
-    let mut stats = MeshStats::default();
+    let mut out = PlyMesh::default();
     let mut face_buf: Vec<u32> = Vec::new();
     let nv_decl = h
         .elements
@@ -550,8 +587,6 @@ fn load_ply_ascii(path: &Path, data: &[u8], h: &Header, lay: &Layout) -> Result<
         .find(|e| e.name == "vertex")
         .map(|e| e.count)
         .unwrap_or(0);
-    let mut faces_pending: Vec<Vec<u32>> = Vec::new();
-    let mut vertex_seen = false;
     for el in &h.elements {
         let is_vertex = el.name == "vertex";
         let is_face = el.name == "face";
@@ -646,27 +681,20 @@ fn load_ply_ascii(path: &Path, data: &[u8], h: &Header, lay: &Layout) -> Result<
                 );
             }
             if is_vertex {
-                mesh.vertices.push(DVec3::from_array(vals));
+                out.mesh.vertices.push(DVec3::from_array(vals));
             }
             if is_face {
-                if vertex_seen {
-                    push_face(&mesh.vertices, &face_buf, &mut mesh.triangles, &mut stats);
-                } else {
-                    faces_pending.push(face_buf.clone());
-                }
+                out.face(&face_buf);
             }
         }
         if is_vertex {
-            vertex_seen = true;
-            for f in faces_pending.drain(..) {
-                push_face(&mesh.vertices, &f, &mut mesh.triangles, &mut stats);
-            }
+            out.vertices_done();
         }
     }
     if let Some((ln, _)) = lines.find(|(_, l)| !l.trim().is_empty()) {
         bail!("{p}: line {ln}: extra data after the last declared element (element counts in the header too small?)");
     }
-    Ok((mesh, stats))
+    Ok((out.mesh, out.stats))
 }
 
 fn load_ply_binary(
@@ -678,8 +706,7 @@ fn load_ply_binary(
 ) -> Result<(Mesh, MeshStats)> {
     let p = path.display();
     let mut pos = h.body;
-    let mut mesh = Mesh::default();
-    let mut stats = MeshStats::default();
+    let mut out = PlyMesh::default();
     let nv_decl = h
         .elements
         .iter()
@@ -687,13 +714,11 @@ fn load_ply_binary(
         .map(|e| e.count)
         .unwrap_or(0);
     let mut face_buf: Vec<u32> = Vec::new();
-    let mut faces_pending: Vec<Vec<u32>> = Vec::new();
-    let mut vertex_seen = false;
     for el in &h.elements {
         let is_vertex = el.name == "vertex";
         let is_face = el.name == "face";
         if is_vertex {
-            mesh.vertices.reserve(el.count.min(data.len() / 12));
+            out.mesh.vertices.reserve(el.count.min(data.len() / 12));
         }
         // Fast path: an element of scalars only is a fixed-size record (vertices, usually).
         let scalars: Option<Vec<Scalar>> = el
@@ -735,12 +760,9 @@ fn load_ply_binary(
                         }
                         v[axis] = x;
                     }
-                    mesh.vertices.push(DVec3::from_array(v));
+                    out.mesh.vertices.push(DVec3::from_array(v));
                 }
-                vertex_seen = true;
-                for f in faces_pending.drain(..) {
-                    push_face(&mesh.vertices, &f, &mut mesh.triangles, &mut stats);
-                }
+                out.vertices_done();
             }
             pos += rec * el.count;
             continue;
@@ -811,21 +833,14 @@ fn load_ply_binary(
                 }
             }
             if is_vertex {
-                mesh.vertices.push(DVec3::from_array(vals));
+                out.mesh.vertices.push(DVec3::from_array(vals));
             }
             if is_face {
-                if vertex_seen {
-                    push_face(&mesh.vertices, &face_buf, &mut mesh.triangles, &mut stats);
-                } else {
-                    faces_pending.push(face_buf.clone());
-                }
+                out.face(&face_buf);
             }
         }
         if is_vertex {
-            vertex_seen = true;
-            for f in faces_pending.drain(..) {
-                push_face(&mesh.vertices, &f, &mut mesh.triangles, &mut stats);
-            }
+            out.vertices_done();
         }
     }
     // Tolerate a trailing newline some writers add; anything more means the counts are wrong.
@@ -836,7 +851,7 @@ fn load_ply_binary(
             rest.len()
         );
     }
-    Ok((mesh, stats))
+    Ok((out.mesh, out.stats))
 }
 
 pub use super::remesh::{decimate, decimate_report, subdivide, DecimateReport};

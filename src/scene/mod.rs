@@ -51,14 +51,23 @@ pub enum NormalizeMode {
     Isotropic,
 }
 
-/// `x_n = (x - center) / extent + 0.5` (SPEC §4.1), all in f64.
-#[derive(Clone, Copy, Debug, PartialEq)]
+/// `x_n = (x - center) / extent + 0.5` (SPEC §4.1), all in f64. Serialised (checkpoint metadata
+/// `normalization`) as JSON `{"center":[x,y,z],"extent":[x,y,z]}`.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct Normalization {
     pub center: DVec3,
     pub extent: DVec3,
 }
 
 impl Normalization {
+    /// The identity map of `[0,1]^3` (center 0.5, extent 1).
+    pub fn unit() -> Normalization {
+        Normalization {
+            center: DVec3::splat(0.5),
+            extent: DVec3::ONE,
+        }
+    }
+
     /// `center = (min+max)/2`, `extent = max-min+1e-6` per axis (or the largest for all).
     pub fn from_mesh(mesh: &Mesh, mode: NormalizeMode) -> Normalization {
         let (lo, hi) = mesh.bbox();

@@ -18,7 +18,7 @@
 use crate::eval::protocol::{mean_score, score_view, table, ViewScore};
 use crate::io::tensors::TensorFile;
 use crate::model::batch::Batch;
-use crate::model::checkpoint::{init_checkpoint_for_mesh, Checkpoint, Normalization as CkptNorm};
+use crate::model::checkpoint::{init_checkpoint_for_mesh, Checkpoint};
 use crate::model::params::{Grads, Group, ParamLayout};
 use crate::render::{heat_map, render_camera, side_by_side};
 use crate::scene::image::write_png8;
@@ -62,11 +62,7 @@ fn param_specs(layout: &ParamLayout) -> Vec<(String, Vec<usize>)> {
 impl TrainState {
     /// A fresh run for a prepared scene (`cfg.model` already has its levels resolved).
     pub fn init(cfg: RunConfig, prepared: &Prepared) -> Result<TrainState> {
-        let n = &prepared.scene.normalization;
-        let norm = CkptNorm {
-            center: n.center.to_array(),
-            extent: n.extent.to_array(),
-        };
+        let norm = prepared.scene.normalization;
         let ckpt = init_checkpoint_for_mesh(
             &cfg.model,
             cfg.train.seed,

@@ -99,15 +99,14 @@ fn closest_hit_matches_brute_force_for_every_preset() {
                     } else {
                         dir
                     };
-                    p.origin[l] = (origin - n.center).as_vec3().to_array();
-                    p.dir[l] = dir.as_vec3().to_array();
-                    p.active |= 1 << l;
+                    let (o32, d32) = ((origin - n.center).as_vec3(), dir.as_vec3());
+                    p.set(l, o32.to_array(), d32.to_array());
                 }
                 for avx in [true, false] {
                     tracer.set_avx(avx);
                     let got = tracer.trace(&p, &mut scratch);
                     for l in 0..MAX_LANES {
-                        let want = brute_force_f32(&mesh, &n, p.origin[l], p.dir[l]);
+                        let want = brute_force_f32(&mesh, &n, p.origin(l), p.dir(l));
                         assert_eq!(
                             got[l],
                             want,

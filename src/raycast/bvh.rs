@@ -45,7 +45,7 @@
 use super::simd::F8;
 use super::simd::{Lanes, Mask, F4};
 pub use super::triangle::MAX_LANES;
-use super::triangle::{dominant_axis, intersect_lanes, RayLanes, WatertightRay};
+use super::triangle::{intersect_lanes, permutation, ray_axis, RayLanes};
 use super::Hit;
 use crate::scene::{Mesh, Normalization};
 use anyhow::{bail, Result};
@@ -130,14 +130,48 @@ pub struct Scratch {
     stack: Vec<(u32, f32)>,
 }
 
-/// Up to [`MAX_LANES`] rays in the local frame (f32) traced together. Inactive lanes are
-/// ignored. Which rays share a packet never changes their results, only the speed.
+/// Up to [`MAX_LANES`] rays in the local frame (f32) traced together, structure of arrays.
+/// Inactive lanes are ignored. Which rays share a packet never changes their results, only the
+/// speed.
 #[derive(Clone, Copy, Debug, Default)]
 pub struct Packet {
-    pub origin: [[f32; 3]; MAX_LANES],
-    pub dir: [[f32; 3]; MAX_LANES],
+    /// `[axis][lane]`.
+    pub origin: [[f32; MAX_LANES]; 3],
+    /// `[axis][lane]`.
+    pub dir: [[f32; MAX_LANES]; 3],
     /// Bit i set: lane i is a ray.
     pub active: u32,
+}
+
+impl Packet {
+    /// Make lane `i` the ray `(origin, dir)`.
+    #[inline]
+    pub fn set(&mut self, i: usize, origin: [f32; 3], dir: [f32; 3]) {
+        for a in 0..3 {
+            self.origin[a][i] = origin[a];
+            self.dir[a][i] = dir[a];
+        }
+        self.active |= 1 << i;
+    }
+
+    #[inline]
+    pub fn origin(&self, i: usize) -> [f32; 3] {
+        [self.origin[0][i], self.origin[1][i], self.origin[2][i]]
+    }
+
+    #[inline]
+    pub fn dir(&self, i: usize) -> [f32; 3] {
+        [self.dir[0][i], self.dir[1][i], self.dir[2][i]]
+    }
+
+    /// Copy lane `src` of `from` into lane `dst` (the active mask is unchanged).
+    #[inline]
+    fn copy_lane_from(&mut self, dst: usize, from: &Packet, src: usize) {
+        for a in 0..3 {
+            self.origin[a][dst] = from.origin[a][src];
+            self.dir[a][dst] = from.dir[a][src];
+        }
+    }
 }
 
 /// The BVH and the f64 local-frame mesh of one scene.
@@ -404,11 +438,8 @@ impl Tracer {
             return None;
         }
         let o = origin_world - self.normalization.center;
-        let p = Packet {
-            origin: [o.as_vec3().to_array(); MAX_LANES],
-            dir: [d.as_vec3().to_array(); MAX_LANES],
-            active: 1,
-        };
+        let mut p = Packet::default();
+        p.set(0, o.as_vec3().to_array(), d.as_vec3().to_array());
         let mut s = self.scratch();
         let (tri, t) = self.trace(&p, &mut s)[0]?;
         Some(self.refine(o, d, tri, t))
@@ -418,20 +449,24 @@ impl Tracer {
     /// the unit direction, `t32` the f32 distance of the traversal (used only if the ray lies in
     /// the triangle's plane, where the f64 intersection is undefined).
     pub fn refine(&self, o: DVec3, d: DVec3, tri: u32, t32: f32) -> Hit {
-        self.refine_with_normal(o, d, tri, t32).0
+        self.refine_with_cos(o, d, tri, t32).0
     }
 
-    /// [`Tracer::refine`] and the triangle's unit geometric normal (zero if degenerate).
-    pub fn refine_with_normal(&self, o: DVec3, d: DVec3, tri: u32, t32: f32) -> (Hit, DVec3) {
+    /// [`Tracer::refine`] and `|cos θ_n|`, the cosine between the ray and the triangle's
+    /// normal (0 for a degenerate triangle). MT's determinant is `-d·(e1×e2)`, so the cosine is
+    /// `|det| / |e1×e2|` with no normalised normal needed.
+    #[inline]
+    pub fn refine_with_cos(&self, o: DVec3, d: DVec3, tri: u32, t32: f32) -> (Hit, f64) {
         let [a, b, c] = self.triangle_local(tri);
         let (e1, e2) = (b - a, c - a);
-        let normal = e1.cross(e2).normalize_or_zero();
         let p = d.cross(e2);
         let det = e1.dot(p);
         let s = o - a;
         let q = s.cross(e1);
         let inv = 1.0 / det;
         let (t, u, v) = (e2.dot(q) * inv, s.dot(p) * inv, d.dot(q) * inv);
+        let nn = e1.cross(e2).length();
+        let cos = if nn > 0.0 { (det.abs() / nn).min(1.0) } else { 0.0 };
         if det != 0.0 && t.is_finite() && t > 0.0 && u.is_finite() && v.is_finite() {
             let h = Hit {
                 t,
@@ -439,9 +474,17 @@ impl Tracer {
                 u,
                 v,
             };
-            return (h, normal);
+            return (h, cos);
         }
-        // Ray in the triangle's plane: keep the f32 distance, project for barycentrics.
+        (self.refine_in_plane(o, d, tri, t32), cos)
+    }
+
+    /// The ray lies in the triangle's plane, where the f64 intersection is undefined: keep the
+    /// f32 distance and project for barycentrics.
+    #[cold]
+    fn refine_in_plane(&self, o: DVec3, d: DVec3, tri: u32, t32: f32) -> Hit {
+        let [a, b, c] = self.triangle_local(tri);
+        let (e1, e2) = (b - a, c - a);
         let t = t32 as f64;
         let w = o + t * d - a;
         let (d00, d01, d11) = (e1.dot(e1), e1.dot(e2), e2.dot(e2));
@@ -452,13 +495,12 @@ impl Tracer {
         } else {
             (0.0, 0.0)
         };
-        let h = Hit {
+        Hit {
             t,
             triangle: tri,
             u,
             v,
-        };
-        (h, normal)
+        }
     }
 
     /// Whether the 8-lane AVX traversal is used (detected at build; see [`Tracer::set_avx`]).
@@ -475,30 +517,36 @@ impl Tracer {
 
     /// Trace up to [`MAX_LANES`] local-frame f32 rays. Lane i: `(mesh triangle id, f32 distance)`
     /// of the closest hit (the lexicographic minimum of `(t, id)`, see the module docs) or `None`.
-    /// Lanes are grouped by dominant axis and direction signs; each group is one SIMD traversal
-    /// (8 lanes with AVX, else 4 + 4 with SSE).
+    /// Lanes are grouped by dominant axis and direction signs; each group is one traversal with
+    /// one interval box test per node for the whole group, and triangle tests in SIMD chunks of
+    /// 8 lanes with AVX, else 4 with SSE.
     pub fn trace(&self, p: &Packet, scratch: &mut Scratch) -> [Option<(u32, f32)>; MAX_LANES] {
         let mut best_t = [f32::INFINITY; MAX_LANES];
         let mut best_id = [u32::MAX; MAX_LANES];
         let Some(root) = self.root else {
             return [None; MAX_LANES];
         };
-        let mut rays = [None; MAX_LANES];
         let mut keys = [0u32; MAX_LANES];
         let mut todo = 0u32;
         for i in 0..MAX_LANES {
             if p.active >> i & 1 != 0 {
-                rays[i] = WatertightRay::new(p.origin[i], p.dir[i]);
-                let d = p.dir[i];
-                keys[i] = dominant_axis(d) as u32
-                    | (d[0].is_sign_negative() as u32) << 2
-                    | (d[1].is_sign_negative() as u32) << 3
-                    | (d[2].is_sign_negative() as u32) << 4;
-                if rays[i].is_some() {
+                let d = p.dir(i);
+                if let Some(kz) = ray_axis(p.origin(i), d) {
+                    keys[i] = kz as u32
+                        | (d[0].is_sign_negative() as u32) << 2
+                        | (d[1].is_sign_negative() as u32) << 3
+                        | (d[2].is_sign_negative() as u32) << 4;
                     todo |= 1 << i;
                 }
             }
         }
+        if todo == 0 {
+            return [None; MAX_LANES];
+        }
+        let o0 = p.origin(todo.trailing_zeros() as usize).map(f32::to_bits);
+        let shared =
+            (0..MAX_LANES).all(|i| todo >> i & 1 == 0 || p.origin(i).map(f32::to_bits) == o0);
+        let mut g = *p;
         while todo != 0 {
             let lead = todo.trailing_zeros() as usize;
             let mut group = 0u32;
@@ -508,50 +556,32 @@ impl Tracer {
                 }
             }
             todo &= !group;
-            let lead_ray = rays[lead].unwrap();
-            let mut g = Group {
-                rays: [lead_ray; MAX_LANES],
-                dirs: [p.dir[lead]; MAX_LANES],
-                active: group,
-            };
+            // Every other lane holds the lead ray: all lanes are then valid rays of the group
+            // (those lanes are never reported), and bounds over all lanes are the group's.
+            g.active = group;
             for i in 0..MAX_LANES {
-                if group >> i & 1 != 0 {
-                    g.rays[i] = rays[i].unwrap();
-                    g.dirs[i] = p.dir[i];
-                }
+                let src = if group >> i & 1 != 0 { i } else { lead };
+                g.copy_lane_from(i, p, src);
             }
+            let k = permutation(keys[lead] as usize & 3);
             let st = &mut scratch.stack;
-            let shared = g
-                .rays
-                .iter()
-                .all(|r| r.origin.map(f32::to_bits) == lead_ray.origin.map(f32::to_bits));
+            let (bt, bi) = (&mut best_t, &mut best_id);
             #[cfg(target_arch = "x86_64")]
-            if self.avx && group > 0xF {
+            if self.avx {
                 // SAFETY: `self.avx` is only true when the CPU reports AVX.
                 unsafe {
                     if shared {
-                        self.trace_group_avx::<true>(root, &g, &mut best_t, &mut best_id, st)
+                        self.trace_group_avx::<true>(root, &g, k, bt, bi, st)
                     } else {
-                        self.trace_group_avx::<false>(root, &g, &mut best_t, &mut best_id, st)
+                        self.trace_group_avx::<false>(root, &g, k, bt, bi, st)
                     }
                 };
                 continue;
             }
-            for base in [0, 4] {
-                if (group >> base) & 0xF != 0 {
-                    if shared {
-                        self.trace_group_sse::<true>(root, &g, base, &mut best_t, &mut best_id, st);
-                    } else {
-                        self.trace_group_sse::<false>(
-                            root,
-                            &g,
-                            base,
-                            &mut best_t,
-                            &mut best_id,
-                            st,
-                        );
-                    }
-                }
+            if shared {
+                self.trace_group_sse::<true>(root, &g, k, bt, bi, st);
+            } else {
+                self.trace_group_sse::<false>(root, &g, k, bt, bi, st);
             }
         }
         std::array::from_fn(|i| (best_id[i] != u32::MAX).then(|| (best_id[i], best_t[i])))
@@ -561,13 +591,13 @@ impl Tracer {
     fn trace_group_sse<const SHARED: bool>(
         &self,
         root: u32,
-        g: &Group,
-        base: usize,
+        g: &Packet,
+        k: [usize; 3],
         best_t: &mut [f32; MAX_LANES],
         best_id: &mut [u32; MAX_LANES],
         stack: &mut Vec<(u32, f32)>,
     ) {
-        self.trace_group::<F4, SHARED>(root, g, base, best_t, best_id, stack)
+        self.trace_group::<F4, SHARED>(root, g, k, best_t, best_id, stack)
     }
 
     #[cfg(target_arch = "x86_64")]
@@ -576,65 +606,60 @@ impl Tracer {
     unsafe fn trace_group_avx<const SHARED: bool>(
         &self,
         root: u32,
-        g: &Group,
+        g: &Packet,
+        k: [usize; 3],
         best_t: &mut [f32; MAX_LANES],
         best_id: &mut [u32; MAX_LANES],
         stack: &mut Vec<(u32, f32)>,
     ) {
-        self.trace_group::<F8, SHARED>(root, g, 0, best_t, best_id, stack)
+        self.trace_group::<F8, SHARED>(root, g, k, best_t, best_id, stack)
     }
 
-    /// One SIMD traversal of lanes `base .. base + L::N` of a group (rays sharing the dominant
-    /// axis and the direction signs). `SHARED`: all of the group's rays have the same origin
-    /// (camera rays); box and vertex translations are then scalar (same IEEE results).
+    /// One traversal of a group: the lanes `g.active` share the permutation `k` and the
+    /// direction signs, and every other lane holds a copy of one of them. Nodes are tested once
+    /// for the whole group (interval test), triangles in chunks of `L::N` lanes. `SHARED`: all
+    /// rays have the same origin (camera rays); vertex translations are then scalar (same IEEE
+    /// results).
     #[inline(always)]
     fn trace_group<L: Lanes, const SHARED: bool>(
         &self,
         root: u32,
-        g: &Group,
-        base: usize,
+        g: &Packet,
+        k: [usize; 3],
         best_t: &mut [f32; MAX_LANES],
         best_id: &mut [u32; MAX_LANES],
         stack: &mut Vec<(u32, f32)>,
     ) {
         let n = L::N;
-        let active = (g.active >> base) & ((1u32 << n) - 1);
-        if active == 0 {
-            return;
+        let active = g.active;
+        let chunks = (32 - active.leading_zeros() as usize).div_ceil(n);
+        let first = RayLanes::<L>::new(g, 0, k);
+        let mut rl: [RayLanes<'_, L>; MAX_LANES / 4] = [first; MAX_LANES / 4];
+        for (c, r) in rl.iter_mut().enumerate().take(chunks).skip(1) {
+            *r = RayLanes::<L>::new(g, c * n, k);
         }
-        let lanes = RayLanes::<L>::new(&g.rays[base..base + n]);
-        let dirs = &g.dirs[base..base + n];
-        // Box-test data, unpermuted axes. inv = 1/d, with ±f32::MAX for a zero component (the
-        // slab test then never sees 0·inf).
-        let mut oa = [[0.0f32; MAX_LANES]; 3];
-        let mut ia = [[0.0f32; MAX_LANES]; 3];
-        for i in 0..n {
-            for a in 0..3 {
-                oa[a][i] = g.rays[base + i].origin[a];
-                let d = dirs[i][a];
-                let x = 1.0 / d;
-                ia[a][i] = if x.is_finite() {
-                    x
-                } else {
-                    f32::MAX.copysign(d)
-                };
+        let ia = GroupBounds::new::<SHARED>(g);
+        let lane_mask = (1u32 << n) - 1;
+        // The group's closest distances, -inf in the other lanes (they never bound a box).
+        let mut bt = [f32::NEG_INFINITY; MAX_LANES];
+        for i in 0..MAX_LANES {
+            if active >> i & 1 != 0 {
+                bt[i] = best_t[i];
             }
         }
-        let o: [L; 3] = [L::load(&oa[0]), L::load(&oa[1]), L::load(&oa[2])];
-        let os = [oa[0][0], oa[1][0], oa[2][0]];
-        let inv: [L; 3] = [L::load(&ia[0]), L::load(&ia[1]), L::load(&ia[2])];
-        // The group shares direction signs: near plane = min for +, max for -.
-        let near: [usize; 3] = std::array::from_fn(|a| dirs[0][a].is_sign_negative() as usize);
-        let far: [usize; 3] = near.map(|x| 1 - x);
-        let mut tmax = tmax_lanes::<L>(best_t, base, active);
-        let zero = L::splat(0.0);
-        let scale = L::splat(SLAB_SCALE);
-        let inf = L::splat(f32::INFINITY);
+        let tmax_hi_of = |bt: &[f32; MAX_LANES]| {
+            let mut m = L::load(bt);
+            for c in 1..MAX_LANES / n {
+                m = m.max(L::load(&bt[c * n..]));
+            }
+            m.hmax()
+        };
+        let mut tmax_hi = tmax_hi_of(&bt);
 
         stack.clear();
         stack.push((root, 0.0));
         while let Some((mut r, tn_entry)) = stack.pop() {
-            if tn_entry > tmax.hmax() * SLAB_SCALE {
+            if tn_entry > tmax_hi * SLAB_SCALE {
                 continue;
             }
             loop {
@@ -643,62 +668,50 @@ impl Tracer {
                     let count = ((r >> 27) & 15) as usize + 1;
                     let mut changed = false;
                     for j in first..first + count {
-                        let (hits, t) = intersect_lanes::<L, SHARED>(&lanes, &self.tris[j], active);
-                        if hits != 0 {
-                            let mut ta = [0.0f32; MAX_LANES];
-                            t.store(&mut ta);
-                            let id = self.tri_ids[j];
-                            for i in 0..n {
-                                let (bt, bi) = (&mut best_t[base + i], &mut best_id[base + i]);
-                                if hits >> i & 1 != 0 && (ta[i] < *bt || (ta[i] == *bt && id < *bi))
-                                {
-                                    *bt = ta[i];
-                                    *bi = id;
-                                    changed = true;
+                        let id = self.tri_ids[j];
+                        for (c, rlc) in rl.iter().enumerate().take(chunks) {
+                            let ca = (active >> (c * n)) & lane_mask;
+                            if ca == 0 {
+                                continue;
+                            }
+                            let (hits, t) = intersect_lanes::<L, SHARED>(rlc, &self.tris[j], ca);
+                            if hits != 0 {
+                                let mut ta = [0.0f32; MAX_LANES];
+                                t.store(&mut ta);
+                                let mut h = hits;
+                                while h != 0 {
+                                    let i = h.trailing_zeros() as usize;
+                                    h &= h - 1;
+                                    let l = c * n + i;
+                                    if ta[i] < bt[l] || (ta[i] == bt[l] && id < best_id[l]) {
+                                        bt[l] = ta[i];
+                                        best_id[l] = id;
+                                        changed = true;
+                                    }
                                 }
                             }
                         }
                     }
                     if changed {
-                        tmax = tmax_lanes::<L>(best_t, base, active);
+                        tmax_hi = tmax_hi_of(&bt);
                     }
                     break;
                 }
                 let nd = &self.nodes[r as usize];
+                // Interval test of the whole group against the four children at once (module
+                // docs): a child is skipped only if no lane can hit it.
+                let (lo, m) = ia.test(nd, tmax_hi);
+                let mut bits = m.bits();
                 let mut hit_d = [0.0f32; 4];
                 let mut hit_r = [0u32; 4];
                 let mut nh = 0;
-                // Box planes relative to the origin: one 4-wide subtraction per plane for all
-                // four children when the origin is shared, else per lane.
-                let mut rel = [[[0.0f32; 4]; 3]; 2];
-                if SHARED {
-                    for side in 0..2 {
-                        for a in 0..3 {
-                            for c in 0..4 {
-                                rel[side][a][c] = nd.b[side][a][c] - os[a];
-                            }
-                        }
-                    }
-                }
-                for c in 0..4 {
-                    let slab = |side: usize, a: usize| {
-                        if SHARED {
-                            L::splat(rel[side][a][c]) * inv[a]
-                        } else {
-                            (L::splat(nd.b[side][a][c]) - o[a]) * inv[a]
-                        }
-                    };
-                    let tnx = slab(near[0], 0);
-                    let tfx = slab(far[0], 0);
-                    let tny = slab(near[1], 1);
-                    let tfy = slab(far[1], 1);
-                    let tnz = slab(near[2], 2);
-                    let tfz = slab(far[2], 2);
-                    let tn = tnx.max(tny).max(tnz.max(zero));
-                    let tf = tfx.min(tfy).min(tfz.min(tmax)) * scale;
-                    let m = tn.le(tf);
-                    if m.bits() != 0 {
-                        hit_d[nh] = L::select(m, tn, inf).hmin();
+                if bits != 0 {
+                    let mut la = [0.0f32; 4];
+                    lo.store(&mut la);
+                    while bits != 0 {
+                        let c = bits.trailing_zeros() as usize;
+                        bits &= bits - 1;
+                        hit_d[nh] = la[c];
                         hit_r[nh] = nd.child[c];
                         nh += 1;
                     }
@@ -724,27 +737,99 @@ impl Tracer {
                 }
             }
         }
-    }
-}
-
-/// Current closest distances of lanes `base..base+N` (-inf for inactive lanes: they never hit
-/// a box).
-#[inline(always)]
-fn tmax_lanes<L: Lanes>(best_t: &[f32; MAX_LANES], base: usize, active: u32) -> L {
-    let mut t = [f32::NEG_INFINITY; MAX_LANES];
-    for i in 0..L::N {
-        if active >> i & 1 != 0 {
-            t[i] = best_t[base + i];
+        for i in 0..MAX_LANES {
+            if active >> i & 1 != 0 {
+                best_t[i] = bt[i];
+            }
         }
     }
-    L::load(&t)
 }
 
-/// Rays of one traversal group (lanes outside `active` hold copies of an active lane).
-struct Group {
-    rays: [WatertightRay; MAX_LANES],
-    dirs: [[f32; 3]; MAX_LANES],
-    active: u32,
+/// The interval bounds of a traversal group for the box test (module docs, "Interval box
+/// test"): per axis the smallest and largest origin coordinate and inverse direction over the
+/// active lanes, and which box side is the near one.
+struct GroupBounds {
+    /// `[axis]`: smallest / largest origin coordinate (equal for a shared origin).
+    o_lo: [F4; 3],
+    o_hi: [F4; 3],
+    /// `[axis]`: smallest / largest 1/d (±f32::MAX for a zero component).
+    i_lo: [F4; 3],
+    i_hi: [F4; 3],
+    /// `[axis]`: 1 when the direction is negative (the near plane is the box maximum).
+    near: [usize; 3],
+    shared: bool,
+}
+
+impl GroupBounds {
+    /// Bounds over every lane of `g` (its lanes outside the group hold copies of a group ray).
+    fn new<const SHARED: bool>(g: &Packet) -> Self {
+        let mut o_lo = [f32::INFINITY; 3];
+        let mut o_hi = [f32::NEG_INFINITY; 3];
+        let mut d_lo = [f32::INFINITY; 3];
+        let mut d_hi = [f32::NEG_INFINITY; 3];
+        for a in 0..3 {
+            for i in 0..MAX_LANES {
+                d_lo[a] = d_lo[a].min(g.dir[a][i]);
+                d_hi[a] = d_hi[a].max(g.dir[a][i]);
+                o_lo[a] = o_lo[a].min(g.origin[a][i]);
+                o_hi[a] = o_hi[a].max(g.origin[a][i]);
+            }
+        }
+        // 1/d, with ±f32::MAX for a zero component (the slab products then never see 0·inf).
+        // The group's components share their sign, where fl(1/d) is monotone decreasing (the
+        // clamp keeps it so): the extreme inverses are those of the extreme components.
+        let inv = |d: f32| {
+            let x = 1.0 / d;
+            if x.is_finite() {
+                x
+            } else {
+                f32::MAX.copysign(d)
+            }
+        };
+        GroupBounds {
+            o_lo: o_lo.map(F4::splat),
+            o_hi: o_hi.map(F4::splat),
+            i_lo: d_hi.map(|d| F4::splat(inv(d))),
+            i_hi: d_lo.map(|d| F4::splat(inv(d))),
+            near: std::array::from_fn(|a| g.dir[a][0].is_sign_negative() as usize),
+            shared: SHARED,
+        }
+    }
+
+    /// Lower bounds of the entry distance over the group for the four children of `nd`, and
+    /// the children some lane may hit (`tmax_hi`: the largest current closest distance).
+    #[inline(always)]
+    fn test(&self, nd: &Node4, tmax_hi: f32) -> (F4, <F4 as Lanes>::M) {
+        let mut lo = F4::splat(0.0);
+        let mut hi = F4::splat(tmax_hi);
+        for a in 0..3 {
+            let bn = F4::load(&nd.b[self.near[a]][a]);
+            let bf = F4::load(&nd.b[1 - self.near[a]][a]);
+            // fl(b - o) is monotone in o and fl(r · i) in r and i: the group's extreme slab
+            // distances are products of the extreme operands.
+            let (n_lo, f_hi) = if self.shared {
+                let (rn, rf) = (bn - self.o_lo[a], bf - self.o_lo[a]);
+                (
+                    (rn * self.i_lo[a]).min(rn * self.i_hi[a]),
+                    (rf * self.i_lo[a]).max(rf * self.i_hi[a]),
+                )
+            } else {
+                let (rn0, rn1) = (bn - self.o_hi[a], bn - self.o_lo[a]);
+                let (rf0, rf1) = (bf - self.o_hi[a], bf - self.o_lo[a]);
+                (
+                    (rn0 * self.i_lo[a])
+                        .min(rn0 * self.i_hi[a])
+                        .min((rn1 * self.i_lo[a]).min(rn1 * self.i_hi[a])),
+                    (rf0 * self.i_lo[a])
+                        .max(rf0 * self.i_hi[a])
+                        .max((rf1 * self.i_lo[a]).max(rf1 * self.i_hi[a])),
+                )
+            };
+            lo = lo.max(n_lo);
+            hi = hi.min(f_hi);
+        }
+        (lo, lo.le(hi * F4::splat(SLAB_SCALE)))
+    }
 }
 
 fn avx_detected() -> bool {

@@ -202,16 +202,17 @@ fn cast_strip_g<const G: u32>(
         let y = (y0 + vr) as f64 + (b as f64 + 0.5) / g as f64;
         (idx, x, y)
     };
-    // 4×2 blocks of the sub-sample grid, one packet each (γ = 2: two neighbouring pixels).
-    const BW: u32 = 4;
-    const BH: u32 = 2;
-    for by in (0..sh).step_by(BH as usize) {
-        for bx in (0..sw).step_by(BW as usize) {
+    // Blocks of 16 sub-samples, one packet each: 4×4 when the strip's sub-sample rows allow
+    // (γ = 2: 2×2 pixels; γ = 4: one pixel), else 8×2.
+    let bh: u32 = if sh % 4 == 0 { 4 } else { 2 };
+    let bw: u32 = MAX_LANES as u32 / bh;
+    for by in (0..sh).step_by(bh as usize) {
+        for bx in (0..sw).step_by(bw as usize) {
             let mut p = Packet::default();
             let mut lane_idx = [0usize; MAX_LANES];
             let mut lane_dir = [DVec3::ZERO; MAX_LANES];
-            for l in 0..(BW * BH) as usize {
-                let (sx, sy) = (bx + l as u32 % BW, by + l as u32 / BW);
+            for l in 0..MAX_LANES {
+                let (sx, sy) = (bx + l as u32 % bw, by + l as u32 / bw);
                 if sx >= sw || sy >= sh {
                     continue;
                 }
@@ -219,9 +220,7 @@ fn cast_strip_g<const G: u32>(
                 let d = ctx.dir(x, y);
                 lane_idx[l] = idx;
                 lane_dir[l] = d;
-                p.origin[l] = ctx.origin32;
-                p.dir[l] = d.as_vec3().to_array();
-                p.active |= 1 << l;
+                p.set(l, ctx.origin32, d.as_vec3().to_array());
             }
             let hits = tracer.trace(&p, scratch);
             for l in 0..MAX_LANES {
@@ -236,11 +235,11 @@ fn cast_strip_g<const G: u32>(
                 };
                 if let Some((tri, t32)) = hits[l] {
                     let d = lane_dir[l];
-                    let (h, normal) = tracer.refine_with_normal(ctx.origin, d, tri, t32);
+                    let (h, cos_n) = tracer.refine_with_cos(ctx.origin, d, tri, t32);
                     let local = ctx.origin + h.t * d;
                     // Footprint (module docs): r · sqrt(Ω / |cos θ_n|), Ω = cos³θ_c / (fx fy).
                     let cos_c = d.dot(ctx.axis).abs();
-                    let cos_n = d.dot(normal).abs().max(1e-6);
+                    let cos_n = cos_n.max(1e-6);
                     let fp = h.t * ctx.inv_sqrt_f * (cos_c * cos_c * cos_c / cos_n).sqrt();
                     subs[lane_idx[l]] = SubSample {
                         triangle: tri,

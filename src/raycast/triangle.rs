@@ -23,6 +23,7 @@
 // Index loops over lanes read best; `!(t > 0)` also rejects NaN on purpose.
 #![allow(clippy::needless_range_loop, clippy::neg_cmp_op_on_partial_ord)]
 
+use super::bvh::Packet;
 use super::simd::{Lanes, Mask};
 
 /// Index of the largest |component| (first one on ties), pbrt's `MaxComponentIndex(Abs(d))`.
@@ -57,18 +58,22 @@ pub struct WatertightRay {
     pub shear: [f32; 3],
 }
 
+/// The dominant axis `kz` of a ray the watertight test accepts: `None` when the direction is
+/// zero or a coordinate is not finite.
+#[inline]
+pub fn ray_axis(origin: [f32; 3], dir: [f32; 3]) -> Option<usize> {
+    if !dir.iter().chain(origin.iter()).all(|x| x.is_finite()) {
+        return None;
+    }
+    let kz = dominant_axis(dir);
+    (dir[kz] != 0.0).then_some(kz)
+}
+
 impl WatertightRay {
     /// `None` when the direction is zero or not finite.
     pub fn new(origin: [f32; 3], dir: [f32; 3]) -> Option<WatertightRay> {
-        if !dir.iter().chain(origin.iter()).all(|x| x.is_finite()) {
-            return None;
-        }
-        let kz = dominant_axis(dir);
-        if dir[kz] == 0.0 {
-            return None;
-        }
-        let k = permutation(kz);
-        let dz = dir[kz];
+        let k = permutation(ray_axis(origin, dir)?);
+        let dz = dir[k[2]];
         Some(WatertightRay {
             origin,
             k,
@@ -163,46 +168,46 @@ fn intersect_f64_edges(p: [f32; 6], z: [f32; 3]) -> Option<TriHit> {
 }
 
 /// Most lanes a packet has.
-pub const MAX_LANES: usize = 8;
+pub const MAX_LANES: usize = 16;
 
-/// Up to [`MAX_LANES`] rays sharing the permutation `k`, in SIMD lanes (structure of arrays).
+/// `L::N` rays of a packet sharing the permutation `k`, in SIMD lanes.
 #[derive(Clone, Copy)]
-pub struct RayLanes<L: Lanes> {
+pub struct RayLanes<'a, L: Lanes> {
     pub k: [usize; 3],
     /// Origin, permuted: `[o_kx, o_ky, o_kz]` per lane.
     pub o: [L; 3],
-    /// Shear `[Sx, Sy, Sz]` per lane.
+    /// Shear `[Sx, Sy, Sz]` per lane (computed exactly as [`WatertightRay::new`] does).
     pub s: [L; 3],
-    /// The scalar rays (for the rare f64 fallback); inactive lanes hold any valid ray.
-    pub scalar: [WatertightRay; MAX_LANES],
+    /// The packet and the first lane (for the rare f64 fallback, which rebuilds the scalar ray).
+    pub packet: &'a Packet,
+    pub base: usize,
     /// The permuted origin when every lane has the same one (camera rays): the vertex
     /// translation is then one scalar subtraction instead of one per lane (same IEEE result).
     pub shared: [f32; 3],
 }
 
-impl<L: Lanes> RayLanes<L> {
-    /// All of the first `L::N` rays must share `k` (the caller groups lanes by dominant axis).
+impl<'a, L: Lanes> RayLanes<'a, L> {
+    /// Lanes `base .. base + L::N` of `p`; all must be valid rays ([`WatertightRay::new`] is
+    /// `Some`) with the permutation `k`.
     #[inline(always)]
-    pub fn new(rays: &[WatertightRay]) -> RayLanes<L> {
-        let k = rays[0].k;
-        let mut scalar = [rays[0]; MAX_LANES];
-        scalar[..L::N].copy_from_slice(&rays[..L::N]);
-        let mut oa = [[0.0f32; MAX_LANES]; 3];
-        let mut sa = [[0.0f32; MAX_LANES]; 3];
-        for i in 0..MAX_LANES {
-            for a in 0..3 {
-                oa[a][i] = scalar[i].origin[k[a]];
-                sa[a][i] = scalar[i].shear[a];
-            }
-        }
-        let o = [L::load(&oa[0]), L::load(&oa[1]), L::load(&oa[2])];
-        let s = [L::load(&sa[0]), L::load(&sa[1]), L::load(&sa[2])];
-        let shared = [oa[0][0], oa[1][0], oa[2][0]];
+    pub fn new(p: &'a Packet, base: usize, k: [usize; 3]) -> RayLanes<'a, L> {
+        let lanes = |x: &[f32; MAX_LANES]| L::load(&x[base..]);
+        let o = [lanes(&p.origin[k[0]]), lanes(&p.origin[k[1]]), lanes(&p.origin[k[2]])];
+        // [-d_kx/d_kz, -d_ky/d_kz, 1/d_kz]: negation is exact, so (-1·d)/dz is -d/dz bit for bit.
+        let dz = lanes(&p.dir[k[2]]);
+        let m1 = L::splat(-1.0);
+        let s = [
+            (m1 * lanes(&p.dir[k[0]])) / dz,
+            (m1 * lanes(&p.dir[k[1]])) / dz,
+            L::splat(1.0) / dz,
+        ];
+        let shared = [p.origin[k[0]][base], p.origin[k[1]][base], p.origin[k[2]][base]];
         RayLanes {
             k,
             o,
             s,
-            scalar,
+            packet: p,
+            base,
             shared,
         }
     }
@@ -211,7 +216,7 @@ impl<L: Lanes> RayLanes<L> {
 /// A vertex translated, permuted and sheared into each lane's ray space. `SHARED`: all lanes
 /// have the origin `r.shared`.
 #[inline(always)]
-fn vertex_lanes<L: Lanes, const SHARED: bool>(r: &RayLanes<L>, v: [f32; 3]) -> (L, L, L) {
+fn vertex_lanes<L: Lanes, const SHARED: bool>(r: &RayLanes<'_, L>, v: [f32; 3]) -> (L, L, L) {
     let [kx, ky, kz] = r.k;
     let (x, y, z) = if SHARED {
         (
@@ -230,10 +235,10 @@ fn vertex_lanes<L: Lanes, const SHARED: bool>(r: &RayLanes<L>, v: [f32; 3]) -> (
 }
 
 /// SIMD watertight test of one triangle against `L::N` rays: returns the lanes that hit (among
-/// `active`) and their distances. Lane `i` equals `intersect(&r.scalar[i], v)` exactly.
+/// `active`) and their distances. Lane `i` equals `intersect` of its `WatertightRay` exactly.
 #[inline(always)]
 pub fn intersect_lanes<L: Lanes, const SHARED: bool>(
-    r: &RayLanes<L>,
+    r: &RayLanes<'_, L>,
     v: &[[f32; 3]; 3],
     active: u32,
 ) -> (u32, L) {
@@ -279,13 +284,15 @@ pub fn intersect_lanes<L: Lanes, const SHARED: bool>(
 
 #[cold]
 #[inline(never)]
-fn fallback<L: Lanes>(r: &RayLanes<L>, v: &[[f32; 3]; 3], cand: u32, t: L, redo: u32) -> (u32, L) {
+fn fallback<L: Lanes>(r: &RayLanes<'_, L>, v: &[[f32; 3]; 3], cand: u32, t: L, redo: u32) -> (u32, L) {
     let mut ta = [0.0f32; MAX_LANES];
     t.store(&mut ta);
     let mut hits = cand;
     for i in 0..L::N {
         if redo >> i & 1 != 0 {
-            if let Some(h) = intersect(&r.scalar[i], v) {
+            let (o, d) = (r.packet.origin(r.base + i), r.packet.dir(r.base + i));
+            let ray = WatertightRay::new(o, d).expect("lanes hold valid rays");
+            if let Some(h) = intersect(&ray, v) {
                 hits |= 1 << i;
                 ta[i] = h.t;
             }

@@ -543,9 +543,17 @@ impl Tracer {
         if todo == 0 {
             return [None; MAX_LANES];
         }
-        let o0 = p.origin(todo.trailing_zeros() as usize).map(f32::to_bits);
+        let lead0 = todo.trailing_zeros() as usize;
+        let o0 = p.origin(lead0).map(f32::to_bits);
         let shared =
             (0..MAX_LANES).all(|i| todo >> i & 1 == 0 || p.origin(i).map(f32::to_bits) == o0);
+        let single = (0..MAX_LANES).all(|i| todo >> i & 1 == 0 || keys[i] == keys[lead0]);
+        if single && todo == p.active && p.active == u32::MAX >> (32 - MAX_LANES) {
+            // Every lane valid and in one group (camera packets, almost always): trace `p` as it is.
+            let k = permutation(keys[lead0] as usize & 3);
+            self.trace_group_dispatch(root, p, k, shared, &mut best_t, &mut best_id, scratch);
+            return std::array::from_fn(|i| (best_id[i] != u32::MAX).then(|| (best_id[i], best_t[i])));
+        }
         let mut g = *p;
         while todo != 0 {
             let lead = todo.trailing_zeros() as usize;
@@ -564,27 +572,42 @@ impl Tracer {
                 g.copy_lane_from(i, p, src);
             }
             let k = permutation(keys[lead] as usize & 3);
-            let st = &mut scratch.stack;
-            let (bt, bi) = (&mut best_t, &mut best_id);
-            #[cfg(target_arch = "x86_64")]
-            if self.avx {
-                // SAFETY: `self.avx` is only true when the CPU reports AVX.
-                unsafe {
-                    if shared {
-                        self.trace_group_avx::<true>(root, &g, k, bt, bi, st)
-                    } else {
-                        self.trace_group_avx::<false>(root, &g, k, bt, bi, st)
-                    }
-                };
-                continue;
-            }
-            if shared {
-                self.trace_group_sse::<true>(root, &g, k, bt, bi, st);
-            } else {
-                self.trace_group_sse::<false>(root, &g, k, bt, bi, st);
-            }
+            self.trace_group_dispatch(root, &g, k, shared, &mut best_t, &mut best_id, scratch);
         }
         std::array::from_fn(|i| (best_id[i] != u32::MAX).then(|| (best_id[i], best_t[i])))
+    }
+
+    /// [`Tracer::trace_group`] with the lane width of this CPU and the shared-origin flag.
+    #[allow(clippy::too_many_arguments)]
+    #[inline(always)]
+    fn trace_group_dispatch(
+        &self,
+        root: u32,
+        g: &Packet,
+        k: [usize; 3],
+        shared: bool,
+        bt: &mut [f32; MAX_LANES],
+        bi: &mut [u32; MAX_LANES],
+        scratch: &mut Scratch,
+    ) {
+        let st = &mut scratch.stack;
+        #[cfg(target_arch = "x86_64")]
+        if self.avx {
+            // SAFETY: `self.avx` is only true when the CPU reports AVX.
+            unsafe {
+                if shared {
+                    self.trace_group_avx::<true>(root, g, k, bt, bi, st)
+                } else {
+                    self.trace_group_avx::<false>(root, g, k, bt, bi, st)
+                }
+            };
+            return;
+        }
+        if shared {
+            self.trace_group_sse::<true>(root, g, k, bt, bi, st);
+        } else {
+            self.trace_group_sse::<false>(root, g, k, bt, bi, st);
+        }
     }
 
     #[inline(never)]

@@ -200,6 +200,35 @@ struct Part {
     bary: Vec<[u32; 2]>,
 }
 
+/// Append every part's `field` to `dst`, in part order, copying the parts in parallel (each into
+/// its own range of `dst`'s spare capacity, so the result does not depend on the threads).
+fn append_parts<T: Copy + Send + Sync>(
+    dst: &mut Vec<T>,
+    parts: &[Part],
+    field: impl Fn(&Part) -> &[T] + Sync,
+) {
+    let total: usize = parts.iter().map(|p| field(p).len()).sum();
+    dst.reserve(total);
+    let mut spare = &mut dst.spare_capacity_mut()[..total];
+    let mut slots = Vec::with_capacity(parts.len());
+    for p in parts {
+        let (a, b) = std::mem::take(&mut spare).split_at_mut(field(p).len());
+        slots.push(a);
+        spare = b;
+    }
+    slots
+        .into_par_iter()
+        .zip(parts.par_iter())
+        .for_each(|(out, p)| {
+            for (o, x) in out.iter_mut().zip(field(p)) {
+                o.write(*x);
+            }
+        });
+    // SAFETY: the `total` elements after the current length were all written above (the slots
+    // tile `spare_capacity_mut()[..total]` and each is filled from a part of the same length).
+    unsafe { dst.set_len(dst.len() + total) };
+}
+
 impl Part {
     fn with_capacity(pixels: usize, g2: usize, keep_triangles: bool) -> Part {
         let slots = if keep_triangles { pixels * g2 } else { 0 };
@@ -315,16 +344,14 @@ impl SampleCache {
             )
             .collect();
         let start = self.valid.len();
-        for p in parts {
-            self.positions.extend_from_slice(&p.positions);
-            self.valid.extend_from_slice(&p.valid);
-            self.dirs.extend_from_slice(&p.dirs);
-            self.footprint.extend_from_slice(&p.footprint);
-            self.pixel.extend_from_slice(&p.pixel);
-            self.target.extend_from_slice(&p.target);
-            self.triangles.extend_from_slice(&p.triangles);
-            self.bary.extend_from_slice(&p.bary);
-        }
+        append_parts(&mut self.positions, &parts, |p| &p.positions);
+        append_parts(&mut self.valid, &parts, |p| &p.valid);
+        append_parts(&mut self.dirs, &parts, |p| &p.dirs);
+        append_parts(&mut self.footprint, &parts, |p| &p.footprint);
+        append_parts(&mut self.pixel, &parts, |p| &p.pixel);
+        append_parts(&mut self.target, &parts, |p| &p.target);
+        append_parts(&mut self.triangles, &parts, |p| &p.triangles);
+        append_parts(&mut self.bary, &parts, |p| &p.bary);
         let len = self.valid.len() - start;
         self.view.resize(self.valid.len(), view as u32);
         on_event(CacheEvent::ViewCast {

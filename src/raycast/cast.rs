@@ -228,29 +228,31 @@ fn cast_strip_g<const G: u32>(
                     continue;
                 }
                 // Every sub-sample of the strip is in exactly one block: all are written here.
-                subs[lane_idx[l]] = SubSample {
-                    triangle: MISS,
-                    dir: lane_dir[l],
-                    ..Default::default()
-                };
-                if let Some((tri, t32)) = hits[l] {
-                    let d = lane_dir[l];
-                    let (h, cos_n) = tracer.refine_with_cos(ctx.origin, d, tri, t32);
-                    let local = ctx.origin + h.t * d;
-                    // Footprint (module docs): r · sqrt(Ω / |cos θ_n|), Ω = cos³θ_c / (fx fy).
-                    let cos_c = d.dot(ctx.axis).abs();
-                    let cos_n = cos_n.max(1e-6);
-                    let fp = h.t * ctx.inv_sqrt_f * (cos_c * cos_c * cos_c / cos_n).sqrt();
-                    subs[lane_idx[l]] = SubSample {
-                        triangle: tri,
-                        t: h.t,
-                        u: h.u,
-                        v: h.v,
-                        position: local * ctx.inv_extent + DVec3::splat(0.5),
+                let d = lane_dir[l];
+                subs[lane_idx[l]] = match hits[l] {
+                    None => SubSample {
+                        triangle: MISS,
                         dir: d,
-                        footprint: fp * ctx.inv_extent_max,
-                    };
-                }
+                        ..Default::default()
+                    },
+                    Some((tri, t32)) => {
+                        let (h, cos_n) = tracer.refine_with_cos(ctx.origin, d, tri, t32);
+                        let local = ctx.origin + h.t * d;
+                        // Footprint (module docs): r · sqrt(Ω / |cos θ_n|), Ω = cos³θ_c / (fx fy).
+                        let cos_c = d.dot(ctx.axis).abs();
+                        let cos_n = cos_n.max(1e-6);
+                        let fp = h.t * ctx.inv_sqrt_f * (cos_c * cos_c * cos_c / cos_n).sqrt();
+                        SubSample {
+                            triangle: tri,
+                            t: h.t,
+                            u: h.u,
+                            v: h.v,
+                            position: local * ctx.inv_extent + DVec3::splat(0.5),
+                            dir: d,
+                            footprint: fp * ctx.inv_extent_max,
+                        }
+                    }
+                };
             }
         }
     }

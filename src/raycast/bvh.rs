@@ -449,14 +449,15 @@ impl Tracer {
     /// the unit direction, `t32` the f32 distance of the traversal (used only if the ray lies in
     /// the triangle's plane, where the f64 intersection is undefined).
     pub fn refine(&self, o: DVec3, d: DVec3, tri: u32, t32: f32) -> Hit {
-        self.refine_with_cos(o, d, tri, t32).0
+        self.refine_with_sec(o, d, tri, t32).0
     }
 
-    /// [`Tracer::refine`] and `|cos θ_n|`, the cosine between the ray and the triangle's
-    /// normal (0 for a degenerate triangle). MT's determinant is `-d·(e1×e2)`, so the cosine is
-    /// `|det| / |e1×e2|` with no normalised normal needed.
+    /// [`Tracer::refine`] and `1/|cos θ_n|` (θ_n: the angle between the ray and the triangle's
+    /// normal), which is `≥ 1`, or +inf when the ray lies in the plane or the triangle is
+    /// degenerate. MT's determinant is `-d·(e1×e2)`, so `|cos θ_n| = |det| / |e1×e2|`: no
+    /// normalised normal, and no division beyond MT's `1/det`.
     #[inline]
-    pub fn refine_with_cos(&self, o: DVec3, d: DVec3, tri: u32, t32: f32) -> (Hit, f64) {
+    pub fn refine_with_sec(&self, o: DVec3, d: DVec3, tri: u32, t32: f32) -> (Hit, f64) {
         let [a, b, c] = self.triangle_local(tri);
         let (e1, e2) = (b - a, c - a);
         let p = d.cross(e2);
@@ -466,7 +467,11 @@ impl Tracer {
         let inv = 1.0 / det;
         let (t, u, v) = (e2.dot(q) * inv, s.dot(p) * inv, d.dot(q) * inv);
         let nn = e1.cross(e2).length();
-        let cos = if nn > 0.0 { (det.abs() / nn).min(1.0) } else { 0.0 };
+        let sec = if nn > 0.0 && det != 0.0 {
+            (nn * inv.abs()).max(1.0)
+        } else {
+            f64::INFINITY
+        };
         if det != 0.0 && t.is_finite() && t > 0.0 && u.is_finite() && v.is_finite() {
             let h = Hit {
                 t,
@@ -474,9 +479,9 @@ impl Tracer {
                 u,
                 v,
             };
-            return (h, cos);
+            return (h, sec);
         }
-        (self.refine_in_plane(o, d, tri, t32), cos)
+        (self.refine_in_plane(o, d, tri, t32), sec)
     }
 
     /// The ray lies in the triangle's plane, where the f64 intersection is undefined: keep the

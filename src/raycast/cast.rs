@@ -138,11 +138,21 @@ impl<'a> CamCtx<'a> {
         }
     }
 
-    /// Exactly `Camera::dir_world(x, y)` with the transpose hoisted.
+    /// Normalised image coordinates `((x - cx)/fx, (y - cy)/fy)`, as `Camera::dir_camera`
+    /// computes them (one division per sub-sample column or row, not per ray).
     #[inline]
-    fn dir(&self, x: f64, y: f64) -> DVec3 {
-        let c = self.cam;
-        let (xu, yu) = c.distortion.undistort((x - c.cx) / c.fx, (y - c.cy) / c.fy);
+    fn xn(&self, x: f64) -> f64 {
+        (x - self.cam.cx) / self.cam.fx
+    }
+    #[inline]
+    fn yn(&self, y: f64) -> f64 {
+        (y - self.cam.cy) / self.cam.fy
+    }
+
+    /// Exactly `Camera::dir_world(x, y)` from `xn(x)`, `yn(y)`, with the transpose hoisted.
+    #[inline]
+    fn dir(&self, xn: f64, yn: f64) -> DVec3 {
+        let (xu, yu) = self.cam.distortion.undistort(xn, yn);
         (self.rt * DVec3::new(xu, yu, 1.0)).normalize()
     }
 }
@@ -193,15 +203,19 @@ fn cast_strip_g<const G: u32>(
     let npix = (w * rows) as usize;
     assert!(subs.len() == npix * g2 && pixels.len() == npix);
     let (sw, sh) = (w * g, rows * g);
-    // Sub-sample (sx, sy) of the strip → index into `subs` and its continuous image point.
+    // Sub-sample (sx, sy) of the strip → index into `subs`; its continuous image point is
+    // (x(sx), y(sy)), normalised once per column and row.
     let locate = |sx: u32, sy: u32| {
         let (u, a) = (sx / g, sx % g);
         let (vr, b) = (sy / g, sy % g);
-        let idx = (vr * w + u) as usize * g2 + (b * g + a) as usize;
-        let x = u as f64 + (a as f64 + 0.5) / g as f64;
-        let y = (y0 + vr) as f64 + (b as f64 + 0.5) / g as f64;
-        (idx, x, y)
+        (vr * w + u) as usize * g2 + (b * g + a) as usize
     };
+    let xn: Vec<f64> = (0..sw)
+        .map(|sx| ctx.xn((sx / g) as f64 + ((sx % g) as f64 + 0.5) / g as f64))
+        .collect();
+    let yn: Vec<f64> = (0..sh)
+        .map(|sy| ctx.yn((y0 + sy / g) as f64 + ((sy % g) as f64 + 0.5) / g as f64))
+        .collect();
     // Blocks of 16 sub-samples, one packet each: 4×4 when the strip's sub-sample rows allow
     // (γ = 2: 2×2 pixels; γ = 4: one pixel), else 8×2.
     let bh: u32 = if sh % 4 == 0 { 4 } else { 2 };
@@ -216,9 +230,8 @@ fn cast_strip_g<const G: u32>(
                 if sx >= sw || sy >= sh {
                     continue;
                 }
-                let (idx, x, y) = locate(sx, sy);
-                let d = ctx.dir(x, y);
-                lane_idx[l] = idx;
+                let d = ctx.dir(xn[sx as usize], yn[sy as usize]);
+                lane_idx[l] = locate(sx, sy);
                 lane_dir[l] = d;
                 p.set(l, ctx.origin32, d.as_vec3().to_array());
             }
@@ -236,12 +249,13 @@ fn cast_strip_g<const G: u32>(
                         ..Default::default()
                     },
                     Some((tri, t32)) => {
-                        let (h, cos_n) = tracer.refine_with_cos(ctx.origin, d, tri, t32);
+                        let (h, sec_n) = tracer.refine_with_sec(ctx.origin, d, tri, t32);
                         let local = ctx.origin + h.t * d;
-                        // Footprint (module docs): r · sqrt(Ω / |cos θ_n|), Ω = cos³θ_c / (fx fy).
+                        // Footprint (module docs): r · sqrt(Ω / |cos θ_n|), Ω = cos³θ_c / (fx fy),
+                        // |cos θ_n| clamped at 1e-6.
                         let cos_c = d.dot(ctx.axis).abs();
-                        let cos_n = cos_n.max(1e-6);
-                        let fp = h.t * ctx.inv_sqrt_f * (cos_c * cos_c * cos_c / cos_n).sqrt();
+                        let sec_n = sec_n.min(1e6);
+                        let fp = h.t * ctx.inv_sqrt_f * (cos_c * cos_c * cos_c * sec_n).sqrt();
                         SubSample {
                             triangle: tri,
                             t: h.t,

@@ -458,7 +458,20 @@ impl Tracer {
     /// normalised normal, and no division beyond MT's `1/det`.
     #[inline]
     pub fn refine_with_sec(&self, o: DVec3, d: DVec3, tri: u32, t32: f32) -> (Hit, f64) {
-        let [a, b, c] = self.triangle_local(tri);
+        self.refine_with_sec_at(o, d, self.triangle_local(tri), tri, t32)
+    }
+
+    /// [`Tracer::refine_with_sec`] given the triangle's vertices (`triangle_local(tri)`), so a
+    /// caller can fetch the vertices of many hits first and overlap their cache misses.
+    #[inline]
+    pub fn refine_with_sec_at(
+        &self,
+        o: DVec3,
+        d: DVec3,
+        [a, b, c]: [DVec3; 3],
+        tri: u32,
+        t32: f32,
+    ) -> (Hit, f64) {
         let (e1, e2) = (b - a, c - a);
         let p = d.cross(e2);
         let det = e1.dot(p);
@@ -531,6 +544,13 @@ impl Tracer {
         let Some(root) = self.root else {
             return [None; MAX_LANES];
         };
+        if let Some(kz) = uniform_axis(p) {
+            // Every lane valid and in one group (camera packets, almost always): trace `p` as it is.
+            let shared = shared_origin(p);
+            let k = permutation(kz);
+            self.trace_group_dispatch(root, p, k, shared, &mut best_t, &mut best_id, scratch);
+            return std::array::from_fn(|i| (best_id[i] != u32::MAX).then(|| (best_id[i], best_t[i])));
+        }
         let mut keys = [0u32; MAX_LANES];
         let mut todo = 0u32;
         for i in 0..MAX_LANES {
@@ -552,13 +572,6 @@ impl Tracer {
         let o0 = p.origin(lead0).map(f32::to_bits);
         let shared =
             (0..MAX_LANES).all(|i| todo >> i & 1 == 0 || p.origin(i).map(f32::to_bits) == o0);
-        let single = (0..MAX_LANES).all(|i| todo >> i & 1 == 0 || keys[i] == keys[lead0]);
-        if single && todo == p.active && p.active == u32::MAX >> (32 - MAX_LANES) {
-            // Every lane valid and in one group (camera packets, almost always): trace `p` as it is.
-            let k = permutation(keys[lead0] as usize & 3);
-            self.trace_group_dispatch(root, p, k, shared, &mut best_t, &mut best_id, scratch);
-            return std::array::from_fn(|i| (best_id[i] != u32::MAX).then(|| (best_id[i], best_t[i])));
-        }
         let mut g = *p;
         while todo != 0 {
             let lead = todo.trailing_zeros() as usize;
@@ -773,6 +786,63 @@ impl Tracer {
     }
 }
 
+const ALL_LANES: u32 = u32::MAX >> (32 - MAX_LANES);
+
+/// When every lane of `p` is active and a valid ray ([`ray_axis`] is `Some`), and all lanes share
+/// the dominant axis and the direction signs (one traversal group): that axis. Exactly the
+/// per-lane [`ray_axis`] / `dominant_axis` decisions, four lanes at a time.
+#[inline]
+fn uniform_axis(p: &Packet) -> Option<usize> {
+    if p.active != ALL_LANES {
+        return None;
+    }
+    let (mut ok, mut k0, mut k1) = (0u32, 0u32, 0u32);
+    let mut sign = [0u32; 3];
+    let (zero, inf) = (F4::splat(0.0), F4::splat(f32::INFINITY));
+    for c in 0..MAX_LANES / 4 {
+        let lanes = |x: &[f32; MAX_LANES]| F4::load(&x[c * 4..]);
+        let d = [lanes(&p.dir[0]), lanes(&p.dir[1]), lanes(&p.dir[2])];
+        let a = d.map(F4::abs);
+        // Finite: |x| < inf (false for NaN), for the direction and the origin.
+        let mut fin = a[0].lt(inf).and(a[1].lt(inf)).and(a[2].lt(inf));
+        for o in &p.origin {
+            fin = fin.and(lanes(o).abs().lt(inf));
+        }
+        // The dominant component is nonzero iff the largest |component| is.
+        let nonzero = a[0].max(a[1]).max(a[2]).gt(zero);
+        let sh = 4 * c;
+        ok |= fin.and(nonzero).bits() << sh;
+        k0 |= a[1].le(a[0]).and(a[2].le(a[0])).bits() << sh;
+        k1 |= a[2].le(a[1]).bits() << sh;
+        for (s, x) in sign.iter_mut().zip(&d) {
+            *s |= x.sign_bits() << sh;
+        }
+    }
+    let uniform = |m: u32| m == 0 || m == ALL_LANES;
+    if ok != ALL_LANES || !sign.iter().all(|&m| uniform(m)) {
+        return None;
+    }
+    match (k0, k1) {
+        (ALL_LANES, _) => Some(0),
+        (0, ALL_LANES) => Some(1),
+        (0, 0) => Some(2),
+        _ => None,
+    }
+}
+
+/// Whether every lane of a full packet has lane 0's origin, bit for bit.
+#[inline]
+fn shared_origin(p: &Packet) -> bool {
+    (0..3).all(|a| {
+        let o0 = p.origin[a][0];
+        let s0 = if o0.is_sign_negative() { 0xF } else { 0 };
+        (0..MAX_LANES / 4).all(|c| {
+            let o = F4::load(&p.origin[a][c * 4..]);
+            o.eq(F4::splat(o0)).bits() == 0xF && o.sign_bits() == s0
+        })
+    })
+}
+
 /// The interval bounds of a traversal group for the box test (module docs, "Interval box
 /// test"): per axis the smallest and largest origin coordinate and inverse direction over the
 /// active lanes, and which box side is the near one.
@@ -868,5 +938,77 @@ fn avx_detected() -> bool {
     #[cfg(not(target_arch = "x86_64"))]
     {
         false
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::raycast::triangle::dominant_axis;
+
+    /// The four-lane `uniform_axis` / `shared_origin` agree with the scalar per-lane decisions,
+    /// on packets built from a small set of awkward components (ties, ±0, subnormals, inf, NaN).
+    #[test]
+    fn uniform_axis_matches_scalar_keys() {
+        let vals = [
+            0.5f32,
+            -0.5,
+            0.0,
+            -0.0,
+            1e-40,
+            0.3,
+            -0.3,
+            f32::INFINITY,
+            f32::NAN,
+        ];
+        let mut s = 0x2545f4914f6cdd1du64;
+        let mut next = |n: usize| {
+            s ^= s << 13;
+            s ^= s >> 7;
+            s ^= s << 17;
+            (s % n as u64) as usize
+        };
+        let mut seen = [0usize; 4];
+        for case in 0..20_000 {
+            let mut p = Packet::default();
+            // Mostly one direction repeated (the uniform case), sometimes a few lanes changed.
+            let base = [vals[next(7)], vals[next(7)], vals[next(7)]];
+            let origin = [1.0f32, -2.0, if case % 5 == 0 { -0.0 } else { 0.0 }];
+            for i in 0..MAX_LANES {
+                let mut d = base;
+                if next(4) == 0 {
+                    d[next(3)] = vals[next(vals.len())];
+                }
+                let mut o = origin;
+                if case % 7 == 0 && next(8) == 0 {
+                    o[2] = if o[2].is_sign_negative() { 0.0 } else { -0.0 };
+                }
+                p.set(i, o, d);
+            }
+            if case % 11 == 0 {
+                p.active &= !(1 << next(MAX_LANES));
+            }
+            // Scalar decision.
+            let key = |i: usize| {
+                let d = p.dir(i);
+                ray_axis(p.origin(i), d).map(|kz| {
+                    debug_assert_eq!(kz, dominant_axis(d));
+                    (kz, d.map(f32::is_sign_negative))
+                })
+            };
+            let k0 = key(0);
+            let want = (p.active == ALL_LANES
+                && k0.is_some()
+                && (0..MAX_LANES).all(|i| key(i) == k0))
+                .then(|| k0.unwrap().0);
+            assert_eq!(uniform_axis(&p), want, "case {case}: {p:?}");
+            seen[want.map_or(3, |k| k)] += 1;
+            let o0 = p.origin(0).map(f32::to_bits);
+            let shared = (0..MAX_LANES).all(|i| p.origin(i).map(f32::to_bits) == o0);
+            if p.origin(0).iter().all(|x| x.is_finite()) {
+                assert_eq!(shared_origin(&p), shared, "case {case}");
+            }
+        }
+        assert!(seen.iter().all(|&n| n > 100), "cases per outcome {seen:?}");
     }
 }

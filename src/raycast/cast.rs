@@ -236,6 +236,12 @@ fn cast_strip_g<const G: u32>(
                 p.set(l, ctx.origin32, d.as_vec3().to_array());
             }
             let hits = tracer.trace(&p, scratch);
+            // The hit triangles' f64 vertices first: independent loads, so their cache misses
+            // overlap instead of stalling each refinement in turn.
+            let verts: [[DVec3; 3]; MAX_LANES] = std::array::from_fn(|l| match hits[l] {
+                Some((tri, _)) => tracer.triangle_local(tri),
+                None => [DVec3::ZERO; 3],
+            });
             for l in 0..MAX_LANES {
                 if p.active >> l & 1 == 0 {
                     continue;
@@ -249,7 +255,8 @@ fn cast_strip_g<const G: u32>(
                         ..Default::default()
                     },
                     Some((tri, t32)) => {
-                        let (h, sec_n) = tracer.refine_with_sec(ctx.origin, d, tri, t32);
+                        let (h, sec_n) =
+                            tracer.refine_with_sec_at(ctx.origin, d, verts[l], tri, t32);
                         let local = ctx.origin + h.t * d;
                         // Footprint (module docs): r · sqrt(Ω / |cos θ_n|), Ω = cos³θ_c / (fx fy),
                         // |cos θ_n| clamped at 1e-6.

@@ -32,6 +32,10 @@ pub trait Lanes:
     fn select(m: Self::M, a: Self, b: Self) -> Self;
     fn hmin(self) -> f32;
     fn hmax(self) -> f32;
+    /// `|x|` per lane (clears the sign bit).
+    fn abs(self) -> Self;
+    /// Bit i set when lane i has its sign bit set (also for -0.0 and negative NaNs).
+    fn sign_bits(self) -> u32;
 }
 
 /// A lane mask.
@@ -132,6 +136,14 @@ mod x86 {
                 _mm_cvtss_f32(b)
             }
         }
+        #[inline(always)]
+        fn abs(self) -> F4 {
+            unsafe { F4(_mm_andnot_ps(_mm_set1_ps(-0.0), self.0)) }
+        }
+        #[inline(always)]
+        fn sign_bits(self) -> u32 {
+            unsafe { _mm_movemask_ps(self.0) as u32 }
+        }
     }
 
     /// Eight f32 lanes (AVX). Only call inside a function compiled with
@@ -225,6 +237,14 @@ mod x86 {
                 let a = _mm_max_ps(h, _mm_movehl_ps(h, h));
                 _mm_cvtss_f32(_mm_max_ss(a, _mm_shuffle_ps(a, a, 1)))
             }
+        }
+        #[inline(always)]
+        fn abs(self) -> F8 {
+            unsafe { F8(_mm256_andnot_ps(_mm256_set1_ps(-0.0), self.0)) }
+        }
+        #[inline(always)]
+        fn sign_bits(self) -> u32 {
+            unsafe { _mm256_movemask_ps(self.0) as u32 }
         }
     }
 
@@ -342,6 +362,12 @@ mod portable {
         fn hmax(self) -> f32 {
             let m = |a: f32, b: f32| if a > b { a } else { b };
             m(m(self.0[0], self.0[2]), m(self.0[1], self.0[3]))
+        }
+        fn abs(self) -> F4 {
+            F4(self.0.map(f32::abs))
+        }
+        fn sign_bits(self) -> u32 {
+            (0..4).map(|i| (self.0[i].is_sign_negative() as u32) << i).sum()
         }
     }
 

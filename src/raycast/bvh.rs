@@ -104,22 +104,23 @@ fn leaf_ref(first: usize, count: usize) -> u32 {
     LEAF_BIT | (((count - 1) as u32) << 27) | first as u32
 }
 
-/// A 4-wide node: `b[0]` = child minima, `b[1]` = child maxima, `[axis][child]`. Empty child
-/// slots have min = +inf, max = -inf (never hit).
+/// Children per node.
+pub const WIDTH: usize = 8;
+
+/// A [`WIDTH`]-wide node: `b[0]` = child minima, `b[1]` = child maxima, `[axis][child]`
+/// (224 bytes, four cache lines). Empty child slots have min = +inf, max = -inf (never hit).
 #[derive(Clone, Copy, Debug)]
 #[repr(C, align(64))]
-struct Node4 {
-    b: [[[f32; 4]; 3]; 2],
-    child: [u32; 4],
-    _pad: [u32; 4],
+struct Node {
+    b: [[[f32; WIDTH]; 3]; 2],
+    child: [u32; WIDTH],
 }
 
-impl Node4 {
-    fn empty() -> Node4 {
-        Node4 {
-            b: [[[f32::INFINITY; 4]; 3], [[f32::NEG_INFINITY; 4]; 3]],
-            child: [0; 4],
-            _pad: [0; 4],
+impl Node {
+    fn empty() -> Node {
+        Node {
+            b: [[[f32::INFINITY; WIDTH]; 3], [[f32::NEG_INFINITY; WIDTH]; 3]],
+            child: [0; WIDTH],
         }
     }
 }
@@ -176,7 +177,7 @@ impl Packet {
 
 /// The BVH and the f64 local-frame mesh of one scene.
 pub struct Tracer {
-    nodes: Vec<Node4>,
+    nodes: Vec<Node>,
     root: Option<u32>,
     /// Triangle vertices in the local frame (f32), in leaf order.
     tris: Vec<[[f32; 3]; 3]>,
@@ -196,7 +197,7 @@ struct Builder<'a> {
     bvh2: &'a Bvh2,
     tris32: &'a [[[f32; 3]; 3]],
     pad: f64,
-    nodes: Vec<Node4>,
+    nodes: Vec<Node>,
     tris: Vec<[[f32; 3]; 3]>,
     tri_ids: Vec<u32>,
     max_depth: usize,
@@ -238,8 +239,8 @@ impl Builder<'_> {
             return (leaf_ref(first, prims.len()), b);
         }
         let slot = self.nodes.len();
-        self.nodes.push(Node4::empty());
-        let chunk = prims.len().div_ceil(4);
+        self.nodes.push(Node::empty());
+        let chunk = prims.len().div_ceil(WIDTH);
         let mut total = EMPTY_BOUNDS;
         for (i, part) in prims.chunks(chunk).enumerate() {
             let (r, b) = self.leaf(part, depth + 1);
@@ -267,9 +268,9 @@ impl Builder<'_> {
             return self.leaf(prims, depth);
         }
         self.max_depth = self.max_depth.max(depth);
-        // Collapse: open the largest inner child until there are 4 children.
+        // Collapse: open the largest inner child until there are WIDTH children.
         let mut kids: Vec<usize> = vec![n.first_index as usize, n.first_index as usize + 1];
-        while kids.len() < 4 {
+        while kids.len() < WIDTH {
             let best = kids
                 .iter()
                 .enumerate()
@@ -287,7 +288,7 @@ impl Builder<'_> {
             kids.insert(i, f);
         }
         let slot = self.nodes.len();
-        self.nodes.push(Node4::empty());
+        self.nodes.push(Node::empty());
         let mut total = EMPTY_BOUNDS;
         for (i, &k) in kids.iter().enumerate() {
             let (r, b) = self.node(k, depth + 1);
@@ -385,7 +386,7 @@ impl Tracer {
             };
             let (root, _) = b.node(0, 0);
             tracer.root = Some(root);
-            tracer.stack_capacity = 3 * (b.max_depth + 2) + 4;
+            tracer.stack_capacity = (WIDTH - 1) * (b.max_depth + 2) + WIDTH;
             tracer.nodes = b.nodes;
             tracer.tris = b.tris;
             tracer.tri_ids = b.tri_ids;
@@ -739,41 +740,34 @@ impl Tracer {
                     break;
                 }
                 let nd = &self.nodes[r as usize];
-                // Interval test of the whole group against the four children at once (module
-                // docs): a child is skipped only if no lane can hit it.
-                let (lo, m) = ia.test(nd, tmax_hi);
-                let mut bits = m.bits();
-                let mut hit_d = [0.0f32; 4];
-                let mut hit_r = [0u32; 4];
+                // Interval test of the whole group against all children at once (module docs):
+                // a child is skipped only if no lane can hit it.
+                let (lo, mut bits) = ia.test::<L>(nd, tmax_hi);
+                let mut hit = [(0u32, 0.0f32); WIDTH];
                 let mut nh = 0;
-                if bits != 0 {
-                    let mut la = [0.0f32; 4];
-                    lo.store(&mut la);
-                    while bits != 0 {
-                        let c = bits.trailing_zeros() as usize;
-                        bits &= bits - 1;
-                        hit_d[nh] = la[c];
-                        hit_r[nh] = nd.child[c];
-                        nh += 1;
-                    }
+                while bits != 0 {
+                    let c = bits.trailing_zeros() as usize;
+                    bits &= bits - 1;
+                    hit[nh] = (nd.child[c], lo[c]);
+                    nh += 1;
                 }
                 match nh {
                     0 => break,
-                    1 => r = hit_r[0],
+                    1 => r = hit[0].0,
                     _ => {
-                        // Sort by entry distance (insertion sort, ≤ 4), descend into the nearest.
-                        let mut idx = [0usize, 1, 2, 3];
+                        // Sort by entry distance, nearest last (insertion sort, ≤ WIDTH); push
+                        // all but the nearest, descend into it.
                         for a in 1..nh {
+                            let x = hit[a];
                             let mut b = a;
-                            while b > 0 && hit_d[idx[b - 1]] > hit_d[idx[b]] {
-                                idx.swap(b - 1, b);
+                            while b > 0 && hit[b - 1].1 < x.1 {
+                                hit[b] = hit[b - 1];
                                 b -= 1;
                             }
+                            hit[b] = x;
                         }
-                        for k in (1..nh).rev() {
-                            stack.push((hit_r[idx[k]], hit_d[idx[k]]));
-                        }
-                        r = hit_r[idx[0]];
+                        stack.extend_from_slice(&hit[..nh - 1]);
+                        r = hit[nh - 1].0;
                     }
                 }
             }
@@ -848,11 +842,11 @@ fn shared_origin(p: &Packet) -> bool {
 /// active lanes, and which box side is the near one.
 struct GroupBounds {
     /// `[axis]`: smallest / largest origin coordinate (equal for a shared origin).
-    o_lo: [F4; 3],
-    o_hi: [F4; 3],
+    o_lo: [f32; 3],
+    o_hi: [f32; 3],
     /// `[axis]`: smallest / largest 1/d (±f32::MAX for a zero component).
-    i_lo: [F4; 3],
-    i_hi: [F4; 3],
+    i_lo: [f32; 3],
+    i_hi: [f32; 3],
     /// `[axis]`: 1 when the direction is negative (the near plane is the box maximum).
     near: [usize; 3],
     shared: bool,
@@ -885,48 +879,50 @@ impl GroupBounds {
             }
         };
         GroupBounds {
-            o_lo: o_lo.map(F4::splat),
-            o_hi: o_hi.map(F4::splat),
-            i_lo: d_hi.map(|d| F4::splat(inv(d))),
-            i_hi: d_lo.map(|d| F4::splat(inv(d))),
+            o_lo,
+            o_hi,
+            i_lo: d_hi.map(inv),
+            i_hi: d_lo.map(inv),
             near: std::array::from_fn(|a| g.dir[a][0].is_sign_negative() as usize),
             shared: SHARED,
         }
     }
 
-    /// Lower bounds of the entry distance over the group for the four children of `nd`, and
-    /// the children some lane may hit (`tmax_hi`: the largest current closest distance).
+    /// Lower bounds of the entry distance over the group for the children of `nd`, and the
+    /// children some lane may hit (bit c; `tmax_hi`: the largest current closest distance),
+    /// `L::N` children at a time.
     #[inline(always)]
-    fn test(&self, nd: &Node4, tmax_hi: f32) -> (F4, <F4 as Lanes>::M) {
-        let mut lo = F4::splat(0.0);
-        let mut hi = F4::splat(tmax_hi);
-        for a in 0..3 {
-            let bn = F4::load(&nd.b[self.near[a]][a]);
-            let bf = F4::load(&nd.b[1 - self.near[a]][a]);
-            // fl(b - o) is monotone in o and fl(r · i) in r and i: the group's extreme slab
-            // distances are products of the extreme operands.
-            let (n_lo, f_hi) = if self.shared {
-                let (rn, rf) = (bn - self.o_lo[a], bf - self.o_lo[a]);
-                (
-                    (rn * self.i_lo[a]).min(rn * self.i_hi[a]),
-                    (rf * self.i_lo[a]).max(rf * self.i_hi[a]),
-                )
-            } else {
-                let (rn0, rn1) = (bn - self.o_hi[a], bn - self.o_lo[a]);
-                let (rf0, rf1) = (bf - self.o_hi[a], bf - self.o_lo[a]);
-                (
-                    (rn0 * self.i_lo[a])
-                        .min(rn0 * self.i_hi[a])
-                        .min((rn1 * self.i_lo[a]).min(rn1 * self.i_hi[a])),
-                    (rf0 * self.i_lo[a])
-                        .max(rf0 * self.i_hi[a])
-                        .max((rf1 * self.i_lo[a]).max(rf1 * self.i_hi[a])),
-                )
-            };
-            lo = lo.max(n_lo);
-            hi = hi.min(f_hi);
+    fn test<L: Lanes>(&self, nd: &Node, tmax_hi: f32) -> ([f32; WIDTH], u32) {
+        let mut lo_out = [0.0f32; WIDTH];
+        let mut mask = 0u32;
+        let s = L::splat;
+        for h in (0..WIDTH).step_by(L::N) {
+            let mut lo = s(0.0);
+            let mut hi = s(tmax_hi);
+            for a in 0..3 {
+                let bn = L::load(&nd.b[self.near[a]][a][h..]);
+                let bf = L::load(&nd.b[1 - self.near[a]][a][h..]);
+                let (il, ih) = (s(self.i_lo[a]), s(self.i_hi[a]));
+                // fl(b - o) is monotone in o and fl(r · i) in r and i: the group's extreme slab
+                // distances are products of the extreme operands.
+                let (n_lo, f_hi) = if self.shared {
+                    let (rn, rf) = (bn - s(self.o_lo[a]), bf - s(self.o_lo[a]));
+                    ((rn * il).min(rn * ih), (rf * il).max(rf * ih))
+                } else {
+                    let (rn0, rn1) = (bn - s(self.o_hi[a]), bn - s(self.o_lo[a]));
+                    let (rf0, rf1) = (bf - s(self.o_hi[a]), bf - s(self.o_lo[a]));
+                    (
+                        (rn0 * il).min(rn0 * ih).min((rn1 * il).min(rn1 * ih)),
+                        (rf0 * il).max(rf0 * ih).max((rf1 * il).max(rf1 * ih)),
+                    )
+                };
+                lo = lo.max(n_lo);
+                hi = hi.min(f_hi);
+            }
+            lo.store(&mut lo_out[h..]);
+            mask |= lo.le(hi * s(SLAB_SCALE)).bits() << h;
         }
-        (lo, lo.le(hi * F4::splat(SLAB_SCALE)))
+        (lo_out, mask)
     }
 }
 

@@ -183,9 +183,13 @@ pub struct Tracer {
     tris: Vec<[[f32; 3]; 3]>,
     /// Leaf order → index into `Mesh::triangles`.
     tri_ids: Vec<u32>,
-    /// f64 local-frame vertices and the mesh triangles (for the refinement).
+    /// f64 local-frame vertices (for the refinement), renumbered in order of first use along
+    /// the leaf order, and each leaf-order triangle's three indices into them: a hit's vertices
+    /// then sit near those of the triangles traced just before (fewer cache misses).
     verts: Vec<DVec3>,
-    triangles: Vec<[u32; 3]>,
+    tri_verts: Vec<[u32; 3]>,
+    /// Mesh triangle → leaf-order index.
+    leaf_of: Vec<u32>,
     normalization: Normalization,
     preset: BuildPreset,
     stack_capacity: usize,
@@ -352,8 +356,9 @@ impl Tracer {
             root: None,
             tris: Vec::new(),
             tri_ids: Vec::new(),
-            verts,
-            triangles: mesh.triangles.clone(),
+            verts: Vec::new(),
+            tri_verts: Vec::new(),
+            leaf_of: Vec::new(),
             normalization: *normalization,
             preset,
             stack_capacity: 4,
@@ -391,8 +396,33 @@ impl Tracer {
             tracer.tris = b.tris;
             tracer.tri_ids = b.tri_ids;
         }
+        tracer.renumber(&mesh.triangles, &verts);
         tracer.build_time = start.elapsed();
         Ok(tracer)
+    }
+
+    /// Fill `verts`, `tri_verts` and `leaf_of` from the leaf order (`tri_ids`).
+    fn renumber(&mut self, triangles: &[[u32; 3]], verts: &[DVec3]) {
+        assert_eq!(
+            self.tri_ids.len(),
+            triangles.len(),
+            "every triangle is in exactly one leaf"
+        );
+        let mut new_index = vec![u32::MAX; verts.len()];
+        self.leaf_of = vec![u32::MAX; triangles.len()];
+        self.tri_verts = Vec::with_capacity(triangles.len());
+        for (j, &id) in self.tri_ids.iter().enumerate() {
+            self.leaf_of[id as usize] = j as u32;
+            let t = triangles[id as usize].map(|k| {
+                let n = &mut new_index[k as usize];
+                if *n == u32::MAX {
+                    *n = self.verts.len() as u32;
+                    self.verts.push(verts[k as usize]);
+                }
+                *n
+            });
+            self.tri_verts.push(t);
+        }
     }
 
     pub fn normalization(&self) -> &Normalization {
@@ -402,7 +432,7 @@ impl Tracer {
         self.preset
     }
     pub fn triangle_count(&self) -> usize {
-        self.triangles.len()
+        self.leaf_of.len()
     }
     pub fn node_count(&self) -> usize {
         self.nodes.len()
@@ -421,7 +451,25 @@ impl Tracer {
     /// The f64 local-frame vertices of a mesh triangle.
     #[inline]
     pub fn triangle_local(&self, tri: u32) -> [DVec3; 3] {
-        self.triangles[tri as usize].map(|k| self.verts[k as usize])
+        self.leaf_local(self.leaf_of[tri as usize])
+    }
+
+    /// The f64 local-frame vertices of the triangle at leaf-order index `j`
+    /// ([`Tracer::trace_leaves`]).
+    #[inline]
+    pub fn leaf_local(&self, j: u32) -> [DVec3; 3] {
+        let [a, b, c] = self.tri_verts[j as usize];
+        [
+            self.verts[a as usize],
+            self.verts[b as usize],
+            self.verts[c as usize],
+        ]
+    }
+
+    /// The mesh triangle at leaf-order index `j`.
+    #[inline]
+    pub fn leaf_triangle(&self, j: u32) -> u32 {
+        self.tri_ids[j as usize]
     }
 
     /// Unit geometric normal of a mesh triangle (f64; zero for a degenerate triangle).
@@ -536,12 +584,22 @@ impl Tracer {
 
     /// Trace up to [`MAX_LANES`] local-frame f32 rays. Lane i: `(mesh triangle id, f32 distance)`
     /// of the closest hit (the lexicographic minimum of `(t, id)`, see the module docs) or `None`.
+    pub fn trace(&self, p: &Packet, scratch: &mut Scratch) -> [Option<(u32, f32)>; MAX_LANES] {
+        self.trace_leaves(p, scratch)
+            .map(|h| h.map(|(j, t)| (self.tri_ids[j as usize], t)))
+    }
+
+    /// [`Tracer::trace`] with the hit triangle as its leaf-order index (see
+    /// [`Tracer::leaf_triangle`], [`Tracer::leaf_local`]).
     /// Lanes are grouped by dominant axis and direction signs; each group is one traversal with
     /// one interval box test per node for the whole group, and triangle tests in SIMD chunks of
     /// 8 lanes with AVX, else 4 with SSE.
-    pub fn trace(&self, p: &Packet, scratch: &mut Scratch) -> [Option<(u32, f32)>; MAX_LANES] {
-        let mut best_t = [f32::INFINITY; MAX_LANES];
-        let mut best_id = [u32::MAX; MAX_LANES];
+    pub fn trace_leaves(
+        &self,
+        p: &Packet,
+        scratch: &mut Scratch,
+    ) -> [Option<(u32, f32)>; MAX_LANES] {        let mut best_t = [f32::INFINITY; MAX_LANES];
+        let mut best_leaf = [u32::MAX; MAX_LANES];
         let Some(root) = self.root else {
             return [None; MAX_LANES];
         };
@@ -549,8 +607,8 @@ impl Tracer {
             // Every lane valid and in one group (camera packets, almost always): trace `p` as it is.
             let shared = shared_origin(p);
             let k = permutation(kz);
-            self.trace_group_dispatch(root, p, k, shared, &mut best_t, &mut best_id, scratch);
-            return std::array::from_fn(|i| (best_id[i] != u32::MAX).then(|| (best_id[i], best_t[i])));
+            self.trace_group_dispatch(root, p, k, shared, &mut best_t, &mut best_leaf, scratch);
+            return std::array::from_fn(|i| (best_leaf[i] != u32::MAX).then(|| (best_leaf[i], best_t[i])));
         }
         let mut keys = [0u32; MAX_LANES];
         let mut todo = 0u32;
@@ -591,9 +649,9 @@ impl Tracer {
                 g.copy_lane_from(i, p, src);
             }
             let k = permutation(keys[lead] as usize & 3);
-            self.trace_group_dispatch(root, &g, k, shared, &mut best_t, &mut best_id, scratch);
+            self.trace_group_dispatch(root, &g, k, shared, &mut best_t, &mut best_leaf, scratch);
         }
-        std::array::from_fn(|i| (best_id[i] != u32::MAX).then(|| (best_id[i], best_t[i])))
+        std::array::from_fn(|i| (best_leaf[i] != u32::MAX).then(|| (best_leaf[i], best_t[i])))
     }
 
     /// [`Tracer::trace_group`] with the lane width of this CPU and the shared-origin flag.
@@ -636,10 +694,10 @@ impl Tracer {
         g: &Packet,
         k: [usize; 3],
         best_t: &mut [f32; MAX_LANES],
-        best_id: &mut [u32; MAX_LANES],
+        best_leaf: &mut [u32; MAX_LANES],
         stack: &mut Vec<(u32, f32)>,
     ) {
-        self.trace_group::<F4, SHARED>(root, g, k, best_t, best_id, stack)
+        self.trace_group::<F4, SHARED>(root, g, k, best_t, best_leaf, stack)
     }
 
     #[cfg(target_arch = "x86_64")]
@@ -651,10 +709,10 @@ impl Tracer {
         g: &Packet,
         k: [usize; 3],
         best_t: &mut [f32; MAX_LANES],
-        best_id: &mut [u32; MAX_LANES],
+        best_leaf: &mut [u32; MAX_LANES],
         stack: &mut Vec<(u32, f32)>,
     ) {
-        self.trace_group::<F8, SHARED>(root, g, k, best_t, best_id, stack)
+        self.trace_group::<F8, SHARED>(root, g, k, best_t, best_leaf, stack)
     }
 
     /// One traversal of a group: the lanes `g.active` share the permutation `k` and the
@@ -669,7 +727,7 @@ impl Tracer {
         g: &Packet,
         k: [usize; 3],
         best_t: &mut [f32; MAX_LANES],
-        best_id: &mut [u32; MAX_LANES],
+        best_leaf: &mut [u32; MAX_LANES],
         stack: &mut Vec<(u32, f32)>,
     ) {
         let n = L::N;
@@ -725,9 +783,12 @@ impl Tracer {
                                     let i = h.trailing_zeros() as usize;
                                     h &= h - 1;
                                     let l = c * n + i;
-                                    if ta[i] < bt[l] || (ta[i] == bt[l] && id < best_id[l]) {
+                                    // Ties go to the smaller mesh id (module docs).
+                                    if ta[i] < bt[l]
+                                        || (ta[i] == bt[l] && id < self.tri_ids[best_leaf[l] as usize])
+                                    {
                                         bt[l] = ta[i];
-                                        best_id[l] = id;
+                                        best_leaf[l] = j as u32;
                                         changed = true;
                                     }
                                 }

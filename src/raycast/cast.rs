@@ -235,13 +235,15 @@ fn cast_strip_g<const G: u32>(
                 lane_dir[l] = d;
                 p.set(l, ctx.origin32, d.as_vec3().to_array());
             }
-            let hits = tracer.trace(&p, scratch);
+            let hits = tracer.trace_leaves(&p, scratch);
             // The hit triangles' f64 vertices first: independent loads, so their cache misses
             // overlap instead of stalling each refinement in turn.
-            let verts: [[DVec3; 3]; MAX_LANES] = std::array::from_fn(|l| match hits[l] {
-                Some((tri, _)) => tracer.triangle_local(tri),
-                None => [DVec3::ZERO; 3],
-            });
+            let mut verts = [[DVec3::ZERO; 3]; MAX_LANES];
+            for (v, h) in verts.iter_mut().zip(&hits) {
+                if let Some((j, _)) = h {
+                    *v = tracer.leaf_local(*j);
+                }
+            }
             for l in 0..MAX_LANES {
                 if p.active >> l & 1 == 0 {
                     continue;
@@ -254,7 +256,8 @@ fn cast_strip_g<const G: u32>(
                         dir: d,
                         ..Default::default()
                     },
-                    Some((tri, t32)) => {
+                    Some((j, t32)) => {
+                        let tri = tracer.leaf_triangle(j);
                         let (h, sec_n) =
                             tracer.refine_with_sec_at(ctx.origin, d, verts[l], tri, t32);
                         let local = ctx.origin + h.t * d;

@@ -916,17 +916,22 @@ struct GroupBounds {
 impl GroupBounds {
     /// Bounds over every lane of `g` (its lanes outside the group hold copies of a group ray).
     fn new<const SHARED: bool>(g: &Packet) -> Self {
+        // Four lanes at a time (the lanes are finite, so SSE min/max are the plain ones).
         let mut o_lo = [f32::INFINITY; 3];
         let mut o_hi = [f32::NEG_INFINITY; 3];
         let mut d_lo = [f32::INFINITY; 3];
         let mut d_hi = [f32::NEG_INFINITY; 3];
         for a in 0..3 {
-            for i in 0..MAX_LANES {
-                d_lo[a] = d_lo[a].min(g.dir[a][i]);
-                d_hi[a] = d_hi[a].max(g.dir[a][i]);
-                o_lo[a] = o_lo[a].min(g.origin[a][i]);
-                o_hi[a] = o_hi[a].max(g.origin[a][i]);
+            let lanes = |x: &[f32; MAX_LANES], c: usize| F4::load(&x[4 * c..]);
+            let (mut dl, mut dh) = (lanes(&g.dir[a], 0), lanes(&g.dir[a], 0));
+            let (mut ol, mut oh) = (lanes(&g.origin[a], 0), lanes(&g.origin[a], 0));
+            for c in 1..MAX_LANES / 4 {
+                let (d, o) = (lanes(&g.dir[a], c), lanes(&g.origin[a], c));
+                (dl, dh) = (dl.min(d), dh.max(d));
+                (ol, oh) = (ol.min(o), oh.max(o));
             }
+            (d_lo[a], d_hi[a]) = (dl.hmin(), dh.hmax());
+            (o_lo[a], o_hi[a]) = (ol.hmin(), oh.hmax());
         }
         // 1/d, with ±f32::MAX for a zero component (the slab products then never see 0·inf).
         // The group's components share their sign, where fl(1/d) is monotone decreasing (the

@@ -105,7 +105,9 @@ fn main() {
     let mut tracers = Vec::new();
     let only_cache = std::env::var("XSCALE_BENCH_ONLY").as_deref() == Ok("cache");
     for preset in BuildPreset::ALL {
-        if only_cache && preset != BuildPreset::Medium { continue; }
+        if only_cache && preset != BuildPreset::Medium {
+            continue;
+        }
         let t = Tracer::with_preset(&mesh, &n, preset).unwrap();
         println!(
             "build {:>6}: {:.2} s, {} BVH4 nodes",
@@ -229,9 +231,12 @@ fn main() {
         }
         (rays / best.0 / 1e6, rays / best.1 / 1e6)
     };
-    if std::env::var("XSCALE_BENCH_ONLY").as_deref() == Ok("cache") {
-        let (m1, c1) = time_cache(&tracers[0], 1);
-        println!("SampleCache::build: 1 thread {m1:.2} Mrays/s, {c1:.2} Mrays per CPU-second");
+    if only_cache {
+        let threads = env("XSCALE_BENCH_THREADS", 1);
+        let (m, c) = time_cache(&tracers[0], threads);
+        println!(
+            "SampleCache::build: {threads} thread(s) {m:.2} Mrays/s, {c:.2} Mrays per CPU-second"
+        );
         return;
     }
     for t in &tracers {

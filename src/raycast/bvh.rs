@@ -768,7 +768,6 @@ impl Tracer {
                     let count = ((r >> 27) & 15) as usize + 1;
                     let mut changed = false;
                     for j in first..first + count {
-                        let id = self.tri_ids[j];
                         for (c, rlc) in rl.iter().enumerate().take(chunks) {
                             let ca = (active >> (c * n)) & lane_mask;
                             if ca == 0 {
@@ -783,9 +782,11 @@ impl Tracer {
                                     let i = h.trailing_zeros() as usize;
                                     h &= h - 1;
                                     let l = c * n + i;
-                                    // Ties go to the smaller mesh id (module docs).
+                                    // Ties go to the smaller mesh id (module docs; the ids are
+                                    // only read then).
                                     if ta[i] < bt[l]
-                                        || (ta[i] == bt[l] && id < self.tri_ids[best_leaf[l] as usize])
+                                        || (ta[i] == bt[l]
+                                            && self.tri_ids[j] < self.tri_ids[best_leaf[l] as usize])
                                     {
                                         bt[l] = ta[i];
                                         best_leaf[l] = j as u32;

@@ -110,7 +110,7 @@ fn main() {
         }
         let t = Tracer::with_preset(&mesh, &n, preset).unwrap();
         println!(
-            "build {:>6}: {:.2} s, {} BVH4 nodes",
+            "build {:>6}: {:.2} s, {} 8-wide nodes",
             preset.name(),
             t.build_time().as_secs_f64(),
             t.node_count()
@@ -285,9 +285,9 @@ fn main() {
             "trace only [{:>6}, {}]: 1 thread {:.2} Mrays/s wall, {:.2} Mrays per CPU-second",
             t.preset().name(),
             if t.avx() {
-                "AVX 8 lanes"
+                "AVX: 8-wide node tests, 8-lane triangle chunks"
             } else {
-                "SSE 4 lanes"
+                "SSE: node tests in halves, 4-lane triangle chunks"
             },
             rays / w / 1e6,
             rays / c / 1e6

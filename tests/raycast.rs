@@ -105,10 +105,10 @@ fn closest_hit_matches_brute_force_for_every_preset() {
                 for avx in [true, false] {
                     tracer.set_avx(avx);
                     let got = tracer.trace(&p, &mut scratch);
-                    for l in 0..MAX_LANES {
+                    for (l, got) in got.iter().enumerate() {
                         let want = brute_force_f32(&mesh, &n, p.origin(l), p.dir(l));
                         assert_eq!(
-                            got[l],
+                            *got,
                             want,
                             "{name} preset {preset:?} ray {} avx {avx}",
                             k0 + l as u64

@@ -95,6 +95,7 @@ const SCALE: f64 = 4294967296.0; // 2^32
 
 /// Encode a normalised coordinate as 32-bit fixed point (module docs).
 #[inline]
+#[allow(clippy::neg_cmp_op_on_partial_ord)] // `!(y > 0)` also takes NaN, on purpose
 pub fn encode_coord(x: f64) -> u32 {
     // `(x·2³²).round().clamp(0, 2³²-1) as u32` bit for bit, without the libm `round` call (x86-64
     // has no half-away-from-zero rounding instruction): NaN and y ≤ 0 give 0, and below 2³² the

@@ -11,10 +11,12 @@
 //! The image is cut into strips of [`STRIP_ROWS`] pixel rows (a constant, never derived from the
 //! thread count), cast in parallel with rayon and concatenated in strip order, so the output is
 //! bit-identical for any number of threads. Inside a strip the sub-sample grid (γW × γ·rows) is
-//! walked in 2×2 blocks, each traced as one 4-ray SIMD packet: for γ = 2 a block is exactly one
-//! pixel's four rays, for γ = 1 a 2×2 pixel quad; the rays of a block are coherent so they share
-//! almost every node visit. (The packet a ray is traced in does not change its result; see
-//! `bvh.rs`.)
+//! walked in blocks of 16 sub-samples, each traced as one packet: 4×4 when the strip's sub-sample
+//! rows allow (γ = 2: 2×2 pixels; γ = 4: one pixel), else 8×2 (γ = 1: 8×2 pixels; γ = 3). The
+//! rays of a block are coherent, so one interval box test per node serves all of them. (The
+//! packet a ray is traced in does not change its result; see `bvh.rs`.) Normalised image
+//! coordinates are computed once per sub-sample column and row, and the hits' f64 vertices are
+//! fetched for the whole packet before any refinement, so their cache misses overlap.
 //!
 //! ## Footprint
 //! For a pinhole camera the solid angle of a pixel whose ray makes angle θ_c with the optical

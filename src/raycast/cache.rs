@@ -27,6 +27,7 @@
 //! the barycentrics `(u, v)` of vertices 1 and 2 in the same 32-bit fixed point as positions
 //! (error ≤ 2⁻³³, decoded exactly to f64): 12 more bytes per slot (γ=2: 138 bytes per pixel).
 
+use super::advise_huge_pages;
 use super::bvh::Tracer;
 use super::cast::{cast_strip, check_gamma, strips, CamCtx, PixelSummary, SubSample};
 use crate::scene::{Camera, Image};
@@ -229,33 +230,6 @@ fn append_parts<T: Copy + Send + Sync>(
     // SAFETY: the `total` elements after the current length were all written above (the slots
     // tile `spare_capacity_mut()[..total]` and each is filled from a part of the same length).
     unsafe { dst.set_len(dst.len() + total) };
-}
-
-/// Ask Linux for transparent huge pages on a vector's untouched spare capacity when it spans
-/// several of them: the cache's output is written once, in parallel, and 4 KiB page faults
-/// (serialised on the address space lock) otherwise cost several percent of the cast. Only a
-/// hint; a no-op elsewhere or when refused.
-fn advise_huge_pages<T>(v: &mut Vec<T>) {
-    #[cfg(target_os = "linux")]
-    {
-        const HUGE: usize = 2 << 20;
-        let spare = v.spare_capacity_mut();
-        let bytes = std::mem::size_of_val(spare);
-        if bytes < 2 * HUGE {
-            return;
-        }
-        let start = spare.as_mut_ptr() as usize;
-        let (lo, hi) = (start.next_multiple_of(HUGE), (start + bytes) / HUGE * HUGE);
-        if hi > lo {
-            // SAFETY: [lo, hi) lies inside the vector's allocation; MADV_HUGEPAGE changes no
-            // contents and no mapping, only how future page faults are served.
-            unsafe {
-                libc::madvise(lo as *mut libc::c_void, hi - lo, libc::MADV_HUGEPAGE);
-            }
-        }
-    }
-    #[cfg(not(target_os = "linux"))]
-    let _ = v;
 }
 
 impl Part {

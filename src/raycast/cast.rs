@@ -319,7 +319,11 @@ pub fn cast_view(tracer: &Tracer, camera: &Camera, gamma: u32) -> Result<ViewCas
     let ctx = CamCtx::new(tracer, camera);
     let (w, h) = (camera.width as usize, camera.height as usize);
     let g2 = (gamma * gamma) as usize;
-    let mut subs = vec![SubSample::default(); w * h * g2];
+    // Filled in parallel on huge pages: at 1024×768, γ=2 this is 277 MB, and 4 KiB page faults
+    // serialise the threads.
+    let mut subs = Vec::with_capacity(w * h * g2);
+    super::advise_huge_pages(&mut subs);
+    subs.par_extend(rayon::iter::repeat_n(SubSample::default(), w * h * g2));
     let mut pixels = vec![PixelSummary::default(); w * h];
     let rows = STRIP_ROWS as usize;
     subs.par_chunks_mut(rows * w * g2)

@@ -197,7 +197,12 @@ fn main() {
     // wall time and the CPU time of that run.
     let pools: Vec<rayon::ThreadPool> = [1, 2]
         .iter()
-        .map(|&n| rayon::ThreadPoolBuilder::new().num_threads(n).build().unwrap())
+        .map(|&n| {
+            rayon::ThreadPoolBuilder::new()
+                .num_threads(n)
+                .build()
+                .unwrap()
+        })
         .collect();
     let time_both = |run: &(dyn Fn() -> usize + Sync), want: usize| {
         let mut best = [(f64::INFINITY, f64::INFINITY); 2];
@@ -277,7 +282,11 @@ fn main() {
                     let (sx, sy) = (l % 4, l / 4);
                     let (pu, pv) = (2 * u2 + sx / 2, 2 * v2 + sy / 2);
                     let j = (sy % 2) * 2 + sx % 2;
-                    p.set(l, o32, vc.subs[(pv * w + pu) * 4 + j].dir.as_vec3().to_array());
+                    p.set(
+                        l,
+                        o32,
+                        vc.subs[(pv * w + pu) * 4 + j].dir.as_vec3().to_array(),
+                    );
                 }
                 p
             })

@@ -642,7 +642,9 @@ fn camera_packets_match_brute_force() {
                         let want = brute_force_f32(&mesh, &n, o32, s.dir.as_vec3().to_array());
                         let got = s.hit().then_some(s.triangle);
                         if got != want.map(|w| w.0) {
-                            bad.push(format!("sub-sample {i}: cast {got:?}, brute force {want:?}"));
+                            bad.push(format!(
+                                "sub-sample {i}: cast {got:?}, brute force {want:?}"
+                            ));
                         }
                         checked += 1;
                     }

@@ -617,7 +617,8 @@ impl Tracer {
         &self,
         p: &Packet,
         scratch: &mut Scratch,
-    ) -> [Option<(u32, f32)>; MAX_LANES] {        let mut best_t = [f32::INFINITY; MAX_LANES];
+    ) -> [Option<(u32, f32)>; MAX_LANES] {
+        let mut best_t = [f32::INFINITY; MAX_LANES];
         let mut best_leaf = [u32::MAX; MAX_LANES];
         let Some(root) = self.root else {
             return [None; MAX_LANES];
@@ -627,7 +628,9 @@ impl Tracer {
             let shared = shared_origin(p);
             let k = permutation(kz);
             self.trace_group_dispatch(root, p, k, shared, &mut best_t, &mut best_leaf, scratch);
-            return std::array::from_fn(|i| (best_leaf[i] != u32::MAX).then(|| (best_leaf[i], best_t[i])));
+            return std::array::from_fn(|i| {
+                (best_leaf[i] != u32::MAX).then(|| (best_leaf[i], best_t[i]))
+            });
         }
         let mut keys = [0u32; MAX_LANES];
         let mut todo = 0u32;
@@ -805,7 +808,8 @@ impl Tracer {
                                     // only read then).
                                     if ta[i] < bt[l]
                                         || (ta[i] == bt[l]
-                                            && self.tri_ids[j] < self.tri_ids[best_leaf[l] as usize])
+                                            && self.tri_ids[j]
+                                                < self.tri_ids[best_leaf[l] as usize])
                                     {
                                         bt[l] = ta[i];
                                         best_leaf[l] = j as u32;
@@ -1079,10 +1083,9 @@ mod tests {
                 })
             };
             let k0 = key(0);
-            let want = (p.active == ALL_LANES
-                && k0.is_some()
-                && (0..MAX_LANES).all(|i| key(i) == k0))
-                .then(|| k0.unwrap().0);
+            let want =
+                (p.active == ALL_LANES && k0.is_some() && (0..MAX_LANES).all(|i| key(i) == k0))
+                    .then(|| k0.unwrap().0);
             assert_eq!(uniform_axis(&p), want, "case {case}: {p:?}");
             seen[want.map_or(3, |k| k)] += 1;
             let o0 = p.origin(0).map(f32::to_bits);

@@ -495,7 +495,9 @@ mod tests {
         ];
         let mut s = 0x9e3779b97f4a7c15u64;
         for _ in 0..200_000 {
-            s = s.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            s = s
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
             let u = (s >> 11) as f64 / (1u64 << 53) as f64;
             xs.push(u * 1.2 - 0.1);
             // Exact ties k + 0.5 at random k.

@@ -94,4 +94,3 @@ pub(crate) fn advise_huge_pages<T>(v: &mut Vec<T>) {
     #[cfg(not(target_os = "linux"))]
     let _ = v;
 }
-

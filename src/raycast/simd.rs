@@ -367,7 +367,9 @@ mod portable {
             F4(self.0.map(f32::abs))
         }
         fn sign_bits(self) -> u32 {
-            (0..4).map(|i| (self.0[i].is_sign_negative() as u32) << i).sum()
+            (0..4)
+                .map(|i| (self.0[i].is_sign_negative() as u32) << i)
+                .sum()
         }
     }
 

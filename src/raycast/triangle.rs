@@ -192,7 +192,11 @@ impl<'a, L: Lanes> RayLanes<'a, L> {
     #[inline(always)]
     pub fn new(p: &'a Packet, base: usize, k: [usize; 3]) -> RayLanes<'a, L> {
         let lanes = |x: &[f32; MAX_LANES]| L::load(&x[base..]);
-        let o = [lanes(&p.origin[k[0]]), lanes(&p.origin[k[1]]), lanes(&p.origin[k[2]])];
+        let o = [
+            lanes(&p.origin[k[0]]),
+            lanes(&p.origin[k[1]]),
+            lanes(&p.origin[k[2]]),
+        ];
         // [-d_kx/d_kz, -d_ky/d_kz, 1/d_kz]: negation is exact, so (-1·d)/dz is -d/dz bit for bit.
         let dz = lanes(&p.dir[k[2]]);
         let m1 = L::splat(-1.0);
@@ -201,7 +205,11 @@ impl<'a, L: Lanes> RayLanes<'a, L> {
             (m1 * lanes(&p.dir[k[1]])) / dz,
             L::splat(1.0) / dz,
         ];
-        let shared = [p.origin[k[0]][base], p.origin[k[1]][base], p.origin[k[2]][base]];
+        let shared = [
+            p.origin[k[0]][base],
+            p.origin[k[1]][base],
+            p.origin[k[2]][base],
+        ];
         RayLanes {
             k,
             o,
@@ -284,7 +292,13 @@ pub fn intersect_lanes<L: Lanes, const SHARED: bool>(
 
 #[cold]
 #[inline(never)]
-fn fallback<L: Lanes>(r: &RayLanes<'_, L>, v: &[[f32; 3]; 3], cand: u32, t: L, redo: u32) -> (u32, L) {
+fn fallback<L: Lanes>(
+    r: &RayLanes<'_, L>,
+    v: &[[f32; 3]; 3],
+    cand: u32,
+    t: L,
+    redo: u32,
+) -> (u32, L) {
     let mut ta = [0.0f32; MAX_LANES];
     t.store(&mut ta);
     let mut hits = cand;

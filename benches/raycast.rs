@@ -291,13 +291,20 @@ fn main() {
                 p
             })
             .collect();
-        let (s, c) = (Instant::now(), thread_cpu());
-        let mut nhit = 0usize;
-        for p in &packets {
-            nhit += t.trace(p, &mut sc).iter().filter(|h| h.is_some()).count();
+        // Best of `reps`.
+        let (mut w, mut c) = (f64::INFINITY, f64::INFINITY);
+        for _ in 0..reps {
+            let (s, c0) = (Instant::now(), thread_cpu());
+            let mut nhit = 0usize;
+            for p in &packets {
+                nhit += t.trace(p, &mut sc).iter().filter(|h| h.is_some()).count();
+            }
+            let (w1, c1) = (s.elapsed().as_secs_f64(), thread_cpu() - c0);
+            assert_eq!(nhit, hits);
+            if w1 < w {
+                (w, c) = (w1, c1);
+            }
         }
-        let (w, c) = (s.elapsed().as_secs_f64(), thread_cpu() - c);
-        assert_eq!(nhit, vc.subs.iter().filter(|s| s.hit()).count());
         println!(
             "trace only [{:>6}, {}]: 1 thread {:.2} Mrays/s wall, {:.2} Mrays per CPU-second",
             t.preset().name(),

@@ -14,7 +14,7 @@
 //!
 //! Environment: XSCALE_BENCH_LEVEL (icosphere subdivision, default 8), XSCALE_BENCH_REPS (rounds,
 //! default 5), XSCALE_BENCH_VALIDATE (rays checked, default 2000), XSCALE_BENCH_ONLY=cache (only
-//! the medium preset's SampleCache::build, for profiling).
+//! SampleCache::build, for profiling; of the preset XSCALE_BENCH_PRESET, default medium).
 
 use glam::{DVec3, Vec3A};
 use rayon::prelude::*;
@@ -111,7 +111,8 @@ fn main() {
     let mut tracers = Vec::new();
     let only_cache = std::env::var("XSCALE_BENCH_ONLY").as_deref() == Ok("cache");
     for preset in BuildPreset::ALL {
-        if only_cache && preset != BuildPreset::Medium {
+        let only = std::env::var("XSCALE_BENCH_PRESET").unwrap_or_else(|_| "medium".into());
+        if only_cache && preset.name() != only {
             continue;
         }
         let t = Tracer::with_preset(&mesh, &n, preset).unwrap();

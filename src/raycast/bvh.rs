@@ -127,7 +127,8 @@ fn leaf_ref(first: usize, count: usize) -> u32 {
 pub const WIDTH: usize = 8;
 
 /// A [`WIDTH`]-wide node: `b[0]` = child minima, `b[1]` = child maxima, `[axis][child]`
-/// (224 bytes, four cache lines). Empty child slots have min = +inf, max = -inf (never hit).
+/// (224 bytes, padded to four cache lines). Empty child slots have min = +inf, max = -inf (never
+/// hit).
 #[derive(Clone, Copy, Debug)]
 #[repr(C, align(64))]
 struct Node {

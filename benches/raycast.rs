@@ -14,7 +14,8 @@
 //!
 //! Environment: XSCALE_BENCH_LEVEL (icosphere subdivision, default 8), XSCALE_BENCH_REPS (rounds,
 //! default 5), XSCALE_BENCH_VALIDATE (rays checked, default 2000), XSCALE_BENCH_ONLY=cache (only
-//! SampleCache::build, for profiling; of the preset XSCALE_BENCH_PRESET, default medium).
+//! SampleCache::build, for profiling; of the preset XSCALE_BENCH_PRESET, default medium),
+//! XSCALE_BENCH_NO_AVX=1 (the SSE traversal, as on a CPU without AVX).
 
 use glam::{DVec3, Vec3A};
 use rayon::prelude::*;
@@ -115,7 +116,10 @@ fn main() {
         if only_cache && preset.name() != only {
             continue;
         }
-        let t = Tracer::with_preset(&mesh, &n, preset).unwrap();
+        let mut t = Tracer::with_preset(&mesh, &n, preset).unwrap();
+        if std::env::var_os("XSCALE_BENCH_NO_AVX").is_some() {
+            t.set_avx(false);
+        }
         println!(
             "build {:>6}: {:.2} s, {} 8-wide nodes",
             preset.name(),

@@ -806,11 +806,13 @@ impl Tracer {
                                     h &= h - 1;
                                     let l = c * n + i;
                                     // Ties go to the smaller mesh id (module docs; the ids are
-                                    // only read then).
+                                    // only read then). No hit yet ranks as (inf, u32::MAX): an
+                                    // f32 distance can overflow to inf.
+                                    let b = best_leaf[l];
                                     if ta[i] < bt[l]
                                         || (ta[i] == bt[l]
-                                            && self.tri_ids[j]
-                                                < self.tri_ids[best_leaf[l] as usize])
+                                            && (b == u32::MAX
+                                                || self.tri_ids[j] < self.tri_ids[b as usize]))
                                     {
                                         bt[l] = ta[i];
                                         best_leaf[l] = j as u32;

@@ -416,18 +416,22 @@ impl Tracer {
             tracer.tris = b.tris;
             tracer.tri_ids = b.tri_ids;
         }
-        tracer.renumber(&mesh.triangles, &verts);
+        tracer.renumber(&mesh.triangles, &verts)?;
         tracer.build_time = start.elapsed();
         Ok(tracer)
     }
 
     /// Fill `verts`, `tri_verts` and `leaf_of` from the leaf order (`tri_ids`).
-    fn renumber(&mut self, triangles: &[[u32; 3]], verts: &[DVec3]) {
-        assert_eq!(
-            self.tri_ids.len(),
-            triangles.len(),
-            "every triangle is in exactly one leaf"
-        );
+    fn renumber(&mut self, triangles: &[[u32; 3]], verts: &[DVec3]) -> Result<()> {
+        // A pre-splitting obvhs preset could reference a triangle from several leaves; the
+        // presets of `BuildPreset` do not.
+        if self.tri_ids.len() != triangles.len() {
+            bail!(
+                "BVH leaves reference {} triangles, the mesh has {}: each must be in exactly one leaf",
+                self.tri_ids.len(),
+                triangles.len()
+            );
+        }
         let mut new_index = vec![u32::MAX; verts.len()];
         self.leaf_of = vec![u32::MAX; triangles.len()];
         self.tri_verts = Vec::with_capacity(triangles.len());
@@ -443,6 +447,7 @@ impl Tracer {
             });
             self.tri_verts.push(t);
         }
+        Ok(())
     }
 
     pub fn normalization(&self) -> &Normalization {

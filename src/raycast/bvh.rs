@@ -436,6 +436,10 @@ impl Tracer {
         self.leaf_of = vec![u32::MAX; triangles.len()];
         self.tri_verts = Vec::with_capacity(triangles.len());
         for (j, &id) in self.tri_ids.iter().enumerate() {
+            // Equal counts and no repeat: every triangle is in exactly one leaf.
+            if self.leaf_of[id as usize] != u32::MAX {
+                bail!("BVH leaves reference triangle {id} twice");
+            }
             self.leaf_of[id as usize] = j as u32;
             let t = triangles[id as usize].map(|k| {
                 let n = &mut new_index[k as usize];

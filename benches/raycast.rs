@@ -9,6 +9,7 @@
 //!   refinement, footprints, compaction into the cache), on 1 and 2 threads and per core;
 //! - `cast_view` (the same up to full per-sub-sample records, as rendering uses), likewise;
 //! - the traversal alone (`Tracer::trace` on prebuilt packets, one thread);
+//!
 //! and obvhs's own single-ray BVH2 traversal (with our watertight closure) on the same rays as a
 //! reference point. Every timed run is checked against the validated cast.
 //!

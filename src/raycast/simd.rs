@@ -28,8 +28,6 @@ pub trait Lanes:
     fn le(self, o: Self) -> Self::M;
     fn gt(self, o: Self) -> Self::M;
     fn eq(self, o: Self) -> Self::M;
-    /// `m ? a : b` per lane.
-    fn select(m: Self::M, a: Self, b: Self) -> Self;
     fn hmin(self) -> f32;
     fn hmax(self) -> f32;
     /// `|x|` per lane (clears the sign bit).
@@ -115,10 +113,6 @@ mod x86 {
         #[inline(always)]
         fn eq(self, o: F4) -> M4 {
             unsafe { M4(_mm_cmpeq_ps(self.0, o.0)) }
-        }
-        #[inline(always)]
-        fn select(m: M4, a: F4, b: F4) -> F4 {
-            unsafe { F4(_mm_or_ps(_mm_and_ps(m.0, a.0), _mm_andnot_ps(m.0, b.0))) }
         }
         #[inline(always)]
         fn hmin(self) -> f32 {
@@ -211,10 +205,6 @@ mod x86 {
         #[inline(always)]
         fn eq(self, o: F8) -> M8 {
             unsafe { M8(_mm256_cmp_ps::<_CMP_EQ_OQ>(self.0, o.0)) }
-        }
-        #[inline(always)]
-        fn select(m: M8, a: F8, b: F8) -> F8 {
-            unsafe { F8(_mm256_blendv_ps(b.0, a.0, m.0)) }
         }
         #[inline(always)]
         fn hmin(self) -> f32 {
@@ -349,11 +339,6 @@ mod portable {
         }
         fn eq(self, o: F4) -> M4 {
             cmp(self.0, o.0, |a, b| a == b)
-        }
-        fn select(m: M4, a: F4, b: F4) -> F4 {
-            F4(std::array::from_fn(
-                |i| if m.0[i] { a.0[i] } else { b.0[i] },
-            ))
         }
         fn hmin(self) -> f32 {
             let m = |a: f32, b: f32| if a < b { a } else { b };

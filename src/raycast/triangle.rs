@@ -17,8 +17,9 @@
 //! laterally). The BVH pads its boxes to cover this (see `bvh.rs`). The returned `t` is the f32
 //! distance `t_scaled / det` along the (unit) direction; the tracer refines it in f64.
 //!
-//! Both the scalar [`intersect`] and the 4-lane [`intersect4`] compute identical f32 values per
-//! lane (same operations, no FMA), so packet and single-ray traversal agree bit for bit.
+//! Both the scalar [`intersect`] and the lane-wise [`intersect_lanes`] compute identical f32
+//! values per lane (same operations, no FMA), so packet and single-ray traversal agree bit for
+//! bit.
 
 // Index loops over lanes read best; `!(t > 0)` also rejects NaN on purpose.
 #![allow(clippy::needless_range_loop, clippy::neg_cmp_op_on_partial_ord)]

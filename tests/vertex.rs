@@ -127,8 +127,8 @@ fn vertex_checkpoints_and_batches_roundtrip() {
     let mut rc = RunConfig::preset("tiny").unwrap();
     rc.model = cfg.clone();
     let p = xscale::train::setup::prepare(&fixture(), &rc, true, &mut |_| {}).unwrap();
-    assert!(p.cache.has_triangles());
-    let b = sample_batch(&p.cache, 3, 0, 64);
+    assert!(p.samples.has_triangles());
+    let b = sample_batch(&p.samples, &p.tracer, 3, 0, 64);
     assert_eq!(b.triangle.len(), 64 * 4);
     let mut tf = TensorFile::new();
     batch_to_tensors(&mut tf, &b).unwrap();
@@ -185,7 +185,7 @@ fn vertex_training_learns_and_resumes_exactly() {
     // Learning: the loss on a fixed batch fell, and only touched rows moved from their init.
     let st = TrainState::load(&a.join("checkpoint.safetensors")).unwrap();
     let p = xscale::train::setup::prepare(&fixture(), &st.cfg, true, &mut |_| {}).unwrap();
-    let batch = sample_batch(&p.cache, 99, 0, 2048);
+    let batch = sample_batch(&p.samples, &p.tracer, 99, 0, 2048);
     let init = init_checkpoint_for_mesh(
         &st.ckpt.model.cfg,
         rc.train.seed,

@@ -41,7 +41,7 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
     cfg.validate()?;
     anyhow::ensure!(a.size > 0, "--size must be > 0");
     let p = prepare(&a.scene, &cfg, true, &mut |m| eprintln!("{m}"))?;
-    let b = sample_batch(&p.cache, a.seed, a.step, a.size);
+    let b = sample_batch(&p.samples, &p.tracer, a.seed, a.step, a.size);
     b.validate()?;
     let mut f = TensorFile::new();
     batch_to_tensors(&mut f, &b)?;

@@ -27,7 +27,7 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
     cfg.train.seed = a.seed;
     let p = prepare(&a.scene, &cfg, false, &mut |m| eprintln!("{m}"))?;
     if cfg.train.drop_fine_levels && cfg.model.featurization.is_hash() {
-        if let Some(fp) = p.cache.footprint_min() {
+        if let Some(fp) = p.samples.footprint_min() {
             if let Some(msg) = drop_fine_levels(&mut cfg.model, fp as f64) {
                 eprintln!("{msg}");
             }

@@ -237,72 +237,130 @@ fn cast_strip_g<const G: u32>(
                 lane_dir[l] = d;
                 p.set(l, ctx.origin32, d.as_vec3().to_array());
             }
-            let hits = tracer.trace_leaves(&p, scratch);
-            // The hit triangles' f64 vertices first: independent loads, so their cache misses
-            // overlap instead of stalling each refinement in turn.
-            let mut verts = [[DVec3::ZERO; 3]; MAX_LANES];
-            for (v, h) in verts.iter_mut().zip(&hits) {
-                if let Some((j, _)) = h {
-                    *v = tracer.leaf_local(*j);
-                }
-            }
+            let out = trace_block(tracer, ctx, &p, &lane_dir, scratch);
             for l in 0..MAX_LANES {
-                if p.active >> l & 1 == 0 {
-                    continue;
+                if p.active >> l & 1 != 0 {
+                    // Every sub-sample of the strip is in exactly one block: all are written here.
+                    subs[lane_idx[l]] = out[l];
                 }
-                // Every sub-sample of the strip is in exactly one block: all are written here.
-                let d = lane_dir[l];
-                subs[lane_idx[l]] = match hits[l] {
-                    None => SubSample {
-                        triangle: MISS,
-                        dir: d,
-                        ..Default::default()
-                    },
-                    Some((j, t32)) => {
-                        let tri = tracer.leaf_triangle(j);
-                        let (h, sec_n) =
-                            tracer.refine_with_sec_at(ctx.origin, d, verts[l], tri, t32);
-                        let local = ctx.origin + h.t * d;
-                        // Footprint (module docs): r · sqrt(Ω / |cos θ_n|), Ω = cos³θ_c / (fx fy),
-                        // |cos θ_n| clamped at 1e-6.
-                        let cos_c = d.dot(ctx.axis).abs();
-                        let sec_n = sec_n.min(1e6);
-                        let fp = h.t * ctx.inv_sqrt_f * (cos_c * cos_c * cos_c * sec_n).sqrt();
-                        SubSample {
-                            triangle: tri,
-                            t: h.t,
-                            u: h.u,
-                            v: h.v,
-                            position: local * ctx.inv_extent + DVec3::splat(0.5),
-                            dir: d,
-                            footprint: fp * ctx.inv_extent_max,
-                        }
-                    }
-                };
             }
         }
     }
-    // Per-pixel summaries.
     for (px, out) in subs.chunks_exact(g2).zip(pixels.iter_mut()) {
-        let mut s = PixelSummary::default();
-        let mut dsum = DVec3::ZERO;
-        let mut fsum = 0.0;
-        let mut n = 0u32;
-        for (j, ss) in px.iter().enumerate() {
-            if !ss.hit() {
-                continue;
-            }
-            s.valid |= 1 << j;
-            dsum += ss.dir;
-            fsum += ss.footprint;
-            n += 1;
-        }
-        if n > 0 {
-            s.dir = dsum.normalize_or_zero();
-            s.footprint = fsum / n as f64;
-        }
-        *out = s;
+        *out = summarize(px);
     }
+}
+
+/// Trace one packet of sub-sample rays from the camera centre (lane `l` has direction
+/// `lane_dir[l]`; only the packet's active lanes are meaningful in the result) and refine the
+/// hits in f64. A ray's result does not depend on the packet it is traced in (see `bvh.rs`), so
+/// the strip cast and the per-pixel cast of the ray stream give the same bits.
+#[inline]
+fn trace_block(
+    tracer: &Tracer,
+    ctx: &CamCtx,
+    p: &Packet,
+    lane_dir: &[DVec3; MAX_LANES],
+    scratch: &mut Scratch,
+) -> [SubSample; MAX_LANES] {
+    let hits = tracer.trace_leaves(p, scratch);
+    // The hit triangles' f64 vertices first: independent loads, so their cache misses
+    // overlap instead of stalling each refinement in turn.
+    let mut verts = [[DVec3::ZERO; 3]; MAX_LANES];
+    for (v, h) in verts.iter_mut().zip(&hits) {
+        if let Some((j, _)) = h {
+            *v = tracer.leaf_local(*j);
+        }
+    }
+    let mut out = [SubSample::default(); MAX_LANES];
+    for l in 0..MAX_LANES {
+        if p.active >> l & 1 == 0 {
+            continue;
+        }
+        let d = lane_dir[l];
+        out[l] = match hits[l] {
+            None => SubSample {
+                triangle: MISS,
+                dir: d,
+                ..Default::default()
+            },
+            Some((j, t32)) => {
+                let tri = tracer.leaf_triangle(j);
+                let (h, sec_n) = tracer.refine_with_sec_at(ctx.origin, d, verts[l], tri, t32);
+                let local = ctx.origin + h.t * d;
+                // Footprint (module docs): r · sqrt(Ω / |cos θ_n|), Ω = cos³θ_c / (fx fy),
+                // |cos θ_n| clamped at 1e-6.
+                let cos_c = d.dot(ctx.axis).abs();
+                let sec_n = sec_n.min(1e6);
+                let fp = h.t * ctx.inv_sqrt_f * (cos_c * cos_c * cos_c * sec_n).sqrt();
+                SubSample {
+                    triangle: tri,
+                    t: h.t,
+                    u: h.u,
+                    v: h.v,
+                    position: local * ctx.inv_extent + DVec3::splat(0.5),
+                    dir: d,
+                    footprint: fp * ctx.inv_extent_max,
+                }
+            }
+        };
+    }
+    out
+}
+
+/// A pixel's summary from its γ² sub-samples: the valid mask, the normalised sum of the valid
+/// directions and the mean footprint of the valid sub-samples (SPEC §2).
+#[inline]
+pub fn summarize(px: &[SubSample]) -> PixelSummary {
+    let mut s = PixelSummary::default();
+    let mut dsum = DVec3::ZERO;
+    let mut fsum = 0.0;
+    let mut n = 0u32;
+    for (j, ss) in px.iter().enumerate() {
+        if !ss.hit() {
+            continue;
+        }
+        s.valid |= 1 << j;
+        dsum += ss.dir;
+        fsum += ss.footprint;
+        n += 1;
+    }
+    if n > 0 {
+        s.dir = dsum.normalize_or_zero();
+        s.footprint = fsum / n as f64;
+    }
+    s
+}
+
+/// Cast the γ² sub-sample rays of pixel (u, v) as one packet into `subs` (length γ², order
+/// `b·γ + a`) and return its summary: the same bits as the strip cast of the whole view gives
+/// for that pixel (same directions, same per-ray closest hit and refinement).
+pub(crate) fn cast_pixel(
+    tracer: &Tracer,
+    ctx: &CamCtx,
+    gamma: u32,
+    u: u32,
+    v: u32,
+    scratch: &mut Scratch,
+    subs: &mut [SubSample],
+) -> PixelSummary {
+    let g = gamma;
+    let g2 = (g * g) as usize;
+    debug_assert!(g2 <= MAX_LANES && subs.len() == g2);
+    let mut p = Packet::default();
+    let mut lane_dir = [DVec3::ZERO; MAX_LANES];
+    for j in 0..g2 as u32 {
+        let (a, b) = (j % g, j / g);
+        // As the strip cast: x(sx) = u + (a + 0.5)/γ, normalised per column/row.
+        let x = ctx.xn(u as f64 + (a as f64 + 0.5) / g as f64);
+        let y = ctx.yn(v as f64 + (b as f64 + 0.5) / g as f64);
+        let d = ctx.dir(x, y);
+        lane_dir[j as usize] = d;
+        p.set(j as usize, ctx.origin32, d.as_vec3().to_array());
+    }
+    let out = trace_block(tracer, ctx, &p, &lane_dir, scratch);
+    subs.copy_from_slice(&out[..g2]);
+    summarize(subs)
 }
 
 /// Strip start rows of an image.

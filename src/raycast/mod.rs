@@ -4,18 +4,21 @@
 //!
 //! Files: `triangle.rs` (watertight ray–triangle test), `bvh.rs` ([`Tracer`]: obvhs-built BVH,
 //! packet traversal, f64 refinement), `cast.rs` (γ² rays per pixel, view direction, footprint),
-//! `cache.rs` ([`SampleCache`]), `simd.rs` (4-lane f32 helper).
+//! `cache.rs` ([`SampleCache`]), `stream.rs` ([`RayStream`]: hit maps + photos, rays cast per
+//! batch), `simd.rs` (4-lane f32 helper).
 
 pub mod bvh;
 pub mod cache;
 pub mod cast;
 pub mod meshes;
 mod simd;
+pub mod stream;
 pub mod triangle;
 
 pub use bvh::{BuildPreset, Packet, Scratch, Tracer, MAX_LANES};
 pub use cache::{CacheEvent, CachedView, SampleCache};
 pub use cast::{cast_view, sub_offset, PixelSummary, SubSample, ViewCast};
+pub use stream::{HitMap, RayStream, StreamView, Targets};
 
 use crate::scene::Mesh;
 use glam::DVec3;

@@ -243,7 +243,7 @@ pub fn run_ablation(scene: &Path, out: &Path, opts: &AblateOptions) -> Result<Ab
         let prepared = crate::train::setup::prepare(scene, &base, false, &mut |_| {})?;
         let mut cfg = base.clone();
         if cfg.train.drop_fine_levels {
-            if let Some(fp) = prepared.cache.footprint_min() {
+            if let Some(fp) = prepared.samples.footprint_min() {
                 crate::train::setup::drop_fine_levels(&mut cfg.model, fp as f64);
             }
         }

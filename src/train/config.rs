@@ -16,6 +16,7 @@
 use crate::model::ModelConfig;
 use crate::scene::NormalizeMode;
 use crate::train::adam::AdamConfig;
+use crate::train::sampler::SampleMode;
 use anyhow::{bail, Context, Result};
 use serde::{Deserialize, Serialize};
 use std::path::Path;
@@ -49,6 +50,15 @@ pub struct TrainConfig {
     /// normalisation is that of the mesh used (SPEC §4.1).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub mesh: Option<std::path::PathBuf>,
+    /// Where batches come from: `stream` (default; rays cast as batches are drawn, ~3 bytes
+    /// per pixel) or `cache` (every ray cast once and stored, `12γ²+42` bytes per pixel). Same
+    /// batches bit for bit (`train/sampler.rs`); absent from older configs (= stream).
+    #[serde(default)]
+    pub samples: SampleMode,
+    /// Memory budget in GB checked before allocating (`train/memory.rs`); 0 = the memory
+    /// the system reports as available.
+    #[serde(default)]
+    pub memory_gb: f64,
 }
 
 impl TrainConfig {
@@ -71,6 +81,8 @@ impl TrainConfig {
             drop_fine_levels: true,
             adam,
             mesh: None,
+            samples: SampleMode::Stream,
+            memory_gb: 0.0,
         };
         Ok(match name {
             "tiny" => TrainConfig {
@@ -170,6 +182,12 @@ impl RunConfig {
         }
         if t.downsample == 0 {
             bail!("train.downsample must be ≥ 1");
+        }
+        if !(t.memory_gb >= 0.0 && t.memory_gb.is_finite()) {
+            bail!(
+                "train.memory_gb must be a number ≥ 0 (0 = what the system has available), got {}",
+                t.memory_gb
+            );
         }
         if !(1..=4).contains(&self.model.gamma) {
             bail!("model.gamma must be 1..=4, got {}", self.model.gamma);

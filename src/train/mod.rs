@@ -5,13 +5,15 @@
 //! |---|---|
 //! | `config.rs` | presets + TOML overrides → [`RunConfig`] |
 //! | `setup.rs` | scene → BVH → sample cache; dropping unresolved hash levels (SPEC §8) |
-//! | `sampler.rs` | batch k as a pure function of (seed, k) |
+//! | `sampler.rs` | batch k as a pure function of (seed, k); streamed or cached samples |
+//! | `memory.rs` | the memory estimate and budget, peak RSS |
 //! | `adam.rs` | the optimizer |
 //! | `trainer.rs` | the loop, metrics, checkpoints, exact resume, Ctrl-C |
 
 pub mod ablate;
 pub mod adam;
 pub mod config;
+pub mod memory;
 pub mod sampler;
 pub mod setup;
 pub mod trainer;

@@ -1,10 +1,81 @@
-//! Deterministic batches from the sample cache (SPEC §5): slot `i` of batch `k` is cached pixel
+//! Deterministic batches (SPEC §5): slot `i` of batch `k` is kept pixel
 //! `below(seed, Batch, k, i, pixels)` — a pure function of (seed, k, i), so batch k is the same
 //! whatever happened before it (exact resume) and whatever the thread count.
+//!
+//! Where a batch's surface samples come from is [`Samples`]: the [`RayStream`] (default: rays
+//! cast when the batch is drawn, memory ~3 bytes per pixel) or the [`SampleCache`] (every
+//! training ray cast once at setup and stored, `12γ²+42` bytes per kept pixel). Both number the
+//! kept pixels the same way and give bit-identical batches (tested), so `train.samples` changes
+//! speed and memory, never results.
 
 use crate::model::batch::Batch;
-use crate::raycast::SampleCache;
+use crate::raycast::{RayStream, SampleCache, Tracer};
 use crate::rng::{below, Purpose};
+use serde::{Deserialize, Serialize};
+
+/// Where training batches come from (`[train] samples`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum SampleMode {
+    /// Hit maps + photos; each batch's rays are cast when it is drawn.
+    #[default]
+    Stream,
+    /// Every training ray cast once at setup and kept (the sample cache).
+    Cache,
+}
+
+/// The training views' samples, streamed or cached (module docs).
+pub enum Samples {
+    Stream(RayStream),
+    Cache(SampleCache),
+}
+
+impl Samples {
+    /// Number of kept pixels (pixels with at least one sub-sample on the mesh).
+    pub fn len(&self) -> usize {
+        match self {
+            Samples::Stream(s) => s.len(),
+            Samples::Cache(c) => c.len(),
+        }
+    }
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+    /// Smallest pixel footprint of any kept view (SPEC §8).
+    pub fn footprint_min(&self) -> Option<f32> {
+        match self {
+            Samples::Stream(s) => s.footprint_min(),
+            Samples::Cache(c) => c.footprint_min(),
+        }
+    }
+    /// Whether batches carry triangle ids and barycentrics (vertex featurization).
+    pub fn has_triangles(&self) -> bool {
+        match self {
+            Samples::Stream(s) => s.keep_triangles,
+            Samples::Cache(c) => c.has_triangles(),
+        }
+    }
+    /// Bytes held.
+    pub fn bytes(&self) -> usize {
+        match self {
+            Samples::Stream(s) => s.bytes(),
+            Samples::Cache(c) => c.bytes(),
+        }
+    }
+    pub fn mode(&self) -> SampleMode {
+        match self {
+            Samples::Stream(_) => SampleMode::Stream,
+            Samples::Cache(_) => SampleMode::Cache,
+        }
+    }
+    /// The batch of kept pixels `pixels` (row k = pixel `pixels[k]`).
+    pub fn batch(&self, tracer: &Tracer, pixels: &[usize]) -> Batch {
+        match self {
+            Samples::Stream(s) => s.batch(tracer, pixels),
+            Samples::Cache(c) => batch_from_pixels(c, pixels),
+        }
+    }
+}
 
 /// Fill `batch` with the cached pixels `pixels` (their appearance row = the cache's view index);
 /// with triangle ids and barycentrics when the cache keeps them.
@@ -41,15 +112,20 @@ pub fn batch_from_pixels(cache: &SampleCache, pixels: &[usize]) -> Batch {
     b
 }
 
-/// The cached pixels of batch `step`.
-pub fn batch_pixels(cache: &SampleCache, seed: u64, step: u64, size: usize) -> Vec<usize> {
-    let n = cache.len() as u64;
+/// The kept-pixel indices of batch `step` among `n` kept pixels.
+pub fn batch_pixels(n: usize, seed: u64, step: u64, size: usize) -> Vec<usize> {
     (0..size as u64)
-        .map(|i| below(seed, Purpose::Batch, step, i, n) as usize)
+        .map(|i| below(seed, Purpose::Batch, step, i, n as u64) as usize)
         .collect()
 }
 
 /// Batch `step` of a run with `seed`.
-pub fn sample_batch(cache: &SampleCache, seed: u64, step: u64, size: usize) -> Batch {
-    batch_from_pixels(cache, &batch_pixels(cache, seed, step, size))
+pub fn sample_batch(
+    samples: &Samples,
+    tracer: &Tracer,
+    seed: u64,
+    step: u64,
+    size: usize,
+) -> Batch {
+    samples.batch(tracer, &batch_pixels(samples.len(), seed, step, size))
 }

@@ -1,12 +1,15 @@
 //! From a scene directory to what training needs (SPEC §1, §8): load the scene, build the BVH,
-//! cast every training view once into the sample cache, and drop hash levels no view resolves.
+//! check the memory budget, cast every training view once (its hit map for the ray stream, or
+//! all its samples for the cache — `train/sampler.rs`), and drop hash levels no view resolves.
 
 use crate::model::config::GridConfig;
 use crate::model::hashgrid::tcnn_scales;
 use crate::model::ModelConfig;
-use crate::raycast::{CacheEvent, SampleCache, Tracer};
-use crate::scene::{Image, LoadOptions, Scene};
+use crate::raycast::{CacheEvent, RayStream, SampleCache, Targets, Tracer};
+use crate::scene::{LoadOptions, Scene};
 use crate::train::config::RunConfig;
+use crate::train::memory;
+use crate::train::sampler::{SampleMode, Samples};
 use anyhow::{bail, Context, Result};
 use std::path::Path;
 
@@ -18,7 +21,7 @@ pub struct Prepared {
     /// appearance-code row.
     pub train_views: Vec<usize>,
     /// Samples of the training views (input index = position in `train_views`).
-    pub cache: SampleCache,
+    pub samples: Samples,
 }
 
 impl Prepared {
@@ -66,53 +69,69 @@ pub fn prepare(
         );
     }
     let tracer = Tracer::new(&scene.mesh, &scene.normalization).context("building the BVH")?;
-    let images: Vec<Option<Image>> = if with_images {
-        train_views
-            .iter()
-            .map(|&i| scene.load_image(i).map(Some))
-            .collect::<Result<_>>()?
-    } else {
-        vec![None; train_views.len()]
-    };
-    let views: Vec<_> = train_views
+    let sizes: Vec<(u32, u32)> = train_views
         .iter()
-        .zip(&images)
-        .map(|(&i, img)| (&scene.views[i].camera, img.as_ref()))
+        .map(|&i| (scene.views[i].camera.width, scene.views[i].camera.height))
         .collect();
+    memory::check_budget(cfg, &sizes, scene.downsample)?;
     let t0 = std::time::Instant::now();
-    let mut on_event = |e| {
-        if let CacheEvent::ViewDropped { view } = e {
-            log(format!(
-                "warning: view {} ({}) sees no part of the mesh: dropped",
-                train_views[view], scene.views[train_views[view]].name
-            ));
-        }
-    };
+    let gamma = cfg.model.gamma;
     // The vertex featurization needs each sub-sample's triangle and barycentrics.
-    let cache = if cfg.model.featurization.is_hash() {
-        SampleCache::build(&tracer, &views, cfg.model.gamma, &mut on_event)?
-    } else {
-        SampleCache::build_with_triangles(&tracer, &views, cfg.model.gamma, &mut on_event)?
+    let keep_triangles = !cfg.model.featurization.is_hash();
+    let mut samples = match cfg.train.samples {
+        SampleMode::Stream => Samples::Stream(RayStream::new(gamma, keep_triangles)?),
+        SampleMode::Cache => Samples::Cache(if keep_triangles {
+            SampleCache::build_with_triangles(&tracer, &[], gamma, &mut |_| {})?
+        } else {
+            SampleCache::new(gamma)?
+        }),
     };
-    if cache.is_empty() {
+    // One photo in memory at a time: load, cast, keep what the mode keeps.
+    for (k, &i) in train_views.iter().enumerate() {
+        let img = if with_images {
+            Some(scene.load_image(i)?)
+        } else {
+            None
+        };
+        let mut on_event = |e| {
+            if let CacheEvent::ViewDropped { .. } = e {
+                log(format!(
+                    "warning: view {i} ({}) sees no part of the mesh: dropped",
+                    scene.views[i].name
+                ));
+            }
+        };
+        let cam = &scene.views[i].camera;
+        match &mut samples {
+            Samples::Stream(s) => {
+                let t = img.as_ref().map_or(Targets::None, Targets::from_image);
+                s.add_view(&tracer, k, cam, t, &mut on_event)?
+            }
+            Samples::Cache(c) => c.add_view(&tracer, k, cam, img.as_ref(), &mut on_event)?,
+        };
+    }
+    if samples.is_empty() {
         bail!(
             "{}: no training pixel sees the mesh (check the cameras' convention)",
             dir.display()
         );
     }
     log(format!(
-        "cast {} training views with γ={} in {:.2} s: {} pixels kept, {:.1} MB",
+        "cast {} training views with γ={gamma} in {:.2} s: {} pixels see the mesh; {} {:.1} MB",
         train_views.len(),
-        cfg.model.gamma,
         t0.elapsed().as_secs_f64(),
-        cache.len(),
-        cache.bytes() as f64 / 1e6
+        samples.len(),
+        match samples.mode() {
+            SampleMode::Stream => "hit maps + photos (rays cast per batch):",
+            SampleMode::Cache => "sample cache:",
+        },
+        samples.bytes() as f64 / 1e6
     ));
     Ok(Prepared {
         scene,
         tracer,
         train_views,
-        cache,
+        samples,
     })
 }
 

@@ -299,7 +299,7 @@ pub fn train(
         None => {
             let mut cfg = run_cfg;
             if cfg.train.drop_fine_levels && cfg.model.featurization.is_hash() {
-                if let Some(fp) = prepared.cache.footprint_min() {
+                if let Some(fp) = prepared.samples.footprint_min() {
                     if let Some(msg) = drop_fine_levels(&mut cfg.model, fp as f64) {
                         say(msg);
                     }
@@ -362,7 +362,13 @@ pub fn train(
     let mut interrupted = false;
     let stop = opts.stop_at.unwrap_or(u64::MAX).min(tc.steps);
     while state.step < stop {
-        let batch = sample_batch(&prepared.cache, tc.seed, state.step, tc.batch_pixels);
+        let batch = sample_batch(
+            &prepared.samples,
+            &prepared.tracer,
+            tc.seed,
+            state.step,
+            tc.batch_pixels,
+        );
         let st = state.step(&batch, &mut grads)?;
         if !st.loss.is_finite() {
             state.save(&run_dir.join("checkpoint-diverged.safetensors"))?;

@@ -1,0 +1,165 @@
+//! The memory budget of a training run: an estimate made before anything large is allocated,
+//! checked against `[train] memory_gb` (or, when that is 0, against the memory the system says is
+//! available), and the peak resident memory reported at the end of a run.
+//!
+//! ## The estimate (bytes)
+//! - **samples** (`train/sampler.rs`): stream — per training view `w·h·3` (8-bit photo; 16-bit
+//!   photos take twice that, EXR and downsampled photos four times: the estimate takes the
+//!   photo's stored form from the downsample factor, and 3 bytes otherwise) + `w·h/8` hit map;
+//!   cache — `w·h·(12γ²+42)`, every pixel assumed to see the mesh (an upper bound), plus one f32
+//!   photo (`12·w·h`) while it is cast;
+//! - **model**: 20 bytes per parameter (f32 value, gradient, Adam m, v, step count);
+//! - **step**: [`STEP_BYTES_PER_SAMPLE`] per sub-sample of a batch (forward activations kept for
+//!   the backward pass, gradients of the inputs, touched-entry lists), measured on the `cpu`
+//!   preset (see the constant);
+//! - a fixed [`BASE_BYTES`] (BVH, code, allocator slack) plus 64 bytes per mesh triangle for the
+//!   BVH and the f64 mesh are added by the caller when known.
+//!
+//! It errs on the high side; a run that fails the check names the figures and what to change.
+
+use crate::model::hfm::Hfm;
+use crate::train::config::RunConfig;
+use crate::train::sampler::SampleMode;
+use anyhow::{bail, Result};
+
+/// Step scratch per sub-sample of a batch. Measured: peak RSS of `xscale train --preset cpu` on the
+/// `small` scene at batch 4,096 and 65,536 pixels (γ = 2), difference / (61,440 · 4) ≈ 1.1 kB,
+/// rounded up.
+pub const STEP_BYTES_PER_SAMPLE: u64 = 1536;
+/// Fixed overhead.
+pub const BASE_BYTES: u64 = 200 << 20;
+
+/// What a run is estimated to need, by part (bytes).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Estimate {
+    pub samples: u64,
+    pub model: u64,
+    pub step: u64,
+    pub base: u64,
+}
+
+impl Estimate {
+    pub fn total(&self) -> u64 {
+        self.samples + self.model + self.step + self.base
+    }
+}
+
+/// The estimate for a run over training views of sizes `sizes` (after downsampling).
+pub fn estimate(cfg: &RunConfig, sizes: &[(u32, u32)], downsample: u32) -> Result<Estimate> {
+    let g2 = (cfg.model.gamma * cfg.model.gamma) as u64;
+    let photo_bytes = if downsample > 1 { 12 } else { 3 };
+    let samples: u64 = sizes
+        .iter()
+        .map(|&(w, h)| {
+            let px = w as u64 * h as u64;
+            match cfg.train.samples {
+                SampleMode::Stream => px * photo_bytes + px.div_ceil(8),
+                SampleMode::Cache => px * (12 * g2 + 42),
+            }
+        })
+        .sum::<u64>()
+        + match cfg.train.samples {
+            SampleMode::Cache => sizes
+                .iter()
+                .map(|&(w, h)| 12 * w as u64 * h as u64)
+                .max()
+                .unwrap_or(0),
+            SampleMode::Stream => 0,
+        };
+    let params = if cfg.model.featurization.is_hash() {
+        Hfm::new(&cfg.model)?.layout.total as u64
+    } else {
+        0 // the vertex table depends on the mesh; counted by the caller's base
+    };
+    Ok(Estimate {
+        samples,
+        model: 20 * params,
+        step: cfg.train.batch_pixels as u64 * g2 * STEP_BYTES_PER_SAMPLE,
+        base: BASE_BYTES,
+    })
+}
+
+/// Memory the system reports as available (Linux `MemAvailable`), if known.
+pub fn available_bytes() -> Option<u64> {
+    let text = std::fs::read_to_string("/proc/meminfo").ok()?;
+    let line = text.lines().find(|l| l.starts_with("MemAvailable:"))?;
+    let kb: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kb * 1024)
+}
+
+/// Peak resident memory of this process so far (Linux `VmHWM`), if known.
+pub fn peak_rss_bytes() -> Option<u64> {
+    let text = std::fs::read_to_string("/proc/self/status").ok()?;
+    let line = text.lines().find(|l| l.starts_with("VmHWM:"))?;
+    let kb: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kb * 1024)
+}
+
+fn gb(b: u64) -> f64 {
+    b as f64 / 1e9
+}
+
+/// Fail, before anything large is allocated, when the estimate exceeds the budget:
+/// `train.memory_gb` when > 0, else the available memory (when the system reports it).
+pub fn check_budget(cfg: &RunConfig, sizes: &[(u32, u32)], downsample: u32) -> Result<()> {
+    let e = estimate(cfg, sizes, downsample)?;
+    let (budget, what) = if cfg.train.memory_gb > 0.0 {
+        (
+            (cfg.train.memory_gb * 1e9) as u64,
+            format!("the budget train.memory_gb = {}", cfg.train.memory_gb),
+        )
+    } else {
+        match available_bytes() {
+            Some(a) => (a, "the memory available on this machine".to_string()),
+            None => return Ok(()),
+        }
+    };
+    if e.total() <= budget {
+        return Ok(());
+    }
+    let pixels: u64 = sizes.iter().map(|&(w, h)| w as u64 * h as u64).sum();
+    let mut hints = Vec::new();
+    if e.samples > budget / 3 {
+        if cfg.train.samples == SampleMode::Cache {
+            hints.push(
+                "stream the rays instead of caching them ([train] samples = \"stream\")".into(),
+            );
+        }
+        hints.push(format!(
+            "downsample the photos (--downsample {})",
+            cfg.train.downsample * 2
+        ));
+        hints.push("hold out or remove views (scene.toml test_views / holdout_every)".into());
+    }
+    if e.step > budget / 3 {
+        hints.push(format!(
+            "a smaller batch (--batch {})",
+            (cfg.train.batch_pixels / 4).max(1)
+        ));
+    }
+    if e.model > budget / 3 {
+        hints.push("a smaller hash table ([model.grid_h] log2_table_size)".into());
+    }
+    bail!(
+        "this run needs about {:.2} GB but {what} is {:.2} GB: {} training views ({:.1} Mpixels) take {:.2} GB as {}, the model and Adam {:.2} GB, a step of {} pixels × γ²={} {:.2} GB, fixed {:.2} GB. To fit: {}",
+        gb(e.total()),
+        gb(budget),
+        sizes.len(),
+        pixels as f64 / 1e6,
+        gb(e.samples),
+        match cfg.train.samples {
+            SampleMode::Stream => "hit maps + photos",
+            SampleMode::Cache => "the sample cache",
+        },
+        gb(e.model),
+        cfg.train.batch_pixels,
+        cfg.model.gamma * cfg.model.gamma,
+        gb(e.step),
+        gb(e.base),
+        if hints.is_empty() {
+            "raise train.memory_gb".to_string()
+        } else {
+            hints.join("; ")
+        }
+    )
+}

@@ -1,0 +1,179 @@
+//! The ray stream (`raycast/stream.rs`): rays cast as batches are drawn give the same batches,
+//! bit for bit, as the sample cache, for every γ, with and without triangle ids, on any thread
+//! count; the hit map's kept-pixel numbering; exact photo storage; whole training runs in both
+//! modes write the same checkpoint.
+
+use std::path::{Path, PathBuf};
+use xscale::raycast::stream::HitMap;
+use xscale::raycast::{RayStream, SampleCache, Targets, Tracer};
+use xscale::rng::{below, uniform_f32, Purpose};
+use xscale::scene::{Image, LoadOptions, Scene};
+use xscale::train::config::RunConfig;
+use xscale::train::sampler::{batch_from_pixels, batch_pixels, SampleMode};
+use xscale::train::trainer::{train, TrainOptions};
+
+fn fixture() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/tiny")
+}
+
+fn in_pool<T: Send>(threads: usize, f: impl FnOnce() -> T + Send) -> T {
+    rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .unwrap()
+        .install(f)
+}
+
+/// Every kept pixel of the tiny scene, for γ = 1..4, hash (positions only) and vertex
+/// (triangle ids + barycentrics) batches: the stream's batch equals the cache's, and is the same
+/// with 1 and 2 threads.
+#[test]
+fn stream_batches_equal_cache_batches() {
+    let scene = Scene::load(&fixture(), &LoadOptions::default()).unwrap();
+    let tracer = Tracer::new(&scene.mesh, &scene.normalization).unwrap();
+    let train = scene.train();
+    let images: Vec<Image> = train
+        .iter()
+        .map(|&i| scene.load_image(i).unwrap())
+        .collect();
+    let views: Vec<_> = train
+        .iter()
+        .zip(&images)
+        .map(|(&i, img)| (&scene.views[i].camera, Some(img)))
+        .collect();
+    for gamma in 1..=4 {
+        for tri in [false, true] {
+            let cache = if tri {
+                SampleCache::build_with_triangles(&tracer, &views, gamma, &mut |_| {}).unwrap()
+            } else {
+                SampleCache::build(&tracer, &views, gamma, &mut |_| {}).unwrap()
+            };
+            let stream = RayStream::build(&tracer, &views, gamma, tri, &mut |_| {}).unwrap();
+            assert_eq!(stream.len(), cache.len(), "γ={gamma}");
+            assert_eq!(stream.dropped, cache.dropped);
+            assert_eq!(stream.footprint_min(), cache.footprint_min());
+            // All pixels in order, and a random batch with repeats.
+            let all: Vec<usize> = (0..cache.len()).collect();
+            let drawn = batch_pixels(cache.len(), 7, 3, 3000);
+            for pixels in [&all, &drawn] {
+                let want = batch_from_pixels(&cache, pixels);
+                let one = in_pool(1, || stream.batch(&tracer, pixels));
+                let two = in_pool(2, || stream.batch(&tracer, pixels));
+                assert!(one == want, "γ={gamma} triangles={tri}: stream ≠ cache");
+                assert!(two == one, "γ={gamma} triangles={tri}: 1 vs 2 threads");
+                want.validate().unwrap();
+            }
+        }
+    }
+}
+
+/// `HitMap::locate` is the k-th set bit in row-major order, against a brute-force list, on
+/// widths around multiples of 64, empty rows, full rows and an empty map.
+#[test]
+fn hit_map_numbering() {
+    for (case, &(w, h, density)) in [
+        (1u32, 1u32, 1.0f32),
+        (63, 5, 0.5),
+        (64, 4, 0.3),
+        (65, 7, 0.9),
+        (130, 9, 0.02),
+        (200, 3, 1.0),
+        (17, 6, 0.0),
+    ]
+    .iter()
+    .enumerate()
+    {
+        let wpr = (w as usize).div_ceil(64);
+        let mut bits = vec![0u64; wpr * h as usize];
+        let mut want = Vec::new();
+        for v in 0..h {
+            // Row 1 always empty.
+            for u in 0..w {
+                let on =
+                    v != 1 && uniform_f32(case as u64, Purpose::Test, v as u64, u as u64) < density;
+                if on {
+                    bits[v as usize * wpr + u as usize / 64] |= 1 << (u % 64);
+                    want.push((u, v));
+                }
+            }
+        }
+        let m = HitMap::from_bits(w, h, bits);
+        assert_eq!(m.len(), want.len(), "case {case}");
+        for (k, &p) in want.iter().enumerate() {
+            assert_eq!(m.locate(k), p, "case {case}, kept pixel {k}");
+            assert!(m.get(p.0, p.1));
+        }
+    }
+}
+
+/// 8-bit and 16-bit photos are stored narrow and read back bit for bit; anything else stays f32.
+#[test]
+fn photos_are_stored_exactly() {
+    let mk = |f: &dyn Fn(u64) -> f32| Image {
+        width: 5,
+        height: 3,
+        data: (0..45).map(|i| f(i as u64)).collect(),
+    };
+    let i8 = mk(&|i| below(1, Purpose::Test, 0, i, 256) as f32 / 255.0);
+    let i16 = mk(&|i| below(1, Purpose::Test, 1, i, 65536) as f32 / 65535.0);
+    let f = mk(&|i| uniform_f32(1, Purpose::Test, 2, i) * 1.7 - 0.2);
+    for (img, kind) in [(&i8, "u8"), (&i16, "u16"), (&f, "f32")] {
+        let t = Targets::from_image(img);
+        let got = match &t {
+            Targets::U8(_) => "u8",
+            Targets::U16(_) => "u16",
+            Targets::F32(_) => "f32",
+            Targets::None => "none",
+        };
+        assert_eq!(got, kind);
+        for o in (0..45).step_by(3) {
+            let back = t.rgb(o);
+            for c in 0..3 {
+                assert_eq!(
+                    back[c].to_bits(),
+                    img.data[o + c].to_bits(),
+                    "{kind} at {o}"
+                );
+            }
+        }
+    }
+}
+
+/// A short training run writes the same checkpoint bytes with streamed and cached samples.
+#[test]
+fn training_is_identical_in_both_modes() {
+    let mut bytes = Vec::new();
+    for mode in [SampleMode::Stream, SampleMode::Cache] {
+        let mut c = RunConfig::preset("tiny").unwrap();
+        c.train.steps = 40;
+        c.train.batch_pixels = 512;
+        c.train.samples = mode;
+        let run = std::env::temp_dir().join(format!(
+            "xscale-test-stream-{}-{mode:?}",
+            std::process::id()
+        ));
+        let _ = std::fs::remove_dir_all(&run);
+        let opts = TrainOptions {
+            no_final_eval: true,
+            quiet: true,
+            ..Default::default()
+        };
+        train(&fixture(), &run, c, &opts).unwrap();
+        let ck = std::fs::read(run.join("checkpoint.safetensors")).unwrap();
+        let _ = std::fs::remove_dir_all(&run);
+        bytes.push(ck);
+    }
+    // The run config (saved in the checkpoint) names the mode, so compare the tensors.
+    let a = safetensors::SafeTensors::deserialize(&bytes[0]).unwrap();
+    let b = safetensors::SafeTensors::deserialize(&bytes[1]).unwrap();
+    let mut names: Vec<&str> = a.names();
+    names.sort();
+    assert!(!names.is_empty());
+    for n in &names {
+        assert_eq!(
+            a.tensor(n).unwrap().data(),
+            b.tensor(n).unwrap().data(),
+            "tensor {n} differs between stream and cache"
+        );
+    }
+}

@@ -31,7 +31,9 @@
 
 use super::bvh::Tracer;
 use super::cache::{decode_coord, encode_coord, CacheEvent};
-use super::cast::{cast_pixel, cast_strip, check_gamma, strips, CamCtx, PixelSummary, SubSample};
+use super::cast::{
+    cast_pixel, cast_strip, check_gamma, strips, CamCtx, PixelSummary, SubSample, MAX_GAMMA,
+};
 use crate::model::batch::Batch;
 use crate::scene::{Camera, Image};
 use anyhow::{bail, Result};
@@ -39,6 +41,8 @@ use rayon::prelude::*;
 
 /// Pixels per parallel work item when casting a batch (a constant: determinism, SPEC §5).
 pub const BATCH_CHUNK: usize = 64;
+
+const MAX_GAMMA_SQ: usize = (MAX_GAMMA * MAX_GAMMA) as usize;
 
 /// One bit per pixel: at least one of its γ² rays hits the mesh.
 #[derive(Clone, Debug, PartialEq)]
@@ -401,6 +405,43 @@ impl RayStream {
             .iter()
             .map(|v| CamCtx::new(tracer, &v.camera))
             .collect();
+        // Cast in (view, row, column) order, so consecutive packets walk the same parts of the
+        // BVH (a pixel's result does not depend on when it is cast); rows are then filled in
+        // batch order.
+        let mut order: Vec<(usize, u32, u32, usize)> = pixels
+            .iter()
+            .enumerate()
+            .map(|(k, &i)| {
+                let (slot, u, v) = self.locate(i);
+                (slot, v, u, k)
+            })
+            .collect();
+        order.sort_unstable();
+        let keep = self.keep_triangles;
+        let cast: Vec<Vec<(PixelSummary, [SubSample; MAX_GAMMA_SQ])>> = order
+            .par_chunks(BATCH_CHUNK)
+            .map_init(
+                || tracer.scratch(),
+                |sc, chunk| {
+                    chunk
+                        .iter()
+                        .map(|&(slot, v, u, _)| {
+                            let mut subs = [SubSample::default(); MAX_GAMMA_SQ];
+                            let sum = cast_pixel(
+                                tracer,
+                                &ctxs[slot],
+                                self.gamma,
+                                u,
+                                v,
+                                sc,
+                                &mut subs[..s],
+                            );
+                            (sum, subs)
+                        })
+                        .collect()
+                },
+            )
+            .collect();
         let mut b = Batch {
             positions: vec![[0.0; 3]; n * s],
             valid: vec![0; n * s],
@@ -409,65 +450,36 @@ impl RayStream {
             target: vec![[0.0; 3]; n],
             ..Batch::default()
         };
-        if self.keep_triangles {
+        if keep {
             b.triangle = vec![u32::MAX; n * s];
             b.bary = vec![[0.0; 2]; n * s];
         }
-        let keep = self.keep_triangles;
-        let (tri_chunks, bary_chunks): (Vec<&mut [u32]>, Vec<&mut [[f64; 2]]>) = if keep {
-            (
-                b.triangle.chunks_mut(BATCH_CHUNK * s).collect(),
-                b.bary.chunks_mut(BATCH_CHUNK * s).collect(),
-            )
-        } else {
-            (
-                (0..n.div_ceil(BATCH_CHUNK)).map(|_| &mut [][..]).collect(),
-                (0..n.div_ceil(BATCH_CHUNK)).map(|_| &mut [][..]).collect(),
-            )
-        };
-        pixels
-            .par_chunks(BATCH_CHUNK)
-            .zip(b.positions.par_chunks_mut(BATCH_CHUNK * s))
-            .zip(b.valid.par_chunks_mut(BATCH_CHUNK * s))
-            .zip(b.dirs.par_chunks_mut(BATCH_CHUNK))
-            .zip(b.view.par_chunks_mut(BATCH_CHUNK))
-            .zip(b.target.par_chunks_mut(BATCH_CHUNK))
-            .zip(tri_chunks.into_par_iter().zip(bary_chunks))
-            .for_each_init(
-                || (tracer.scratch(), vec![SubSample::default(); s]),
-                |(sc, subs), ((((((px, pos), val), dirs), views), tgt), (tri, bary))| {
-                    for (k, &i) in px.iter().enumerate() {
-                        let (slot, u, v) = self.locate(i);
-                        let sv = &self.views[slot];
-                        let sum = cast_pixel(tracer, &ctxs[slot], self.gamma, u, v, sc, subs);
-                        for (j, ss) in subs.iter().enumerate() {
-                            let hit = ss.hit();
-                            // The cache's 32-bit fixed point (cache.rs), decoded exactly.
-                            pos[k * s + j] = if hit {
-                                ss.position
-                                    .to_array()
-                                    .map(|x| decode_coord(encode_coord(x)))
-                            } else {
-                                [0.0; 3]
-                            };
-                            val[k * s + j] = hit as u8;
-                            if keep {
-                                tri[k * s + j] = ss.triangle;
-                                bary[k * s + j] = if hit {
-                                    [ss.u, ss.v].map(|x| decode_coord(encode_coord(x)))
-                                } else {
-                                    [0.0; 2]
-                                };
-                            }
-                        }
-                        debug_assert!(sum.valid != 0, "a kept pixel sees the mesh");
-                        dirs[k] = sum.dir.as_vec3().to_array();
-                        views[k] = sv.view as i32;
-                        let o = 3 * (v as usize * sv.camera.width as usize + u as usize);
-                        tgt[k] = sv.targets.rgb(o);
+        for (&(slot, v, u, k), (sum, subs)) in order.iter().zip(cast.iter().flatten()) {
+            let sv = &self.views[slot];
+            for (j, ss) in subs[..s].iter().enumerate() {
+                let hit = ss.hit();
+                let r = k * s + j;
+                // The cache's 32-bit fixed point (cache.rs), decoded exactly.
+                if hit {
+                    b.positions[r] = ss
+                        .position
+                        .to_array()
+                        .map(|x| decode_coord(encode_coord(x)));
+                }
+                b.valid[r] = hit as u8;
+                if keep {
+                    b.triangle[r] = ss.triangle;
+                    if hit {
+                        b.bary[r] = [ss.u, ss.v].map(|x| decode_coord(encode_coord(x)));
                     }
-                },
-            );
+                }
+            }
+            debug_assert!(sum.valid != 0, "a kept pixel sees the mesh");
+            b.dirs[k] = sum.dir.as_vec3().to_array();
+            b.view[k] = sv.view as i32;
+            let o = 3 * (v as usize * sv.camera.width as usize + u as usize);
+            b.target[k] = sv.targets.rgb(o);
+        }
         b
     }
 }

@@ -457,11 +457,23 @@ pub fn train(
             seconds,
         });
     }
+    let peak = crate::train::memory::peak_rss_bytes();
     say(format!(
-        "trained {} steps in {seconds:.1} s; checkpoint {}",
+        "trained {} steps in {seconds:.1} s; checkpoint {}{}",
         state.step,
-        ckpt_path.display()
+        ckpt_path.display(),
+        peak.map_or(String::new(), |b| format!(
+            "; peak memory {:.2} GB",
+            b as f64 / 1e9
+        ))
     ));
+    if let Some(b) = peak {
+        writeln!(
+            metrics,
+            "{}",
+            serde_json::json!({"step": state.step, "peak_rss_bytes": b})
+        )?;
+    }
     let mut final_scores = None;
     if !opts.no_final_eval && !prepared.scene.test.is_empty() {
         let scores = evaluate(&state, &prepared, 0, Some(run_dir))?;

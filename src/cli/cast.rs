@@ -143,7 +143,15 @@ pub fn run(args: Args) -> Result<ExitCode> {
                 view.name
             ),
         };
-        cache.add_view(&tracer, i, &view.camera, img.as_ref(), &mut on_event)?;
+        let mask = scene.load_mask(i)?;
+        cache.add_view(
+            &tracer,
+            i,
+            &view.camera,
+            img.as_ref(),
+            mask.as_deref(),
+            &mut on_event,
+        )?;
         cast_s += t.elapsed().as_secs_f64();
         rays += (view.camera.width * view.camera.height * args.gamma * args.gamma) as u64;
     }

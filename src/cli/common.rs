@@ -208,3 +208,23 @@ pub fn select_views(scene: &Scene, spec: &str) -> Result<Vec<usize>> {
             .collect(),
     }
 }
+
+/// `--background`: `R,G,B` with values in [0, 1], or `white` / `black`.
+pub fn parse_background(s: &str) -> std::result::Result<[f32; 3], String> {
+    match s.trim().to_ascii_lowercase().as_str() {
+        "white" => return Ok([1.0; 3]),
+        "black" => return Ok([0.0; 3]),
+        _ => {}
+    }
+    let v: Vec<f32> = s
+        .split(',')
+        .map(|x| x.trim().parse::<f32>())
+        .collect::<std::result::Result<_, _>>()
+        .map_err(|e| format!("{s:?}: expected R,G,B (e.g. 1,1,1), white or black: {e}"))?;
+    match v[..] {
+        [r, g, b] if v.iter().all(|c| (0.0..=1.0).contains(c)) => Ok([r, g, b]),
+        _ => Err(format!(
+            "{s:?}: expected three values in [0, 1] (R,G,B), white or black"
+        )),
+    }
+}

@@ -1,13 +1,11 @@
-//! `xscale eval --checkpoint FILE | --run RUN --scene DIR [--json FILE] [--out DIR]`: PSNR and
-//! SSIM (SPEC §7), full image and masked, per held-out view and mean; a printed table; one
-//! side-by-side PNG per view (prediction | ground truth | error heat map) when `--out` is given.
+//! `xscale eval --checkpoint FILE | --run RUN --scene DIR [--json FILE] [--out DIR]`: PSNR, SSIM
+//! and ꟻLIP (SPEC §7), full image and masked, per held-out view and mean; a printed table; one
+//! side-by-side PNG per view (render | photo | error heat map | ꟻLIP) when `--out` is given.
 
 use super::common::{select_views, ModelArgs};
-use crate::eval::protocol::{mean_score, score_view, table};
-use crate::render::{heat_map, render_camera, side_by_side};
-use crate::scene::image::write_png8;
+use crate::eval::protocol::{evaluate_view, mean_score, table, write_evaluated};
 use anyhow::{Context, Result};
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::process::ExitCode;
 
 #[derive(clap::Args, Debug)]
@@ -20,9 +18,13 @@ pub struct Args {
     /// Write per-view and mean scores as JSON.
     #[arg(long)]
     pub json: Option<PathBuf>,
-    /// Write side-by-side images here.
+    /// Write side-by-side images here (render | photo | error | ꟻLIP), under each view's name.
     #[arg(long)]
     pub out: Option<PathBuf>,
+    /// Colour of pixels whose rays miss the mesh, `R,G,B` in [0, 1] or `white`/`black`
+    /// (default: the scene's `background` in scene.toml, else white).
+    #[arg(long, value_parser = super::common::parse_background)]
+    pub background: Option<[f32; 3]>,
 }
 
 pub fn run(a: Args) -> Result<ExitCode> {
@@ -35,27 +37,23 @@ pub fn run(a: Args) -> Result<ExitCode> {
     if let Some(d) = &a.out {
         std::fs::create_dir_all(d).with_context(|| format!("{}: cannot create", d.display()))?;
     }
+    let background = a.background.unwrap_or(s.scene.background);
     let mut scores = Vec::new();
     for &i in &views {
-        let v = &s.scene.views[i];
-        let r = render_camera(
+        let e = evaluate_view(
             &ck.model,
             &ck.params,
             &s.tracer,
-            &v.camera,
+            &s.scene,
+            i,
             ck.model.cfg.gamma,
             s.rows[i],
+            background,
         )?;
-        let gt = s.scene.load_image(i)?;
-        let (sc, g) = score_view(&v.name, &r.image, &gt, &r.hit);
         if let Some(d) = &a.out {
-            let heat = heat_map(&r.image, &g);
-            write_png8(
-                &d.join(Path::new(&v.name).with_extension("png")),
-                &side_by_side(&[&r.image, &g, &heat]),
-            )?;
+            write_evaluated(&e, &s.scene.views[i].name, None, Some(d))?;
         }
-        scores.push(sc);
+        scores.push(e.scored.score);
     }
     print!("{}", table(&scores));
     if let Some(j) = &a.json {

@@ -5,6 +5,7 @@
 //! whose rays all miss are white.
 
 use super::common::{select_views, ModelArgs};
+use crate::eval::protocol::output_name;
 use crate::render::{footprint_image, interpolate_camera, mask_image, render_camera};
 use crate::scene::image::{write_exr, write_png8};
 use crate::scene::{Camera, Image};
@@ -44,12 +45,24 @@ pub struct Args {
     /// Also write NAME_footprint.png (log pixel footprint on the surface).
     #[arg(long)]
     pub footprint: bool,
+    /// Colour of pixels whose rays miss the mesh, `R,G,B` in [0, 1] or `white`/`black`
+    /// (default: the scene's `background` in scene.toml, else white).
+    #[arg(long, value_parser = super::common::parse_background)]
+    pub background: Option<[f32; 3]>,
 }
 
-fn write(path: &Path, img: &Image, format: Format) -> Result<()> {
+/// Write `img` at `base` + `.png` / `.exr` (appended: a base such as `img.v2` keeps its dot).
+fn write(base: &Path, img: &Image, format: Format) -> Result<()> {
+    let mut p = base.as_os_str().to_owned();
     match format {
-        Format::Png => write_png8(&path.with_extension("png"), img),
-        Format::Exr => write_exr(&path.with_extension("exr"), img),
+        Format::Png => {
+            p.push(".png");
+            write_png8(Path::new(&p), img)
+        }
+        Format::Exr => {
+            p.push(".exr");
+            write_exr(Path::new(&p), img)
+        }
     }
 }
 
@@ -58,19 +71,23 @@ pub fn run(a: Args) -> Result<ExitCode> {
     let gamma = a.gamma.unwrap_or(ck.model.cfg.gamma);
     std::fs::create_dir_all(&a.out)
         .with_context(|| format!("{}: cannot create", a.out.display()))?;
-    // (file stem, camera, appearance row)
-    let jobs: Vec<(String, Camera, i32)> = match &a.path {
+    let background = a.background.unwrap_or(s.scene.background);
+    // (output path without extension, camera, appearance row)
+    let jobs: Vec<(PathBuf, Camera, i32)> = match &a.path {
         Some(p) => {
             let ends = select_views(&s.scene, p)?;
             if ends.len() != 2 {
                 bail!("--path takes two views A,B, got {p:?}");
             }
             let (va, vb) = (&s.scene.views[ends[0]], &s.scene.views[ends[1]]);
-            (0..a.frames.max(1))
+            if a.frames == 0 {
+                bail!("--frames 0: a path needs at least one frame");
+            }
+            (0..a.frames)
                 .map(|i| {
                     (
-                        format!("frame_{i:04}"),
-                        interpolate_camera(&va.camera, &vb.camera, i, a.frames.max(1)),
+                        PathBuf::from(format!("frame_{i:04}")),
+                        interpolate_camera(&va.camera, &vb.camera, i, a.frames),
                         -1,
                     )
                 })
@@ -80,33 +97,45 @@ pub fn run(a: Args) -> Result<ExitCode> {
             .into_iter()
             .map(|i| {
                 let v = &s.scene.views[i];
-                let stem = Path::new(&v.name)
-                    .file_stem()
-                    .map_or(v.name.clone(), |x| x.to_string_lossy().into());
-                (stem, v.camera.clone(), s.rows[i])
+                // The view's name with its folders (`a/0000.png` → `a/0000`), so views in
+                // different folders do not overwrite each other.
+                (output_name(&v.name, ""), v.camera.clone(), s.rows[i])
             })
             .collect(),
     };
     let t0 = std::time::Instant::now();
     for (k, (stem, cam, row)) in jobs.iter().enumerate() {
-        let r = render_camera(&ck.model, &ck.params, &s.tracer, cam, gamma, *row)?;
-        write(&a.out.join(stem), &r.image, a.format)?;
+        let r = render_camera(
+            &ck.model, &ck.params, &s.tracer, cam, gamma, *row, background,
+        )?;
+        let base = a.out.join(stem);
+        if let Some(parent) = base.parent() {
+            std::fs::create_dir_all(parent)
+                .with_context(|| format!("{}: cannot create", parent.display()))?;
+        }
+        let with_suffix = |suffix: &str| {
+            let mut p = base.clone().into_os_string();
+            p.push(suffix);
+            PathBuf::from(p)
+        };
+        write(&base, &r.image, a.format)?;
         if a.mask {
             write_png8(
-                &a.out.join(format!("{stem}_mask.png")),
+                &with_suffix("_mask.png"),
                 &mask_image(&r.hit, cam.width, cam.height),
             )?;
         }
         if a.footprint {
             write_png8(
-                &a.out.join(format!("{stem}_footprint.png")),
+                &with_suffix("_footprint.png"),
                 &footprint_image(&r.footprint, cam.width, cam.height),
             )?;
         }
         eprintln!(
-            "[{}/{}] {stem} ({}×{})",
+            "[{}/{}] {} ({}×{})",
             k + 1,
             jobs.len(),
+            stem.display(),
             cam.width,
             cam.height
         );

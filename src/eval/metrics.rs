@@ -137,6 +137,43 @@ pub fn ssim_masked(a: &[f32], b: &[f32], w: usize, h: usize, mask: &[bool]) -> f
     ssim_impl(a, b, w, h, Some(mask))
 }
 
+/// Per-pixel ꟻLIP error (NVIDIA's LDR ꟻLIP, Andersson et al. 2020, via the `nv-flip` crate's
+/// reference C++), `[h*w]` values in [0, 1], of `test` against `reference` (both RGB in [0, 1],
+/// sRGB-encoded, quantised to 8 bits as `round(clamp(v, 0, 1)·255)` as ꟻLIP's LDR mode reads
+/// images), at ꟻLIP's default 67 pixels per degree (a 0.7 m wide monitor of 3840 pixels viewed
+/// from 0.7 m).
+pub fn flip_map(reference: &[f32], test: &[f32], w: usize, h: usize) -> Vec<f32> {
+    assert_eq!(reference.len(), w * h * 3, "reference is not {w}×{h}×3");
+    assert_eq!(test.len(), w * h * 3, "test is not {w}×{h}×3");
+    let q = |d: &[f32]| -> Vec<u8> {
+        d.iter()
+            .map(|&v| (if v.is_nan() { 0.0 } else { v.clamp(0.0, 1.0) } * 255.0).round() as u8)
+            .collect()
+    };
+    let (rq, tq) = (q(reference), q(test));
+    let r = nv_flip::FlipImageRgb8::with_data(w as u32, h as u32, &rq);
+    let t = nv_flip::FlipImageRgb8::with_data(w as u32, h as u32, &tq);
+    nv_flip::flip(r, t, nv_flip::DEFAULT_PIXELS_PER_DEGREE).to_vec()
+}
+
+/// Mean of a per-pixel map over the pixels where `mask` is true (all pixels without a mask);
+/// NaN when no pixel counts.
+pub fn masked_mean(map: &[f32], mask: Option<&[bool]>) -> f64 {
+    let (mut s, mut n) = (0.0f64, 0usize);
+    for (i, &v) in map.iter().enumerate() {
+        if mask.is_some_and(|m| !m[i]) {
+            continue;
+        }
+        s += v as f64;
+        n += 1;
+    }
+    if n == 0 {
+        f64::NAN
+    } else {
+        s / n as f64
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

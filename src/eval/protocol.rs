@@ -1,49 +1,111 @@
-//! The held-out protocol (SPEC §7): render each test view, paint pixels whose rays all miss white
-//! in both the prediction and the ground truth, and report PSNR / SSIM over the full image and
-//! over the hit pixels only.
+//! The held-out protocol (SPEC §7): render each test view (misses in the scene's background
+//! colour) and score it against its photo with PSNR, SSIM and ꟻLIP, over two pixel sets:
+//!
+//! - **full**: every pixel (inside the object mask when the scene has masks), the render against
+//!   the photo *as it is* — misses of the mesh count as the error they are, so silhouette errors
+//!   of the mesh show;
+//! - **masked**: the pixels whose rays hit the mesh (and inside the object mask), the photo's
+//!   misses painted with the background colour like the render's (so SSIM windows that straddle
+//!   the silhouette compare background with background, as in the official protocol where both
+//!   are painted white).
+//!
+//! A view whose every ray misses (or whose mask holds no hit) has no masked score (NaN); means
+//! skip NaN values metric by metric, and `mean_score` says which views had none. SSIM needs an
+//! image of at least 11×11 pixels (its window); smaller views have no SSIM (NaN, "n/a").
+//! With masks, `mask_miss` is the fraction of mask pixels the mesh misses (silhouette coverage).
 
-use crate::eval::metrics::{psnr, psnr_masked, ssim, ssim_masked};
-use crate::scene::Image;
+use crate::eval::metrics::{flip_map, masked_mean, psnr_masked, ssim, ssim_masked};
+use crate::model::hfm::Hfm;
+use crate::raycast::Tracer;
+use crate::render::{comparison, render_camera, Rendered};
+use crate::scene::image::write_png8;
+use crate::scene::{Image, Scene};
+use anyhow::{Context, Result};
 use serde::Serialize;
+use std::path::{Path, PathBuf};
 
-#[derive(Clone, Debug, Serialize)]
+#[derive(Clone, Debug, Serialize, PartialEq)]
 pub struct ViewScore {
     pub view: String,
+    /// Full image (inside the object mask, if any): render vs the untouched photo.
     pub psnr: f64,
     pub ssim: f64,
+    /// Mean ꟻLIP error over the same pixels (lower is better).
+    pub flip: f64,
+    /// Hit pixels only (inside the object mask, if any).
     pub psnr_masked: f64,
     pub ssim_masked: f64,
+    pub flip_masked: f64,
     /// Fraction of pixels whose rays hit the mesh.
     pub hit_fraction: f64,
+    /// Fraction of object-mask pixels the mesh misses (scenes with masks only).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub mask_miss: Option<f64>,
 }
 
-/// Ground truth with misses painted white (the prediction already has them white).
-pub fn mask_ground_truth(gt: &Image, hit: &[bool]) -> Image {
+/// A scored view: the scores, the photo with misses painted in the background colour (for the
+/// side-by-side) and the per-pixel ꟻLIP error of the full image.
+pub struct Scored {
+    pub score: ViewScore,
+    pub painted: Image,
+    pub flip_map: Vec<f32>,
+}
+
+/// The photo with the pixels whose rays all miss painted `background`.
+pub fn paint_misses(gt: &Image, hit: &[bool], background: [f32; 3]) -> Image {
     let mut g = gt.clone();
     for (i, &h) in hit.iter().enumerate() {
         if !h {
-            g.data[i * 3..i * 3 + 3].fill(1.0);
+            g.data[i * 3..i * 3 + 3].copy_from_slice(&background);
         }
     }
     g
 }
 
-/// Score a prediction (misses white) against a ground truth (misses painted white here).
-pub fn score_view(name: &str, pred: &Image, gt: &Image, hit: &[bool]) -> (ViewScore, Image) {
-    let g = mask_ground_truth(gt, hit);
+/// Score a render (misses already `background`) against its untouched photo (module docs).
+pub fn score_view(
+    name: &str,
+    pred: &Image,
+    gt: &Image,
+    hit: &[bool],
+    mask: Option<&[bool]>,
+    background: [f32; 3],
+) -> Scored {
     let (w, h) = (pred.width as usize, pred.height as usize);
-    let s = ViewScore {
+    let painted = paint_misses(gt, hit, background);
+    let all = vec![true; hit.len()];
+    let full: &[bool] = mask.unwrap_or(&all);
+    let hit_in: Vec<bool> = hit.iter().zip(full).map(|(&a, &b)| a && b).collect();
+    let fmap = flip_map(&gt.data, &pred.data, w, h);
+    let fmap_masked = flip_map(&painted.data, &pred.data, w, h);
+    let mask_miss = mask.map(|m| {
+        let inside = m.iter().filter(|&&x| x).count();
+        let missed = m.iter().zip(hit).filter(|&(&x, &h)| x && !h).count();
+        missed as f64 / inside.max(1) as f64
+    });
+    let score = ViewScore {
         view: name.to_string(),
-        psnr: psnr(&pred.data, &g.data),
-        ssim: ssim(&pred.data, &g.data, w, h),
-        psnr_masked: psnr_masked(&pred.data, &g.data, hit),
-        ssim_masked: ssim_masked(&pred.data, &g.data, w, h, hit),
+        psnr: psnr_masked(&pred.data, &gt.data, full),
+        ssim: match mask {
+            None => ssim(&pred.data, &gt.data, w, h),
+            Some(m) => ssim_masked(&pred.data, &gt.data, w, h, m),
+        },
+        flip: masked_mean(&fmap, Some(full)),
+        psnr_masked: psnr_masked(&pred.data, &painted.data, &hit_in),
+        ssim_masked: ssim_masked(&pred.data, &painted.data, w, h, &hit_in),
+        flip_masked: masked_mean(&fmap_masked, Some(&hit_in)),
         hit_fraction: hit.iter().filter(|&&x| x).count() as f64 / hit.len().max(1) as f64,
+        mask_miss,
     };
-    (s, g)
+    Scored {
+        score,
+        painted,
+        flip_map: fmap,
+    }
 }
 
-/// Mean of each metric over views (NaN-free views only for each metric).
+/// Mean of each metric over views; a view whose value is not finite (no hit pixel, an image
+/// smaller than SSIM's window, a perfect PSNR) is left out of that metric's mean.
 pub fn mean_score(scores: &[ViewScore]) -> ViewScore {
     let mean = |f: &dyn Fn(&ViewScore) -> f64| {
         let v: Vec<f64> = scores.iter().map(f).filter(|x| x.is_finite()).collect();
@@ -53,32 +115,155 @@ pub fn mean_score(scores: &[ViewScore]) -> ViewScore {
             v.iter().sum::<f64>() / v.len() as f64
         }
     };
+    let any_mask = scores.iter().any(|s| s.mask_miss.is_some());
     ViewScore {
         view: "mean".into(),
         psnr: mean(&|s| s.psnr),
         ssim: mean(&|s| s.ssim),
+        flip: mean(&|s| s.flip),
         psnr_masked: mean(&|s| s.psnr_masked),
         ssim_masked: mean(&|s| s.ssim_masked),
+        flip_masked: mean(&|s| s.flip_masked),
         hit_fraction: mean(&|s| s.hit_fraction),
+        mask_miss: any_mask.then(|| mean(&|s| s.mask_miss.unwrap_or(f64::NAN))),
     }
 }
 
-/// A printed table of scores.
+/// Names of the views left out of the masked means (no pixel hits the mesh).
+pub fn views_without_hits(scores: &[ViewScore]) -> Vec<String> {
+    scores
+        .iter()
+        .filter(|s| !s.psnr_masked.is_finite())
+        .map(|s| s.view.clone())
+        .collect()
+}
+
+fn cell(v: f64, width: usize, prec: usize) -> String {
+    if v.is_nan() {
+        format!("{:>width$}", "n/a")
+    } else {
+        format!("{v:>width$.prec$}")
+    }
+}
+
+/// A printed table of scores (n/a where a metric has no value; see the module doc).
 pub fn table(scores: &[ViewScore]) -> String {
+    let masks = scores.iter().any(|s| s.mask_miss.is_some());
     let mut out = format!(
-        "{:<24} {:>8} {:>7} {:>11} {:>10} {:>6}\n",
-        "view", "PSNR", "SSIM", "PSNR(mask)", "SSIM(mask)", "hit%"
+        "{:<24} {:>8} {:>7} {:>6} {:>11} {:>10} {:>10} {:>6}{}\n",
+        "view",
+        "PSNR",
+        "SSIM",
+        "FLIP",
+        "PSNR(mask)",
+        "SSIM(mask)",
+        "FLIP(mask)",
+        "hit%",
+        if masks { "  miss%" } else { "" }
     );
     for s in scores.iter().chain(std::iter::once(&mean_score(scores))) {
         out += &format!(
-            "{:<24} {:>8.3} {:>7.4} {:>11.3} {:>10.4} {:>6.1}\n",
+            "{:<24} {} {} {} {} {} {} {}{}\n",
             s.view,
-            s.psnr,
-            s.ssim,
-            s.psnr_masked,
-            s.ssim_masked,
-            100.0 * s.hit_fraction
+            cell(s.psnr, 8, 3),
+            cell(s.ssim, 7, 4),
+            cell(s.flip, 6, 4),
+            cell(s.psnr_masked, 11, 3),
+            cell(s.ssim_masked, 10, 4),
+            cell(s.flip_masked, 10, 4),
+            cell(100.0 * s.hit_fraction, 6, 1),
+            s.mask_miss
+                .map_or(String::new(), |m| format!(" {}", cell(100.0 * m, 6, 2)))
+        );
+    }
+    let none = views_without_hits(scores);
+    if !none.is_empty() {
+        out += &format!(
+            "(no pixel of {} sees the mesh: left out of the masked means)\n",
+            none.join(", ")
         );
     }
     out
+}
+
+/// A held-out view rendered and scored.
+pub struct Evaluated {
+    pub rendered: Rendered,
+    pub scored: Scored,
+}
+
+/// Render scene view `i` with the model (appearance row `row`, −1 = mean code) at γ = `gamma`,
+/// misses in `background`, and score it against its photo inside its mask (module docs).
+#[allow(clippy::too_many_arguments)]
+pub fn evaluate_view(
+    model: &Hfm,
+    params: &[f32],
+    tracer: &Tracer,
+    scene: &Scene,
+    i: usize,
+    gamma: u32,
+    row: i32,
+    background: [f32; 3],
+) -> Result<Evaluated> {
+    let view = &scene.views[i];
+    let rendered = render_camera(model, params, tracer, &view.camera, gamma, row, background)?;
+    let gt = scene.load_image(i)?;
+    let mask = scene.load_mask(i)?;
+    let scored = score_view(
+        &view.name,
+        &rendered.image,
+        &gt,
+        &rendered.hit,
+        mask.as_deref(),
+        background,
+    );
+    Ok(Evaluated { rendered, scored })
+}
+
+/// The relative output path of a view named `name` (its folders kept, so `a/0000.png` and
+/// `b/0000.png` do not collide; `..`, root and prefix components dropped) with its extension
+/// replaced by `ext` (`""` removes it).
+pub fn output_name(name: &str, ext: &str) -> PathBuf {
+    let p: PathBuf = Path::new(name)
+        .components()
+        .filter_map(|c| match c {
+            std::path::Component::Normal(s) => Some(s),
+            _ => None,
+        })
+        .collect();
+    let p = if p.as_os_str().is_empty() {
+        PathBuf::from("view")
+    } else {
+        p
+    };
+    p.with_extension(ext)
+}
+
+/// Write `img` as an 8-bit PNG at `dir/<output_name(name)>`, creating its folders.
+pub fn write_view_png(dir: &Path, name: &str, img: &Image) -> Result<PathBuf> {
+    let path = dir.join(output_name(name, "png"));
+    if let Some(parent) = path.parent() {
+        std::fs::create_dir_all(parent)
+            .with_context(|| format!("{}: cannot create", parent.display()))?;
+    }
+    write_png8(&path, img)?;
+    Ok(path)
+}
+
+/// Write an evaluated view's render into `render_dir` and its side-by-side (render | photo |
+/// error | ꟻLIP) into `compare_dir`, each under the view's own name.
+pub fn write_evaluated(
+    e: &Evaluated,
+    name: &str,
+    render_dir: Option<&Path>,
+    compare_dir: Option<&Path>,
+) -> Result<()> {
+    if let Some(d) = render_dir {
+        write_view_png(d, name, &e.rendered.image)?;
+    }
+    if let Some(d) = compare_dir {
+        let cmp = comparison(&e.rendered.image, &e.scored.painted, &e.scored.flip_map);
+        write_view_png(d, name, &cmp)?;
+    }
+    Ok(())
 }

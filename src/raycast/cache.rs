@@ -141,21 +141,41 @@ fn check_image(i: usize, cam: &Camera, img: Option<&Image>) -> Result<()> {
     Ok(())
 }
 
-/// Keep the pixels of one cast strip that see the mesh.
+/// A mask must have one value per pixel of the camera.
+pub(crate) fn check_mask(i: usize, cam: &Camera, mask: Option<&[bool]>) -> Result<()> {
+    if let Some(m) = mask {
+        let want = cam.width as usize * cam.height as usize;
+        if m.len() != want {
+            bail!(
+                "view {i}: mask has {} values, expected {}×{}",
+                m.len(),
+                cam.width,
+                cam.height
+            );
+        }
+    }
+    Ok(())
+}
+
+/// Keep the pixels of one cast strip that see the mesh (and lie inside the mask, if any).
 #[allow(clippy::too_many_arguments)]
 fn compact(
     cam: &Camera,
     img: Option<&Image>,
+    mask: Option<&[bool]>,
     y0: u32,
     g2: usize,
     subs: &[SubSample],
     pixels: &[PixelSummary],
     keep_triangles: bool,
 ) -> Part {
-    let kept = pixels.iter().filter(|px| px.valid != 0).count();
+    let inside = |k: usize| mask.is_none_or(|m| m[y0 as usize * cam.width as usize + k]);
+    let kept = (0..pixels.len())
+        .filter(|&k| pixels[k].valid != 0 && inside(k))
+        .count();
     let mut p = Part::with_capacity(kept, g2, keep_triangles);
     for (k, px) in pixels.iter().enumerate() {
-        if px.valid == 0 {
+        if px.valid == 0 || !inside(k) {
             continue;
         }
         let (u, v) = (k as u32 % cam.width, y0 + k as u32 / cam.width);
@@ -283,7 +303,7 @@ impl SampleCache {
             check_image(i, cam, *img)?;
         }
         for (i, (cam, img)) in views.iter().enumerate() {
-            c.add_view(tracer, i, cam, *img, on_event)?;
+            c.add_view(tracer, i, cam, *img, None, on_event)?;
         }
         Ok(c)
     }
@@ -304,23 +324,26 @@ impl SampleCache {
             check_image(i, cam, *img)?;
         }
         for (i, (cam, img)) in views.iter().enumerate() {
-            c.add_view(tracer, i, cam, *img, on_event)?;
+            c.add_view(tracer, i, cam, *img, None, on_event)?;
         }
         Ok(c)
     }
 
     /// Cast one view and append its kept pixels (so a caller can load one image at a time).
-    /// `view` is the index stored with its pixels (e.g. the scene's view index). Returns the
-    /// number of kept pixels; a view with none is recorded in [`SampleCache::dropped`].
+    /// `view` is the index stored with its pixels (e.g. the scene's view index); with an object
+    /// `mask` (`[h*w]`), only pixels inside it are kept. Returns the number of kept pixels; a
+    /// view with none is recorded in [`SampleCache::dropped`].
     pub fn add_view(
         &mut self,
         tracer: &Tracer,
         view: usize,
         cam: &Camera,
         img: Option<&Image>,
+        mask: Option<&[bool]>,
         on_event: &mut dyn FnMut(CacheEvent),
     ) -> Result<usize> {
         check_image(view, cam, img)?;
+        check_mask(view, cam, mask)?;
         let (gamma, g2) = (self.gamma, self.samples_per_pixel());
         let keep = self.keep_triangles;
         let ctx = CamCtx::new(tracer, cam);
@@ -342,7 +365,16 @@ impl SampleCache {
                         &mut subs[..npix * g2],
                         &mut pixels[..npix],
                     );
-                    compact(cam, img, y0, g2, &subs[..npix * g2], &pixels[..npix], keep)
+                    compact(
+                        cam,
+                        img,
+                        mask,
+                        y0,
+                        g2,
+                        &subs[..npix * g2],
+                        &pixels[..npix],
+                        keep,
+                    )
                 },
             )
             .collect();

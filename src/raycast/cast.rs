@@ -373,9 +373,29 @@ pub(crate) fn strips(height: u32) -> Vec<(u32, u32)> {
 
 /// Cast every pixel of one camera with γ×γ rays (parallel over strips, deterministic).
 pub fn cast_view(tracer: &Tracer, camera: &Camera, gamma: u32) -> Result<ViewCast> {
+    cast_rows(tracer, camera, gamma, 0, camera.height)
+}
+
+/// Cast the pixel rows `y0 .. y0+rows` of a camera (`ViewCast::height` = `rows`; pixel (u, r)
+/// of the result is image pixel (u, y0 + r)). A pixel's result does not depend on the band it
+/// is cast in, so tiled rendering gives the same image as one whole-view cast.
+pub fn cast_rows(
+    tracer: &Tracer,
+    camera: &Camera,
+    gamma: u32,
+    y0: u32,
+    rows: u32,
+) -> Result<ViewCast> {
     check_gamma(gamma)?;
+    if y0.checked_add(rows).is_none_or(|e| e > camera.height) {
+        bail!(
+            "rows {y0}..{} are outside the {}-row image",
+            y0 as u64 + rows as u64,
+            camera.height
+        );
+    }
     let ctx = CamCtx::new(tracer, camera);
-    let (w, h) = (camera.width as usize, camera.height as usize);
+    let (w, h) = (camera.width as usize, rows as usize);
     let g2 = (gamma * gamma) as usize;
     // Filled in parallel on huge pages: at 1024×768, γ=2 this is 277 MB, and 4 KiB page faults
     // serialise the threads.
@@ -383,21 +403,21 @@ pub fn cast_view(tracer: &Tracer, camera: &Camera, gamma: u32) -> Result<ViewCas
     super::advise_huge_pages(&mut subs);
     subs.par_extend(rayon::iter::repeat_n(SubSample::default(), w * h * g2));
     let mut pixels = vec![PixelSummary::default(); w * h];
-    let rows = STRIP_ROWS as usize;
-    subs.par_chunks_mut(rows * w * g2)
-        .zip(pixels.par_chunks_mut(rows * w))
+    let strip = STRIP_ROWS as usize;
+    subs.par_chunks_mut(strip * w * g2)
+        .zip(pixels.par_chunks_mut(strip * w))
         .enumerate()
         .for_each_init(
             || tracer.scratch(),
             |sc, (k, (s, p))| {
-                let y0 = (k * rows) as u32;
+                let y = y0 + (k * strip) as u32;
                 let r = (p.len() / w.max(1)) as u32;
-                cast_strip(tracer, &ctx, gamma, y0, r, sc, s, p)
+                cast_strip(tracer, &ctx, gamma, y, r, sc, s, p)
             },
         );
     Ok(ViewCast {
         width: camera.width,
-        height: camera.height,
+        height: rows,
         gamma,
         subs,
         pixels,

@@ -236,6 +236,7 @@ fn strip_hits(
     tracer: &Tracer,
     ctx: &CamCtx,
     cam: &Camera,
+    mask: Option<&[bool]>,
     gamma: u32,
     (y0, rows): (u32, u32),
     buf: &mut (super::bvh::Scratch, Vec<SubSample>, Vec<PixelSummary>),
@@ -259,7 +260,8 @@ fn strip_hits(
     let mut bits = vec![0u64; wpr * rows as usize];
     let mut fmin = f32::INFINITY;
     for (k, px) in pixels[..npix].iter().enumerate() {
-        if px.valid != 0 {
+        let inside = mask.is_none_or(|m| m[y0 as usize * cam.width as usize + k]);
+        if px.valid != 0 && inside {
             let (u, r) = (k % cam.width as usize, k / cam.width as usize);
             bits[r * wpr + u / 64] |= 1 << (u % 64);
             fmin = fmin.min(px.footprint as f32);
@@ -299,6 +301,7 @@ impl RayStream {
                 i,
                 cam,
                 img.map_or(Targets::None, Targets::from_image),
+                None,
                 on_event,
             )?;
         }
@@ -306,16 +309,19 @@ impl RayStream {
     }
 
     /// Cast one view for its hit map and keep it with its photo (so a caller can load one image
-    /// at a time). `view` is the index stored with its pixels. Returns the number of kept pixels;
-    /// a view with none is recorded in [`RayStream::dropped`].
+    /// at a time). `view` is the index stored with its pixels; with an object `mask` (`[h*w]`),
+    /// only pixels inside it are kept, as in the cache. Returns the number of kept pixels; a view
+    /// with none is recorded in [`RayStream::dropped`].
     pub fn add_view(
         &mut self,
         tracer: &Tracer,
         view: usize,
         cam: &Camera,
         targets: Targets,
+        mask: Option<&[bool]>,
         on_event: &mut dyn FnMut(CacheEvent),
     ) -> Result<usize> {
+        super::cache::check_mask(view, cam, mask)?;
         let want = 3 * cam.width as usize * cam.height as usize;
         let have = match &targets {
             Targets::None => want,
@@ -335,7 +341,7 @@ impl RayStream {
             .into_par_iter()
             .map_init(
                 || (tracer.scratch(), Vec::new(), Vec::new()),
-                |buf, strip| strip_hits(tracer, &ctx, cam, self.gamma, strip, buf),
+                |buf, strip| strip_hits(tracer, &ctx, cam, mask, self.gamma, strip, buf),
             )
             .collect();
         let footprint_min = parts.iter().map(|p| p.1).fold(f32::INFINITY, f32::min);

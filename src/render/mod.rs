@@ -1,10 +1,11 @@
-//! Rendering (SPEC §1 last stage): cast γ×γ rays for any camera, evaluate the model on the
-//! pixels that hit the mesh, paint misses white (the official protocol), plus camera paths
-//! between two views and the hit-mask / footprint / side-by-side images.
+//! Rendering (SPEC §1 last stage): cast γ×γ rays for any camera in bands of rows, evaluate the
+//! model on the pixels that hit the mesh, paint misses in a background colour (white in the
+//! official protocol; the scene's `background`), plus camera paths between two views and the
+//! hit-mask / footprint / side-by-side images.
 
 use crate::model::batch::Batch;
 use crate::model::hfm::Hfm;
-use crate::raycast::{cast_view, Tracer};
+use crate::raycast::{cast_rows, Tracer};
 use crate::scene::{Camera, Image};
 use anyhow::Result;
 use glam::{DMat3, DQuat};
@@ -13,10 +14,18 @@ use glam::{DMat3, DQuat};
 /// every pixel's colour is computed independently).
 pub const RENDER_CHUNK: usize = 8192;
 
+/// Sub-samples cast per band of rows while rendering: a frame is cast and shaded one band of
+/// rows at a time, so a 12-megapixel frame at γ = 2 never holds more than ~90 MB of sub-samples
+/// (88 bytes each). Results do not depend on it (every pixel is independent).
+pub const RENDER_BAND_SAMPLES: usize = 1 << 20;
+
+/// White: the official protocol's colour for pixels whose rays all miss.
+pub const WHITE: [f32; 3] = [1.0; 3];
+
 /// A rendered view.
 #[derive(Clone, Debug)]
 pub struct Rendered {
-    /// RGB in [0,1]; pixels whose rays all miss are white.
+    /// RGB in [0,1]; pixels whose rays all miss have the background colour.
     pub image: Image,
     /// `[h*w]` at least one sub-sample hit the mesh.
     pub hit: Vec<bool>,
@@ -24,7 +33,14 @@ pub struct Rendered {
     pub footprint: Vec<f32>,
 }
 
-/// Render `camera` with the model; `view_row` is the appearance row (−1: mean code).
+/// Rows per band for an image `width` wide at γ (at least one row).
+pub fn band_rows(width: u32, gamma: u32) -> u32 {
+    let per_row = (width as usize * (gamma * gamma) as usize).max(1);
+    ((RENDER_BAND_SAMPLES / per_row).max(1)) as u32
+}
+
+/// Render `camera` with the model; `view_row` is the appearance row (−1: mean code); pixels whose
+/// rays all miss get `background`. Cast and shaded in bands of rows ([`RENDER_BAND_SAMPLES`]).
 pub fn render_camera(
     model: &Hfm,
     params: &[f32],
@@ -32,45 +48,53 @@ pub fn render_camera(
     camera: &Camera,
     gamma: u32,
     view_row: i32,
+    background: [f32; 3],
 ) -> Result<Rendered> {
-    let cast = cast_view(tracer, camera, gamma)?;
-    let (w, h) = (cast.width as usize, cast.height as usize);
+    let (w, h) = (camera.width as usize, camera.height as usize);
     let s = (gamma * gamma) as usize;
-    let hit: Vec<bool> = cast.pixels.iter().map(|p| p.valid != 0).collect();
-    let footprint: Vec<f32> = cast.pixels.iter().map(|p| p.footprint as f32).collect();
-    let hits: Vec<usize> = (0..w * h).filter(|&i| hit[i]).collect();
-    let mut data = vec![1.0f32; w * h * 3];
-    for chunk in hits.chunks(RENDER_CHUNK) {
-        let mut b = Batch {
-            positions: Vec::with_capacity(chunk.len() * s),
-            valid: Vec::with_capacity(chunk.len() * s),
-            dirs: Vec::with_capacity(chunk.len()),
-            view: vec![view_row; chunk.len()],
-            target: vec![[0.0; 3]; chunk.len()],
-            ..Batch::default()
-        };
-        let ids = model.vertex.is_some();
-        for &i in chunk {
-            let px = &cast.pixels[i];
-            for sub in &cast.subs[i * s..(i + 1) * s] {
-                b.positions.push(sub.position.to_array());
-                b.valid.push(sub.hit() as u8);
-                if ids {
-                    b.triangle.push(sub.triangle);
-                    b.bary
-                        .push(if sub.hit() { [sub.u, sub.v] } else { [0.0; 2] });
-                }
-            }
-            b.dirs.push(px.dir.as_vec3().to_array());
+    let mut data: Vec<f32> = background.iter().copied().cycle().take(w * h * 3).collect();
+    let mut hit = vec![false; w * h];
+    let mut footprint = vec![0.0f32; w * h];
+    let band = band_rows(camera.width, gamma);
+    for y0 in (0..camera.height).step_by(band as usize) {
+        let rows = band.min(camera.height - y0);
+        let cast = cast_rows(tracer, camera, gamma, y0, rows)?;
+        let off = y0 as usize * w;
+        for (i, p) in cast.pixels.iter().enumerate() {
+            hit[off + i] = p.valid != 0;
+            footprint[off + i] = p.footprint as f32;
         }
-        let fwd = model.forward(params, &b)?;
-        let rgb: Vec<f32> = fwd
-            .chunks
-            .iter()
-            .flat_map(|c| c.rgb.iter().copied())
+        let hits: Vec<usize> = (0..cast.pixels.len())
+            .filter(|&i| cast.pixels[i].valid != 0)
             .collect();
-        for (k, &i) in chunk.iter().enumerate() {
-            data[i * 3..i * 3 + 3].copy_from_slice(&rgb[k * 3..k * 3 + 3]);
+        for chunk in hits.chunks(RENDER_CHUNK) {
+            let mut b = Batch {
+                positions: Vec::with_capacity(chunk.len() * s),
+                valid: Vec::with_capacity(chunk.len() * s),
+                dirs: Vec::with_capacity(chunk.len()),
+                view: vec![view_row; chunk.len()],
+                target: vec![[0.0; 3]; chunk.len()],
+                ..Batch::default()
+            };
+            let ids = model.vertex.is_some();
+            for &i in chunk {
+                let px = &cast.pixels[i];
+                for sub in &cast.subs[i * s..(i + 1) * s] {
+                    b.positions.push(sub.position.to_array());
+                    b.valid.push(sub.hit() as u8);
+                    if ids {
+                        b.triangle.push(sub.triangle);
+                        b.bary
+                            .push(if sub.hit() { [sub.u, sub.v] } else { [0.0; 2] });
+                    }
+                }
+                b.dirs.push(px.dir.as_vec3().to_array());
+            }
+            let fwd = model.forward(params, &b)?;
+            let rgb = fwd.chunks.iter().flat_map(|c| c.rgb.iter().copied());
+            for (&i, c) in chunk.iter().zip(rgb.collect::<Vec<f32>>().chunks_exact(3)) {
+                data[(off + i) * 3..(off + i) * 3 + 3].copy_from_slice(c);
+            }
         }
     }
     Ok(Rendered {
@@ -173,6 +197,25 @@ pub fn heat_map(a: &Image, b: &Image) -> Image {
         height: a.height,
         data,
     }
+}
+
+/// A ꟻLIP error map (`[h*w]` values in [0, 1]) in ꟻLIP's magma colour map.
+pub fn flip_image(map: &[f32], w: u32, h: u32) -> Image {
+    let f = nv_flip::FlipImageFloat::with_data(w, h, map);
+    let rgb = f.apply_color_lut(&nv_flip::magma_lut()).to_vec();
+    Image {
+        width: w,
+        height: h,
+        data: rgb.iter().map(|&v| v as f32 / 255.0).collect(),
+    }
+}
+
+/// The side-by-side of a scored view: render | photo (misses painted) | |error| heat map |
+/// ꟻLIP map.
+pub fn comparison(pred: &Image, painted: &Image, flip: &[f32]) -> Image {
+    let heat = heat_map(pred, painted);
+    let f = flip_image(flip, pred.width, pred.height);
+    side_by_side(&[pred, painted, &heat, &f])
 }
 
 /// Images of equal height side by side.

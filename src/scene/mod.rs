@@ -12,12 +12,14 @@
 pub mod camera;
 pub mod colmap;
 pub mod image;
+pub mod mask;
 pub mod mesh;
 pub mod mvsnet;
 pub mod remesh;
 pub mod transforms;
 
 pub use camera::{Camera, Distortion};
+pub use mask::MaskSource;
 
 use glam::DVec3;
 use std::path::{Path, PathBuf};
@@ -123,6 +125,11 @@ pub struct Scene {
     pub normalization: Normalization,
     /// Integer downsample factor applied to every image (1 = none).
     pub downsample: u32,
+    /// Per view (same order as `views`): where its object mask comes from (`scene/mask.rs`).
+    pub masks: Vec<MaskSource>,
+    /// Colour of pixels whose rays all miss the mesh in renders (RGB in [0, 1]; `scene.toml`
+    /// `background`, default white as the official protocol).
+    pub background: [f32; 3],
 }
 
 impl Scene {
@@ -214,6 +221,8 @@ struct SceneToml {
     test_views: Option<Vec<String>>,
     /// Hold out indices 0, N, 2N, … (0 = no test views).
     holdout_every: Option<usize>,
+    /// Colour of misses in renders, `[r, g, b]` in [0, 1] (default white).
+    background: Option<[f32; 3]>,
 }
 
 /// What [`Scene::load_report`] found.
@@ -284,6 +293,28 @@ pub fn find_mesh(dir: &Path) -> anyhow::Result<PathBuf> {
                 .join(", ")
         ),
     }
+}
+
+/// Each view's mask source (`scene/mask.rs`): files in `dir/masks/` when that folder exists
+/// (every view must have one), else the photo's alpha channel when `check_alpha` finds one.
+fn find_masks(dir: &Path, views: &[View], check_alpha: bool) -> anyhow::Result<Vec<MaskSource>> {
+    let masks_dir = dir.join("masks");
+    if masks_dir.is_dir() {
+        return views
+            .iter()
+            .map(|v| mask::find_mask(&masks_dir, &v.name).map(MaskSource::File))
+            .collect();
+    }
+    views
+        .iter()
+        .map(|v| {
+            Ok(if check_alpha && mask::has_alpha(&v.image_path)? {
+                MaskSource::Alpha
+            } else {
+                MaskSource::None
+            })
+        })
+        .collect()
 }
 
 impl View {
@@ -517,6 +548,14 @@ impl Scene {
         };
         let (mesh, mesh_stats) = mesh::load_mesh(&mesh_path)?;
         let normalization = Normalization::from_mesh(&mesh, opts.normalize);
+        let background = cfg.background.unwrap_or([1.0; 3]);
+        if background.iter().any(|c| !(0.0..=1.0).contains(c)) {
+            bail!(
+                "{}: background {background:?}: expected three values in [0, 1]",
+                toml_path.display()
+            );
+        }
+        let masks = find_masks(dir, &views, opts.load_images_check)?;
         let scene = Scene {
             root: dir.to_path_buf(),
             mesh,
@@ -524,6 +563,8 @@ impl Scene {
             test,
             normalization,
             downsample: s,
+            masks,
+            background,
         };
         Ok((
             scene,
@@ -533,6 +574,22 @@ impl Scene {
                 mesh_stats,
             },
         ))
+    }
+
+    /// View `i`'s object mask at the camera's resolution (`scene/mask.rs`), `None` if it has none.
+    pub fn load_mask(&self, i: usize) -> anyhow::Result<Option<Vec<bool>>> {
+        let v = &self.views[i];
+        mask::load_mask(
+            &self.masks[i],
+            &v.image_path,
+            self.downsample,
+            (v.camera.width, v.camera.height),
+        )
+    }
+
+    /// Whether any view has an object mask.
+    pub fn has_masks(&self) -> bool {
+        self.masks.iter().any(|m| *m != MaskSource::None)
     }
 
     /// Load view `i`'s image, downsampled by the scene's factor (see [`View::load_image`]).

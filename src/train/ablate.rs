@@ -424,9 +424,12 @@ fn view_score_from_json(v: &serde_json::Value) -> Result<ViewScore> {
             .to_string(),
         psnr: f("psnr"),
         ssim: f("ssim"),
+        flip: f("flip"),
         psnr_masked: f("psnr_masked"),
         ssim_masked: f("ssim_masked"),
+        flip_masked: f("flip_masked"),
         hit_fraction: f("hit_fraction"),
+        mask_miss: v["mask_miss"].as_f64(),
     })
 }
 

@@ -68,6 +68,22 @@ pub fn prepare(
             scene.views.len()
         );
     }
+    if scene.has_masks() {
+        let files = scene
+            .masks
+            .iter()
+            .filter(|m| matches!(m, crate::scene::MaskSource::File(_)))
+            .count();
+        log(format!(
+            "object masks: {} views from {}; training and scores use only pixels inside them",
+            scene.masks.len(),
+            if files > 0 {
+                "the masks/ folder"
+            } else {
+                "the photos' alpha channels"
+            }
+        ));
+    }
     let tracer = Tracer::new(&scene.mesh, &scene.normalization).context("building the BVH")?;
     let sizes: Vec<(u32, u32)> = train_views
         .iter()
@@ -102,12 +118,14 @@ pub fn prepare(
             }
         };
         let cam = &scene.views[i].camera;
+        let mask = scene.load_mask(i)?;
+        let mask = mask.as_deref();
         match &mut samples {
             Samples::Stream(s) => {
                 let t = img.as_ref().map_or(Targets::None, Targets::from_image);
-                s.add_view(&tracer, k, cam, t, &mut on_event)?
+                s.add_view(&tracer, k, cam, t, mask, &mut on_event)?
             }
-            Samples::Cache(c) => c.add_view(&tracer, k, cam, img.as_ref(), &mut on_event)?,
+            Samples::Cache(c) => c.add_view(&tracer, k, cam, img.as_ref(), mask, &mut on_event)?,
         };
     }
     if samples.is_empty() {

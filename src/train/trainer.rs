@@ -15,13 +15,11 @@
 //! the whole Adam state (m, v and per-parameter t); nothing in a checkpoint depends on wall time.
 //! So a run stopped at step k and resumed writes the same bytes as one never stopped.
 
-use crate::eval::protocol::{mean_score, score_view, table, ViewScore};
+use crate::eval::protocol::{evaluate_view, mean_score, table, write_evaluated, ViewScore};
 use crate::io::tensors::TensorFile;
 use crate::model::batch::Batch;
 use crate::model::checkpoint::{init_checkpoint_for_mesh, Checkpoint};
 use crate::model::params::{Grads, Group, ParamLayout};
-use crate::render::{heat_map, render_camera, side_by_side};
-use crate::scene::image::write_png8;
 use crate::train::adam::AdamState;
 use crate::train::config::RunConfig;
 use crate::train::sampler::sample_batch;
@@ -230,31 +228,21 @@ pub fn evaluate(
     };
     let mut scores = Vec::new();
     for &i in &views {
-        let view = &prepared.scene.views[i];
-        let r = render_camera(
+        let e = evaluate_view(
             &state.ckpt.model,
             &state.ckpt.params,
             &prepared.tracer,
-            &view.camera,
+            &prepared.scene,
+            i,
             state.cfg.model.gamma,
             prepared.appearance_row(i),
+            prepared.scene.background,
         )?;
-        let gt = prepared.scene.load_image(i)?;
-        let (s, g) = score_view(&view.name, &r.image, &gt, &r.hit);
         if let Some(dir) = out {
-            for sub in ["render", "eval"] {
-                std::fs::create_dir_all(dir.join(sub))
-                    .with_context(|| format!("{}: cannot create", dir.join(sub).display()))?;
-            }
-            let stem = Path::new(&view.name).with_extension("png");
-            write_png8(&dir.join("render").join(&stem), &r.image)?;
-            let heat = heat_map(&r.image, &g);
-            write_png8(
-                &dir.join("eval").join(&stem),
-                &side_by_side(&[&r.image, &g, &heat]),
-            )?;
+            let name = &prepared.scene.views[i].name;
+            write_evaluated(&e, name, Some(&dir.join("render")), Some(&dir.join("eval")))?;
         }
-        scores.push(s);
+        scores.push(e.scored.score);
     }
     Ok(scores)
 }

@@ -1,0 +1,253 @@
+//! The held-out protocol (`eval/protocol.rs`): honest full-image scores against scikit-image on a
+//! committed case, the same figures end to end through `train` → render PNG, object masks
+//! (a `masks/` folder and an alpha channel) limiting training and scoring, and outputs named
+//! after views that live in folders.
+
+use std::path::PathBuf;
+use std::process::Command;
+use xscale::eval::protocol::score_view;
+use xscale::render::WHITE;
+use xscale::scene::image::load_rgb;
+use xscale::scene::{LoadOptions, MaskSource, Scene};
+use xscale::train::config::RunConfig;
+use xscale::train::sampler::SampleMode;
+use xscale::train::setup::prepare;
+
+fn root() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+}
+
+fn tmp(name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("xscale-test-eval-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    d
+}
+
+fn xscale(args: &[&str]) -> std::process::Output {
+    let out = Command::new(env!("CARGO_BIN_EXE_xscale"))
+        .args(args)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "xscale {args:?} failed: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    out
+}
+
+/// The committed case (`fixtures/scores/`): a render with a hole where the mesh misses, against
+/// its untouched photo. xscale's full-image PSNR and SSIM equal scikit-image's.
+#[test]
+fn full_image_scores_match_scikit_image() {
+    let dir = root().join("fixtures/scores");
+    let expected: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("expected.json")).unwrap()).unwrap();
+    let render = load_rgb(&dir.join("render.png")).unwrap();
+    let gt = load_rgb(&dir.join("gt.png")).unwrap();
+    // Misses are the white pixels of the render (the background it was rendered with).
+    let hit: Vec<bool> = render
+        .data
+        .chunks_exact(3)
+        .map(|p| p != [1.0, 1.0, 1.0])
+        .collect();
+    let s = score_view("0000.png", &render, &gt, &hit, None, WHITE).score;
+    let psnr = expected["psnr"].as_f64().unwrap();
+    let ssim = expected["ssim"].as_f64().unwrap();
+    assert!(
+        (s.psnr - psnr).abs() <= 0.01,
+        "PSNR {} vs scikit-image {psnr}",
+        s.psnr
+    );
+    assert!(
+        (s.ssim - ssim).abs() <= 1e-4,
+        "SSIM {} vs scikit-image {ssim}",
+        s.ssim
+    );
+    // The hole shows: the full-image score is far below the hit pixels' score, and below what
+    // painting the photo white where the render missed would report.
+    let painted = expected["psnr_gt_painted_white"].as_f64().unwrap();
+    assert!(s.psnr < painted - 5.0, "{} vs painted {painted}", s.psnr);
+    assert!(s.psnr < s.psnr_masked - 5.0, "{s:?}");
+    assert!(s.flip > s.flip_masked, "{s:?}");
+}
+
+/// A mesh with a hole, trained and evaluated through the CLI: `eval.json`'s full-image PSNR is
+/// the PSNR of the written render PNG against the untouched photo (≤ 0.01 dB: only the PNG's
+/// 8-bit rounding differs), and renders keep the view names' folders (`render/images/…`).
+#[test]
+fn eval_json_full_psnr_is_the_render_against_the_photo() {
+    let scene = root().join("fixtures/masked");
+    // The tiny mesh with the triangles around the middle of the scene removed.
+    let (mut mesh, _) = xscale::scene::mesh::load_mesh(&scene.join("mesh.ply")).unwrap();
+    let (lo, hi) = mesh.bbox();
+    let c = (lo + hi) * 0.5;
+    let r = 0.2 * (hi - lo).x;
+    let v = mesh.vertices.clone();
+    mesh.triangles.retain(|t| {
+        let m = (v[t[0] as usize] + v[t[1] as usize] + v[t[2] as usize]) / 3.0;
+        (m.x - c.x).hypot(m.y - c.y) > r
+    });
+    let holed = tmp("holed.ply");
+    xscale::scene::mesh::write_ply(&holed, &mesh).unwrap();
+    let run = tmp("run");
+    let empty = tmp("nomasks");
+    // The fixture without its masks folder (so every pixel counts).
+    std::fs::create_dir_all(empty.join("images")).unwrap();
+    for f in ["transforms.json", "mesh.ply"] {
+        std::fs::copy(scene.join(f), empty.join(f)).unwrap();
+    }
+    for e in std::fs::read_dir(scene.join("images")).unwrap() {
+        let p = e.unwrap().path();
+        std::fs::copy(&p, empty.join("images").join(p.file_name().unwrap())).unwrap();
+    }
+    let (e, h, r_) = (
+        empty.to_str().unwrap(),
+        holed.to_str().unwrap(),
+        run.to_str().unwrap(),
+    );
+    xscale(&[
+        "train", "--scene", e, "--mesh", h, "--out", r_, "--preset", "tiny", "--steps", "60",
+        "--quiet",
+    ]);
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(run.join("eval.json")).unwrap()).unwrap();
+    let views = json["views"].as_array().unwrap();
+    assert!(!views.is_empty());
+    let mut some_hole = false;
+    for v in views {
+        let name = v["view"].as_str().unwrap();
+        assert!(name.starts_with("images/"), "{name}");
+        let png = run.join("render").join(name);
+        assert!(png.is_file(), "{} missing", png.display());
+        assert!(run.join("eval").join(name).is_file());
+        let render = load_rgb(&png).unwrap();
+        let gt = load_rgb(&empty.join(name)).unwrap();
+        let psnr = xscale::eval::metrics::psnr(&render.data, &gt.data);
+        let got = v["psnr"].as_f64().unwrap();
+        assert!(
+            (got - psnr).abs() <= 0.01,
+            "{name}: eval.json {got} vs PNG {psnr}"
+        );
+        if v["hit_fraction"].as_f64().unwrap() < 0.99 {
+            some_hole = true;
+            assert!(got < v["psnr_masked"].as_f64().unwrap(), "{v}");
+        }
+    }
+    assert!(some_hole, "the hole is seen by no held-out view");
+    for d in [holed, run, empty] {
+        let _ = std::fs::remove_dir_all(&d);
+        let _ = std::fs::remove_file(&d);
+    }
+}
+
+fn count_inside(scene: &Scene, i: usize) -> usize {
+    scene
+        .load_mask(i)
+        .unwrap()
+        .map_or(0, |m| m.iter().filter(|&&x| x).count())
+}
+
+/// `fixtures/masked`: every view finds its mask in `masks/`; training draws only pixels inside
+/// the masks (same count streamed or cached); eval scores inside the mask and reports the mask
+/// pixels the mesh misses. A photo's alpha channel works as a mask the same way.
+#[test]
+fn masks_limit_training_and_scoring() {
+    let dir = root().join("fixtures/masked");
+    let scene = Scene::load(&dir, &LoadOptions::default()).unwrap();
+    assert!(scene.has_masks());
+    assert!(scene
+        .masks
+        .iter()
+        .all(|m| matches!(m, MaskSource::File(p) if p.starts_with(dir.join("masks")))));
+    let train = scene.train();
+    let inside: usize = train.iter().map(|&i| count_inside(&scene, i)).sum();
+    let all: usize = train
+        .iter()
+        .map(|&i| (scene.views[i].camera.width * scene.views[i].camera.height) as usize)
+        .sum();
+    assert!(inside > 0 && inside < all / 2 * 2 && inside < all);
+    let mut lens = Vec::new();
+    for mode in [SampleMode::Stream, SampleMode::Cache] {
+        let mut cfg = RunConfig::preset("tiny").unwrap();
+        cfg.train.samples = mode;
+        let p = prepare(&dir, &cfg, true, &mut |_| {}).unwrap();
+        lens.push(p.samples.len());
+    }
+    // The tiny mesh covers every pixel, so the kept pixels are exactly the mask pixels.
+    assert_eq!(lens, vec![inside, inside]);
+
+    // Alpha as the mask: the same photos as RGBA with alpha = the mask.
+    let alpha = tmp("alpha");
+    std::fs::create_dir_all(alpha.join("images")).unwrap();
+    for f in ["transforms.json", "mesh.ply"] {
+        std::fs::copy(dir.join(f), alpha.join(f)).unwrap();
+    }
+    for (i, v) in scene.views.iter().enumerate() {
+        let img = image::open(&v.image_path).unwrap().to_rgb8();
+        let m = scene.load_mask(i).unwrap().unwrap();
+        let mut rgba = image::RgbaImage::new(img.width(), img.height());
+        for (k, (p, q)) in img.pixels().zip(rgba.pixels_mut()).enumerate() {
+            *q = image::Rgba([p[0], p[1], p[2], if m[k] { 255 } else { 0 }]);
+        }
+        rgba.save(alpha.join(&v.name)).unwrap();
+    }
+    let sa = Scene::load(&alpha, &LoadOptions::default()).unwrap();
+    assert!(sa.masks.iter().all(|m| *m == MaskSource::Alpha));
+    for i in 0..sa.views.len() {
+        assert_eq!(sa.load_mask(i).unwrap(), scene.load_mask(i).unwrap());
+    }
+
+    // A masks folder missing one view's mask is an error naming the view.
+    let partial = tmp("partial");
+    std::fs::create_dir_all(partial.join("masks")).unwrap();
+    std::fs::create_dir_all(partial.join("images")).unwrap();
+    for f in ["transforms.json", "mesh.ply"] {
+        std::fs::copy(dir.join(f), partial.join(f)).unwrap();
+    }
+    for v in &scene.views {
+        std::fs::copy(&v.image_path, partial.join(&v.name)).unwrap();
+    }
+    for k in 1..8 {
+        let f = format!("{k:04}.png");
+        std::fs::copy(dir.join("masks").join(&f), partial.join("masks").join(&f)).unwrap();
+    }
+    let e = format!(
+        "{:#}",
+        Scene::load(&partial, &LoadOptions::default()).unwrap_err()
+    );
+    assert!(e.contains("images/0000.png") && e.contains("masks"), "{e}");
+    let _ = std::fs::remove_dir_all(&alpha);
+    let _ = std::fs::remove_dir_all(&partial);
+}
+
+/// Eval through the CLI on the masked fixture: every score has `mask_miss`, full-image scores
+/// are computed inside the mask only.
+#[test]
+fn eval_reports_mask_coverage() {
+    let dir = root().join("fixtures/masked");
+    let run = tmp("maskrun");
+    let (d, r) = (dir.to_str().unwrap(), run.to_str().unwrap());
+    xscale(&[
+        "train", "--scene", d, "--out", r, "--preset", "tiny", "--steps", "40", "--quiet",
+    ]);
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(run.join("eval.json")).unwrap()).unwrap();
+    let views = json["views"].as_array().unwrap();
+    assert!(!views.is_empty());
+    for v in views {
+        assert_eq!(
+            v["mask_miss"].as_f64(),
+            Some(0.0),
+            "the tiny mesh covers every mask pixel: {v}"
+        );
+        // Inside the mask every pixel hits: full and masked PSNR agree.
+        let (f, m) = (
+            v["psnr"].as_f64().unwrap(),
+            v["psnr_masked"].as_f64().unwrap(),
+        );
+        assert!((f - m).abs() < 1e-9, "{v}");
+    }
+    assert!(json["mean"]["mask_miss"].as_f64().is_some());
+    let _ = std::fs::remove_dir_all(&run);
+}

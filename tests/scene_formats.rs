@@ -451,14 +451,20 @@ fn colmap_bad_inputs() {
         d.join("cameras.txt"),
         cams.replacen(
             "2 SIMPLE_RADIAL 8 6 9.0 4.5 3.5 -0.05",
-            "2 OPENCV_FISHEYE 8 6 9 9 4 3 0 0 0 0",
+            "2 EUCM 8 6 9 9 4 3 0.5 1.0",
             1,
         ),
     )
     .unwrap();
     assert_contains(
         &err(colmap::read_text(&d, &d)),
-        &["cameras.txt", "line 4", "OPENCV_FISHEYE", "not supported"],
+        &[
+            "cameras.txt",
+            "line 4",
+            "EUCM",
+            "not supported",
+            "OPENCV_FISHEYE",
+        ],
     );
 
     fs::write(
@@ -506,12 +512,23 @@ fn colmap_bad_inputs() {
         &["images.bin", "truncated", "image 2"],
     );
     let mut cb2 = cb.clone();
-    cb2[8 + 4..8 + 8].copy_from_slice(&7i32.to_le_bytes()); // camera 0: FOV
+    cb2[8 + 4..8 + 8].copy_from_slice(&17i32.to_le_bytes()); // camera 0: EQUIRECTANGULAR
     fs::write(b.join("cameras.bin"), &cb2).unwrap();
     fs::write(b.join("images.bin"), &ib).unwrap();
     assert_contains(
         &err(colmap::read_binary(&b, &b)),
-        &["cameras.bin", "camera 0", "FOV"],
+        &[
+            "cameras.bin",
+            "camera 0",
+            "EQUIRECTANGULAR",
+            "not supported",
+        ],
+    );
+    cb2[8 + 4..8 + 8].copy_from_slice(&18i32.to_le_bytes()); // no such model
+    fs::write(b.join("cameras.bin"), &cb2).unwrap();
+    assert_contains(
+        &err(colmap::read_binary(&b, &b)),
+        &["cameras.bin", "camera 0", "unknown camera model id 18"],
     );
 }
 

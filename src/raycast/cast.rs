@@ -154,8 +154,7 @@ impl<'a> CamCtx<'a> {
     /// Exactly `Camera::dir_world(x, y)` from `xn(x)`, `yn(y)`, with the transpose hoisted.
     #[inline]
     fn dir(&self, xn: f64, yn: f64) -> DVec3 {
-        let (xu, yu) = self.cam.distortion.undistort(xn, yn);
-        (self.rt * DVec3::new(xu, yu, 1.0)).normalize()
+        (self.rt * self.cam.distortion.undistort_dir(xn, yn)).normalize()
     }
 }
 

@@ -1,13 +1,20 @@
 //! Pinhole camera with optional lens distortion (SPEC §2, §3).
 //!
 //! Conventions: world→camera pose in OpenCV axes (x right, y down, z forward); pixel (u, v)
-//! covers [u, u+1)×[v, v+1), centre at (u+0.5, v+0.5), row 0 at the top. Distorted models
-//! (COLMAP SIMPLE_RADIAL, RADIAL, OPENCV) are handled by undistorting each ray direction with an
-//! iterative inversion, so the rest of the pipeline only sees ideal pinhole rays.
+//! covers [u, u+1)×[v, v+1), centre at (u+0.5, v+0.5), row 0 at the top. Distorted models (every
+//! perspective and fisheye model COLMAP has, see [`Distortion`]) are handled by undistorting each
+//! ray direction (an iterative inversion, or COLMAP's closed form where it has one), so the rest
+//! of the pipeline only sees ideal rays from the camera centre.
 
 use glam::{DMat3, DVec3};
 
 /// Lens distortion in COLMAP's parameterisation, applied to normalised image coordinates.
+///
+/// Perspective models (`SimpleRadial` … `FullOpenCv`, `Division`, `Fov`) map a ray's normalised
+/// pinhole coordinates `(x, y) = (X/Z, Y/Z)` to distorted ones. Fisheye models first take the ray
+/// to the equidistant fisheye plane, `(u, v) = (x, y)·θ/r` with `r = |(x, y)|`, `θ = atan(r)`
+/// (the angle to the optical axis), and distort there — COLMAP's `FisheyeFromNormal`. Formulas
+/// are COLMAP's (`src/colmap/sensor/models.h`), model by model.
 #[derive(Clone, Copy, Debug, PartialEq, Default)]
 pub enum Distortion {
     #[default]
@@ -18,54 +25,184 @@ pub enum Distortion {
     Radial { k1: f64, k2: f64 },
     /// COLMAP OPENCV: radial k1, k2 and tangential p1, p2.
     OpenCv { k1: f64, k2: f64, p1: f64, p2: f64 },
+    /// COLMAP FULL_OPENCV: rational radial `(1 + k1 r² + k2 r⁴ + k3 r⁶) / (1 + k4 r² + k5 r⁴ +
+    /// k6 r⁶)` (`k = [k1 … k6]`) and tangential p1, p2.
+    FullOpenCv { k: [f64; 6], p1: f64, p2: f64 },
+    /// COLMAP FOV (Devernay & Faugeras 2001): `x_d = x · atan(2 r tan(ω/2)) / (r ω)`.
+    Fov { omega: f64 },
+    /// COLMAP SIMPLE_DIVISION / DIVISION (Fitzgibbon 2001): the undistorted point is
+    /// `x_d / (1 + k r_d²)`.
+    Division { k: f64 },
+    /// Equidistant fisheye with radial terms (COLMAP OPENCV_FISHEYE: `k = [k1 … k4]`;
+    /// RADIAL_FISHEYE, SIMPLE_RADIAL_FISHEYE, FISHEYE, SIMPLE_FISHEYE are the same with fewer
+    /// or no terms): `θ_d = θ (1 + k1 θ² + k2 θ⁴ + k3 θ⁶ + k4 θ⁸)` in the fisheye plane.
+    Fisheye { k: [f64; 4] },
+    /// COLMAP THIN_PRISM_FISHEYE: in the fisheye plane, radial `k = [k1 … k4]` on
+    /// `θ²…θ⁸`, tangential p1, p2 and thin-prism sx1, sy1.
+    ThinPrismFisheye {
+        k: [f64; 4],
+        p1: f64,
+        p2: f64,
+        sx1: f64,
+        sy1: f64,
+    },
+    /// COLMAP RAD_TAN_THIN_PRISM_FISHEYE (Project Aria's Fisheye624): radial `k = [k0 … k5]`
+    /// on `θ²…θ¹²`, then tangential `p = [p0, p1]` and thin-prism `s = [s0 … s3]`.
+    RadTanThinPrismFisheye {
+        k: [f64; 6],
+        p: [f64; 2],
+        s: [f64; 4],
+    },
+}
+
+/// `(x, y) · θ / r` with `θ = atan(r)`: pinhole → equidistant fisheye plane (COLMAP's
+/// `FisheyeFromNormal`).
+fn fisheye_from_normal(x: f64, y: f64) -> (f64, f64) {
+    let r = (x * x + y * y).sqrt();
+    if r > f64::EPSILON {
+        let t = r.atan() / r;
+        (x * t, y * t)
+    } else {
+        (x, y)
+    }
 }
 
 impl Distortion {
-    /// Distort normalised coordinates (x, y) → (x_d, y_d), exactly as COLMAP's camera models.
-    pub fn distort(&self, x: f64, y: f64) -> (f64, f64) {
+    /// Whether the model distorts in the equidistant fisheye plane.
+    pub fn is_fisheye(&self) -> bool {
+        matches!(
+            self,
+            Distortion::Fisheye { .. }
+                | Distortion::ThinPrismFisheye { .. }
+                | Distortion::RadTanThinPrismFisheye { .. }
+        )
+    }
+
+    /// COLMAP's `Distortion` of a model: the distorted point `(u, v) + (du, dv)` in the model's
+    /// own plane (pinhole for perspective models, fisheye for fisheye models). Not used for
+    /// `Fov` and `Division`, whose maps are closed-form.
+    fn distort_plane(&self, u: f64, v: f64) -> (f64, f64) {
         match *self {
-            Distortion::None => (x, y),
+            Distortion::None | Distortion::Fov { .. } | Distortion::Division { .. } => (u, v),
             Distortion::SimpleRadial { k } => {
-                let r2 = x * x + y * y;
+                let r2 = u * u + v * v;
                 let f = 1.0 + k * r2;
-                (x * f, y * f)
+                (u * f, v * f)
             }
             Distortion::Radial { k1, k2 } => {
-                let r2 = x * x + y * y;
+                let r2 = u * u + v * v;
                 let f = 1.0 + k1 * r2 + k2 * r2 * r2;
-                (x * f, y * f)
+                (u * f, v * f)
             }
             Distortion::OpenCv { k1, k2, p1, p2 } => {
-                let (x2, y2, xy) = (x * x, y * y, x * y);
+                let (x2, y2, xy) = (u * u, v * v, u * v);
                 let r2 = x2 + y2;
                 let radial = k1 * r2 + k2 * r2 * r2;
                 (
-                    x + x * radial + 2.0 * p1 * xy + p2 * (r2 + 2.0 * x2),
-                    y + y * radial + 2.0 * p2 * xy + p1 * (r2 + 2.0 * y2),
+                    u + u * radial + 2.0 * p1 * xy + p2 * (r2 + 2.0 * x2),
+                    v + v * radial + 2.0 * p2 * xy + p1 * (r2 + 2.0 * y2),
+                )
+            }
+            Distortion::FullOpenCv { k, p1, p2 } => {
+                let (u2, v2, uv) = (u * u, v * v, u * v);
+                let r2 = u2 + v2;
+                let (r4, r6) = (r2 * r2, r2 * r2 * r2);
+                let radial = (1.0 + k[0] * r2 + k[1] * r4 + k[2] * r6)
+                    / (1.0 + k[3] * r2 + k[4] * r4 + k[5] * r6);
+                (
+                    u * radial + 2.0 * p1 * uv + p2 * (r2 + 2.0 * u2),
+                    v * radial + 2.0 * p2 * uv + p1 * (r2 + 2.0 * v2),
+                )
+            }
+            Distortion::Fisheye { k } => {
+                let t2 = u * u + v * v;
+                let radial = t2 * (k[0] + t2 * (k[1] + t2 * (k[2] + t2 * k[3])));
+                (u + u * radial, v + v * radial)
+            }
+            Distortion::ThinPrismFisheye {
+                k,
+                p1,
+                p2,
+                sx1,
+                sy1,
+            } => {
+                let (u2, v2, uv) = (u * u, v * v, u * v);
+                let r2 = u2 + v2;
+                let (r4, r6) = (r2 * r2, r2 * r2 * r2);
+                let radial = k[0] * r2 + k[1] * r4 + k[2] * r6 + k[3] * r6 * r2;
+                (
+                    u + u * radial + 2.0 * p1 * uv + p2 * (r2 + 2.0 * u2) + sx1 * r2,
+                    v + v * radial + 2.0 * p2 * uv + p1 * (r2 + 2.0 * v2) + sy1 * r2,
+                )
+            }
+            Distortion::RadTanThinPrismFisheye { k, p, s } => {
+                let t2 = u * u + v * v;
+                let (mut radial, mut tp) = (1.0, 1.0);
+                for c in k {
+                    tp *= t2;
+                    radial += c * tp;
+                }
+                let (x, y) = (radial * u, radial * v);
+                let (x2, y2, xy) = (x * x, y * y, x * y);
+                let r2 = x2 + y2;
+                let r4 = r2 * r2;
+                (
+                    x + 2.0 * p[1] * xy + p[0] * (r2 + 2.0 * x2) + s[0] * r2 + s[1] * r4,
+                    y + 2.0 * p[0] * xy + p[1] * (r2 + 2.0 * y2) + s[2] * r2 + s[3] * r4,
                 )
             }
         }
     }
 
-    /// Invert [`Distortion::distort`] by Newton's method with a central-difference Jacobian
-    /// (as COLMAP's `IterativeUndistortion`); converges to ~1e-15 for the distortions real
-    /// cameras have. Returns undistorted normalised coordinates.
-    pub fn undistort(&self, xd: f64, yd: f64) -> (f64, f64) {
-        if matches!(self, Distortion::None) {
-            return (xd, yd);
+    /// Distort normalised pinhole coordinates (x, y) → distorted normalised image coordinates,
+    /// exactly as COLMAP's camera models (fisheye models: in the fisheye plane).
+    pub fn distort(&self, x: f64, y: f64) -> (f64, f64) {
+        match *self {
+            Distortion::Fov { omega } => {
+                // COLMAP FOVCameraModel::Distortion (with its small-ω and small-r series).
+                let (r2, o2) = (x * x + y * y, omega * omega);
+                let f = if o2 < 1e-4 {
+                    (o2 * r2) / 3.0 - o2 / 12.0 + 1.0
+                } else if r2 < 1e-4 {
+                    let t = (omega / 2.0).tan();
+                    (-2.0 * t * (4.0 * r2 * t * t - 3.0)) / (3.0 * omega)
+                } else {
+                    let r = r2.sqrt();
+                    (r * 2.0 * (omega / 2.0).tan()).atan() / (r * omega)
+                };
+                (x * f, y * f)
+            }
+            Distortion::Division { k } => {
+                // COLMAP DivisionCameraModel::ImgFromCam with w = 1: r = 2 / (1 + √(1 − 4ρ²k)).
+                let rho2 = x * x + y * y;
+                let disc = (1.0 - 4.0 * rho2 * k).max(0.0).sqrt();
+                let r = 2.0 / (1.0 + disc);
+                (x * r, y * r)
+            }
+            d if d.is_fisheye() => {
+                let (u, v) = fisheye_from_normal(x, y);
+                self.distort_plane(u, v)
+            }
+            _ => self.distort_plane(x, y),
         }
+    }
+
+    /// Invert [`Distortion::distort_plane`] by Newton's method with a central-difference
+    /// Jacobian (as COLMAP's `IterativeUndistortion`); converges to ~1e-15 for the distortions
+    /// real cameras have.
+    fn undistort_plane(&self, xd: f64, yd: f64) -> (f64, f64) {
         let (mut x, mut y) = (xd, yd);
         for _ in 0..100 {
-            let (fx, fy) = self.distort(x, y);
+            let (fx, fy) = self.distort_plane(x, y);
             let (rx, ry) = (fx - xd, fy - yd);
             if rx.abs() < 1e-15 && ry.abs() < 1e-15 {
                 break;
             }
             let h = 1e-7 * (1.0 + x.abs().max(y.abs()));
-            let (ax, ay) = self.distort(x + h, y);
-            let (bx, by) = self.distort(x - h, y);
-            let (cx, cy) = self.distort(x, y + h);
-            let (dx, dy) = self.distort(x, y - h);
+            let (ax, ay) = self.distort_plane(x + h, y);
+            let (bx, by) = self.distort_plane(x - h, y);
+            let (cx, cy) = self.distort_plane(x, y + h);
+            let (dx, dy) = self.distort_plane(x, y - h);
             let (j00, j10) = ((ax - bx) / (2.0 * h), (ay - by) / (2.0 * h));
             let (j01, j11) = ((cx - dx) / (2.0 * h), (cy - dy) / (2.0 * h));
             let det = j00 * j11 - j01 * j10;
@@ -76,6 +213,60 @@ impl Distortion {
             y -= (-j10 * rx + j00 * ry) / det;
         }
         (x, y)
+    }
+
+    /// Camera-frame direction (not normalised) of the ray through distorted normalised image
+    /// coordinates (xd, yd). Perspective models give `(x, y, 1)` with (x, y) the undistorted
+    /// pinhole coordinates; fisheye models give `(u sin θ/θ, v sin θ/θ, cos θ)` from the
+    /// undistorted fisheye point (u, v), `θ = |(u, v)|`, so rays at 90° and beyond the optical
+    /// axis stay exact.
+    pub fn undistort_dir(&self, xd: f64, yd: f64) -> DVec3 {
+        match *self {
+            Distortion::None => DVec3::new(xd, yd, 1.0),
+            Distortion::Fov { omega } => {
+                // COLMAP FOVCameraModel::Undistortion.
+                let (r2, o2) = (xd * xd + yd * yd, omega * omega);
+                let f = if o2 < 1e-4 {
+                    (o2 * r2) / 3.0 - o2 / 12.0 + 1.0
+                } else if r2 < 1e-4 {
+                    (omega * (omega * omega * r2 + 3.0)) / (6.0 * (omega / 2.0).tan())
+                } else {
+                    let r = r2.sqrt();
+                    (r * omega).tan() / (r * 2.0 * (omega / 2.0).tan())
+                };
+                DVec3::new(xd * f, yd * f, 1.0)
+            }
+            Distortion::Division { k } => {
+                let d = 1.0 + k * (xd * xd + yd * yd);
+                DVec3::new(xd / d, yd / d, 1.0)
+            }
+            d if d.is_fisheye() => {
+                let (u, v) = self.undistort_plane(xd, yd);
+                let t = (u * u + v * v).sqrt();
+                if t > f64::EPSILON {
+                    let s = t.sin() / t;
+                    DVec3::new(u * s, v * s, t.cos())
+                } else {
+                    DVec3::new(u, v, 1.0)
+                }
+            }
+            _ => {
+                let (x, y) = self.undistort_plane(xd, yd);
+                DVec3::new(x, y, 1.0)
+            }
+        }
+    }
+
+    /// Undistorted normalised pinhole coordinates `(X/Z, Y/Z)` of distorted (xd, yd) (see
+    /// [`Distortion::undistort_dir`]; a fisheye ray at or beyond 90° has no such coordinates
+    /// and gives non-finite values).
+    pub fn undistort(&self, xd: f64, yd: f64) -> (f64, f64) {
+        let d = self.undistort_dir(xd, yd);
+        if d.z == 1.0 {
+            (d.x, d.y)
+        } else {
+            (d.x / d.z, d.y / d.z)
+        }
     }
 }
 
@@ -106,8 +297,7 @@ impl Camera {
     /// (continuous coordinates: the centre of pixel (u, v) is (u+0.5, v+0.5)), undistorted.
     pub fn dir_camera(&self, x: f64, y: f64) -> DVec3 {
         let (xn, yn) = ((x - self.cx) / self.fx, (y - self.cy) / self.fy);
-        let (xu, yu) = self.distortion.undistort(xn, yn);
-        DVec3::new(xu, yu, 1.0)
+        self.distortion.undistort_dir(xn, yn)
     }
 
     /// World-space unit direction of the ray through image point (x, y).

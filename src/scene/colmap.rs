@@ -3,8 +3,11 @@
 //! COLMAP layouts (3.12+) add `rigs.*` and `frames.*`; `images.*` keeps each image's
 //! world→camera pose, so those extra files are simply ignored.
 //!
-//! Camera models: SIMPLE_PINHOLE, PINHOLE (no distortion), SIMPLE_RADIAL, RADIAL, OPENCV (mapped
-//! to [`Distortion`]); any other model is an error that names it. COLMAP's pixel convention
+//! Camera models: every perspective and fisheye model of COLMAP 3.13 (mapped to [`Distortion`]:
+//! SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV, OPENCV_FISHEYE, FULL_OPENCV, FOV,
+//! SIMPLE_RADIAL_FISHEYE, RADIAL_FISHEYE, THIN_PRISM_FISHEYE, RAD_TAN_THIN_PRISM_FISHEYE,
+//! SIMPLE_DIVISION, DIVISION, SIMPLE_FISHEYE, FISHEYE); EUCM and EQUIRECTANGULAR are an error
+//! that names the model and lists the supported ones. COLMAP's pixel convention
 //! (centre of the top-left pixel at (0.5, 0.5)) is ours, so K is taken as is.
 //!
 //! Pose: `QW QX QY QZ TX TY TZ` is world→camera (`x_cam = R(q) x_world + t`), OpenCV axes; the
@@ -23,10 +26,11 @@ use std::fmt::Write as _;
 use std::fs;
 use std::path::{Path, PathBuf};
 
-const SUPPORTED: &str = "SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV";
+const SUPPORTED: &str = "SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV, OPENCV_FISHEYE, FULL_OPENCV, FOV, SIMPLE_RADIAL_FISHEYE, RADIAL_FISHEYE, THIN_PRISM_FISHEYE, RAD_TAN_THIN_PRISM_FISHEYE, SIMPLE_DIVISION, DIVISION, SIMPLE_FISHEYE, FISHEYE";
 
-/// COLMAP's camera model names by id, and their parameter counts.
-const MODELS: [(&str, usize); 12] = [
+/// COLMAP's camera model names by id (`src/colmap/sensor/models.h`), and their parameter
+/// counts.
+const MODELS: [(&str, usize); 18] = [
     ("SIMPLE_PINHOLE", 3),
     ("PINHOLE", 4),
     ("SIMPLE_RADIAL", 4),
@@ -39,6 +43,12 @@ const MODELS: [(&str, usize); 12] = [
     ("RADIAL_FISHEYE", 5),
     ("THIN_PRISM_FISHEYE", 12),
     ("RAD_TAN_THIN_PRISM_FISHEYE", 16),
+    ("SIMPLE_DIVISION", 4),
+    ("DIVISION", 5),
+    ("SIMPLE_FISHEYE", 3),
+    ("FISHEYE", 4),
+    ("EUCM", 6),
+    ("EQUIRECTANGULAR", 2),
 ];
 
 /// Intrinsics of one COLMAP camera (pose-free `Camera`).
@@ -62,29 +72,50 @@ fn intrinsics(where_: &str, model: usize, w: u64, h: u64, p: &[f64]) -> Result<I
     if w == 0 || h == 0 || w > u32::MAX as u64 || h > u32::MAX as u64 {
         bail!("{where_}: bad image size {w}x{h}");
     }
+    // (fx, fy, cx, cy, distortion) from each model's parameter order.
+    let f1 = |d| (p[0], p[0], p[1], p[2], d);
+    let f2 = |d| (p[0], p[1], p[2], p[3], d);
+    let arr = |a: &[f64]| -> [f64; 4] { [a[0], a[1], a[2], a[3]] };
     let (fx, fy, cx, cy, distortion) = match model {
-        0 => (p[0], p[0], p[1], p[2], Distortion::None),
-        1 => (p[0], p[1], p[2], p[3], Distortion::None),
-        2 => (p[0], p[0], p[1], p[2], Distortion::SimpleRadial { k: p[3] }),
-        3 => (
-            p[0],
-            p[0],
-            p[1],
-            p[2],
-            Distortion::Radial { k1: p[3], k2: p[4] },
-        ),
-        4 => (
-            p[0],
-            p[1],
-            p[2],
-            p[3],
-            Distortion::OpenCv {
-                k1: p[4],
-                k2: p[5],
-                p1: p[6],
-                p2: p[7],
-            },
-        ),
+        0 => f1(Distortion::None),
+        1 => f2(Distortion::None),
+        2 => f1(Distortion::SimpleRadial { k: p[3] }),
+        3 => f1(Distortion::Radial { k1: p[3], k2: p[4] }),
+        4 => f2(Distortion::OpenCv {
+            k1: p[4],
+            k2: p[5],
+            p1: p[6],
+            p2: p[7],
+        }),
+        5 => f2(Distortion::Fisheye { k: arr(&p[4..8]) }),
+        6 => f2(Distortion::FullOpenCv {
+            k: [p[4], p[5], p[8], p[9], p[10], p[11]],
+            p1: p[6],
+            p2: p[7],
+        }),
+        7 => f2(Distortion::Fov { omega: p[4] }),
+        8 => f1(Distortion::Fisheye {
+            k: [p[3], 0.0, 0.0, 0.0],
+        }),
+        9 => f1(Distortion::Fisheye {
+            k: [p[3], p[4], 0.0, 0.0],
+        }),
+        10 => f2(Distortion::ThinPrismFisheye {
+            k: [p[4], p[5], p[8], p[9]],
+            p1: p[6],
+            p2: p[7],
+            sx1: p[10],
+            sy1: p[11],
+        }),
+        11 => f2(Distortion::RadTanThinPrismFisheye {
+            k: [p[4], p[5], p[6], p[7], p[8], p[9]],
+            p: [p[10], p[11]],
+            s: [p[12], p[13], p[14], p[15]],
+        }),
+        12 => f1(Distortion::Division { k: p[3] }),
+        13 => f2(Distortion::Division { k: p[4] }),
+        14 => f1(Distortion::Fisheye { k: [0.0; 4] }),
+        15 => f2(Distortion::Fisheye { k: [0.0; 4] }),
         _ => {
             let name = MODELS.get(model).map(|m| m.0).unwrap_or("(unknown id)");
             bail!(
@@ -111,19 +142,29 @@ fn intrinsics(where_: &str, model: usize, w: u64, h: u64, p: &[f64]) -> Result<I
 /// fx == fy; otherwise the equivalent OPENCV with zero extra terms is used).
 fn model_of(cam: &Camera) -> (usize, Vec<f64>) {
     let same_f = cam.fx == cam.fy;
+    let k4 = [cam.fx, cam.fy, cam.cx, cam.cy];
+    let with = |extra: &[f64]| [&k4[..], extra].concat();
     match cam.distortion {
-        Distortion::None => (1, vec![cam.fx, cam.fy, cam.cx, cam.cy]),
+        Distortion::None => (1, k4.to_vec()),
         Distortion::SimpleRadial { k } if same_f => (2, vec![cam.fx, cam.cx, cam.cy, k]),
-        Distortion::SimpleRadial { k } => {
-            (4, vec![cam.fx, cam.fy, cam.cx, cam.cy, k, 0.0, 0.0, 0.0])
-        }
+        Distortion::SimpleRadial { k } => (4, with(&[k, 0.0, 0.0, 0.0])),
         Distortion::Radial { k1, k2 } if same_f => (3, vec![cam.fx, cam.cx, cam.cy, k1, k2]),
-        Distortion::Radial { k1, k2 } => {
-            (4, vec![cam.fx, cam.fy, cam.cx, cam.cy, k1, k2, 0.0, 0.0])
+        Distortion::Radial { k1, k2 } => (4, with(&[k1, k2, 0.0, 0.0])),
+        Distortion::OpenCv { k1, k2, p1, p2 } => (4, with(&[k1, k2, p1, p2])),
+        Distortion::Fisheye { k } => (5, with(&k)),
+        Distortion::FullOpenCv { k, p1, p2 } => {
+            (6, with(&[k[0], k[1], p1, p2, k[2], k[3], k[4], k[5]]))
         }
-        Distortion::OpenCv { k1, k2, p1, p2 } => {
-            (4, vec![cam.fx, cam.fy, cam.cx, cam.cy, k1, k2, p1, p2])
-        }
+        Distortion::Fov { omega } => (7, with(&[omega])),
+        Distortion::ThinPrismFisheye {
+            k,
+            p1,
+            p2,
+            sx1,
+            sy1,
+        } => (10, with(&[k[0], k[1], p1, p2, k[2], k[3], sx1, sy1])),
+        Distortion::RadTanThinPrismFisheye { k, p, s } => (11, with(&[&k[..], &p, &s].concat())),
+        Distortion::Division { k } => (13, with(&[k])),
     }
 }
 
@@ -210,6 +251,42 @@ pub fn is_model_dir(dir: &Path) -> bool {
 
 /// Find the model in a scene dir: `sparse/0/`, `sparse/`, or the dir itself.
 pub fn find_model_dir(scene: &Path) -> Option<PathBuf> {
+    find_layout(scene).map(|l| l.model)
+}
+
+/// Where a COLMAP model and its images are in a scene dir.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Layout {
+    pub model: PathBuf,
+    pub images: PathBuf,
+    /// The model is the undistorted one of a dense workspace (`colmap image_undistorter`).
+    pub dense: bool,
+}
+
+/// The COLMAP model of a scene dir, first found of:
+/// 1. a dense workspace as `colmap image_undistorter` leaves it, the scene dir being the
+///    workspace root (`dense/0/sparse` + `dense/0/images`), its `dense/` folder (`0/sparse` +
+///    `0/images`) or the undistorted folder itself (`sparse/` + `images/` + `stereo/`), or an
+///    undistorter output without the `0/` level (`dense/sparse` + `dense/images`) — the
+///    undistorted (PINHOLE) model is preferred to a workspace root's original `sparse/0`, as
+///    COLMAP's meshes (`meshed-poisson.ply`, `meshed-delaunay.ply`) live beside it;
+/// 2. `sparse/0/`, `sparse/` or the dir itself, with images in `images/`.
+pub fn find_layout(scene: &Path) -> Option<Layout> {
+    let dense = [
+        scene.join("dense").join("0"),
+        scene.join("dense"),
+        scene.join("0"),
+    ];
+    for d in dense {
+        if is_model_dir(&d.join("sparse")) && d.join("images").is_dir() {
+            return Some(Layout {
+                model: d.join("sparse"),
+                images: d.join("images"),
+                dense: true,
+            });
+        }
+    }
+    let undistorted_here = scene.join("stereo").is_dir();
     [
         scene.join("sparse").join("0"),
         scene.join("sparse"),
@@ -217,6 +294,11 @@ pub fn find_model_dir(scene: &Path) -> Option<PathBuf> {
     ]
     .into_iter()
     .find(|d| is_model_dir(d))
+    .map(|model| Layout {
+        model,
+        images: scene.join("images"),
+        dense: undistorted_here,
+    })
 }
 
 /// Read a model directory (text preferred over binary); image paths are `images_dir/NAME`.
@@ -276,7 +358,7 @@ pub fn read_text(dir: &Path, images_dir: &Path) -> Result<Vec<View>> {
             .map(|s| parse_num::<f64>(s, &wh, "parameter"))
             .collect::<Result<Vec<_>>>()?;
         let wh = format!("{wh}: camera {id}");
-        if params.len() != MODELS[model].1 && model <= 4 {
+        if params.len() != MODELS[model].1 {
             bail!(
                 "{wh}: model {} takes {} parameters, found {}",
                 MODELS[model].0,
@@ -502,10 +584,6 @@ pub fn read_binary(dir: &Path, images_dir: &Path) -> Result<Vec<View>> {
             bail!("{wh}: unknown camera model id {model} (supported: {SUPPORTED})");
         }
         let model = model as usize;
-        if model > 4 {
-            // Unsupported: report it (the parameter count is known, but there is no point reading on).
-            intrinsics(&wh, model, w, h, &[])?;
-        }
         let mut p = Vec::with_capacity(MODELS[model].1);
         for _ in 0..MODELS[model].1 {
             p.push(r.f64(&what)?);

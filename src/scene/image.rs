@@ -36,20 +36,60 @@ pub fn dimensions(path: &Path) -> Result<(u32, u32)> {
     }
 }
 
-/// Load an image as RGB f32 (see the module doc for the value conventions).
+/// The EXIF orientation of an image file when it is not the identity (header only; EXR: none).
+pub fn exif_orientation(path: &Path) -> Result<Option<::image::metadata::Orientation>> {
+    use ::image::ImageDecoder;
+    if is_exr(path) {
+        return Ok(None);
+    }
+    let mut dec = ::image::ImageReader::open(path)
+        .with_context(|| format!("{}: cannot open image", path.display()))?
+        .with_guessed_format()
+        .with_context(|| format!("{}: cannot read image", path.display()))?
+        .into_decoder()
+        .map_err(|e| anyhow!("{}: cannot read image header: {e}", path.display()))?;
+    let o = dec
+        .orientation()
+        .unwrap_or(::image::metadata::Orientation::NoTransforms);
+    Ok((o != ::image::metadata::Orientation::NoTransforms).then_some(o))
+}
+
+/// Whether an EXIF orientation swaps the image's width and height (a quarter turn).
+pub fn swaps_axes(o: ::image::metadata::Orientation) -> bool {
+    use ::image::metadata::Orientation as O;
+    matches!(
+        o,
+        O::Rotate90 | O::Rotate270 | O::Rotate90FlipH | O::Rotate270FlipH
+    )
+}
+
+/// Load an image as RGB f32 (see the module doc for the value conventions), pixels as stored
+/// (an EXIF orientation tag is not applied, as COLMAP does not).
 pub fn load_rgb(path: &Path) -> Result<Image> {
+    load_rgb_oriented(path, false)
+}
+
+/// [`load_rgb`], with the file's EXIF orientation applied when `orient` is true (for photos whose
+/// cameras were made from the turned image: their size is the stored one with width and height
+/// swapped).
+pub fn load_rgb_oriented(path: &Path, orient: bool) -> Result<Image> {
     if !path.exists() {
         bail!("{}: image file not found", path.display());
     }
     if is_exr(path) {
         return load_exr(path);
     }
-    let img = ::image::ImageReader::open(path)
+    let mut img = ::image::ImageReader::open(path)
         .with_context(|| format!("{}: cannot open image", path.display()))?
         .with_guessed_format()
         .with_context(|| format!("{}: cannot read image", path.display()))?
         .decode()
         .map_err(|e| anyhow!("{}: cannot decode image: {e}", path.display()))?;
+    if orient {
+        if let Some(o) = exif_orientation(path)? {
+            img.apply_orientation(o);
+        }
+    }
     let (width, height) = (img.width(), img.height());
     use ::image::DynamicImage as D;
     let data: Vec<f32> = match img {

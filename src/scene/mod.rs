@@ -251,17 +251,18 @@ pub fn detect_formats(dir: &Path) -> Vec<CameraFormat> {
     out
 }
 
-/// The mesh of a scene dir: `mesh.ply`, `mesh.obj`, `meshed-poisson.ply` (also under `dense/0/`
-/// and `dense/`), else the single `*.ply` / `*.obj` in the dir; an error lists the candidates
-/// otherwise.
+/// The mesh of a scene dir: `mesh.ply`, `mesh.obj`, COLMAP's `meshed-poisson.ply` then
+/// `meshed-delaunay.ply` (in the dir, `dense/0/`, `dense/` or `0/`), else the single `*.ply` /
+/// `*.obj` in the dir; an error lists the candidates otherwise.
 pub fn find_mesh(dir: &Path) -> anyhow::Result<PathBuf> {
-    let named = [
-        dir.join("mesh.ply"),
-        dir.join("mesh.obj"),
-        dir.join("meshed-poisson.ply"),
-        dir.join("dense").join("0").join("meshed-poisson.ply"),
-        dir.join("dense").join("meshed-poisson.ply"),
-    ];
+    let mut named = vec![dir.join("mesh.ply"), dir.join("mesh.obj")];
+    // COLMAP's meshers: Poisson first (watertight, what most pipelines use), then Delaunay; in
+    // the dir itself, a dense workspace's `dense/0/` and `dense/`, or a `dense/` folder's `0/`.
+    for sub in [&[][..], &["dense", "0"], &["dense"], &["0"]] {
+        for m in ["meshed-poisson.ply", "meshed-delaunay.ply"] {
+            named.push(sub.iter().fold(dir.to_path_buf(), |p, s| p.join(s)).join(m));
+        }
+    }
     if let Some(p) = named.iter().find(|p| p.is_file()) {
         return Ok(p.clone());
     }
@@ -280,7 +281,7 @@ pub fn find_mesh(dir: &Path) -> anyhow::Result<PathBuf> {
     match cands.len() {
         1 => Ok(cands.pop().unwrap()),
         0 => anyhow::bail!(
-            "{}: no mesh found (looked for mesh.ply, mesh.obj, meshed-poisson.ply, dense/0/meshed-poisson.ply, or a single *.ply/*.obj); pass the mesh explicitly",
+            "{}: no mesh found (looked for mesh.ply, mesh.obj, meshed-poisson.ply / meshed-delaunay.ply here or in dense/0/, or a single *.ply/*.obj); pass the mesh explicitly",
             dir.display()
         ),
         _ => anyhow::bail!(
@@ -318,11 +319,25 @@ fn find_masks(dir: &Path, views: &[View], check_alpha: bool) -> anyhow::Result<V
 }
 
 impl View {
+    /// Whether the photo must be turned by its EXIF orientation to fit the camera: its stored
+    /// size does not match the camera (after `downsample`) but the turned size does. Photos whose
+    /// stored size fits are used as stored (as COLMAP does) whatever their tag says.
+    pub fn needs_orientation(&self, downsample: u32) -> anyhow::Result<bool> {
+        let (w, h) = image::dimensions(&self.image_path)?;
+        let s = downsample.max(1);
+        if (w / s, h / s) == (self.camera.width, self.camera.height) {
+            return Ok(false);
+        }
+        Ok(image::exif_orientation(&self.image_path)?.is_some_and(|o| {
+            image::swaps_axes(o) && (h / s, w / s) == (self.camera.width, self.camera.height)
+        }))
+    }
+
     /// Load this view's image, downsample it by `downsample`, and check that the result has the
     /// camera's size (the camera is the downsampled one). Errors name the file and both sizes.
     pub fn load_image(&self, downsample: u32) -> anyhow::Result<Image> {
         anyhow::ensure!(downsample >= 1, "downsample factor must be >= 1");
-        let img = image::load_rgb(&self.image_path)?;
+        let img = image::load_rgb_oriented(&self.image_path, self.needs_orientation(downsample)?)?;
         let (w, h) = (img.width / downsample, img.height / downsample);
         if (w, h) != (self.camera.width, self.camera.height) {
             anyhow::bail!(
@@ -400,17 +415,20 @@ impl Scene {
         // (views, test view names given by the format itself)
         let (mut views, format_test): (Vec<View>, Option<Vec<String>>) = match format {
             CameraFormat::Colmap => {
-                let model = colmap::find_model_dir(dir).ok_or_else(|| {
+                let layout = colmap::find_layout(dir).ok_or_else(|| {
                     anyhow!(
-                        "{}: no COLMAP model (cameras + images .txt/.bin) in sparse/0/, sparse/ or the dir itself",
+                        "{}: no COLMAP model (cameras + images .txt/.bin) in dense/0/sparse/, sparse/0/, sparse/ or the dir itself",
                         dir.display()
                     )
                 })?;
-                let images = dir.join("images");
-                if !images.is_dir() {
-                    bail!("{}: COLMAP image directory not found", images.display());
+                if !layout.images.is_dir() {
+                    bail!(
+                        "{}: COLMAP image directory not found (the model is in {})",
+                        layout.images.display(),
+                        layout.model.display()
+                    );
                 }
-                (colmap::load(&model, &images)?, None)
+                (colmap::load(&layout.model, &layout.images)?, None)
             }
             CameraFormat::MvsNet => {
                 let layouts = mvsnet::find_layouts(dir);
@@ -476,9 +494,15 @@ impl Scene {
             }
             if opts.load_images_check {
                 let (w, h) = image::dimensions(&v.image_path)?;
-                if (w, h) != (v.camera.width, v.camera.height) {
+                if (w, h) != (v.camera.width, v.camera.height) && !v.needs_orientation(1)? {
+                    let tag = match image::exif_orientation(&v.image_path)? {
+                        Some(o) => {
+                            format!(" (its EXIF orientation {o:?} does not explain it either)")
+                        }
+                        None => String::new(),
+                    };
                     bail!(
-                        "{}: image is {w}x{h} but the camera of view '{}' says {}x{}",
+                        "{}: image is {w}x{h} but the camera of view '{}' says {}x{}{tag}",
                         v.image_path.display(),
                         v.name,
                         v.camera.width,

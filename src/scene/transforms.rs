@@ -3,8 +3,10 @@
 //! Intrinsics `fl_x, fl_y, cx, cy, w, h` are read per frame, falling back to the top level;
 //! when `fl_x` is absent, `camera_angle_x` gives `fl_x = w / (2 tan(angle_x / 2))` (likewise
 //! `fl_y` from `camera_angle_y`, else `fl_y = fl_x`); `cx, cy` default to `w/2, h/2`; `w, h`
-//! default to the image header. `k1, k2, p1, p2` (non-zero) become OpenCV distortion; a
-//! non-zero `k3`/`k4` or a fisheye/equirectangular `camera_model` is an error.
+//! default to the image header. `camera_model` (per frame, else top level, default OPENCV):
+//! OPENCV / PINHOLE / SIMPLE_PINHOLE read `k1, k2, p1, p2` (non-zero: OpenCV distortion; a
+//! non-zero `k3`/`k4` is an error), OPENCV_FISHEYE (nerfstudio) reads `k1 … k4`; any other model
+//! (EQUIRECTANGULAR, …) is an error naming it.
 //!
 //! Poses: `transform_matrix` is camera→world in OpenGL axes (x right, y up, z backward). We
 //! convert to OpenCV world→camera: `R_c2w_cv = R_c2w_gl · diag(1,-1,-1)`, `R = R_c2w_cvᵀ`,
@@ -83,9 +85,13 @@ pub fn load(path: &Path) -> Result<Vec<View>> {
         .as_object()
         .ok_or_else(|| anyhow!("{pd}: expected a JSON object at the top level"))?;
     let base = path.parent().unwrap_or(Path::new("."));
-    if let Some(m) = top.get("camera_model").and_then(|v| v.as_str()) {
-        if !matches!(m, "OPENCV" | "PINHOLE" | "SIMPLE_PINHOLE") {
-            bail!("{pd}: camera_model '{m}' is not supported (OPENCV, PINHOLE, SIMPLE_PINHOLE)");
+    let top_model = top.get("camera_model").and_then(|v| v.as_str());
+    if let Some(m) = top_model {
+        if !MODELS.contains(&m) {
+            bail!(
+                "{pd}: camera_model '{m}' is not supported ({})",
+                MODELS.join(", ")
+            );
         }
     }
     let frames = top
@@ -103,10 +109,16 @@ pub fn load(path: &Path) -> Result<Vec<View>> {
             .and_then(|v| v.as_str())
             .ok_or_else(|| anyhow!("{wh}: missing string 'file_path'"))?;
         let wh = format!("{wh} ('{file_path}')");
-        if let Some(m) = fr.get("camera_model").and_then(|v| v.as_str()) {
-            if !matches!(m, "OPENCV" | "PINHOLE" | "SIMPLE_PINHOLE") {
-                bail!("{wh}: camera_model '{m}' is not supported");
-            }
+        let model = fr
+            .get("camera_model")
+            .and_then(|v| v.as_str())
+            .or(top_model)
+            .unwrap_or("OPENCV");
+        if !MODELS.contains(&model) {
+            bail!(
+                "{wh}: camera_model '{model}' is not supported ({})",
+                MODELS.join(", ")
+            );
         }
         let (image_path, name) = resolve_image(base, file_path).ok_or_else(|| {
             anyhow!(
@@ -196,19 +208,29 @@ pub fn load(path: &Path) -> Result<Vec<View>> {
         }
         let cx = num(&wh, fr, top, "cx")?.unwrap_or(0.5 * w);
         let cy = num(&wh, fr, top, "cy")?.unwrap_or(0.5 * h);
-        for key in ["k3", "k4"] {
-            if num(&wh, fr, top, key)?.unwrap_or(0.0) != 0.0 {
-                bail!("{wh}: distortion term '{key}' is not supported (k1, k2, p1, p2 only)");
-            }
+        let mut k = [0.0; 4];
+        for (i, key) in ["k1", "k2", "k3", "k4"].iter().enumerate() {
+            k[i] = num(&wh, fr, top, key)?.unwrap_or(0.0);
         }
-        let k1 = num(&wh, fr, top, "k1")?.unwrap_or(0.0);
-        let k2 = num(&wh, fr, top, "k2")?.unwrap_or(0.0);
         let p1 = num(&wh, fr, top, "p1")?.unwrap_or(0.0);
         let p2 = num(&wh, fr, top, "p2")?.unwrap_or(0.0);
-        let distortion = if k1 == 0.0 && k2 == 0.0 && p1 == 0.0 && p2 == 0.0 {
-            Distortion::None
+        let distortion = if model == "OPENCV_FISHEYE" {
+            if p1 != 0.0 || p2 != 0.0 {
+                bail!("{wh}: OPENCV_FISHEYE has no tangential terms, but p1/p2 are given");
+            }
+            Distortion::Fisheye { k }
         } else {
-            Distortion::OpenCv { k1, k2, p1, p2 }
+            for key in ["k3", "k4"] {
+                if num(&wh, fr, top, key)?.unwrap_or(0.0) != 0.0 {
+                    bail!("{wh}: distortion term '{key}' needs camera_model OPENCV_FISHEYE (OPENCV has k1, k2, p1, p2)");
+                }
+            }
+            let [k1, k2, ..] = k;
+            if k1 == 0.0 && k2 == 0.0 && p1 == 0.0 && p2 == 0.0 {
+                Distortion::None
+            } else {
+                Distortion::OpenCv { k1, k2, p1, p2 }
+            }
         };
         views.push(View {
             name,
@@ -229,22 +251,39 @@ pub fn load(path: &Path) -> Result<Vec<View>> {
     Ok(views)
 }
 
-/// Intrinsics as JSON fields (`camera_model`, `fl_x`, …, `k1, k2, p1, p2`).
-fn intrinsics_json(c: &Camera) -> Map<String, Value> {
+/// Intrinsics as JSON fields (`camera_model`, `fl_x`, …, `k1, k2, p1, p2` or OPENCV_FISHEYE's
+/// `k1 … k4`); a distortion transforms.json cannot express is an error.
+fn intrinsics_json(c: &Camera) -> Result<Map<String, Value>> {
+    let mut v = json!({
+        "camera_model": "OPENCV",
+        "fl_x": c.fx, "fl_y": c.fy, "cx": c.cx, "cy": c.cy,
+        "w": c.width, "h": c.height,
+    });
+    let o = v.as_object_mut().unwrap();
     let (k1, k2, p1, p2) = match c.distortion {
         Distortion::None => (0.0, 0.0, 0.0, 0.0),
         Distortion::SimpleRadial { k } => (k, 0.0, 0.0, 0.0),
         Distortion::Radial { k1, k2 } => (k1, k2, 0.0, 0.0),
         Distortion::OpenCv { k1, k2, p1, p2 } => (k1, k2, p1, p2),
+        Distortion::Fisheye { k } => {
+            o.insert("camera_model".into(), json!("OPENCV_FISHEYE"));
+            for (i, key) in ["k1", "k2", "k3", "k4"].iter().enumerate() {
+                o.insert((*key).into(), json!(k[i]));
+            }
+            return Ok(o.clone());
+        }
+        other => bail!(
+            "transforms.json cannot express the lens distortion {other:?} (OPENCV and OPENCV_FISHEYE only); write COLMAP instead"
+        ),
     };
-    let v = json!({
-        "camera_model": "OPENCV",
-        "fl_x": c.fx, "fl_y": c.fy, "cx": c.cx, "cy": c.cy,
-        "w": c.width, "h": c.height,
-        "k1": k1, "k2": k2, "p1": p1, "p2": p2,
-    });
-    v.as_object().unwrap().clone()
+    for (key, val) in [("k1", k1), ("k2", k2), ("p1", p1), ("p2", p2)] {
+        o.insert(key.into(), json!(val));
+    }
+    Ok(o.clone())
 }
+
+/// `camera_model` values read: OpenCV's pinhole family and nerfstudio's fisheye.
+const MODELS: [&str; 4] = ["OPENCV", "PINHOLE", "SIMPLE_PINHOLE", "OPENCV_FISHEYE"];
 
 /// Write a transforms.json: intrinsics at the top level when all views share them, else per
 /// frame; `file_path = image_prefix + view.name`; camera→world OpenGL `transform_matrix`.
@@ -265,12 +304,12 @@ pub fn write(path: &Path, views: &[View], image_prefix: &str) -> Result<()> {
     let mut top = Map::new();
     if shared {
         if let Some(v) = views.first() {
-            top.extend(intrinsics_json(&v.camera));
+            top.extend(intrinsics_json(&v.camera)?);
         }
     }
     let frames: Vec<Value> = views
         .iter()
-        .map(|v| {
+        .map(|v| -> Result<Value> {
             let c = &v.camera;
             let c2w = c.rotation.transpose(); // columns: camera axes in world (OpenCV)
             let center = c.center();
@@ -288,11 +327,11 @@ pub fn write(path: &Path, views: &[View], image_prefix: &str) -> Result<()> {
             );
             f.insert("transform_matrix".into(), m);
             if !shared {
-                f.extend(intrinsics_json(c));
+                f.extend(intrinsics_json(c)?);
             }
-            Value::Object(f)
+            Ok(Value::Object(f))
         })
-        .collect();
+        .collect::<Result<_>>()?;
     top.insert("frames".into(), Value::Array(frames));
     let text = serde_json::to_string_pretty(&Value::Object(top))?;
     if let Some(d) = path.parent().filter(|d| !d.as_os_str().is_empty()) {

@@ -27,7 +27,7 @@ pub enum SampleMode {
 /// The training views' samples, streamed or cached (module docs).
 pub enum Samples {
     Stream(RayStream),
-    Cache(SampleCache),
+    Cache(Box<SampleCache>),
 }
 
 impl Samples {

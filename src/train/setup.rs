@@ -96,11 +96,11 @@ pub fn prepare(
     let keep_triangles = !cfg.model.featurization.is_hash();
     let mut samples = match cfg.train.samples {
         SampleMode::Stream => Samples::Stream(RayStream::new(gamma, keep_triangles)?),
-        SampleMode::Cache => Samples::Cache(if keep_triangles {
+        SampleMode::Cache => Samples::Cache(Box::new(if keep_triangles {
             SampleCache::build_with_triangles(&tracer, &[], gamma, &mut |_| {})?
         } else {
             SampleCache::new(gamma)?
-        }),
+        })),
     };
     // One photo in memory at a time: load, cast, keep what the mode keeps.
     for (k, &i) in train_views.iter().enumerate() {

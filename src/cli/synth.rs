@@ -7,7 +7,8 @@ use std::process::ExitCode;
 
 #[derive(clap::Args, Debug)]
 pub struct Args {
-    /// Parameter set: `tiny` (8 views, 64×48) or `small` (40 views, 200×150).
+    /// Parameter set: `tiny` (8 views, 64×48), `small` (40 views, 200×150) or `large` (104
+    /// views, 1024×768: 82 Mpixels for memory/throughput benchmarks, ~110 MB of PNG).
     #[arg(long, value_enum, default_value = "tiny")]
     pub preset: Preset,
     /// Seed of every random choice (terrain, buildings, textures, cameras, proxy error).
@@ -24,9 +25,23 @@ pub struct Args {
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let t0 = std::time::Instant::now();
     let s = synth::build(args.preset, args.seed);
-    let images = s.render();
     let summary = s.summary();
-    synth::output::write(&s, &images, &summary, &args.out, args.write_truth)?;
+    let n = s.views.len();
+    let sh = s.shader();
+    let spp = s.params.spp_side;
+    // One view rendered and written at a time (the `large` preset's 104 views would hold 1 GB).
+    synth::output::write_with(
+        &s,
+        &mut |i| synth::render::render(&sh, &s.views[i].camera, spp),
+        &summary,
+        &args.out,
+        args.write_truth,
+        &mut |i| {
+            if n > 40 && (i + 1) % 10 == 0 {
+                eprintln!("rendered {} of {n} views", i + 1);
+            }
+        },
+    )?;
     println!(
         "synth: preset {} seed {} → {} ({:.1} s)",
         args.preset.name(),

@@ -34,8 +34,15 @@ use surface::{Building, Heightfield, TrueSurface};
 pub enum Preset {
     /// 8 views (4 aerial, 4 close-up) at 64×48: unit tests and the committed fixture.
     Tiny,
-    /// 40 views (24 aerial, 16 close-up) at 200×150.
+    /// 40 views (24 aerial, 16 close-up) at 200×150. Its finest texture is tied to the `cpu`
+    /// preset's finest hash level (at least 2.5 of its cells), so it measures what that model can
+    /// learn, not how far a model's resolution reaches: it cannot show that a grid too coarse for
+    /// the close-ups blurs them.
     Small,
+    /// 104 views (64 aerial, 40 close-up) at 1024×768: 81.8 million pixels, one ray per pixel
+    /// (cheap), COLMAP and transforms.json layouts only (no MVSNet copy of the images). For
+    /// memory and throughput at size, not for quality.
+    Large,
 }
 
 impl Preset {
@@ -43,6 +50,7 @@ impl Preset {
         match self {
             Preset::Tiny => "tiny",
             Preset::Small => "small",
+            Preset::Large => "large",
         }
     }
 }
@@ -99,6 +107,7 @@ impl Params {
         let (width, height, n_aerial, n_close, cells, close_cluster) = match p {
             Preset::Tiny => (64, 48, 4, 4, 256, 1),
             Preset::Small => (200, 150, 24, 16, 512, 4),
+            Preset::Large => (1024, 768, 64, 40, 512, 4),
         };
         let hfov_deg = 60.0;
         let aerial_distance = 120.0;
@@ -112,7 +121,7 @@ impl Params {
         // cannot resolve it; close-ups see it at ~10 pixels per period.
         let fine_period = match p {
             Preset::Tiny => 3.0 * close_distance / fx,
-            Preset::Small => (3.0 * close_distance / fx).max(2.5 * 200.0 / 2048.0),
+            Preset::Small | Preset::Large => (3.0 * close_distance / fx).max(2.5 * 200.0 / 2048.0),
         };
         let el: f64 = 50.0f64.to_radians();
         let az: f64 = 35.0f64.to_radians();
@@ -162,14 +171,26 @@ impl Params {
                     displacement_wavelength: 60.0,
                     building_shift: 0.5,
                 },
-                Preset::Small => ProxyParams {
+                Preset::Small | Preset::Large => ProxyParams {
                     stride: 2,
                     displacement: 0.05,
                     displacement_wavelength: 60.0,
                     building_shift: 0.05,
                 },
             },
-            spp_side: 4,
+            spp_side: match p {
+                Preset::Large => 1,
+                _ => 4,
+            },
+        }
+    }
+
+    /// Pixel-centre rays in the footprint statistics: every `k`-th row and column (1 but for
+    /// `large`, where every pixel would hold 82 million footprints in memory).
+    pub fn summary_stride(p: Preset) -> u32 {
+        match p {
+            Preset::Large => 4,
+            _ => 1,
         }
     }
 }
@@ -328,7 +349,8 @@ impl Synth {
         let mut close = Vec::new();
         let mut min_hit = 1.0f64;
         for v in &self.views {
-            let (fp, frac) = render::footprints(&self.truth, &v.camera);
+            let stride = Params::summary_stride(self.preset);
+            let (fp, frac) = render::footprints_strided(&self.truth, &v.camera, stride);
             min_hit = min_hit.min(frac);
             match v.kind {
                 ViewKind::Aerial => aerial.extend(fp),

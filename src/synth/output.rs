@@ -62,6 +62,27 @@ pub fn write(
     write_truth: bool,
 ) -> Result<()> {
     assert_eq!(images.len(), s.views.len());
+    write_with(
+        s,
+        &mut |i| images[i].clone(),
+        summary,
+        dir,
+        write_truth,
+        &mut |_| {},
+    )
+}
+
+/// [`write`] with each view rendered by `image(i)` just before it is written (one image in
+/// memory at a time); `progress(i)` after view i is written. The `large` preset writes no MVSNet
+/// copy of its images.
+pub fn write_with(
+    s: &Synth,
+    image: &mut dyn FnMut(usize) -> Image,
+    summary: &Summary,
+    dir: &Path,
+    write_truth: bool,
+    progress: &mut dyn FnMut(usize),
+) -> Result<()> {
     fs::create_dir_all(dir.join("images"))
         .with_context(|| format!("{}: cannot create", dir.display()))?;
     let vs = views(s, dir);
@@ -70,15 +91,18 @@ pub fn write(
     if write_truth {
         scene::mesh::write_ply(&dir.join("truth.ply"), &s.truth.to_mesh())?;
     }
-    for (v, img) in vs.iter().zip(images) {
-        scene::image::write_png8(&v.image_path, img)?;
+    for (i, v) in vs.iter().enumerate() {
+        scene::image::write_png8(&v.image_path, &image(i))?;
+        progress(i);
     }
     scene::colmap::write_text(&dir.join("sparse").join("0"), &vs)?;
-    scene::mvsnet::write(dir, &vs, 1)?;
-    for v in &vs {
-        let dst = dir.join("images_1").join(&v.name);
-        fs::copy(&v.image_path, &dst)
-            .with_context(|| format!("{}: cannot write", dst.display()))?;
+    if s.preset != Preset::Large {
+        scene::mvsnet::write(dir, &vs, 1)?;
+        for v in &vs {
+            let dst = dir.join("images_1").join(&v.name);
+            fs::copy(&v.image_path, &dst)
+                .with_context(|| format!("{}: cannot write", dst.display()))?;
+        }
     }
     scene::transforms::write(&dir.join("transforms.json"), &vs, "images/")?;
     let record = Record {
@@ -106,9 +130,15 @@ pub fn write(
     // All three layouts describe the same cameras (tests/synth.rs checks it); a plain
     // `Scene::load` needs to be told which to read.
     let path = dir.join("scene.toml");
-    let text = "# The cameras are written in three layouts (COLMAP, MVSNet, transforms.json);\n\
-                # they agree to 1e-9. Load the COLMAP one unless told otherwise.\n\
-                format = \"colmap\"\n";
+    let text = if s.preset == Preset::Large {
+        "# The cameras are written in two layouts (COLMAP, transforms.json); they agree to 1e-9.\n\
+         # Load the COLMAP one unless told otherwise.\n\
+         format = \"colmap\"\n"
+    } else {
+        "# The cameras are written in three layouts (COLMAP, MVSNet, transforms.json);\n\
+         # they agree to 1e-9. Load the COLMAP one unless told otherwise.\n\
+         format = \"colmap\"\n"
+    };
     fs::write(&path, text).with_context(|| format!("{}: cannot write", path.display()))?;
     Ok(())
 }

@@ -76,12 +76,24 @@ pub fn render(shader: &Shader, cam: &Camera, spp_side: u32) -> Image {
 
 /// Footprints (m) of the pixel-centre rays that hit, and the fraction of pixels that hit.
 pub fn footprints(surface: &super::surface::TrueSurface, cam: &Camera) -> (Vec<f64>, f64) {
+    footprints_strided(surface, cam, 1)
+}
+
+/// [`footprints`] over every `stride`-th row and column.
+pub fn footprints_strided(
+    surface: &super::surface::TrueSurface,
+    cam: &Camera,
+    stride: u32,
+) -> (Vec<f64>, f64) {
     let o = cam.center();
+    let stride = stride.max(1);
     let rows: Vec<Vec<f64>> = (0..cam.height)
+        .step_by(stride as usize)
+        .collect::<Vec<u32>>()
         .into_par_iter()
         .map(|v| {
             let mut out = Vec::new();
-            for u in 0..cam.width {
+            for u in (0..cam.width).step_by(stride as usize) {
                 let (x, y) = (u as f64 + 0.5, v as f64 + 0.5);
                 if let Some(hit) = surface.trace(o, cam.dir_world(x, y), 0.0, f64::INFINITY) {
                     out.push(hit.t * pixel_angle(cam, x, y));
@@ -91,6 +103,7 @@ pub fn footprints(surface: &super::surface::TrueSurface, cam: &Camera) -> (Vec<f
         })
         .collect();
     let fp: Vec<f64> = rows.into_iter().flatten().collect();
-    let frac = fp.len() as f64 / (cam.width as f64 * cam.height as f64);
+    let n = cam.width.div_ceil(stride) as f64 * cam.height.div_ceil(stride) as f64;
+    let frac = fp.len() as f64 / n;
     (fp, frac)
 }

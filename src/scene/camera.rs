@@ -331,6 +331,27 @@ impl Camera {
         }
     }
 
+    /// The camera for the same view at `f` times the resolution: size `round(w·f) × round(h·f)`,
+    /// K scaled by the actual size ratios (pixel-edge convention: cx' = cx · w'/w), the same
+    /// field of view and pose. `f = 1` returns the camera unchanged.
+    pub fn scaled(&self, f: f64) -> Camera {
+        if f == 1.0 {
+            return self.clone();
+        }
+        let w = (self.width as f64 * f).round().max(0.0) as u32;
+        let h = (self.height as f64 * f).round().max(0.0) as u32;
+        let (sx, sy) = (w as f64 / self.width as f64, h as f64 / self.height as f64);
+        Camera {
+            width: w,
+            height: h,
+            fx: self.fx * sx,
+            fy: self.fy * sy,
+            cx: self.cx * sx,
+            cy: self.cy * sy,
+            ..self.clone()
+        }
+    }
+
     /// Largest absolute difference to another camera over K and pose (for cross-format checks).
     pub fn max_abs_diff(&self, o: &Camera) -> f64 {
         let mut d = [

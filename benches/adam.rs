@@ -82,7 +82,7 @@ fn main() {
         for i in 0..n * F {
             let changed = w[i] != before[i];
             assert_eq!(changed, listed[i / F], "element {i}");
-            assert_eq!(st.t[i], listed[i / F] as u32, "t[{i}]");
+            assert_eq!(st.state[i].t, listed[i / F] as u32, "t[{i}]");
         }
 
         let reps = 200;

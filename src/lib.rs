@@ -18,6 +18,7 @@
 
 pub mod cli;
 pub mod eval;
+pub mod hugepages;
 pub mod io;
 pub mod model;
 pub mod raycast;

@@ -56,9 +56,9 @@ fn dense_three_steps_by_hand() {
     let m3 = B1 * m2 + (1.0 - B1) * 0.1;
     let v3: f64 = B2 * v2 + (1.0 - B2) * 0.01;
     let w3 = w2 - 0.1 * (1.0 - B2.powi(3)).sqrt() / (1.0 - B1.powi(3)) * m3 / (v3.sqrt() + 1e-8);
-    close(st.m[0], m3, "m3");
-    close(st.v[0], v3, "v3");
-    assert_eq!(st.t[0], 3);
+    close(st.state[0].m, m3, "m3");
+    close(st.state[0].v, v3, "v3");
+    assert_eq!(st.state[0].t, 3);
     close(w[0], w3, "w3");
     // Sanity of the hand arithmetic: Adam's first step moves by ~lr against the gradient.
     assert!((w1 - 0.4).abs() < 1e-6);
@@ -74,10 +74,10 @@ fn dense_group_steps_zero_gradients_and_applies_l2() {
     let mut w = [2.0f32, -1.0];
     st.step_dense(0..2, &mut w, &[0.1, 0.0], &cfg, 0);
     // g' = g + l2 * w: 0.1 + 1.0 = 1.1 and 0 + (-0.5) = -0.5; both step (dense never skips).
-    assert_eq!(st.t, vec![1, 1]);
-    close(st.m[0], (1.0 - B1) * 1.1, "m0");
-    close(st.v[0], (1.0 - B2) * 1.21, "v0");
-    close(st.m[1], (1.0 - B1) * -0.5, "m1");
+    assert_eq!(st.t(0..2), vec![1, 1]);
+    close(st.state[0].m, (1.0 - B1) * 1.1, "m0");
+    close(st.state[0].v, (1.0 - B2) * 1.21, "v0");
+    close(st.state[1].m, (1.0 - B1) * -0.5, "m1");
     let step = |g: f64| {
         0.01 * (1.0 - B2).sqrt() / (1.0 - B1) * ((1.0 - B1) * g)
             / (((1.0 - B2) * g * g).sqrt() + 1e-8)
@@ -88,10 +88,10 @@ fn dense_group_steps_zero_gradients_and_applies_l2() {
     let mut st = AdamState::with_len(1);
     let mut w = [1.0f32];
     st.step_dense(0..1, &mut w, &[1.0], &group(0.01, false), 0);
-    let m_before = st.m[0];
+    let m_before = st.state[0].m;
     st.step_dense(0..1, &mut w, &[0.0], &group(0.01, false), 1);
-    assert_eq!(st.t[0], 2);
-    close(st.m[0], B1 * m_before as f64, "decayed m");
+    assert_eq!(st.state[0].t, 2);
+    close(st.state[0].m, B1 * m_before as f64, "decayed m");
 }
 
 #[test]
@@ -105,7 +105,7 @@ fn sparse_skips_zero_gradients_and_uses_own_step_count() {
     // Step k = 0: entry 2 has an all-zero gradient; entry 1 feature 1 is exactly -0.0.
     let g0 = [0.2f32, 0.2, 0.2, -0.0, 0.0, 0.0, 0.2, 0.2];
     st.step_sparse(&mut w, &g0, &all, 2, 0, &cfg, 0);
-    assert_eq!(st.t, vec![1, 1, 1, 0, 0, 0, 1, 1]);
+    assert_eq!(st.t(0..st.len()), vec![1, 1, 1, 0, 0, 0, 1, 1]);
     for i in [3usize, 4, 5] {
         assert_eq!(
             w[i].to_bits(),
@@ -113,7 +113,7 @@ fn sparse_skips_zero_gradients_and_uses_own_step_count() {
             "skipped weight {i} unchanged"
         );
         assert_eq!(
-            (st.m[i], st.v[i]),
+            (st.state[i].m, st.state[i].v),
             (0.0, 0.0),
             "skipped moments {i} unchanged"
         );
@@ -122,7 +122,7 @@ fn sparse_skips_zero_gradients_and_uses_own_step_count() {
     // second (t = 2).
     let g1 = [0.3f32; 8];
     st.step_sparse(&mut w, &g1, &all, 2, 0, &cfg, 1);
-    assert_eq!(st.t, vec![2, 2, 2, 1, 1, 1, 2, 2]);
+    assert_eq!(st.t(0..st.len()), vec![2, 2, 2, 1, 1, 1, 2, 2]);
     let first = |g: f64| {
         0.1 * (1.0 - B2).sqrt() / (1.0 - B1) * ((1.0 - B1) * g)
             / (((1.0 - B2) * g * g).sqrt() + 1e-8)
@@ -138,7 +138,7 @@ fn sparse_skips_zero_gradients_and_uses_own_step_count() {
         0.1 - first(0.2) - second,
         "entry 0: second step with t = 2",
     );
-    close(st.m[4], (1.0 - B1) * 0.3, "fresh m");
+    close(st.state[4].m, (1.0 - B1) * 0.3, "fresh m");
 }
 
 #[test]
@@ -151,14 +151,14 @@ fn sparse_touches_only_listed_entries() {
     st.step_sparse(&mut w, &g, &[1, 3], 2, 0, &cfg, 0);
     for i in 0..10 {
         let listed = matches!(i / 2, 1 | 3);
-        assert_eq!(st.t[i], listed as u32, "t[{i}]");
+        assert_eq!(st.state[i].t, listed as u32, "t[{i}]");
         assert_eq!(w[i] != 1.0, listed, "w[{i}]");
     }
     // base_offset: a table living at offset 4 of a larger state.
     let mut st = AdamState::with_len(10);
     let mut table = [1.0f32; 6];
     st.step_sparse(&mut table, &[0.5; 6], &[2], 2, 4, &cfg, 0);
-    assert_eq!(st.t, vec![0, 0, 0, 0, 0, 0, 0, 0, 1, 1]);
+    assert_eq!(st.t(0..st.len()), vec![0, 0, 0, 0, 0, 0, 0, 0, 1, 1]);
     assert_eq!(&table[..4], &[1.0; 4]);
     assert!(table[4] < 1.0 && table[5] < 1.0);
 }
@@ -310,24 +310,17 @@ fn sparse_equals_dense_with_skip_and_is_thread_count_invariant() {
             .iter()
             .zip(&w_ref)
             .all(|(a, b)| a.to_bits() == b.to_bits())
-            && st
-                .m
-                .iter()
-                .zip(&st_ref.m)
-                .all(|(a, b)| a.to_bits() == b.to_bits())
-            && st
-                .v
-                .iter()
-                .zip(&st_ref.v)
-                .all(|(a, b)| a.to_bits() == b.to_bits())
-            && st.t == st_ref.t;
+            && st.state.iter().zip(&st_ref.state).all(|(a, b)| {
+                a.m.to_bits() == b.m.to_bits() && a.v.to_bits() == b.v.to_bits() && a.t == b.t
+            });
         assert!(
             same,
             "threads {threads}, sparse {sparse}: not bit-identical"
         );
     }
     // Some parameters were skipped on some steps, so step counts differ across parameters.
-    assert!(st_ref.t.iter().any(|&t| t < 5) && st_ref.t.contains(&5));
+    let t = st_ref.t(0..st_ref.len());
+    assert!(t.iter().any(|&t| t < 5) && t.contains(&5));
 }
 
 #[test]

@@ -73,7 +73,8 @@ pub fn init_checkpoint_for_mesh(
         cfg.vertex_count = u32::try_from(mesh.vertices.len()).context("too many vertices")?;
         Hfm::with_vertex(&cfg, mesh.triangles.clone().into())?
     };
-    let params = model.init_params(seed);
+    // On huge pages: the tables are read and updated at random entries every step.
+    let params = crate::hugepages::copied(&model.init_params(seed));
     Ok(Checkpoint {
         model,
         params,
@@ -229,7 +230,7 @@ impl Checkpoint {
                 .collect();
             Hfm::with_vertex(&cfg, faces.into()).with_context(|| label.clone())?
         };
-        let params = layout_from_tensors(file, &model.layout, "")?;
+        let params = crate::hugepages::copied(&layout_from_tensors(file, &model.layout, "")?);
         if let Some(i) = params.iter().position(|v| !v.is_finite()) {
             let t = model
                 .layout

@@ -71,29 +71,4 @@ pub fn brute_force_closest_hit(mesh: &Mesh, origin: DVec3, dir: DVec3) -> Option
     best
 }
 
-/// Ask Linux for transparent huge pages on a vector's untouched spare capacity when it spans
-/// several of them: large outputs (the sample cache, a view's sub-samples) are written once, in
-/// parallel, and 4 KiB page faults (serialised on the address space lock) otherwise cost several
-/// percent of the cast. Only a hint; a no-op elsewhere or when refused.
-pub(crate) fn advise_huge_pages<T>(v: &mut Vec<T>) {
-    #[cfg(target_os = "linux")]
-    {
-        const HUGE: usize = 2 << 20;
-        let spare = v.spare_capacity_mut();
-        let bytes = std::mem::size_of_val(spare);
-        if bytes < 2 * HUGE {
-            return;
-        }
-        let start = spare.as_mut_ptr() as usize;
-        let (lo, hi) = (start.next_multiple_of(HUGE), (start + bytes) / HUGE * HUGE);
-        if hi > lo {
-            // SAFETY: [lo, hi) lies inside the vector's allocation; MADV_HUGEPAGE changes no
-            // contents and no mapping, only how future page faults are served.
-            unsafe {
-                libc::madvise(lo as *mut libc::c_void, hi - lo, libc::MADV_HUGEPAGE);
-            }
-        }
-    }
-    #[cfg(not(target_os = "linux"))]
-    let _ = v;
-}
+pub(crate) use crate::hugepages::advise as advise_huge_pages;

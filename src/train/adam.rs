@@ -54,23 +54,10 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use std::ops::Range;
 
-/// One dense chunk: (chunk index, (((w, m), v), t)).
-type DenseChunk<'a> = (
-    usize,
-    (
-        ((&'a mut [f32], &'a mut [f32]), &'a mut [f32]),
-        &'a mut [u32],
-    ),
-);
-/// One sparse chunk: (entries, first scalar, w, m, v, t) over the chunk's region.
-type SparseChunk<'a> = (
-    &'a [u32],
-    usize,
-    &'a mut [f32],
-    &'a mut [f32],
-    &'a mut [f32],
-    &'a mut [u32],
-);
+/// One dense chunk: (chunk index, (w, state)).
+type DenseChunk<'a> = (usize, (&'a mut [f32], &'a mut [Moments]));
+/// One sparse chunk: (entries, first scalar, w, state) over the chunk's region.
+type SparseChunk<'a> = (&'a [u32], usize, &'a mut [f32], &'a mut [Moments]);
 
 /// Scalars per parallel chunk in [`AdamState::step_dense`].
 pub const DENSE_CHUNK: usize = 1 << 14;
@@ -321,18 +308,31 @@ impl StepConsts {
 
     /// One scalar's Adam update (module doc).
     #[inline]
-    fn update(&mut self, w: &mut f32, g: f32, m: &mut f32, v: &mut f32, t: &mut u32) {
+    fn update(&mut self, w: &mut f32, g: f32, s: &mut Moments) {
         if self.skip_zero && g == 0.0 {
             return;
         }
         let g = if self.l2 != 0.0 { g + self.l2 * *w } else { g };
-        *m = self.b1 * *m + self.one_minus_b1 * g;
-        *v = self.b2 * *v + self.one_minus_b2 * (g * g);
-        *t = t.saturating_add(1);
-        let lr_t = self.lr_t(*t);
-        let eff = lr_t / (v.sqrt() + self.eps);
-        *w -= eff * *m;
+        s.m = self.b1 * s.m + self.one_minus_b1 * g;
+        s.v = self.b2 * s.v + self.one_minus_b2 * (g * g);
+        s.t = s.t.saturating_add(1);
+        let lr_t = self.lr_t(s.t);
+        let eff = lr_t / (s.v.sqrt() + self.eps);
+        *w -= eff * s.m;
     }
+}
+
+/// One scalar's Adam state, stored together (12 bytes): a sparse step reads and writes all three
+/// for each touched scalar at random places of a large table, so one cache line serves them.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+#[repr(C)]
+pub struct Moments {
+    /// First moment.
+    pub m: f32,
+    /// Second moment.
+    pub v: f32,
+    /// Steps this scalar has taken.
+    pub t: u32,
 }
 
 /// One named parameter's place in the flat buffer.
@@ -359,9 +359,8 @@ impl ParamSlot {
 /// laid out as the named parameters in `slots` (consecutive, in the order given).
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct AdamState {
-    pub m: Vec<f32>,
-    pub v: Vec<f32>,
-    pub t: Vec<u32>,
+    /// Per scalar parameter, in the flat buffer's order.
+    pub state: Vec<Moments>,
     pub slots: Vec<ParamSlot>,
 }
 
@@ -380,9 +379,7 @@ impl AdamState {
             slots.push(slot);
         }
         AdamState {
-            m: vec![0.0; offset],
-            v: vec![0.0; offset],
-            t: vec![0; offset],
+            state: crate::hugepages::filled(offset, Moments::default()),
             slots,
         }
     }
@@ -390,19 +387,29 @@ impl AdamState {
     /// Zero state for `n` unnamed scalars (no slots; cannot be saved by name).
     pub fn with_len(n: usize) -> AdamState {
         AdamState {
-            m: vec![0.0; n],
-            v: vec![0.0; n],
-            t: vec![0; n],
+            state: vec![Moments::default(); n],
             slots: Vec::new(),
         }
     }
 
     /// Number of scalar parameters.
     pub fn len(&self) -> usize {
-        self.m.len()
+        self.state.len()
     }
     pub fn is_empty(&self) -> bool {
-        self.m.is_empty()
+        self.state.is_empty()
+    }
+    /// First moments of `range`.
+    pub fn m(&self, range: Range<usize>) -> Vec<f32> {
+        self.state[range].iter().map(|s| s.m).collect()
+    }
+    /// Second moments of `range`.
+    pub fn v(&self, range: Range<usize>) -> Vec<f32> {
+        self.state[range].iter().map(|s| s.v).collect()
+    }
+    /// Step counts of `range`.
+    pub fn t(&self, range: Range<usize>) -> Vec<u32> {
+        self.state[range].iter().map(|s| s.t).collect()
     }
 
     /// The slot of a named parameter.
@@ -447,24 +454,20 @@ impl AdamState {
             self.len()
         );
         let consts = StepConsts::new(cfg, global_step, cfg.sparse);
-        let m = &mut self.m[range.clone()];
-        let v = &mut self.v[range.clone()];
-        let t = &mut self.t[range];
-        let run = |(ci, (((w, m), v), t)): DenseChunk| {
+        let st = &mut self.state[range];
+        let run = |(ci, (w, st)): DenseChunk| {
             let mut c = consts;
             let g = &grads[ci * DENSE_CHUNK..ci * DENSE_CHUNK + w.len()];
-            for i in 0..w.len() {
-                c.update(&mut w[i], g[i], &mut m[i], &mut v[i], &mut t[i]);
+            for ((w, &g), s) in w.iter_mut().zip(g).zip(st.iter_mut()) {
+                c.update(w, g, s);
             }
         };
         if params.len() <= DENSE_CHUNK {
-            run((0, (((params, m), v), t)));
+            run((0, (params, st)));
         } else {
             params
                 .par_chunks_mut(DENSE_CHUNK)
-                .zip(m.par_chunks_mut(DENSE_CHUNK))
-                .zip(v.par_chunks_mut(DENSE_CHUNK))
-                .zip(t.par_chunks_mut(DENSE_CHUNK))
+                .zip(st.par_chunks_mut(DENSE_CHUNK))
                 .enumerate()
                 .for_each(run);
         }
@@ -514,36 +517,27 @@ impl AdamState {
         let region = base_offset..base_offset + params.len();
         // Split the table and its state into disjoint regions, one per chunk of entries.
         let mut parts = Vec::with_capacity(entries.len().div_ceil(SPARSE_CHUNK));
-        let (mut w_rest, mut m_rest, mut v_rest, mut t_rest) = (
-            params,
-            &mut self.m[region.clone()],
-            &mut self.v[region.clone()],
-            &mut self.t[region],
-        );
+        let (mut w_rest, mut s_rest) = (params, &mut self.state[region]);
         let mut consumed = 0usize;
         for chunk in entries.chunks(SPARSE_CHUNK) {
             let start = chunk[0] as usize * entry_len;
             let end = (*chunk.last().unwrap() as usize + 1) * entry_len;
             let (_, w) = std::mem::take(&mut w_rest).split_at_mut(start - consumed);
             let (w, wr) = w.split_at_mut(end - start);
-            let (_, m) = std::mem::take(&mut m_rest).split_at_mut(start - consumed);
-            let (m, mr) = m.split_at_mut(end - start);
-            let (_, v) = std::mem::take(&mut v_rest).split_at_mut(start - consumed);
-            let (v, vr) = v.split_at_mut(end - start);
-            let (_, t) = std::mem::take(&mut t_rest).split_at_mut(start - consumed);
-            let (t, tr) = t.split_at_mut(end - start);
-            (w_rest, m_rest, v_rest, t_rest) = (wr, mr, vr, tr);
+            let (_, st) = std::mem::take(&mut s_rest).split_at_mut(start - consumed);
+            let (st, sr) = st.split_at_mut(end - start);
+            (w_rest, s_rest) = (wr, sr);
             consumed = end;
-            parts.push((chunk, start, w, m, v, t));
+            parts.push((chunk, start, w, st));
         }
-        let run = |(chunk, start, w, m, v, t): SparseChunk| {
+        let run = |(chunk, start, w, st): SparseChunk| {
             let mut c = consts;
             for &e in chunk {
                 let base = e as usize * entry_len;
                 let local = base - start;
-                for f in 0..entry_len {
-                    let i = local + f;
-                    c.update(&mut w[i], grads[base + f], &mut m[i], &mut v[i], &mut t[i]);
+                let (w, st) = (&mut w[local..local + entry_len], &mut st[local..local + entry_len]);
+                for ((w, &g), s) in w.iter_mut().zip(&grads[base..base + entry_len]).zip(st) {
+                    c.update(w, g, s);
                 }
             }
         };
@@ -561,15 +555,15 @@ impl AdamState {
             let r = s.range();
             f.insert(
                 format!("adam.m.{}", s.name),
-                Tensor::f32(s.shape.clone(), &self.m[r.clone()])?,
+                Tensor::f32(s.shape.clone(), &self.m(r.clone()))?,
             );
             f.insert(
                 format!("adam.v.{}", s.name),
-                Tensor::f32(s.shape.clone(), &self.v[r.clone()])?,
+                Tensor::f32(s.shape.clone(), &self.v(r.clone()))?,
             );
             f.insert(
                 format!("adam.t.{}", s.name),
-                Tensor::u32(s.shape.clone(), &self.t[r])?,
+                Tensor::u32(s.shape.clone(), &self.t(r))?,
             );
         }
         Ok(())
@@ -591,9 +585,9 @@ impl AdamState {
             let t = f
                 .get_checked(&format!("adam.t.{}", s.name), DType::U32, &s.shape)?
                 .to_u32()?;
-            st.m[r.clone()].copy_from_slice(&m);
-            st.v[r.clone()].copy_from_slice(&v);
-            st.t[r].copy_from_slice(&t);
+            for (((s, m), v), t) in st.state[r].iter_mut().zip(m).zip(v).zip(t) {
+                *s = Moments { m, v, t };
+            }
         }
         Ok(st)
     }

@@ -1,0 +1,47 @@
+//! Large arrays on transparent huge pages (Linux): the hash tables, their gradients and Adam
+//! state are hundreds of MB touched at random entries every step, and the sample arrays are
+//! written once in parallel. With 4 KiB pages the first costs a TLB miss per access and the second
+//! serialises page faults on the address-space lock. Only a hint: a no-op elsewhere or when the
+//! kernel refuses, and never a change of contents.
+
+/// Ask Linux for transparent huge pages on a vector's untouched spare capacity when it spans
+/// several of them (call before the elements are first written: the hint only changes how
+/// future page faults are served).
+pub fn advise<T>(v: &mut Vec<T>) {
+    #[cfg(target_os = "linux")]
+    {
+        const HUGE: usize = 2 << 20;
+        let spare = v.spare_capacity_mut();
+        let bytes = std::mem::size_of_val(spare);
+        if bytes < 2 * HUGE {
+            return;
+        }
+        let start = spare.as_mut_ptr() as usize;
+        let (lo, hi) = (start.next_multiple_of(HUGE), (start + bytes) / HUGE * HUGE);
+        if hi > lo {
+            // SAFETY: [lo, hi) lies inside the vector's allocation; MADV_HUGEPAGE changes no
+            // contents and no mapping, only how future page faults are served.
+            unsafe {
+                libc::madvise(lo as *mut libc::c_void, hi - lo, libc::MADV_HUGEPAGE);
+            }
+        }
+    }
+    #[cfg(not(target_os = "linux"))]
+    let _ = v;
+}
+
+/// `vec![value; n]` on huge pages.
+pub fn filled<T: Clone>(n: usize, value: T) -> Vec<T> {
+    let mut v = Vec::with_capacity(n);
+    advise(&mut v);
+    v.resize(n, value);
+    v
+}
+
+/// A copy of `src` on huge pages.
+pub fn copied<T: Copy>(src: &[T]) -> Vec<T> {
+    let mut v = Vec::with_capacity(src.len());
+    advise(&mut v);
+    v.extend_from_slice(src);
+    v
+}

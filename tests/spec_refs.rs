@@ -342,7 +342,7 @@ fn fmt_group(g: &AdamGroup) -> String {
         g.beta2,
         g.epsilon,
         if g.sparse {
-            "0 (ignored)".to_string()
+            format!("not applied (config {:?})", g.l2)
         } else {
             format!("{:?}", g.l2)
         },

@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Independent PyTorch reference of the xscale model's forward pass; gradients come from autograd.
 
-Written from SPEC.md §4/§6 and the XScale-NVS paper (Eq. 2-5), never from the Rust code. It reads a checkpoint
+Written from the design brief (now docs/spec.md, SPEC §4 and §6) and the XScale-NVS paper (Eq. 2-5), never from the Rust code. It reads a checkpoint
 and a batch (safetensors, SPEC §6 names) and writes the same dump tensors as `xscale dump`:
 
   python reference/xscale_ref.py --checkpoint CK.safetensors --batch B.safetensors --out DUMP.safetensors \

@@ -11,7 +11,7 @@
 //! vertices used by the refinement are renumbered in order of first use along the leaf order, so
 //! a hit's vertices sit in memory near those of the triangles traced just before. obvhs is used
 //! for construction only: its traversal floors `tmin` at 1e-4 (CWBVH), its triangle test is not
-//! watertight (NOTES.md), and it has no packet traversal.
+//! watertight (`docs/notes.md`, section 3), and it has no packet traversal.
 //!
 //! ## Traversal
 //! Rays are traced in packets of up to [`MAX_LANES`] = 16 ([`Packet`], structure of arrays;

@@ -535,7 +535,10 @@ impl AdamState {
             for &e in chunk {
                 let base = e as usize * entry_len;
                 let local = base - start;
-                let (w, st) = (&mut w[local..local + entry_len], &mut st[local..local + entry_len]);
+                let (w, st) = (
+                    &mut w[local..local + entry_len],
+                    &mut st[local..local + entry_len],
+                );
                 for ((w, &g), s) in w.iter_mut().zip(&grads[base..base + entry_len]).zip(st) {
                     c.update(w, g, s);
                 }

@@ -343,6 +343,7 @@ fn grid_cfg(levels: u32, log2: u32, interp: Interpolation) -> GridConfig {
         base_resolution: 4.0,
         per_level_scale: 2.0,
         interpolation: interp,
+        finest_resolution: None,
     }
 }
 

@@ -3,7 +3,7 @@
 
 use crate::model::checkpoint::init_checkpoint_for_mesh;
 use crate::train::config::RunConfig;
-use crate::train::setup::{drop_fine_levels, prepare};
+use crate::train::setup::{prepare, resolve_levels};
 use std::path::PathBuf;
 use std::process::ExitCode;
 
@@ -26,12 +26,8 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
     let mut cfg = RunConfig::resolve(&a.preset, a.config.as_deref())?;
     cfg.train.seed = a.seed;
     let p = prepare(&a.scene, &cfg, false, &mut |m| eprintln!("{m}"))?;
-    if cfg.train.drop_fine_levels && cfg.model.featurization.is_hash() {
-        if let Some(fp) = p.samples.footprint_min() {
-            if let Some(msg) = drop_fine_levels(&mut cfg.model, fp as f64) {
-                eprintln!("{msg}");
-            }
-        }
+    for msg in resolve_levels(&mut cfg, &p.samples) {
+        eprintln!("{msg}");
     }
     let norm = p.scene.normalization;
     let ck = init_checkpoint_for_mesh(

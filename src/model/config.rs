@@ -38,6 +38,12 @@ pub struct GridConfig {
     /// b; `scale_l = exp2(l * log2(b)) * N0 - 1` with log2(b) in f32.
     pub per_level_scale: f64,
     pub interpolation: Interpolation,
+    /// The finest level's resolution `N_max` that `per_level_scale` was derived from
+    /// (`(N_max / N0)^(1/(L-1))`): given in a config file, or chosen by `level_range = "auto"`.
+    /// Informational once resolved: `per_level_scale` (and the saved scale table) is what
+    /// defines the grid. Absent when the preset's scale is used.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub finest_resolution: Option<f64>,
 }
 
 /// The manifold deformation ξ (SPEC §4.4, Eq. 5).
@@ -138,6 +144,7 @@ impl ModelConfig {
                 base_resolution: 4.0,
                 per_level_scale: 2.0,
                 interpolation: Interpolation::Linear,
+                finest_resolution: None,
             },
             deform: DeformConfig {
                 enabled: true,
@@ -148,6 +155,7 @@ impl ModelConfig {
                     base_resolution: 4.0,
                     per_level_scale: 2.0,
                     interpolation: Interpolation::Linear,
+                    finest_resolution: None,
                 },
                 hidden: 8,
             },
@@ -178,6 +186,7 @@ impl ModelConfig {
                 base_resolution: 16.0,
                 per_level_scale: per_level_scale_for(16.0, 2048.0, 16),
                 interpolation: Interpolation::Linear,
+                finest_resolution: None,
             },
             deform: DeformConfig {
                 enabled: true,
@@ -188,6 +197,7 @@ impl ModelConfig {
                     base_resolution: 16.0,
                     per_level_scale: per_level_scale_for(16.0, 512.0, 8),
                     interpolation: Interpolation::Linear,
+                    finest_resolution: None,
                 },
                 hidden: 32,
             },
@@ -218,6 +228,7 @@ impl ModelConfig {
             base_resolution: 16.0,
             per_level_scale: 1.4768261459394993,
             interpolation: Interpolation::Smoothstep,
+            finest_resolution: None,
         };
         c.deform.grid.interpolation = Interpolation::Smoothstep;
         c

@@ -46,6 +46,8 @@ pub struct CachedView {
     pub len: usize,
     /// Smallest footprint (normalised units) over the view's kept pixels (SPEC §8).
     pub footprint_min: f32,
+    /// Histogram of the kept pixels' footprints (`raycast/footprint.rs`).
+    pub footprints: super::footprint::FootprintHist,
     /// Whether a target image was given (else targets are 0).
     pub has_target: bool,
 }
@@ -403,6 +405,10 @@ impl SampleCache {
             .iter()
             .copied()
             .fold(f32::INFINITY, f32::min);
+        let mut footprints = super::footprint::FootprintHist::default();
+        for &f in &self.footprint[start..] {
+            footprints.add(f as f64);
+        }
         self.views.push(CachedView {
             view,
             width: cam.width,
@@ -410,6 +416,7 @@ impl SampleCache {
             start,
             len,
             footprint_min,
+            footprints,
             has_target: img.is_some(),
         });
         Ok(len)

@@ -10,6 +10,7 @@
 pub mod bvh;
 pub mod cache;
 pub mod cast;
+pub mod footprint;
 pub mod meshes;
 mod simd;
 pub mod stream;
@@ -18,6 +19,7 @@ pub mod triangle;
 pub use bvh::{BuildPreset, Packet, Scratch, Tracer, MAX_LANES};
 pub use cache::{CacheEvent, CachedView, SampleCache};
 pub use cast::{cast_rows, cast_view, sub_offset, PixelSummary, SubSample, ViewCast};
+pub use footprint::FootprintHist;
 pub use stream::{HitMap, RayStream, StreamView, Targets};
 
 use crate::scene::Mesh;

@@ -34,6 +34,7 @@ use super::cache::{decode_coord, encode_coord, CacheEvent};
 use super::cast::{
     cast_pixel, cast_strip, check_gamma, strips, CamCtx, PixelSummary, SubSample, MAX_GAMMA,
 };
+use super::footprint::FootprintHist;
 use crate::model::batch::Batch;
 use crate::scene::{Camera, Image};
 use anyhow::{bail, Result};
@@ -192,6 +193,8 @@ pub struct StreamView {
     pub start: usize,
     /// Smallest footprint (normalised units) over the view's kept pixels (SPEC §8).
     pub footprint_min: f32,
+    /// Histogram of the kept pixels' footprints (`raycast/footprint.rs`).
+    pub footprints: FootprintHist,
     pub hits: HitMap,
     pub targets: Targets,
 }
@@ -240,7 +243,7 @@ fn strip_hits(
     gamma: u32,
     (y0, rows): (u32, u32),
     buf: &mut (super::bvh::Scratch, Vec<SubSample>, Vec<PixelSummary>),
-) -> (Vec<u64>, f32) {
+) -> (Vec<u64>, f32, FootprintHist) {
     let (sc, subs, pixels) = buf;
     let g2 = (gamma * gamma) as usize;
     let npix = (rows * cam.width) as usize;
@@ -259,15 +262,18 @@ fn strip_hits(
     let wpr = (cam.width as usize).div_ceil(64);
     let mut bits = vec![0u64; wpr * rows as usize];
     let mut fmin = f32::INFINITY;
+    let mut hist = FootprintHist::default();
     for (k, px) in pixels[..npix].iter().enumerate() {
         let inside = mask.is_none_or(|m| m[y0 as usize * cam.width as usize + k]);
         if px.valid != 0 && inside {
             let (u, r) = (k % cam.width as usize, k / cam.width as usize);
             bits[r * wpr + u / 64] |= 1 << (u % 64);
             fmin = fmin.min(px.footprint as f32);
+            // As the cache stores it: the f32 footprint.
+            hist.add(px.footprint as f32 as f64);
         }
     }
-    (bits, fmin)
+    (bits, fmin, hist)
 }
 
 impl RayStream {
@@ -337,7 +343,7 @@ impl RayStream {
             );
         }
         let ctx = CamCtx::new(tracer, cam);
-        let parts: Vec<(Vec<u64>, f32)> = strips(cam.height)
+        let parts: Vec<(Vec<u64>, f32, FootprintHist)> = strips(cam.height)
             .into_par_iter()
             .map_init(
                 || (tracer.scratch(), Vec::new(), Vec::new()),
@@ -345,6 +351,10 @@ impl RayStream {
             )
             .collect();
         let footprint_min = parts.iter().map(|p| p.1).fold(f32::INFINITY, f32::min);
+        let mut footprints = FootprintHist::default();
+        for p in &parts {
+            footprints.merge(&p.2);
+        }
         let bits: Vec<u64> = parts.into_iter().flat_map(|p| p.0).collect();
         let hits = HitMap::from_bits(cam.width, cam.height, bits);
         let len = hits.len();
@@ -363,6 +373,7 @@ impl RayStream {
             camera: cam.clone(),
             start: self.total,
             footprint_min,
+            footprints,
             hits,
             targets,
         });

@@ -242,11 +242,7 @@ pub fn run_ablation(scene: &Path, out: &Path, opts: &AblateOptions) -> Result<Ab
         }
         let prepared = crate::train::setup::prepare(scene, &base, false, &mut |_| {})?;
         let mut cfg = base.clone();
-        if cfg.train.drop_fine_levels {
-            if let Some(fp) = prepared.samples.footprint_min() {
-                crate::train::setup::drop_fine_levels(&mut cfg.model, fp as f64);
-            }
-        }
+        crate::train::setup::resolve_levels(&mut cfg, &prepared.samples);
         Ok(TrainState::init(cfg, &prepared)?.ckpt.model.layout.total)
     };
 

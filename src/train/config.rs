@@ -21,6 +21,18 @@ use anyhow::{bail, Context, Result};
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 
+/// How grid H's level range is chosen (`[train] level_range`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum LevelRange {
+    /// The configured `per_level_scale` (the `tiny` and `paper` presets: the official code's
+    /// fixed scale).
+    #[default]
+    Fixed,
+    /// The finest level follows the footprints the training views see (`cpu`).
+    Auto,
+}
+
 /// Everything about a training run that is not the model.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -44,6 +56,13 @@ pub struct TrainConfig {
     pub normalize: NormalizeMode,
     /// Drop hash levels finer than the finest pixel footprint of any training view (SPEC §8).
     pub drop_fine_levels: bool,
+    /// How grid H's level range is chosen at the start of a run (SPEC §8, `train/setup.rs`
+    /// `resolve_levels`): `auto` (the `cpu` preset) makes the finest level follow the closest
+    /// training views' pixel footprints; `fixed` keeps the configured `per_level_scale`. A config
+    /// file that sets `[model.grid_h] per_level_scale` or `finest_resolution` fixes it. Absent
+    /// from older configs (= fixed, as they were trained).
+    #[serde(default)]
+    pub level_range: LevelRange,
     pub adam: AdamConfig,
     /// Mesh file to use instead of the scene's own (e.g. a decimated one, `xscale decimate`);
     /// `xscale train --mesh` stores it absolute, so `eval`/`render --run` find it again. The
@@ -79,6 +98,11 @@ impl TrainConfig {
             downsample: 1,
             normalize: NormalizeMode::PerAxis,
             drop_fine_levels: true,
+            level_range: if name == "cpu" {
+                LevelRange::Auto
+            } else {
+                LevelRange::Fixed
+            },
             adam,
             mesh: None,
             samples: SampleMode::Stream,
@@ -159,14 +183,51 @@ impl RunConfig {
         Ok(cfg)
     }
 
-    /// Preset `preset`, overridden by the file `path` if given.
+    /// Preset `preset`, overridden by the file `path` if given. A user config that sets grid H's
+    /// `per_level_scale` or `finest_resolution` fixes the level range (`finest_resolution`
+    /// gives `per_level_scale = (finest / N0)^(1/(L-1))`; giving both, or either with
+    /// `[train] level_range = "auto"`, is an error).
     pub fn resolve(preset: &str, path: Option<&Path>) -> Result<RunConfig> {
         match path {
             None => RunConfig::preset(preset),
             Some(p) => {
                 let text = std::fs::read_to_string(p)
                     .with_context(|| format!("{}: cannot read config", p.display()))?;
-                RunConfig::from_toml_str(&text, preset, &p.display().to_string())
+                let origin = p.display().to_string();
+                let mut cfg = RunConfig::from_toml_str(&text, preset, &origin)?;
+                let over: toml::Value =
+                    toml::from_str(&text).with_context(|| format!("{origin}: not valid TOML"))?;
+                let grid = over.get("model").and_then(|m| m.get("grid_h"));
+                let has = |k: &str| grid.is_some_and(|g| g.get(k).is_some());
+                let auto_asked = over
+                    .get("train")
+                    .and_then(|t| t.get("level_range"))
+                    .and_then(|v| v.as_str())
+                    == Some("auto");
+                let (scale, finest) = (has("per_level_scale"), has("finest_resolution"));
+                if scale && finest {
+                    bail!("{origin}: give [model.grid_h] per_level_scale or finest_resolution, not both");
+                }
+                if (scale || finest) && auto_asked {
+                    bail!(
+                        "{origin}: [train] level_range = \"auto\" chooses grid H's level range itself; remove [model.grid_h] {} or the level_range line",
+                        if scale { "per_level_scale" } else { "finest_resolution" }
+                    );
+                }
+                if scale || finest {
+                    cfg.train.level_range = LevelRange::Fixed;
+                }
+                if let Some(f) = cfg.model.grid_h.finest_resolution.filter(|_| finest) {
+                    let g = &mut cfg.model.grid_h;
+                    g.per_level_scale = crate::model::config::per_level_scale_for(
+                        g.base_resolution as f64,
+                        f,
+                        g.levels,
+                    );
+                }
+                cfg.validate()
+                    .with_context(|| format!("{origin}: invalid configuration"))?;
+                Ok(cfg)
             }
         }
     }

@@ -48,6 +48,24 @@ impl Samples {
             Samples::Cache(c) => c.footprint_min(),
         }
     }
+    /// The smallest, over kept views, of each view's `p`-quantile pixel footprint (normalised
+    /// units; `raycast/footprint.rs`), `None` if nothing is kept.
+    pub fn footprint_quantile_min(&self, p: f64) -> Option<f64> {
+        let q: Vec<f64> = match self {
+            Samples::Stream(s) => s
+                .views
+                .iter()
+                .filter_map(|v| v.footprints.quantile(p))
+                .collect(),
+            Samples::Cache(c) => c
+                .views
+                .iter()
+                .filter_map(|v| v.footprints.quantile(p))
+                .collect(),
+        };
+        q.into_iter().reduce(f64::min)
+    }
+
     /// Whether batches carry triangle ids and barycentrics (vertex featurization).
     pub fn has_triangles(&self) -> bool {
         match self {

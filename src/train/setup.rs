@@ -2,12 +2,12 @@
 //! check the memory budget, cast every training view once (its hit map for the ray stream, or
 //! all its samples for the cache — `train/sampler.rs`), and drop hash levels no view resolves.
 
-use crate::model::config::GridConfig;
+use crate::model::config::{per_level_scale_for, GridConfig};
 use crate::model::hashgrid::tcnn_scales;
 use crate::model::ModelConfig;
 use crate::raycast::{CacheEvent, RayStream, SampleCache, Targets, Tracer};
 use crate::scene::{LoadOptions, Scene};
-use crate::train::config::RunConfig;
+use crate::train::config::{LevelRange, RunConfig};
 use crate::train::memory;
 use crate::train::sampler::{SampleMode, Samples};
 use anyhow::{bail, Context, Result};
@@ -151,6 +151,68 @@ pub fn prepare(
         train_views,
         samples,
     })
+}
+
+/// Which footprint sets the finest level in `level_range = "auto"`: the smallest over training
+/// views of each view's [`LEVEL_QUANTILE`]-quantile pixel footprint — the closest views' typical
+/// pixel, not their single smallest one (a pixel at a grazing angle or at the edge of a near
+/// object can be many times smaller than the rest of its view and would spend levels on nothing),
+/// and not a quantile over all pixels (a few close-ups among many aerial views would be outvoted).
+pub const LEVEL_QUANTILE: f64 = 0.1;
+
+/// The finest level's cells in `level_range = "auto"` are this many times finer than that
+/// footprint (a cell per pixel footprint resolves a pixel's worth of detail; measured in the
+/// finest-resolution sweep, `docs/cross-scale.md`).
+pub const CELLS_PER_FOOTPRINT: f64 = 1.0;
+
+/// Resolve the hash-grid levels of a new run from what the training views see (SPEC §8), in
+/// place; returns the messages saying what was chosen and why.
+///
+/// 1. `train.level_range = "auto"` (the `cpu` preset): grid H's finest resolution follows the
+///    footprints (`N_max = CELLS_PER_FOOTPRINT / fp`, `fp` as [`LEVEL_QUANTILE`] says, in cells per
+///    normalised unit) and `per_level_scale = (N_max / N0)^(1/(L-1))` (tiny-cuda-nn's formula),
+///    N0 and L as configured; `N_max` is kept at least `2·N0`.
+/// 2. `train.drop_fine_levels`: grid H levels finer than the finest footprint of any training view
+///    are dropped ([`drop_fine_levels`]).
+///
+/// The vertex featurization has no levels: nothing changes.
+pub fn resolve_levels(cfg: &mut RunConfig, samples: &Samples) -> Vec<String> {
+    let mut out = Vec::new();
+    if !cfg.model.featurization.is_hash() {
+        return out;
+    }
+    let g = &mut cfg.model.grid_h;
+    match cfg.train.level_range {
+        LevelRange::Auto => {
+            if let Some(fp) = samples.footprint_quantile_min(LEVEL_QUANTILE) {
+                let n0 = g.base_resolution as f64;
+                let finest = (CELLS_PER_FOOTPRINT / fp).max(2.0 * n0);
+                let before = tcnn_scales(g).last().copied().unwrap_or(0.0);
+                g.per_level_scale = per_level_scale_for(n0, finest, g.levels);
+                g.finest_resolution = Some(finest);
+                out.push(format!(
+                    "grid H level range (auto): the closest views' pixels are {fp:.3e} of the scene ({} % quantile of each view's footprints, smallest over views): finest level {finest:.0} cells per unit (was {:.0}), per_level_scale {:.6} over {} levels from {n0}",
+                    (LEVEL_QUANTILE * 100.0).round(),
+                    before + 1.0,
+                    g.per_level_scale,
+                    g.levels
+                ));
+            }
+        }
+        LevelRange::Fixed => out.push(format!(
+            "grid H level range (fixed): per_level_scale {:.6}, finest level {:.0} cells per unit",
+            g.per_level_scale,
+            tcnn_scales(g).last().copied().unwrap_or(0.0) + 1.0
+        )),
+    }
+    if cfg.train.drop_fine_levels {
+        if let Some(fp) = samples.footprint_min() {
+            if let Some(msg) = drop_fine_levels(&mut cfg.model, fp as f64) {
+                out.push(msg);
+            }
+        }
+    }
+    out
 }
 
 /// Number of levels of `grid` whose cells are not finer than `footprint` (normalised units):

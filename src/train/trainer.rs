@@ -23,7 +23,7 @@ use crate::model::params::{Grads, Group, ParamLayout};
 use crate::train::adam::AdamState;
 use crate::train::config::RunConfig;
 use crate::train::sampler::sample_batch;
-use crate::train::setup::{drop_fine_levels, prepare, Prepared};
+use crate::train::setup::{prepare, resolve_levels, Prepared};
 use anyhow::{bail, Context, Result};
 use std::io::{IsTerminal, Write};
 use std::path::{Path, PathBuf};
@@ -286,12 +286,8 @@ pub fn train(
         Some(s) => s,
         None => {
             let mut cfg = run_cfg;
-            if cfg.train.drop_fine_levels && cfg.model.featurization.is_hash() {
-                if let Some(fp) = prepared.samples.footprint_min() {
-                    if let Some(msg) = drop_fine_levels(&mut cfg.model, fp as f64) {
-                        say(msg);
-                    }
-                }
+            for msg in resolve_levels(&mut cfg, &prepared.samples) {
+                say(msg);
             }
             if let Ok(old) = std::fs::metadata(&metrics_path) {
                 if old.is_file() {

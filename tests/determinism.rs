@@ -4,6 +4,7 @@
 //! with 1, 2 and 4 threads (rayon pools built here) and across two runs.
 
 use xscale::model::batch::Batch;
+use xscale::model::config::LevelWeight;
 use xscale::model::params::{Grads, Group};
 use xscale::model::{Hfm, ModelConfig};
 use xscale::rng::{uniform_f32, Purpose};
@@ -40,8 +41,20 @@ fn run(model: &Hfm, params: &[f32], batch: &Batch, threads: usize) -> Result1 {
 
 #[test]
 fn gradients_bit_identical_across_threads_and_runs() {
+    bit_identical(LevelWeight::None);
+}
+
+/// The same with the footprint level weighting (SPEC §4.10): footprints spread over the cpu
+/// preset's cell sizes, so every level is fully, partly and not evaluated by some pixels.
+#[test]
+fn level_weighted_gradients_bit_identical_across_threads_and_runs() {
+    bit_identical(LevelWeight::Footprint);
+}
+
+fn bit_identical(level_weight: LevelWeight) {
     let mut cfg = ModelConfig::cpu();
     cfg.appearance_views = 8;
+    cfg.level_weight = level_weight;
     assert_eq!(cfg.gamma, 2);
     let model = Hfm::new(&cfg).unwrap();
     let mut params = model.init_params(3);
@@ -63,8 +76,14 @@ fn gradients_bit_identical_across_threads_and_runs() {
     {
         *v = 0.1 * (uniform_f32(5, Purpose::Test, 1, e as u64) - 0.5);
     }
-    let batch = Batch::random(11, 16_384, 4, 8, 0.2);
+    let mut batch = Batch::random(11, 16_384, 4, 8, 0.2);
     assert!(batch.valid.contains(&0) && batch.view.contains(&-1));
+    if level_weight == LevelWeight::Footprint {
+        // log-uniform over [1e-4, 1e-1]: from finer than the finest cell to coarser than level 0's.
+        batch.footprint = (0..16_384)
+            .map(|i| 10f32.powf(-4.0 + 3.0 * uniform_f32(13, Purpose::Test, 0, i)))
+            .collect();
+    }
 
     let reference = run(&model, &params, &batch, 1);
     assert!(reference.params.iter().any(|&b| f32::from_bits(b) != 0.0));

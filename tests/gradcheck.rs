@@ -29,7 +29,7 @@
 
 use xscale::model::batch::Batch;
 use xscale::model::config::{
-    Featurization, GridConfig, Interpolation, LossKind, ModelConfig, PositionMode,
+    Featurization, GridConfig, Interpolation, LevelWeight, LossKind, ModelConfig, PositionMode,
 };
 use xscale::model::hashgrid::{HashGrid, Touched};
 use xscale::model::hfm::{pool_backward, pool_forward, Forward, Hfm};
@@ -459,6 +459,26 @@ fn cases() -> Vec<Case> {
         n: 6,
         p_invalid: 0.35,
     });
+    // D: footprint level weighting (SPEC §4.10) with ξ, γ = 2: pixel footprints in [0.03, 0.2]
+    // give level weights of 1, fractions and 0 (levels then skipped) on the scales 3, 7, 15, 31.
+    let mut d = ModelConfig::tiny();
+    d.level_weight = LevelWeight::Footprint;
+    d.appearance_views = 3;
+    out.push(Case {
+        name: "D level weighting γ2 deform",
+        cfg: d.clone(),
+        n: 7,
+        p_invalid: 0.35,
+    });
+    // E: the same without ξ (the weighted gradient then goes straight to grid H).
+    d.deform.enabled = false;
+    d.grid_h.interpolation = Interpolation::Smoothstep;
+    out.push(Case {
+        name: "E level weighting smoothstep no-deform",
+        cfg: d,
+        n: 6,
+        p_invalid: 0.2,
+    });
     out
 }
 
@@ -501,6 +521,11 @@ fn make_batch(model: &Hfm, case: &Case, seed: u64) -> Batch {
         for v in d.iter_mut() {
             *v = ((*v as f64 / DIR_STEP).round() * DIR_STEP) as f32;
         }
+    }
+    if case.cfg.level_weight == LevelWeight::Footprint {
+        b.footprint = (0..case.n)
+            .map(|i| (0.03 + 0.17 * u(seed, 90, i as u64)) as f32)
+            .collect();
     }
     if model.appearance_dim() > 0 {
         // Both kinds of pixels: with a code and with the mean code.

@@ -24,6 +24,9 @@ pub struct Batch {
     pub view: Vec<i32>,
     /// `[N]` target RGB.
     pub target: Vec<[f32; 3]>,
+    /// `[N]` pixel footprint on the surface, normalised units (SPEC §1.1), or empty when unknown:
+    /// read only by the footprint level weighting (SPEC §4.10).
+    pub footprint: Vec<f32>,
     /// `[N*S]` triangle hit by each sub-sample (optional, see the module doc).
     pub triangle: Vec<u32>,
     /// `[N*S]` barycentrics `(u, v)` of each sub-sample (optional, with `triangle`).
@@ -71,6 +74,21 @@ impl Batch {
             "batch: target has {} entries, expected N = {n}",
             self.target.len()
         );
+        ensure!(
+            self.footprint.is_empty() || self.footprint.len() == n,
+            "batch: footprint has {} entries, expected N = {n} (or none)",
+            self.footprint.len()
+        );
+        if let Some(i) = self
+            .footprint
+            .iter()
+            .position(|f| !(f.is_finite() && *f >= 0.0))
+        {
+            bail!(
+                "batch: pixel {i}: footprint {} is not a finite number ≥ 0",
+                self.footprint[i]
+            );
+        }
         ensure!(
             self.triangle.len() == self.bary.len(),
             "batch: triangle has {} entries but bary has {}",

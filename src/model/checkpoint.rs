@@ -272,6 +272,10 @@ pub fn batch_to_tensors(file: &mut TensorFile, batch: &Batch) -> Result<()> {
     file.insert("batch.view", Tensor::i32(vec![n], &batch.view)?);
     let tgt: Vec<f32> = batch.target.iter().flatten().copied().collect();
     file.insert("batch.target", Tensor::f32(vec![n, 3], &tgt)?);
+    if !batch.footprint.is_empty() {
+        // Pixel footprints (SPEC §6.3): read only by the footprint level weighting (§4.10).
+        file.insert("batch.footprint", Tensor::f32(vec![n], &batch.footprint)?);
+    }
     if !batch.triangle.is_empty() {
         // Vertex featurization only (not part of SPEC §6's hash-model batch).
         file.insert("batch.triangle", Tensor::u32(vec![n, s], &batch.triangle)?);
@@ -315,6 +319,11 @@ pub fn batch_from_tensors(file: &TensorFile) -> Result<Batch> {
         ..Batch::default()
     };
     let mut b = b;
+    if file.tensors.contains_key("batch.footprint") {
+        b.footprint = file
+            .get_checked("batch.footprint", DType::F32, &[n])?
+            .to_f32()?;
+    }
     if file.tensors.contains_key("batch.triangle") {
         b.triangle = file
             .get_checked("batch.triangle", DType::U32, &[n, s])?

@@ -93,6 +93,26 @@ impl Featurization {
     }
 }
 
+/// How a sub-sample's grid-H levels are weighted (SPEC §4.10).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "lowercase")]
+pub enum LevelWeight {
+    /// Every level at weight 1: Eqs. 2 and 4 as the paper writes them.
+    #[default]
+    None,
+    /// Level l of a sub-sample is scaled by `w(r)`, `r = footprint · scale_l` (the pixel's
+    /// footprint in cells of level l): 1 for r ≤ 1, 0 for r ≥ 4, a smoothstep in log2(r) between
+    /// (`src/model/level_weight.rs`). A far pixel neither reads nor writes levels much finer than
+    /// itself; levels at weight 0 are not evaluated.
+    Footprint,
+}
+
+impl LevelWeight {
+    pub fn is_none(&self) -> bool {
+        *self == LevelWeight::None
+    }
+}
+
 fn is_zero(v: &u32) -> bool {
     *v == 0
 }
@@ -126,6 +146,10 @@ pub struct ModelConfig {
     /// for a scene, like `appearance_views`).
     #[serde(default, skip_serializing_if = "is_zero")]
     pub vertex_count: u32,
+    /// Footprint-aware weighting of grid H's levels (SPEC §4.10; beyond the paper). Absent from
+    /// configs that do not use it, so they are unchanged by its existence.
+    #[serde(default, skip_serializing_if = "LevelWeight::is_none")]
+    pub level_weight: LevelWeight,
 }
 
 /// `(finest / base)^(1/(levels-1))`, the per-level scale that reaches `finest` at the last level.
@@ -173,6 +197,7 @@ impl ModelConfig {
             featurization: Featurization::Hash,
             vertex_features: 0,
             vertex_count: 0,
+            level_weight: LevelWeight::None,
         }
     }
 
@@ -215,6 +240,7 @@ impl ModelConfig {
             featurization: Featurization::Hash,
             vertex_features: 0,
             vertex_count: 0,
+            level_weight: LevelWeight::None,
         }
     }
 

@@ -295,6 +295,25 @@ impl HashGrid {
         mode: PositionMode,
         out: &mut [R],
     ) {
+        self.forward_active(table, points, mode, out, &[])
+    }
+
+    /// [`HashGrid::forward`] evaluating, for point i, only its first `active[i]` levels (the
+    /// others' outputs are 0 and their tables are not read); `active` empty = every level.
+    pub fn forward_active<R: Real>(
+        &self,
+        table: &[R],
+        points: &[[f64; 3]],
+        mode: PositionMode,
+        out: &mut [R],
+        active: &[u8],
+    ) {
+        assert!(
+            active.is_empty() || active.len() == points.len(),
+            "hashgrid forward: active has {} entries for {} points",
+            active.len(),
+            points.len()
+        );
         let lf = self.out_dim();
         assert_eq!(
             table.len(),
@@ -305,12 +324,25 @@ impl HashGrid {
         let fast = has_fma();
         out.par_chunks_mut(CHUNK_POINTS * lf)
             .zip(points.par_chunks(CHUNK_POINTS))
-            .for_each(|(o, p)| {
+            .enumerate()
+            .for_each(|(ci, (o, p))| {
+                let act = if active.is_empty() {
+                    &[][..]
+                } else {
+                    &active[ci * CHUNK_POINTS..ci * CHUNK_POINTS + p.len()]
+                };
                 for l in 0..self.cfg.levels as usize {
+                    if !act.is_empty() && act.iter().all(|&a| a as usize <= l) {
+                        o.chunks_exact_mut(lf).for_each(|r| {
+                            r[l * self.cfg.features as usize..][..self.cfg.features as usize]
+                                .fill(R::ZERO)
+                        });
+                        continue;
+                    }
                     let g = self.level(l, mode);
                     let tab = &table[g.offset * self.cfg.features as usize..]
                         [..g.size as usize * self.cfg.features as usize];
-                    kernels::forward_level(fast, self.cfg.features, &g, tab, p, o, lf, l);
+                    kernels::forward_level(fast, self.cfg.features, &g, tab, p, o, lf, l, act);
                 }
             });
     }
@@ -929,7 +961,7 @@ mod kernels {
     // ---------------------------------------------------------------- forward
 
     kernel!(forward_level, forward_level_fma, forward_level_plain, forward_level_impl,
-        (tab: &[R], pts: &[[f64; 3]], out: &mut [R], lf: usize, l: usize));
+        (tab: &[R], pts: &[[f64; 3]], out: &mut [R], lf: usize, l: usize, active: &[u8]));
 
     /// One level for a chunk of points: `out[i, l*F..(l+1)*F] = Σ_k w_k · table[idx_k]` (Eq. 2).
     #[inline(always)]
@@ -942,9 +974,13 @@ mod kernels {
         out: &mut [R],    // [n, L*F]
         lf: usize,
         l: usize,
+        active: &[u8], // [n] levels evaluated per point, or empty = all
     ) {
         assert_eq!(tab.len(), g.size as usize * F);
         assert!(out.len() >= pts.len() * lf);
+        assert!(active.is_empty() || active.len() >= pts.len());
+        // A point whose active-level count is ≤ l skips this level (output 0, no gather).
+        let on = |i: usize| active.is_empty() || active[i] as usize > l;
         let mut c = [[0u32; BLOCK]; 3];
         let mut w = [[R::ZERO; BLOCK]; 3];
         let mut idx = [[0u32; BLOCK]; 8];
@@ -956,10 +992,16 @@ mod kernels {
             corner_weights_block(block_len(xs.len()), &w, &mut w8);
             ix.corners_block(block_len(xs.len()), &c, &mut idx);
             for j in 0..xs.len() {
-                prefetch_corners::<R, F>(tab, &idx, j);
+                if on(b * BLOCK + j) {
+                    prefetch_corners::<R, F>(tab, &idx, j);
+                }
             }
             // Pass 2: gather and interpolate (Eq. 2), fma chain in corner order.
             for j in 0..xs.len() {
+                if !on(b * BLOCK + j) {
+                    out[(b * BLOCK + j) * lf + l * F..][..F].fill(R::ZERO);
+                    continue;
+                }
                 let mut acc = [R::ZERO; F];
                 for k in 0..8 {
                     let e = idx[k][j] as usize * F;

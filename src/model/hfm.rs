@@ -30,8 +30,9 @@
 //! added to every row.
 
 use crate::model::batch::Batch;
-use crate::model::config::ModelConfig;
+use crate::model::config::{LevelWeight, ModelConfig};
 use crate::model::hashgrid::HashGrid;
+use crate::model::level_weight::{apply_level_weights, level_weights};
 use crate::model::loss::{loss_backward, loss_forward, sigmoid_backward, sigmoid_forward};
 use crate::model::mlp::{Mlp, MlpActs};
 use crate::model::params::{Grads, Group, ParamLayout};
@@ -86,6 +87,8 @@ pub struct ChunkFwd<R> {
     pub samples: Range<usize>,
     /// `[v, L·F]` F_H at each valid sub-sample (Eq. 2).
     pub grid_h: Vec<R>,
+    /// `[v, L]` footprint level weights (SPEC §4.10), empty without level weighting.
+    pub level_w: Vec<R>,
     /// `[v, L_D·F_D]` F_D.
     pub grid_d: Vec<R>,
     /// `[v, L_D·F_D + 16]` ξ's input.
@@ -327,6 +330,10 @@ impl Hfm {
     /// Check a batch against this model (shapes, validity, view rows).
     pub fn check_batch(&self, batch: &Batch) -> Result<()> {
         batch.validate()?;
+        ensure!(
+            self.cfg.level_weight == LevelWeight::None || !batch.footprint.is_empty(),
+            "batch: the footprint level weighting (model.level_weight) needs batch.footprint"
+        );
         if let Some(vt) = &self.vertex {
             ensure!(
                 !batch.triangle.is_empty(),
@@ -474,10 +481,38 @@ impl Hfm {
         };
         // Eq. 2: F_H at every valid sub-sample (or Fig. 2b's F_V: vertex featurization).
         f.grid_h = vec![R::ZERO; v * lf];
+        let local_start: Vec<usize> = start[pixels.start..=pixels.end]
+            .iter()
+            .map(|&x| x - samples.start)
+            .collect();
+        // SPEC §4.10: the weights of each sub-sample's levels, and how many levels it evaluates.
+        let mut active = Vec::new();
+        if self.cfg.level_weight == LevelWeight::Footprint {
+            let nl = self.grid_h.scales.len();
+            f.level_w = vec![R::ZERO; v * nl];
+            active = vec![0u8; v];
+            level_weights(
+                &self.grid_h.scales,
+                &local_start,
+                &batch.footprint[pixels.clone()],
+                &mut f.level_w,
+                &mut active,
+            );
+        }
         match &self.vertex {
-            None => self
-                .grid_h
-                .forward(&params[self.r_grid_h.clone()], pts, mode, &mut f.grid_h),
+            None => {
+                self.grid_h.forward_active(
+                    &params[self.r_grid_h.clone()],
+                    pts,
+                    mode,
+                    &mut f.grid_h,
+                    &active,
+                );
+                if !f.level_w.is_empty() {
+                    let nf = self.cfg.grid_h.features as usize;
+                    apply_level_weights(&f.level_w, lf / nf, nf, &mut f.grid_h);
+                }
+            }
             Some(vt) => vertex_forward(
                 vt,
                 &params[self.r_vertex.clone()],
@@ -515,10 +550,6 @@ impl Hfm {
         }
         // Eq. 4: pooled_n = (Σ_j F'_j) / count_n, F'_j = F_H(x_j) + δ_j.
         f.pooled = vec![R::ZERO; n * lf];
-        let local_start: Vec<usize> = start[pixels.start..=pixels.end]
-            .iter()
-            .map(|&x| x - samples.start)
-            .collect();
         let delta = self.deform.as_ref().map(|_| &f.deform.out[..]);
         pool_forward(&local_start, &f.grid_h, delta, lf, &mut f.pooled);
         // Shader input [pooled, SH(d), code(view)].
@@ -759,6 +790,8 @@ impl Hfm {
                     add_into(&mut d_sh[i * SH_DIM..(i + 1) * SH_DIM], &row[ld..]);
                 }
             }
+            // SPEC §4.10: from here on d_feat is the gradient of grid H's (weighted) output.
+            self.weight_grad(ch, &mut d_feat);
             // Position gradient: grid H first (below), then grid D — keep that order.
             if inputs {
                 self.grid_h.backward_points(
@@ -776,7 +809,10 @@ impl Hfm {
                     &mut d_points,
                 );
             }
-        } else if inputs && self.vertex.is_none() {
+        } else if self.vertex.is_none() {
+            self.weight_grad(ch, &mut d_feat);
+        }
+        if inputs && self.vertex.is_none() && self.deform.is_none() {
             // (Vertex featurization: positions do not enter the model; their gradient is 0.)
             self.grid_h.backward_points(
                 &params[self.r_grid_h.clone()],
@@ -799,6 +835,15 @@ impl Hfm {
             d_code,
             d_dirs,
             d_points,
+        }
+    }
+
+    /// `d_feat[v, L·F] *= level_w[v, L]` when the chunk was weighted (SPEC §4.10).
+    fn weight_grad<R: Real>(&self, ch: &ChunkFwd<R>, d_feat: &mut [R]) {
+        if !ch.level_w.is_empty() {
+            let nf = self.cfg.grid_h.features as usize;
+            let nl = self.feat_dim() / nf;
+            apply_level_weights(&ch.level_w, nl, nf, d_feat);
         }
     }
 

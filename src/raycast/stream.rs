@@ -465,6 +465,7 @@ impl RayStream {
             dirs: vec![[0.0; 3]; n],
             view: vec![0; n],
             target: vec![[0.0; 3]; n],
+            footprint: vec![0.0; n],
             ..Batch::default()
         };
         if keep {
@@ -493,6 +494,7 @@ impl RayStream {
             }
             debug_assert!(sum.valid != 0, "a kept pixel sees the mesh");
             b.dirs[k] = sum.dir.as_vec3().to_array();
+            b.footprint[k] = sum.footprint as f32;
             b.view[k] = sv.view as i32;
             let o = 3 * (v as usize * sv.camera.width as usize + u as usize);
             b.target[k] = sv.targets.rgb(o);

@@ -74,6 +74,7 @@ pub fn render_camera(
                 dirs: Vec::with_capacity(chunk.len()),
                 view: vec![view_row; chunk.len()],
                 target: vec![[0.0; 3]; chunk.len()],
+                footprint: Vec::with_capacity(chunk.len()),
                 ..Batch::default()
             };
             let ids = model.vertex.is_some();
@@ -89,6 +90,7 @@ pub fn render_camera(
                     }
                 }
                 b.dirs.push(px.dir.as_vec3().to_array());
+                b.footprint.push(px.footprint as f32);
             }
             let fwd = model.forward(params, &b)?;
             let rgb = fwd.chunks.iter().flat_map(|c| c.rgb.iter().copied());

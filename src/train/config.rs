@@ -261,6 +261,9 @@ impl RunConfig {
             if self.model.deform.enabled {
                 bail!("featurization = \"vertex\" runs without deformation: set [model.deform] enabled = false");
             }
+            if !self.model.level_weight.is_none() {
+                bail!("model.level_weight weights hash-grid levels; featurization = \"vertex\" has none");
+            }
             return Ok(());
         }
         crate::model::hashgrid::validate_config(&self.model.grid_h).context("model.grid_h")?;

@@ -106,6 +106,7 @@ pub fn batch_from_pixels(cache: &SampleCache, pixels: &[usize]) -> Batch {
         dirs: Vec::with_capacity(n),
         view: Vec::with_capacity(n),
         target: Vec::with_capacity(n),
+        footprint: Vec::with_capacity(n),
         ..Batch::default()
     };
     if cache.has_triangles() {
@@ -121,6 +122,7 @@ pub fn batch_from_pixels(cache: &SampleCache, pixels: &[usize]) -> Batch {
         b.dirs.push(cache.dir(p));
         b.view.push(cache.view_index(p) as i32);
         b.target.push(cache.target(p));
+        b.footprint.push(cache.footprint(p));
         if cache.has_triangles() {
             for j in 0..s {
                 (b.triangle[slot * s + j], b.bary[slot * s + j]) = cache.surface_id(p, j);

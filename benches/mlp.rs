@@ -72,6 +72,8 @@ fn main() {
     let cfg = {
         let mut c = ModelConfig::cpu();
         c.appearance_views = 8;
+        // Every level of every pixel (random batches carry no footprints; SPEC §4.10).
+        c.level_weight = xscale::model::config::LevelWeight::None;
         c
     };
     // (1) Shader MLP.

@@ -240,13 +240,15 @@ impl ModelConfig {
             featurization: Featurization::Hash,
             vertex_features: 0,
             vertex_count: 0,
-            level_weight: LevelWeight::None,
+            // Measured better on synth small (+0.7 dB masked PSNR, 18% faster per step; SPEC §4.10).
+            level_weight: LevelWeight::Footprint,
         }
     }
 
     /// `paper`: the official code's grid (SPEC §9).
     pub fn paper() -> ModelConfig {
         let mut c = ModelConfig::cpu();
+        c.level_weight = LevelWeight::None; // the paper's Eqs. 2 and 4
         c.grid_h = GridConfig {
             levels: 16,
             features: 8,

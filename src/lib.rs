@@ -18,7 +18,7 @@
 
 pub mod cli;
 pub mod eval;
-pub mod hugepages;
+pub mod memhint;
 pub mod io;
 pub mod model;
 pub mod raycast;

@@ -74,7 +74,7 @@ pub fn init_checkpoint_for_mesh(
         Hfm::with_vertex(&cfg, mesh.triangles.clone().into())?
     };
     // On huge pages: the tables are read and updated at random entries every step.
-    let params = crate::hugepages::copied(&model.init_params(seed));
+    let params = crate::memhint::copied(&model.init_params(seed));
     Ok(Checkpoint {
         model,
         params,
@@ -230,7 +230,7 @@ impl Checkpoint {
                 .collect();
             Hfm::with_vertex(&cfg, faces.into()).with_context(|| label.clone())?
         };
-        let params = crate::hugepages::copied(&layout_from_tensors(file, &model.layout, "")?);
+        let params = crate::memhint::copied(&layout_from_tensors(file, &model.layout, "")?);
         if let Some(i) = params.iter().position(|v| !v.is_finite()) {
             let t = model
                 .layout

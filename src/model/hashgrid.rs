@@ -847,16 +847,7 @@ fn corner_weights_block<R: Real>(n: usize, w: &[[R; BLOCK]; 3], w8: &mut [[R; BL
     }
 }
 
-#[inline(always)]
-fn prefetch<T>(p: *const T) {
-    #[cfg(target_arch = "x86_64")]
-    // SAFETY: a prefetch never faults, whatever the address.
-    unsafe {
-        std::arch::x86_64::_mm_prefetch::<{ std::arch::x86_64::_MM_HINT_T0 }>(p as *const i8)
-    };
-    #[cfg(not(target_arch = "x86_64"))]
-    let _ = p;
-}
+use crate::memhint::prefetch;
 
 /// Prefetch the table rows of point j's corners. The x-neighbours k and k+1 are the same or
 /// adjacent entries (dense) or differ only in their lowest bits (hashed: `c ^ h` vs `(c+1) ^ h`),

@@ -177,7 +177,7 @@ impl<R: Copy + Default> Grads<R> {
     /// Zero gradients for a layout (input gradients sized on the first backward).
     pub fn new(layout: &ParamLayout) -> Grads<R> {
         Grads {
-            params: crate::hugepages::filled(layout.total, R::default()),
+            params: crate::memhint::filled(layout.total, R::default()),
             positions: Vec::new(),
             dirs: Vec::new(),
             inputs: true,

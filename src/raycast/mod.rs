@@ -73,4 +73,4 @@ pub fn brute_force_closest_hit(mesh: &Mesh, origin: DVec3, dir: DVec3) -> Option
     best
 }
 
-pub(crate) use crate::hugepages::advise as advise_huge_pages;
+pub(crate) use crate::memhint::advise as advise_huge_pages;

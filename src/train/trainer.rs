@@ -47,6 +47,17 @@ pub struct StepStats {
     pub mse: f64,
     /// Valid sub-samples evaluated.
     pub samples: usize,
+    /// Wall seconds of the step's phases.
+    pub timing: StepTiming,
+}
+
+/// Wall seconds of one step's phases (forward, backward, Adam, gradient zeroing).
+#[derive(Clone, Copy, Debug, Default)]
+pub struct StepTiming {
+    pub forward: f64,
+    pub backward: f64,
+    pub adam: f64,
+    pub zero: f64,
 }
 
 fn param_specs(layout: &ParamLayout) -> Vec<(String, Vec<usize>)> {
@@ -117,8 +128,11 @@ impl TrainState {
     /// One optimisation step on `batch`; `grads` must be zero on entry and is zero on exit.
     pub fn step(&mut self, batch: &Batch, grads: &mut Grads<f32>) -> Result<StepStats> {
         let model = &self.ckpt.model;
+        let t0 = Instant::now();
         let fwd = model.forward(&self.ckpt.params, batch)?;
+        let t1 = Instant::now();
         model.backward(&self.ckpt.params, batch, &fwd, grads);
+        let t2 = Instant::now();
         let (mut se, mut n) = (0.0f64, 0usize);
         for c in &fwd.chunks {
             for (k, p) in c.pixels.clone().enumerate() {
@@ -132,38 +146,63 @@ impl TrainState {
         let (fh, fd) = model.grid_features();
         let k = self.step;
         let a = &self.cfg.train.adam;
+        // Adam, zeroing each gradient as it is read (the grids' touched entries only).
+        let Grads {
+            params: gp,
+            touched_h,
+            touched_d,
+            touched_v,
+            ..
+        } = grads;
         for t in &model.layout.tensors {
             let r = t.range();
-            let (p, g) = (&mut self.ckpt.params[r.clone()], &grads.params[r.clone()]);
+            let (p, g) = (&mut self.ckpt.params[r.clone()], &mut gp[r.clone()]);
             match t.group {
                 Group::GridH => {
                     self.adam
-                        .step_sparse(p, g, &grads.touched_h.entries, fh, r.start, &a.grid_h, k)
+                        .step_sparse_and_zero(p, g, &touched_h.entries, fh, r.start, &a.grid_h, k)
                 }
                 Group::GridD => {
                     self.adam
-                        .step_sparse(p, g, &grads.touched_d.entries, fd, r.start, &a.grid_d, k)
+                        .step_sparse_and_zero(p, g, &touched_d.entries, fd, r.start, &a.grid_d, k)
                 }
-                Group::Shader => self.adam.step_dense(r, p, g, &a.shader, k),
-                Group::Deform => self.adam.step_dense(r, p, g, &a.deform, k),
-                Group::Appearance => self.adam.step_dense(r, p, g, &a.appearance, k),
-                Group::Vertex => self.adam.step_sparse(
+                Group::Vertex => self.adam.step_sparse_and_zero(
                     p,
                     g,
-                    &grads.touched_v.entries,
+                    &touched_v.entries,
                     t.shape[1],
                     r.start,
                     &a.vertex,
                     k,
                 ),
+                group => {
+                    let cfg = match group {
+                        Group::Shader => &a.shader,
+                        Group::Deform => &a.deform,
+                        _ => &a.appearance,
+                    };
+                    self.adam.step_dense(r, p, g, cfg, k);
+                    g.fill(0.0);
+                }
             }
         }
-        grads.zero_sparse(&model.layout, fh, fd);
+        let t3 = Instant::now();
+        for t in [touched_h, touched_d, touched_v] {
+            t.entries.clear();
+        }
+        grads.positions.fill(0.0);
+        grads.dirs.fill(0.0);
         self.step += 1;
         Ok(StepStats {
             loss: fwd.loss,
             mse: se / n.max(1) as f64,
             samples: fwd.points.len(),
+            timing: StepTiming {
+                forward: (t1 - t0).as_secs_f64(),
+                backward: (t2 - t1).as_secs_f64(),
+                adam: (t3 - t2).as_secs_f64(),
+                zero: t3.elapsed().as_secs_f64(),
+            },
         })
     }
 }

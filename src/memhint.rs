@@ -1,8 +1,25 @@
-//! Large arrays on transparent huge pages (Linux): the hash tables, their gradients and Adam
-//! state are hundreds of MB touched at random entries every step, and the sample arrays are
-//! written once in parallel. With 4 KiB pages the first costs a TLB miss per access and the second
-//! serialises page faults on the address-space lock. Only a hint: a no-op elsewhere or when the
-//! kernel refuses, and never a change of contents.
+//! Memory hints, none of which changes a result:
+//! - large arrays on transparent huge pages (Linux): the hash tables, their gradients and Adam
+//!   state are hundreds of MB touched at random entries every step, and the sample arrays are
+//!   written once in parallel. With 4 KiB pages the first costs a TLB miss per access and the
+//!   second serialises page faults on the address-space lock (a no-op elsewhere or when the kernel
+//!   refuses);
+//! - [`prefetch`]: start loading a cache line that a loop will need a few iterations later
+//!   (scattered table entries whose addresses are known ahead: the grids' corners, Adam's touched
+//!   entries).
+
+/// Ask the CPU to start loading the cache line at `p` into all cache levels (x86-64
+/// `prefetcht0`; a no-op elsewhere). Never faults, whatever the address.
+#[inline(always)]
+pub fn prefetch<T>(p: *const T) {
+    #[cfg(target_arch = "x86_64")]
+    // SAFETY: a prefetch never faults, whatever the address.
+    unsafe {
+        std::arch::x86_64::_mm_prefetch::<{ std::arch::x86_64::_MM_HINT_T0 }>(p as *const i8)
+    };
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = p;
+}
 
 /// Ask Linux for transparent huge pages on a vector's untouched spare capacity when it spans
 /// several of them (call before the elements are first written: the hint only changes how

@@ -1,4 +1,4 @@
-//! Golden test (issue 5, the correctness oracle): the Rust model against committed dumps of the
+//! Golden test (the correctness oracle): the Rust model against committed dumps of the
 //! independent PyTorch reference (`reference/xscale_ref.py`), no Python needed.
 //!
 //! For every case directory of `fixtures/golden/` (checkpoint after 20 training steps, batch, and

@@ -70,6 +70,57 @@ fn cpu_preset_geometry() {
     assert_eq!(g.out_dim(), 32);
 }
 
+/// `HashGrid::corners` is the documented scalar reference: an fma chain over its corners in
+/// corner order reproduces `forward` bit for bit, for dense and hashed levels, both position
+/// modes, both interpolations and both precisions.
+#[test]
+fn corners_is_the_scalar_reference_of_the_passes() {
+    fn check<R: xscale::model::real::Real + PartialEq + std::fmt::Debug>(
+        g: &HashGrid,
+        table: &[R],
+        pts: &[[f64; 3]],
+        mode: PositionMode,
+    ) -> usize {
+        let f = g.cfg.features as usize;
+        let lf = g.out_dim();
+        let mut out = vec![R::ZERO; pts.len() * lf];
+        g.forward(table, pts, mode, &mut out);
+        let mut bad = 0;
+        for (i, x) in pts.iter().enumerate() {
+            for l in 0..g.cfg.levels as usize {
+                let (idx, w) = g.corners::<R>(l, x, mode);
+                for c in 0..f {
+                    let mut acc = R::ZERO;
+                    for k in 0..8 {
+                        acc = w[k].mul_add(table[idx[k] as usize * f + c], acc);
+                    }
+                    if acc != out[i * lf + l * f + c] {
+                        bad += 1;
+                    }
+                }
+            }
+        }
+        bad
+    }
+    let mut failures = Vec::new();
+    for interp in [Interpolation::Linear, Interpolation::Smoothstep] {
+        // Levels 0-2 dense, 3-4 hashed (2^10 entries).
+        let g = HashGrid::new(&cfg(5, 2, 10, 4.0, 2.0, interp));
+        assert!(g.dense.contains(&true) && g.dense.contains(&false));
+        let t64 = values(g.n_params(), 3, 1.0);
+        let t32: Vec<f32> = t64.iter().map(|&v| v as f32).collect();
+        let pts = points(300, 11, -0.2, 1.2);
+        for mode in [PositionMode::F64, PositionMode::Tcnn] {
+            let b64 = check::<f64>(&g, &t64, &pts, mode);
+            let b32 = check::<f32>(&g, &t32, &pts, mode);
+            if b64 + b32 > 0 {
+                failures.push(format!("{interp:?} {mode:?}: f64 {b64}, f32 {b32} outputs differ"));
+            }
+        }
+    }
+    assert!(failures.is_empty(), "{failures:#?}");
+}
+
 #[test]
 fn tiny_preset_geometry() {
     // N0 = 4, b = 2: scales 3, 7, 15, 31 exactly; res 4, 8, 16, 32; sizes 64, 512, 4096 (dense),

@@ -255,7 +255,14 @@ impl HashGrid {
 
     /// The 8 corners of `x` at level `l`: global entry indices (`offsets[l] + local`) and
     /// interpolation weights, in corner order k (bit d of k set = upper corner along axis d).
-    /// The same code path as the passes; exposed for tests, dumps and tools.
+    ///
+    /// This is the scalar *reference* of the passes: [`HashGrid::forward`] and the backward
+    /// passes compute the same corners and weights with the `*_block` functions (the same
+    /// operations in the same order, arranged one corner at a time over 64 points so the
+    /// compiler vectorises them), then interpolate as an fma chain in corner order
+    /// `acc = w_k·v_k + acc`, k = 0..8. A backend author can port this function and that chain;
+    /// `corners_is_the_scalar_reference_of_the_passes` (tests/hashgrid.rs) ties them together
+    /// bit for bit.
     pub fn corners<R: Real>(
         &self,
         l: usize,

@@ -5,13 +5,15 @@
 //! Files: `triangle.rs` (watertight ray–triangle test), `bvh.rs` ([`Tracer`]: obvhs-built BVH,
 //! packet traversal, f64 refinement), `cast.rs` (γ² rays per pixel, view direction, footprint),
 //! `cache.rs` ([`SampleCache`]), `stream.rs` ([`RayStream`]: hit maps + photos, rays cast per
-//! batch), `simd.rs` (4-lane f32 helper).
+//! batch), `packet.rs` ([`Packet`]: rays traced together), `simd.rs` (4- and 8-lane f32 vectors: SSE,
+//! AVX behind runtime detection).
 
 pub mod bvh;
 pub mod cache;
 pub mod cast;
 pub mod footprint;
 pub mod meshes;
+pub mod packet;
 mod simd;
 pub mod stream;
 pub mod triangle;

@@ -7,6 +7,9 @@
 //! and F4 and F8 packets give identical results. `min`/`max` follow SSE semantics
 //! (`a < b ? a : b`); the traversal never feeds them NaNs.
 
+// The SSE intrinsics used here are safe to call on Rust >= 1.87 where the feature is enabled
+// statically, but still `unsafe` on older toolchains and for the AVX ones; every block carries a
+// `// SAFETY:` line and the lint for blocks that are no longer needed is silenced.
 #![allow(unused_unsafe)]
 
 use std::ops::{Add, Div, Mul, Sub};
@@ -61,14 +64,17 @@ mod x86 {
     impl Mask for M4 {
         #[inline(always)]
         fn bits(self) -> u32 {
+            // SAFETY: SSE/SSE2 are in the x86_64 baseline, so the intrinsic is always available; it touches only register values.
             unsafe { _mm_movemask_ps(self.0) as u32 }
         }
         #[inline(always)]
         fn and(self, o: M4) -> M4 {
+            // SAFETY: SSE/SSE2 are in the x86_64 baseline, so the intrinsic is always available; it touches only register values.
             unsafe { M4(_mm_and_ps(self.0, o.0)) }
         }
         #[inline(always)]
         fn or(self, o: M4) -> M4 {
+            // SAFETY: SSE/SSE2 are in the x86_64 baseline, so the intrinsic is always available; it touches only register values.
             unsafe { M4(_mm_or_ps(self.0, o.0)) }
         }
     }
@@ -78,44 +84,54 @@ mod x86 {
         type M = M4;
         #[inline(always)]
         fn splat(x: f32) -> F4 {
+            // SAFETY: SSE/SSE2 are in the x86_64 baseline, so the intrinsic is always available; it touches only register values.
             unsafe { F4(_mm_set1_ps(x)) }
         }
         #[inline(always)]
         fn load(a: &[f32]) -> F4 {
             assert!(a.len() >= 4);
+            // SAFETY: SSE is in the x86_64 baseline; the assert above guarantees 4 readable f32 at the (unaligned) pointer.
             unsafe { F4(_mm_loadu_ps(a.as_ptr())) }
         }
         #[inline(always)]
         fn store(self, out: &mut [f32]) {
             assert!(out.len() >= 4);
+            // SAFETY: SSE is in the x86_64 baseline; the assert above guarantees 4 writable f32 at the (unaligned) pointer.
             unsafe { _mm_storeu_ps(out.as_mut_ptr(), self.0) }
         }
         #[inline(always)]
         fn min(self, o: F4) -> F4 {
+            // SAFETY: SSE/SSE2 are in the x86_64 baseline, so the intrinsic is always available; it touches only register values.
             unsafe { F4(_mm_min_ps(self.0, o.0)) }
         }
         #[inline(always)]
         fn max(self, o: F4) -> F4 {
+            // SAFETY: SSE/SSE2 are in the x86_64 baseline, so the intrinsic is always available; it touches only register values.
             unsafe { F4(_mm_max_ps(self.0, o.0)) }
         }
         #[inline(always)]
         fn lt(self, o: F4) -> M4 {
+            // SAFETY: SSE/SSE2 are in the x86_64 baseline, so the intrinsic is always available; it touches only register values.
             unsafe { M4(_mm_cmplt_ps(self.0, o.0)) }
         }
         #[inline(always)]
         fn le(self, o: F4) -> M4 {
+            // SAFETY: SSE/SSE2 are in the x86_64 baseline, so the intrinsic is always available; it touches only register values.
             unsafe { M4(_mm_cmple_ps(self.0, o.0)) }
         }
         #[inline(always)]
         fn gt(self, o: F4) -> M4 {
+            // SAFETY: SSE/SSE2 are in the x86_64 baseline, so the intrinsic is always available; it touches only register values.
             unsafe { M4(_mm_cmpgt_ps(self.0, o.0)) }
         }
         #[inline(always)]
         fn eq(self, o: F4) -> M4 {
+            // SAFETY: SSE/SSE2 are in the x86_64 baseline, so the intrinsic is always available; it touches only register values.
             unsafe { M4(_mm_cmpeq_ps(self.0, o.0)) }
         }
         #[inline(always)]
         fn hmin(self) -> f32 {
+            // SAFETY: SSE/SSE2 are in the x86_64 baseline, so the intrinsic is always available; it touches only register values.
             unsafe {
                 let a = _mm_min_ps(self.0, _mm_movehl_ps(self.0, self.0));
                 let b = _mm_min_ss(a, _mm_shuffle_ps(a, a, 1));
@@ -124,6 +140,7 @@ mod x86 {
         }
         #[inline(always)]
         fn hmax(self) -> f32 {
+            // SAFETY: SSE/SSE2 are in the x86_64 baseline, so the intrinsic is always available; it touches only register values.
             unsafe {
                 let a = _mm_max_ps(self.0, _mm_movehl_ps(self.0, self.0));
                 let b = _mm_max_ss(a, _mm_shuffle_ps(a, a, 1));
@@ -132,16 +149,22 @@ mod x86 {
         }
         #[inline(always)]
         fn abs(self) -> F4 {
+            // SAFETY: SSE/SSE2 are in the x86_64 baseline, so the intrinsic is always available; it touches only register values.
             unsafe { F4(_mm_andnot_ps(_mm_set1_ps(-0.0), self.0)) }
         }
         #[inline(always)]
         fn sign_bits(self) -> u32 {
+            // SAFETY: SSE/SSE2 are in the x86_64 baseline, so the intrinsic is always available; it touches only register values.
             unsafe { _mm_movemask_ps(self.0) as u32 }
         }
     }
 
-    /// Eight f32 lanes (AVX). Only call inside a function compiled with
-    /// `#[target_feature(enable = "avx")]` after `is_x86_feature_detected!("avx")`.
+    /// Eight f32 lanes (AVX).
+    ///
+    /// Invariant (what makes every `unsafe` block below sound): an `F8` is only created and used
+    /// inside code compiled with `#[target_feature(enable = "avx")]` that is reached only after
+    /// `is_x86_feature_detected!("avx")` returned true (`raycast::bvh` dispatches that way).
+    /// `splat` and `load` — the only constructors — check it in debug builds.
     #[derive(Clone, Copy)]
     #[repr(transparent)]
     pub struct F8(__m256);
@@ -153,14 +176,17 @@ mod x86 {
     impl Mask for M8 {
         #[inline(always)]
         fn bits(self) -> u32 {
+            // SAFETY: AVX is available by the F8 invariant (an F8 exists only after is_x86_feature_detected!("avx")); registers only.
             unsafe { _mm256_movemask_ps(self.0) as u32 }
         }
         #[inline(always)]
         fn and(self, o: M8) -> M8 {
+            // SAFETY: AVX is available by the F8 invariant (an F8 exists only after is_x86_feature_detected!("avx")); registers only.
             unsafe { M8(_mm256_and_ps(self.0, o.0)) }
         }
         #[inline(always)]
         fn or(self, o: M8) -> M8 {
+            // SAFETY: AVX is available by the F8 invariant (an F8 exists only after is_x86_feature_detected!("avx")); registers only.
             unsafe { M8(_mm256_or_ps(self.0, o.0)) }
         }
     }
@@ -170,44 +196,56 @@ mod x86 {
         type M = M8;
         #[inline(always)]
         fn splat(x: f32) -> F8 {
+            debug_assert!(is_x86_feature_detected!("avx"));
+            // SAFETY: AVX is available by the F8 invariant (an F8 exists only after is_x86_feature_detected!("avx")); registers only.
             unsafe { F8(_mm256_set1_ps(x)) }
         }
         #[inline(always)]
         fn load(a: &[f32]) -> F8 {
+            debug_assert!(is_x86_feature_detected!("avx"));
             assert!(a.len() >= 8);
+            // SAFETY: AVX is available by the F8 invariant (type doc, debug-asserted in splat/load); the assert above guarantees 8 readable f32.
             unsafe { F8(_mm256_loadu_ps(a.as_ptr())) }
         }
         #[inline(always)]
         fn store(self, out: &mut [f32]) {
             assert!(out.len() >= 8);
+            // SAFETY: AVX is available by the F8 invariant (type doc); the assert above guarantees 8 writable f32.
             unsafe { _mm256_storeu_ps(out.as_mut_ptr(), self.0) }
         }
         #[inline(always)]
         fn min(self, o: F8) -> F8 {
+            // SAFETY: AVX is available by the F8 invariant (an F8 exists only after is_x86_feature_detected!("avx")); registers only.
             unsafe { F8(_mm256_min_ps(self.0, o.0)) }
         }
         #[inline(always)]
         fn max(self, o: F8) -> F8 {
+            // SAFETY: AVX is available by the F8 invariant (an F8 exists only after is_x86_feature_detected!("avx")); registers only.
             unsafe { F8(_mm256_max_ps(self.0, o.0)) }
         }
         #[inline(always)]
         fn lt(self, o: F8) -> M8 {
+            // SAFETY: AVX is available by the F8 invariant (an F8 exists only after is_x86_feature_detected!("avx")); registers only.
             unsafe { M8(_mm256_cmp_ps::<_CMP_LT_OQ>(self.0, o.0)) }
         }
         #[inline(always)]
         fn le(self, o: F8) -> M8 {
+            // SAFETY: AVX is available by the F8 invariant (an F8 exists only after is_x86_feature_detected!("avx")); registers only.
             unsafe { M8(_mm256_cmp_ps::<_CMP_LE_OQ>(self.0, o.0)) }
         }
         #[inline(always)]
         fn gt(self, o: F8) -> M8 {
+            // SAFETY: AVX is available by the F8 invariant (an F8 exists only after is_x86_feature_detected!("avx")); registers only.
             unsafe { M8(_mm256_cmp_ps::<_CMP_GT_OQ>(self.0, o.0)) }
         }
         #[inline(always)]
         fn eq(self, o: F8) -> M8 {
+            // SAFETY: AVX is available by the F8 invariant (an F8 exists only after is_x86_feature_detected!("avx")); registers only.
             unsafe { M8(_mm256_cmp_ps::<_CMP_EQ_OQ>(self.0, o.0)) }
         }
         #[inline(always)]
         fn hmin(self) -> f32 {
+            // SAFETY: AVX is available by the F8 invariant (an F8 exists only after is_x86_feature_detected!("avx")); registers only.
             unsafe {
                 let h = _mm_min_ps(
                     _mm256_castps256_ps128(self.0),
@@ -219,6 +257,7 @@ mod x86 {
         }
         #[inline(always)]
         fn hmax(self) -> f32 {
+            // SAFETY: AVX is available by the F8 invariant (an F8 exists only after is_x86_feature_detected!("avx")); registers only.
             unsafe {
                 let h = _mm_max_ps(
                     _mm256_castps256_ps128(self.0),
@@ -230,10 +269,12 @@ mod x86 {
         }
         #[inline(always)]
         fn abs(self) -> F8 {
+            // SAFETY: AVX is available by the F8 invariant (an F8 exists only after is_x86_feature_detected!("avx")); registers only.
             unsafe { F8(_mm256_andnot_ps(_mm256_set1_ps(-0.0), self.0)) }
         }
         #[inline(always)]
         fn sign_bits(self) -> u32 {
+            // SAFETY: AVX is available by the F8 invariant (an F8 exists only after is_x86_feature_detected!("avx")); registers only.
             unsafe { _mm256_movemask_ps(self.0) as u32 }
         }
     }
@@ -244,6 +285,7 @@ mod x86 {
                 type Output = $t;
                 #[inline(always)]
                 fn add(self, o: $t) -> $t {
+                    // SAFETY: F4: SSE is baseline; F8: AVX by its invariant. Register arithmetic only, no memory access.
                     unsafe { $t($add(self.0, o.0)) }
                 }
             }
@@ -251,6 +293,7 @@ mod x86 {
                 type Output = $t;
                 #[inline(always)]
                 fn sub(self, o: $t) -> $t {
+                    // SAFETY: F4: SSE is baseline; F8: AVX by its invariant. Register arithmetic only, no memory access.
                     unsafe { $t($sub(self.0, o.0)) }
                 }
             }
@@ -258,6 +301,7 @@ mod x86 {
                 type Output = $t;
                 #[inline(always)]
                 fn mul(self, o: $t) -> $t {
+                    // SAFETY: F4: SSE is baseline; F8: AVX by its invariant. Register arithmetic only, no memory access.
                     unsafe { $t($mul(self.0, o.0)) }
                 }
             }
@@ -265,6 +309,7 @@ mod x86 {
                 type Output = $t;
                 #[inline(always)]
                 fn div(self, o: $t) -> $t {
+                    // SAFETY: F4: SSE is baseline; F8: AVX by its invariant. Register arithmetic only, no memory access.
                     unsafe { $t($div(self.0, o.0)) }
                 }
             }

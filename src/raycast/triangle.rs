@@ -24,7 +24,7 @@
 // Index loops over lanes read best; `!(t > 0)` also rejects NaN on purpose.
 #![allow(clippy::needless_range_loop, clippy::neg_cmp_op_on_partial_ord)]
 
-use super::bvh::Packet;
+use super::packet::{Packet, MAX_LANES};
 use super::simd::{Lanes, Mask};
 
 /// Index of the largest |component| (first one on ties), pbrt's `MaxComponentIndex(Abs(d))`.
@@ -167,9 +167,6 @@ fn intersect_f64_edges(p: [f32; 6], z: [f32; 3]) -> Option<TriHit> {
         b: [(e0 / det) as f32, (e1 / det) as f32, (e2 / det) as f32],
     })
 }
-
-/// Most lanes a packet has.
-pub const MAX_LANES: usize = 16;
 
 /// `L::N` rays of a packet sharing the permutation `k`, in SIMD lanes.
 #[derive(Clone, Copy)]

@@ -18,8 +18,8 @@
 
 pub mod cli;
 pub mod eval;
-pub mod memhint;
 pub mod io;
+pub mod memhint;
 pub mod model;
 pub mod raycast;
 pub mod render;

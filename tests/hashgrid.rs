@@ -114,7 +114,9 @@ fn corners_is_the_scalar_reference_of_the_passes() {
             let b64 = check::<f64>(&g, &t64, &pts, mode);
             let b32 = check::<f32>(&g, &t32, &pts, mode);
             if b64 + b32 > 0 {
-                failures.push(format!("{interp:?} {mode:?}: f64 {b64}, f32 {b32} outputs differ"));
+                failures.push(format!(
+                    "{interp:?} {mode:?}: f64 {b64}, f32 {b32} outputs differ"
+                ));
             }
         }
     }

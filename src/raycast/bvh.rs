@@ -60,10 +60,10 @@
 
 #![allow(clippy::needless_range_loop)]
 
+pub use super::packet::{Packet, MAX_LANES};
 #[cfg(target_arch = "x86_64")]
 use super::simd::F8;
 use super::simd::{Lanes, Mask, F4};
-pub use super::packet::{Packet, MAX_LANES};
 use super::triangle::{intersect_lanes, permutation, ray_axis, RayLanes};
 use super::Hit;
 use crate::scene::{Mesh, Normalization};

@@ -57,7 +57,13 @@ use std::ops::Range;
 /// One dense chunk: (chunk index, (w, state)).
 type DenseChunk<'a> = (usize, (&'a mut [f32], &'a mut [Moments]));
 /// One sparse chunk: (entries, first scalar, w, grad, state) over the chunk's region.
-type SparseChunk<'a> = (&'a [u32], usize, &'a mut [f32], &'a mut [f32], &'a mut [Moments]);
+type SparseChunk<'a> = (
+    &'a [u32],
+    usize,
+    &'a mut [f32],
+    &'a mut [f32],
+    &'a mut [Moments],
+);
 /// How many entries ahead a sparse step prefetches.
 const PREFETCH_AHEAD: usize = 8;
 
@@ -496,7 +502,15 @@ impl AdamState {
         global_step: u64,
     ) {
         let mut g = grads.to_vec();
-        self.step_sparse_and_zero(params, &mut g, entries, entry_len, base_offset, cfg, global_step);
+        self.step_sparse_and_zero(
+            params,
+            &mut g,
+            entries,
+            entry_len,
+            base_offset,
+            cfg,
+            global_step,
+        );
     }
 
     /// [`AdamState::step_sparse`] that also sets the listed entries' gradients to zero as it

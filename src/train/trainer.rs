@@ -158,14 +158,24 @@ impl TrainState {
             let r = t.range();
             let (p, g) = (&mut self.ckpt.params[r.clone()], &mut gp[r.clone()]);
             match t.group {
-                Group::GridH => {
-                    self.adam
-                        .step_sparse_and_zero(p, g, &touched_h.entries, fh, r.start, &a.grid_h, k)
-                }
-                Group::GridD => {
-                    self.adam
-                        .step_sparse_and_zero(p, g, &touched_d.entries, fd, r.start, &a.grid_d, k)
-                }
+                Group::GridH => self.adam.step_sparse_and_zero(
+                    p,
+                    g,
+                    &touched_h.entries,
+                    fh,
+                    r.start,
+                    &a.grid_h,
+                    k,
+                ),
+                Group::GridD => self.adam.step_sparse_and_zero(
+                    p,
+                    g,
+                    &touched_d.entries,
+                    fd,
+                    r.start,
+                    &a.grid_d,
+                    k,
+                ),
                 Group::Vertex => self.adam.step_sparse_and_zero(
                     p,
                     g,

@@ -3,6 +3,9 @@
 //! invalid sub-samples, ξ and appearance codes on), with 1 and 2 threads. Outputs are validated
 //! before timing. Run: `cargo bench --bench mlp` (XSCALE_BENCH_PIXELS overrides the 16,384 pixels).
 
+// Index loops mirror the formulas (i over entries, c over channels).
+#![allow(clippy::needless_range_loop)]
+
 use rayon::prelude::*;
 use std::time::Instant;
 use xscale::model::mlp::{Mlp, MlpActs};

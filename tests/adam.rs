@@ -2,6 +2,9 @@
 //! formulas (m = β1 m + (1-β1) g, v = β2 v + (1-β2) g², lr_t = lr sqrt(1-β2^t)/(1-β1^t),
 //! w -= lr_t m / (sqrt(v) + ε)) and compared with the f32 optimizer at f32-level tolerance.
 
+// Index loops mirror the formulas (i over entries, c over channels).
+#![allow(clippy::needless_range_loop)]
+
 use xscale::io::TensorFile;
 use xscale::train::adam::{AdamGroup, AdamState, LrSchedule, DENSE_CHUNK, SPARSE_CHUNK};
 

@@ -59,7 +59,7 @@ fn dense_workspace_loads_from_any_level() {
     // And it trains (setup casts every training view).
     let cfg = RunConfig::preset("tiny").unwrap();
     let p = xscale::train::setup::prepare(&root, &cfg, true, &mut |_| {}).unwrap();
-    assert!(p.samples.len() > 0);
+    assert!(!p.samples.is_empty());
 }
 
 /// Poisson is preferred to Delaunay; Delaunay alone is found.

@@ -12,6 +12,7 @@
 //!   SPEC §4.2 f32 fma chain emulated exactly in NumPy) bit for bit, in both positions modes;
 //! - `xscale compare` (the built binary) passes the unmodified dump and, on a dump with one
 //!   element changed, exits 1 naming the tensor and the element.
+//!
 //! The fixtures themselves are checked for the coverage the README claims (positions modes,
 //! interpolations, deformation on/off, γ = 1 and 2, invalid sub-samples, view −1, trained ξ).
 

@@ -3,6 +3,9 @@
 //! count; the hit map's kept-pixel numbering; exact photo storage; whole training runs in both
 //! modes write the same checkpoint.
 
+// Index loops mirror the formulas (i over entries, c over channels).
+#![allow(clippy::needless_range_loop)]
+
 use std::path::{Path, PathBuf};
 use xscale::raycast::stream::HitMap;
 use xscale::raycast::{RayStream, SampleCache, Targets, Tracer};

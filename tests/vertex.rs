@@ -189,7 +189,7 @@ fn vertex_training_learns_and_resumes_exactly() {
     let init = init_checkpoint_for_mesh(
         &st.ckpt.model.cfg,
         rc.train.seed,
-        st.ckpt.normalization.clone(),
+        st.ckpt.normalization,
         p.train_views.len(),
         Some(&p.scene.mesh),
     )

@@ -26,7 +26,7 @@ pub const R_ZERO: f64 = 4.0;
 /// `w(r)` of the module doc, in f64.
 #[inline]
 pub fn weight(r: f64) -> f64 {
-    if !(r > R_FULL) {
+    if r.is_nan() || r <= R_FULL {
         return 1.0;
     }
     if r >= R_ZERO {
@@ -79,7 +79,7 @@ pub fn apply_level_weights<R: Real>(w: &[R], nl: usize, nf: usize, x: &mut [R]) 
     for (xr, wr) in x.chunks_exact_mut(nl * nf).zip(w.chunks_exact(nl)) {
         for (l, &wl) in wr.iter().enumerate() {
             for v in &mut xr[l * nf..(l + 1) * nf] {
-                *v = *v * wl;
+                *v *= wl;
             }
         }
     }

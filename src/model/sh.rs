@@ -147,6 +147,7 @@ pub fn dir_to<R: Real>(d: &[f32; 3]) -> [R; 3] {
 }
 
 #[cfg(test)]
+#[allow(clippy::needless_range_loop)] // the Gram matrix is indexed as in its formula
 mod tests {
     use super::*;
 

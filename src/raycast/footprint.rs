@@ -31,7 +31,7 @@ impl Default for FootprintHist {
 }
 
 fn bin(fp: f64) -> usize {
-    if !(fp > 0.0) {
+    if fp.is_nan() || fp <= 0.0 {
         return 0;
     }
     let x = (fp.log2() - MIN_LOG2 as f64) * BINS_PER_OCTAVE as f64;

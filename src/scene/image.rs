@@ -188,8 +188,8 @@ pub fn downsample(img: &Image, s: u32) -> Image {
                 let row = (y * s + by) * iw;
                 for bx in 0..s {
                     let i = 3 * (row + x * s + bx);
-                    for c in 0..3 {
-                        acc[c] += img.data[i + c] as f64;
+                    for (c, a) in acc.iter_mut().enumerate() {
+                        *a += img.data[i + c] as f64;
                     }
                 }
             }

@@ -653,7 +653,7 @@ fn load_ply_ascii(path: &Path, data: &[u8], h: &Header, lay: &Layout) -> Result<
                     }
                     PropKind::List { .. } => {
                         let n = next(&prop.name, true)?;
-                        if !(n >= 0.0) || n.fract() != 0.0 {
+                        if n.is_nan() || n < 0.0 || n.fract() != 0.0 {
                             bail!("{p}: line {ln}: {} {k}: bad list count {n}", el.name);
                         }
                         let n = n as usize;

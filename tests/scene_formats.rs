@@ -925,7 +925,13 @@ fn scene_load_errors() {
     .unwrap();
     assert_contains(
         &err(Scene::load(&d, &LoadOptions::default())),
-        &["several camera formats", "transforms", "colmap"],
+        &[
+            "several camera formats",
+            "transforms",
+            "colmap",
+            "scene.toml",
+            "format = ",
+        ],
     );
     // … resolved by naming the format.
     let opts = LoadOptions {

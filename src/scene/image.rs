@@ -5,9 +5,17 @@
 //! stored (f32; half channels widen exactly). Writers quantise with `round(clamp(v,0,1)·max)`,
 //! so `load(write_png8(img))` reproduces an 8-bit image exactly.
 
-use super::Image;
 use anyhow::{anyhow, bail, Context, Result};
 use std::path::Path;
+
+/// An RGB image with f32 values (sRGB-encoded values in [0,1] for PNG/JPEG; EXR as stored).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Image {
+    pub width: u32,
+    pub height: u32,
+    /// Row-major, row 0 at the top, 3 values per pixel.
+    pub data: Vec<f32>,
+}
 
 fn is_exr(path: &Path) -> bool {
     path.extension()

@@ -12,12 +12,29 @@
 //! - Face indices out of range, truncated files, element counts that disagree with the data and
 //!   malformed headers are errors naming the file and the line or element.
 
-use super::Mesh;
 use anyhow::{anyhow, bail, Context, Result};
 use glam::DVec3;
 use std::fs;
 use std::io::{BufWriter, Write};
 use std::path::Path;
+
+/// A triangle mesh in world coordinates (f64, so georeferenced scenes keep their precision).
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Mesh {
+    pub vertices: Vec<DVec3>,
+    /// Counter-clockwise or not: ray casting is two-sided.
+    pub triangles: Vec<[u32; 3]>,
+}
+
+impl Mesh {
+    /// Axis-aligned bounding box (min, max) of the vertices.
+    pub fn bbox(&self) -> (DVec3, DVec3) {
+        self.vertices.iter().fold(
+            (DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY)),
+            |(lo, hi), v| (lo.min(*v), hi.max(*v)),
+        )
+    }
+}
 
 /// What loading a mesh did besides producing it.
 #[derive(Clone, Debug, Default, PartialEq, Eq)]

@@ -1,0 +1,462 @@
+//! Loading a scene directory (SPEC §3): which camera layout it uses, one small loader per layout,
+//! the image checks, the train/test split from `scene.toml`, and the mesh.
+//!
+//! [`Scene::load_report`] composes them in that order; each step names the file and what was
+//! expected when it fails.
+
+use super::{
+    colmap, image, mask, mesh, mvsnet, transforms, MaskSource, Normalization, NormalizeMode, Scene,
+    View,
+};
+use anyhow::{anyhow, bail, Result};
+use std::path::{Path, PathBuf};
+
+/// Which camera layout a scene directory uses (SPEC §3).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum CameraFormat {
+    /// COLMAP sparse model in `sparse/0/`, `sparse/` or the dir itself; images in `images/`.
+    Colmap,
+    /// `cams_<dsp>/NAME_cam.txt` + `images_<dsp>/NAME.ext` (official XScale-NVS layout).
+    MvsNet,
+    /// `transforms.json` (instant-ngp / nerfstudio), or NeRF-synthetic style
+    /// `transforms_train.json` + `transforms_test.json` (+ `transforms_val.json`, used for training).
+    Transforms,
+}
+
+impl CameraFormat {
+    pub fn name(self) -> &'static str {
+        match self {
+            CameraFormat::Colmap => "colmap",
+            CameraFormat::MvsNet => "mvsnet",
+            CameraFormat::Transforms => "transforms",
+        }
+    }
+}
+
+impl std::str::FromStr for CameraFormat {
+    type Err = anyhow::Error;
+    fn from_str(s: &str) -> anyhow::Result<Self> {
+        match s.to_ascii_lowercase().as_str() {
+            "colmap" => Ok(CameraFormat::Colmap),
+            "mvsnet" | "xscale" => Ok(CameraFormat::MvsNet),
+            "transforms" | "nerf" | "instant-ngp" | "nerfstudio" => Ok(CameraFormat::Transforms),
+            _ => anyhow::bail!("unknown camera format '{s}' (colmap, mvsnet, transforms)"),
+        }
+    }
+}
+
+/// Options for [`Scene::load`].
+#[derive(Clone, Debug)]
+pub struct LoadOptions {
+    /// Camera layout; `None` = auto-detect (an error if several are present).
+    pub format: Option<CameraFormat>,
+    /// Integer image downsample factor (≥ 1); cameras are scaled to match.
+    pub downsample: u32,
+    pub normalize: NormalizeMode,
+    /// Mesh file; `None` = look in the scene dir (see [`find_mesh`]). A relative path that does
+    /// not exist as given is tried relative to the scene dir.
+    pub mesh: Option<PathBuf>,
+    /// Also read every image's header at load time and check its size against the camera
+    /// (cheap: headers only). Existence of every image is always checked.
+    pub load_images_check: bool,
+    /// MVSNet layout: which `cams_<dsp>` to use when several exist (`None` = the smallest dsp).
+    pub mvsnet_dsp: Option<u32>,
+}
+
+impl Default for LoadOptions {
+    fn default() -> Self {
+        LoadOptions {
+            format: None,
+            downsample: 1,
+            normalize: NormalizeMode::PerAxis,
+            mesh: None,
+            load_images_check: true,
+            mvsnet_dsp: None,
+        }
+    }
+}
+
+/// Optional `scene.toml` in a scene dir: the train/test split.
+#[derive(Clone, Debug, Default, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+struct SceneToml {
+    /// Camera layout to use when the dir holds several (`colmap`, `mvsnet`, `transforms`).
+    format: Option<String>,
+    /// Names of the held-out views (as in [`View::name`]).
+    test_views: Option<Vec<String>>,
+    /// Hold out indices 0, N, 2N, … (0 = no test views).
+    holdout_every: Option<usize>,
+    /// Colour of misses in renders, `[r, g, b]` in [0, 1] (default white).
+    background: Option<[f32; 3]>,
+}
+
+/// What [`Scene::load_report`] found.
+#[derive(Clone, Debug)]
+pub struct LoadReport {
+    pub format: CameraFormat,
+    pub mesh_path: PathBuf,
+    pub mesh_stats: mesh::MeshStats,
+}
+
+/// Default split: every 7th view held out (indices 0, 7, 14, …), the official protocol.
+pub const HOLDOUT_EVERY: usize = 7;
+
+/// Which camera formats are present in `dir`.
+pub fn detect_formats(dir: &Path) -> Vec<CameraFormat> {
+    let mut out = Vec::new();
+    if dir.join("transforms.json").is_file() || dir.join("transforms_train.json").is_file() {
+        out.push(CameraFormat::Transforms);
+    }
+    if colmap::find_model_dir(dir).is_some() {
+        out.push(CameraFormat::Colmap);
+    }
+    if !mvsnet::find_layouts(dir).is_empty() {
+        out.push(CameraFormat::MvsNet);
+    }
+    out
+}
+
+/// The mesh of a scene dir: `mesh.ply`, `mesh.obj`, COLMAP's `meshed-poisson.ply` then
+/// `meshed-delaunay.ply` (in the dir, `dense/0/`, `dense/` or `0/`), else the single `*.ply` /
+/// `*.obj` in the dir; an error lists the candidates otherwise.
+pub fn find_mesh(dir: &Path) -> anyhow::Result<PathBuf> {
+    let mut named = vec![dir.join("mesh.ply"), dir.join("mesh.obj")];
+    // COLMAP's meshers: Poisson first (watertight, what most pipelines use), then Delaunay; in
+    // the dir itself, a dense workspace's `dense/0/` and `dense/`, or a `dense/` folder's `0/`.
+    for sub in [&[][..], &["dense", "0"], &["dense"], &["0"]] {
+        for m in ["meshed-poisson.ply", "meshed-delaunay.ply"] {
+            named.push(sub.iter().fold(dir.to_path_buf(), |p, s| p.join(s)).join(m));
+        }
+    }
+    if let Some(p) = named.iter().find(|p| p.is_file()) {
+        return Ok(p.clone());
+    }
+    let mut cands: Vec<PathBuf> = std::fs::read_dir(dir)
+        .map_err(|e| anyhow::anyhow!("{}: cannot list scene directory: {e}", dir.display()))?
+        .flatten()
+        .map(|e| e.path())
+        .filter(|p| {
+            p.is_file()
+                && p.extension()
+                    .and_then(|e| e.to_str())
+                    .is_some_and(|e| e.eq_ignore_ascii_case("ply") || e.eq_ignore_ascii_case("obj"))
+        })
+        .collect();
+    cands.sort();
+    match cands.len() {
+        1 => Ok(cands.pop().unwrap()),
+        0 => anyhow::bail!(
+            "{}: no mesh found (looked for mesh.ply, mesh.obj, meshed-poisson.ply / meshed-delaunay.ply here or in dense/0/, or a single *.ply/*.obj); pass the mesh explicitly",
+            dir.display()
+        ),
+        _ => anyhow::bail!(
+            "{}: several mesh candidates, pass one explicitly: {}",
+            dir.display(),
+            cands
+                .iter()
+                .map(|p| p.file_name().unwrap().to_string_lossy().to_string())
+                .collect::<Vec<_>>()
+                .join(", ")
+        ),
+    }
+}
+
+/// Each view's mask source (`scene/mask.rs`): files in `dir/masks/` when that folder exists
+/// (every view must have one), else the photo's alpha channel when `check_alpha` finds one.
+fn find_masks(dir: &Path, views: &[View], check_alpha: bool) -> anyhow::Result<Vec<MaskSource>> {
+    let masks_dir = dir.join("masks");
+    if masks_dir.is_dir() {
+        return views
+            .iter()
+            .map(|v| mask::find_mask(&masks_dir, &v.name).map(MaskSource::File))
+            .collect();
+    }
+    views
+        .iter()
+        .map(|v| {
+            Ok(if check_alpha && mask::has_alpha(&v.image_path)? {
+                MaskSource::Alpha
+            } else {
+                MaskSource::None
+            })
+        })
+        .collect()
+}
+
+impl Scene {
+    /// Load a scene directory: cameras (auto-detected or `opts.format`), the mesh, the split
+    /// (`scene.toml` or every 7th view), the normalisation, and check the images (existence,
+    /// and sizes if `opts.load_images_check`). Views keep the camera file's order (COLMAP: sorted
+    /// by image name; MVSNet: by cam file name; transforms: frame order).
+    pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Scene> {
+        Ok(Scene::load_report(dir, opts)?.0)
+    }
+
+    /// [`Scene::load`], also returning what was found (format, mesh file, mesh statistics such as
+    /// the number of degenerate triangles dropped) for the CLI to report.
+    pub fn load_report(dir: &Path, opts: &LoadOptions) -> Result<(Scene, LoadReport)> {
+        if !dir.is_dir() {
+            bail!("{}: scene directory not found", dir.display());
+        }
+        if opts.downsample == 0 {
+            bail!("downsample factor must be >= 1");
+        }
+        let toml_path = dir.join("scene.toml");
+        let cfg = read_scene_toml(&toml_path)?;
+        let format = choose_format(dir, opts, &cfg, &toml_path)?;
+        let (mut views, format_test) = match format {
+            CameraFormat::Colmap => (load_colmap(dir)?, None),
+            CameraFormat::MvsNet => (load_mvsnet(dir, opts.mvsnet_dsp)?, None),
+            CameraFormat::Transforms => load_transforms(dir)?,
+        };
+        check_views(dir, &views)?;
+        check_images(&views, opts.load_images_check)?;
+        downsample_cameras(&mut views, opts.downsample)?;
+        let test = split(&views, &cfg, format_test, &toml_path)?;
+        let mesh_path = match &opts.mesh {
+            Some(p) if p.exists() || p.is_absolute() => p.clone(),
+            Some(p) => dir.join(p),
+            None => find_mesh(dir)?,
+        };
+        let (mesh, mesh_stats) = mesh::load_mesh(&mesh_path)?;
+        let normalization = Normalization::from_mesh(&mesh, opts.normalize);
+        let background = cfg.background.unwrap_or([1.0; 3]);
+        if background.iter().any(|c| !(0.0..=1.0).contains(c)) {
+            bail!(
+                "{}: background {background:?}: expected three values in [0, 1]",
+                toml_path.display()
+            );
+        }
+        let masks = find_masks(dir, &views, opts.load_images_check)?;
+        let scene = Scene {
+            root: dir.to_path_buf(),
+            mesh,
+            views,
+            test,
+            normalization,
+            downsample: opts.downsample,
+            masks,
+            background,
+        };
+        let report = LoadReport {
+            format,
+            mesh_path,
+            mesh_stats,
+        };
+        Ok((scene, report))
+    }
+}
+
+/// The optional `scene.toml` (an empty one when the file is absent).
+fn read_scene_toml(path: &Path) -> Result<SceneToml> {
+    if !path.is_file() {
+        return Ok(SceneToml::default());
+    }
+    let text = std::fs::read_to_string(path)
+        .map_err(|e| anyhow!("{}: cannot read: {e}", path.display()))?;
+    toml::from_str(&text).map_err(|e| anyhow!("{}: {e}", path.display()))
+}
+
+/// The camera layout: the option, else `scene.toml`'s `format`, else the single one detected.
+fn choose_format(
+    dir: &Path,
+    opts: &LoadOptions,
+    cfg: &SceneToml,
+    toml_path: &Path,
+) -> Result<CameraFormat> {
+    let toml_format = match &cfg.format {
+        Some(name) => Some(
+            name.parse::<CameraFormat>()
+                .map_err(|e| anyhow!("{}: format: {e}", toml_path.display()))?,
+        ),
+        None => None,
+    };
+    if let Some(f) = opts.format.or(toml_format) {
+        return Ok(f);
+    }
+    match detect_formats(dir).as_slice() {
+        [f] => Ok(*f),
+        [] => bail!(
+            "{}: no cameras found (looked for transforms.json, a COLMAP model in sparse/0/, sparse/ or the dir itself, and MVSNet cams_<dsp>/*_cam.txt)",
+            dir.display()
+        ),
+        many => bail!(
+            "{}: several camera formats present ({}); choose one by writing `format = \"{}\"` (or another of them) into {}",
+            dir.display(),
+            many.iter().map(|f| f.name()).collect::<Vec<_>>().join(", "),
+            many[0].name(),
+            dir.join("scene.toml").display()
+        ),
+    }
+}
+
+/// COLMAP: the model in `dense/0/sparse/`, `sparse/0/`, `sparse/` or the dir itself.
+fn load_colmap(dir: &Path) -> Result<Vec<View>> {
+    let layout = colmap::find_layout(dir).ok_or_else(|| {
+        anyhow!(
+            "{}: no COLMAP model (cameras + images .txt/.bin) in dense/0/sparse/, sparse/0/, sparse/ or the dir itself",
+            dir.display()
+        )
+    })?;
+    if !layout.images.is_dir() {
+        bail!(
+            "{}: COLMAP image directory not found (the model is in {})",
+            layout.images.display(),
+            layout.model.display()
+        );
+    }
+    colmap::load(&layout.model, &layout.images)
+}
+
+/// MVSNet: `cams_<dsp>/`, the requested dsp or the smallest.
+fn load_mvsnet(dir: &Path, dsp: Option<u32>) -> Result<Vec<View>> {
+    let layouts = mvsnet::find_layouts(dir);
+    let layout = match dsp {
+        Some(d) => layouts
+            .into_iter()
+            .find(|l| l.dsp == Some(d))
+            .ok_or_else(|| anyhow!("{}: no cams_{d}/ with *_cam.txt files", dir.display()))?,
+        None => layouts
+            .into_iter()
+            .next()
+            .ok_or_else(|| anyhow!("{}: no cams_<dsp>/ with *_cam.txt files", dir.display()))?,
+    };
+    mvsnet::load(&layout)
+}
+
+/// `transforms.json`, or NeRF-synthetic `transforms_{train,val,test}.json` (the test file's
+/// views are returned as the format's own test split).
+fn load_transforms(dir: &Path) -> Result<(Vec<View>, Option<Vec<String>>)> {
+    let single = dir.join("transforms.json");
+    if single.is_file() {
+        return Ok((transforms::load(&single)?, None));
+    }
+    let train = dir.join("transforms_train.json");
+    if !train.is_file() {
+        bail!("{}: transforms.json not found", dir.display());
+    }
+    let mut v = transforms::load(&train)?;
+    let val = dir.join("transforms_val.json");
+    if val.is_file() {
+        v.extend(transforms::load(&val)?);
+    }
+    let test = dir.join("transforms_test.json");
+    let t = if test.is_file() {
+        transforms::load(&test)?
+    } else {
+        Vec::new()
+    };
+    let names = t.iter().map(|x| x.name.clone()).collect();
+    v.extend(t);
+    Ok((v, Some(names)))
+}
+
+/// At least one view, and unique names.
+fn check_views(dir: &Path, views: &[View]) -> Result<()> {
+    if views.is_empty() {
+        bail!("{}: the camera file has no views", dir.display());
+    }
+    let mut seen = std::collections::HashSet::new();
+    for v in views {
+        if !seen.insert(v.name.as_str()) {
+            bail!("{}: view name '{}' appears twice", dir.display(), v.name);
+        }
+    }
+    Ok(())
+}
+
+/// Every image exists; with `check_sizes`, its header size matches the camera (or does after
+/// its EXIF orientation).
+fn check_images(views: &[View], check_sizes: bool) -> Result<()> {
+    for v in views {
+        if !v.image_path.is_file() {
+            bail!(
+                "{}: image of view '{}' not found",
+                v.image_path.display(),
+                v.name
+            );
+        }
+        if !check_sizes {
+            continue;
+        }
+        let (w, h) = image::dimensions(&v.image_path)?;
+        if (w, h) != (v.camera.width, v.camera.height) && !v.needs_orientation(1)? {
+            let tag = match image::exif_orientation(&v.image_path)? {
+                Some(o) => format!(" (its EXIF orientation {o:?} does not explain it either)"),
+                None => String::new(),
+            };
+            bail!(
+                "{}: image is {w}x{h} but the camera of view '{}' says {}x{}{tag}",
+                v.image_path.display(),
+                v.name,
+                v.camera.width,
+                v.camera.height
+            );
+        }
+    }
+    Ok(())
+}
+
+/// Scale every camera to the downsampled image size.
+fn downsample_cameras(views: &mut [View], s: u32) -> Result<()> {
+    if s <= 1 {
+        return Ok(());
+    }
+    for v in views {
+        if v.camera.width / s == 0 || v.camera.height / s == 0 {
+            bail!(
+                "view '{}': image {}x{} is smaller than the downsample factor {s}",
+                v.name,
+                v.camera.width,
+                v.camera.height
+            );
+        }
+        v.camera = v.camera.downsampled(s);
+    }
+    Ok(())
+}
+
+/// The held-out views: `scene.toml`'s `test_views` or `holdout_every`, else the format's own
+/// test split, else every [`HOLDOUT_EVERY`]th view.
+fn split(
+    views: &[View],
+    cfg: &SceneToml,
+    format_test: Option<Vec<String>>,
+    toml_path: &Path,
+) -> Result<Vec<usize>> {
+    if let Some(names) = &cfg.test_views {
+        if cfg.holdout_every.is_some() {
+            bail!(
+                "{}: give either test_views or holdout_every, not both",
+                toml_path.display()
+            );
+        }
+        let mut t = Vec::with_capacity(names.len());
+        for n in names {
+            let i = views.iter().position(|v| &v.name == n).ok_or_else(|| {
+                anyhow!(
+                    "{}: test view '{n}' is not a view of the scene",
+                    toml_path.display()
+                )
+            })?;
+            t.push(i);
+        }
+        t.sort_unstable();
+        t.dedup();
+        return Ok(t);
+    }
+    Ok(match (cfg.holdout_every, format_test) {
+        (Some(0), _) => Vec::new(),
+        (Some(k), _) => (0..views.len()).step_by(k).collect(),
+        (None, Some(names)) => {
+            let mut t: Vec<usize> = names
+                .iter()
+                .filter_map(|n| views.iter().position(|v| &v.name == n))
+                .collect();
+            t.sort_unstable();
+            t
+        }
+        (None, None) => (0..views.len()).step_by(HOLDOUT_EVERY).collect(),
+    })
+}

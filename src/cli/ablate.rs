@@ -6,7 +6,7 @@
 //! `src/train/ablate.rs` for the variants and how the baseline's feature width is chosen.
 
 use super::common::RunArgs;
-use crate::train::ablate::{run_ablation, AblateOptions, VARIANTS};
+use crate::train::ablate::{run_ablation, AblateOptions, Variant};
 use anyhow::Result;
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -26,12 +26,9 @@ pub struct Args {
     /// (from a 20-step timing probe); every variant then uses that step count.
     #[arg(long, conflicts_with = "steps")]
     pub minutes: Option<f64>,
-    /// Comma-separated subset of: full, no_deform, no_multisampling, mesh10, vertex, vertex_subdiv.
-    #[arg(
-        long,
-        default_value = "full,no_deform,no_multisampling,mesh10,vertex,vertex_subdiv"
-    )]
-    pub variants: String,
+    /// Comma-separated subset of the variants, run in table order (default: all).
+    #[arg(long, value_enum, value_delimiter = ',', default_values_t = Variant::ALL)]
+    pub variants: Vec<Variant>,
     /// Fraction of faces kept by the decimated-mesh variant.
     #[arg(long, default_value_t = 0.1)]
     pub ratio: f64,
@@ -45,19 +42,11 @@ pub struct Args {
 
 pub fn run(a: Args) -> Result<ExitCode> {
     let base = a.run.resolve()?;
-    let variants: Vec<String> = a
-        .variants
-        .split(',')
-        .map(|s| s.trim().to_string())
-        .filter(|s| !s.is_empty())
+    // Table order whatever order they were given in, each once.
+    let variants: Vec<Variant> = Variant::ALL
+        .into_iter()
+        .filter(|v| a.variants.contains(v))
         .collect();
-    for v in &variants {
-        anyhow::ensure!(
-            VARIANTS.contains(&v.as_str()),
-            "--variants: unknown variant {v:?} (expected some of {})",
-            VARIANTS.join(", ")
-        );
-    }
     let opts = AblateOptions {
         base,
         variants,

@@ -42,23 +42,71 @@ pub const Z_SUBDIV: u32 = 16;
 /// Most subdivision levels `vertex_subdiv` will use (× 1024 faces).
 pub const MAX_SUBDIV: u32 = 5;
 
-/// Every variant name, in table order.
-pub const VARIANTS: [&str; 6] = [
-    "full",
-    "no_deform",
-    "no_multisampling",
-    "mesh10",
-    "vertex",
-    "vertex_subdiv",
-];
+/// One ablation variant (module doc), in table order.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum Variant {
+    #[value(name = "full")]
+    Full,
+    #[value(name = "no_deform")]
+    NoDeform,
+    #[value(name = "no_multisampling")]
+    NoMultisampling,
+    #[value(name = "mesh10")]
+    Mesh10,
+    #[value(name = "vertex")]
+    Vertex,
+    #[value(name = "vertex_subdiv")]
+    VertexSubdiv,
+}
+
+impl Variant {
+    /// Every variant, in table order.
+    pub const ALL: [Variant; 6] = [
+        Variant::Full,
+        Variant::NoDeform,
+        Variant::NoMultisampling,
+        Variant::Mesh10,
+        Variant::Vertex,
+        Variant::VertexSubdiv,
+    ];
+
+    /// The name used on the command line, as the run folder and in the reports.
+    pub fn name(self) -> &'static str {
+        match self {
+            Variant::Full => "full",
+            Variant::NoDeform => "no_deform",
+            Variant::NoMultisampling => "no_multisampling",
+            Variant::Mesh10 => "mesh10",
+            Variant::Vertex => "vertex",
+            Variant::VertexSubdiv => "vertex_subdiv",
+        }
+    }
+
+    pub fn description(self) -> &'static str {
+        match self {
+            Variant::Full => "full model (hash grid H + deformation ξ + multisampling)",
+            Variant::NoDeform => "w/o deformation (Eq. 5 off)",
+            Variant::NoMultisampling => "w/o multisampling (γ = 1)",
+            Variant::Mesh10 => "full model on the decimated mesh",
+            Variant::Vertex => "vertex features (Fig. 2b) on the scene mesh",
+            Variant::VertexSubdiv => "vertex features (Fig. 2b) on the subdivided mesh",
+        }
+    }
+}
+
+impl Serialize for Variant {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> std::result::Result<S::Ok, S::Error> {
+        s.serialize_str(self.name())
+    }
+}
 
 /// How to run the ablation.
 #[derive(Clone, Debug)]
 pub struct AblateOptions {
     /// Base configuration (preset + overrides) shared by every variant.
     pub base: RunConfig,
-    /// Variants to run (names from [`VARIANTS`]), in table order.
-    pub variants: Vec<String>,
+    /// Variants to run, in table order.
+    pub variants: Vec<Variant>,
     /// Face ratio of the decimated mesh (`mesh10`).
     pub ratio: f64,
     /// Subdivision levels of `vertex_subdiv` (`None` = automatic, see the module doc).
@@ -71,7 +119,7 @@ pub struct AblateOptions {
 /// One variant's result.
 #[derive(Clone, Debug, Serialize)]
 pub struct VariantResult {
-    pub name: String,
+    pub name: Variant,
     pub description: String,
     pub featurization: String,
     pub gamma: u32,
@@ -114,18 +162,6 @@ pub struct Claim {
     pub measured: String,
 }
 
-fn description(name: &str) -> &'static str {
-    match name {
-        "full" => "full model (hash grid H + deformation ξ + multisampling)",
-        "no_deform" => "w/o deformation (Eq. 5 off)",
-        "no_multisampling" => "w/o multisampling (γ = 1)",
-        "mesh10" => "full model on the decimated mesh",
-        "vertex" => "vertex features (Fig. 2b) on the scene mesh",
-        "vertex_subdiv" => "vertex features (Fig. 2b) on the subdivided mesh",
-        _ => "",
-    }
-}
-
 /// Parameters of the shader + appearance codes for a feature width (what a vertex model has
 /// besides its table), used to pick Z.
 fn vertex_param_count(base: &RunConfig, n_vertices: usize, z: u32, train_views: usize) -> usize {
@@ -162,13 +198,6 @@ pub fn choose_z(
 
 /// Run every requested variant on `scene` into `out`; writes `ablation.md` and `ablation.json`.
 pub fn run_ablation(scene: &Path, out: &Path, opts: &AblateOptions) -> Result<AblationReport> {
-    for v in &opts.variants {
-        ensure!(
-            VARIANTS.contains(&v.as_str()),
-            "unknown variant {v:?}: expected some of {}",
-            VARIANTS.join(", ")
-        );
-    }
     ensure!(!opts.variants.is_empty(), "no variants to run");
     std::fs::create_dir_all(out).with_context(|| format!("{}: cannot create", out.display()))?;
     let say = |s: String| {
@@ -190,41 +219,27 @@ pub fn run_ablation(scene: &Path, out: &Path, opts: &AblateOptions) -> Result<Ab
         ..LoadOptions::default()
     };
     let (sc, report) = Scene::load_report(scene, &load)?;
-    let mesh = sc.mesh;
-    let n_train = sc.views.len() - sc.test.len();
     if sc.test.is_empty() {
         bail!(
             "{}: the scene has no held-out views to evaluate",
             scene.display()
         );
     }
-    let mesh_dir = out.join("meshes");
-    std::fs::create_dir_all(&mesh_dir)
-        .with_context(|| format!("{}: cannot create", mesh_dir.display()))?;
-
-    // Step budget.
+    let ctx = Shared {
+        scene,
+        mesh_dir: out.join("meshes"),
+        mesh_path: report.mesh_path.display().to_string(),
+        n_train: sc.views.len() - sc.test.len(),
+        mesh: sc.mesh,
+        ratio: opts.ratio,
+        subdivide: opts.subdivide,
+    };
+    std::fs::create_dir_all(&ctx.mesh_dir)
+        .with_context(|| format!("{}: cannot create", ctx.mesh_dir.display()))?;
     if let Some(m) = opts.minutes {
-        ensure!(m > 0.0, "--minutes must be positive");
-        let probe_dir = out.join("probe");
-        let mut cfg = base.clone();
-        cfg.train.steps = 20;
-        cfg.train.eval_every = 0;
-        cfg.train.checkpoint_every = 0;
-        let s = train(
-            scene,
-            &probe_dir,
-            cfg,
-            &TrainOptions {
-                no_final_eval: true,
-                quiet: true,
-                ..TrainOptions::default()
-            },
-        )?;
-        let per_step = s.seconds / s.steps.max(1) as f64;
-        base.train.steps = ((m * 60.0 / per_step).floor() as u64).max(1);
-        let _ = std::fs::remove_dir_all(&probe_dir);
+        base.train.steps = probe_steps(scene, &out.join("probe"), &base, m)?;
         say(format!(
-            "probe: {per_step:.3} s/step for the full model → {} steps for {m} min",
+            "probe: {} steps for {m} min of the full model",
             base.train.steps
         ));
     }
@@ -233,218 +248,279 @@ pub fn run_ablation(scene: &Path, out: &Path, opts: &AblateOptions) -> Result<Ab
     base.train.checkpoint_every = 0;
 
     let mut results: Vec<VariantResult> = Vec::new();
-    let mut full_params: Option<usize> = None;
-    // The hash model's parameter count, for sizing the vertex baselines: from the `full` run,
-    // else from an initialisation-only model of the base config on this scene.
-    let hfm_params = |full: Option<usize>| -> Result<usize> {
-        if let Some(p) = full {
-            return Ok(p);
-        }
-        let prepared = crate::train::setup::prepare(scene, &base, false, &mut |_| {})?;
-        let mut cfg = base.clone();
-        crate::train::setup::resolve_levels(&mut cfg, &prepared.samples);
-        Ok(TrainState::init(cfg, &prepared)?.ckpt.model.layout.total)
-    };
-
-    for name in &opts.variants {
-        let mut cfg = base.clone();
-        let mut used_mesh: (String, usize, usize) = (
-            report.mesh_path.display().to_string(),
-            mesh.triangles.len(),
-            mesh.vertices.len(),
-        );
-        match name.as_str() {
-            "full" => {}
-            "no_deform" => cfg.model.deform.enabled = false,
-            "no_multisampling" => cfg.model.gamma = 1,
-            "mesh10" => {
-                let (m, r) = decimate_report(&mesh, opts.ratio)?;
-                let path = mesh_dir.join(format!("decimated_{}.ply", opts.ratio));
-                write_ply(&path, &m)?;
-                say(format!(
-                    "mesh10: decimated {} → {} faces (target {}), relative error {:.2e} → {}",
-                    r.faces_in,
-                    r.faces_out,
-                    r.faces_target,
-                    r.relative_error,
-                    path.display()
-                ));
-                used_mesh = (
-                    path.display().to_string(),
-                    m.triangles.len(),
-                    m.vertices.len(),
-                );
-                cfg.train.mesh = Some(std::fs::canonicalize(&path).unwrap_or(path));
-            }
-            "vertex" | "vertex_subdiv" => {
-                let target = hfm_params(full_params)?;
-                let m: Mesh = if name == "vertex" {
-                    mesh.clone()
-                } else {
-                    let levels = match opts.subdivide {
-                        Some(k) => k,
-                        None => {
-                            // Smallest k with target / V_k ≤ Z_SUBDIV (vertex counts by
-                            // subdividing one level at a time).
-                            let mut k = 0;
-                            let mut m = mesh.clone();
-                            while k < MAX_SUBDIV
-                                && target as f64 / m.vertices.len() as f64 > Z_SUBDIV as f64
-                            {
-                                m = subdivide(&m, 1)?;
-                                k += 1;
-                            }
-                            k.max(1)
-                        }
-                    };
-                    let m = subdivide(&mesh, levels)?;
-                    let path = mesh_dir.join(format!("subdivided_{levels}.ply"));
-                    write_ply(&path, &m)?;
-                    say(format!(
-                        "vertex_subdiv: {levels} subdivision levels: {} → {} faces, {} vertices → {}",
-                        mesh.triangles.len(),
-                        m.triangles.len(),
-                        m.vertices.len(),
-                        path.display()
-                    ));
-                    used_mesh = (
-                        path.display().to_string(),
-                        m.triangles.len(),
-                        m.vertices.len(),
-                    );
-                    cfg.train.mesh = Some(std::fs::canonicalize(&path).unwrap_or(path));
-                    m
-                };
-                let z_max = Z_MAX;
-                let z = choose_z(&base, m.vertices.len(), target, z_max, n_train);
-                say(format!(
-                    "{name}: Z = {z} features per vertex on {} vertices (closest to the hash model's {target} parameters, Z ≤ {z_max})",
-                    m.vertices.len()
-                ));
-                cfg.model.featurization = Featurization::Vertex;
-                cfg.model.vertex_features = z;
-                cfg.model.deform.enabled = false;
-            }
-            _ => unreachable!("checked above"),
-        }
-        let run_dir = out.join(name);
-        say(format!(
-            "== {name}: {} ({} steps of {} pixels) → {}",
-            description(name),
-            cfg.train.steps,
-            cfg.train.batch_pixels,
-            run_dir.display()
-        ));
-        let summary = train(
-            scene,
-            &run_dir,
-            cfg.clone(),
-            &TrainOptions {
-                quiet: true,
-                ..TrainOptions::default()
-            },
-        )
-        .with_context(|| format!("ablation variant {name}"))?;
-        let st = TrainState::load(&run_dir.join("checkpoint.safetensors"))?;
-        let params = st.ckpt.model.layout.total;
-        if name == "full" {
-            full_params = Some(params);
-        }
-        let eval: serde_json::Value = serde_json::from_str(
-            &std::fs::read_to_string(run_dir.join("eval.json"))
-                .with_context(|| format!("{}: eval.json", run_dir.display()))?,
-        )?;
-        let views: Vec<ViewScore> = eval["views"]
-            .as_array()
-            .context("eval.json: views")?
+    for &v in &opts.variants {
+        let full_params = results
             .iter()
-            .map(view_score_from_json)
-            .collect::<Result<_>>()?;
-        let mean = summary
-            .final_scores
-            .clone()
-            .context("the run has no final evaluation")?;
-        let r = VariantResult {
-            name: name.clone(),
-            description: description(name).to_string(),
-            featurization: if cfg.model.featurization.is_hash() {
-                "hash".into()
-            } else {
-                "vertex".into()
-            },
-            gamma: cfg.model.gamma,
-            deform: cfg.model.deform.enabled,
-            mesh: used_mesh.0,
-            mesh_faces: used_mesh.1,
-            mesh_vertices: used_mesh.2,
-            feature_width: st.ckpt.model.feat_dim(),
-            params,
-            params_ratio: full_params.map(|f| params as f64 / f as f64),
-            steps: summary.steps,
-            train_seconds: summary.seconds,
-            mean,
-            views,
-        };
-        say(format!(
-            "   {name}: PSNR masked {:.2} / full {:.2}, SSIM masked {:.4}, {} params, {:.1} s",
-            r.mean.psnr_masked, r.mean.psnr, r.mean.ssim_masked, r.params, r.train_seconds
-        ));
+            .find(|r| r.name == Variant::Full)
+            .map(|r| r.params);
+        let (cfg, used_mesh) = configure(v, &base, &ctx, full_params, &say)?;
+        let r = run_variant(
+            v,
+            cfg,
+            used_mesh,
+            &ctx,
+            &out.join(v.name()),
+            full_params,
+            &say,
+        )?;
         results.push(r);
     }
-    let claims = check_claims(&results);
     let rep = AblationReport {
         scene: scene.to_path_buf(),
         preset: base.preset.clone(),
         steps: base.train.steps,
         batch_pixels: base.train.batch_pixels,
         seed: base.train.seed,
+        claims: check_claims(&results),
         results,
-        claims,
     };
-    std::fs::write(out.join("ablation.md"), markdown(&rep))
-        .with_context(|| format!("{}: cannot write ablation.md", out.display()))?;
-    std::fs::write(
-        out.join("ablation.json"),
-        serde_json::to_string_pretty(&rep)?,
-    )
-    .with_context(|| format!("{}: cannot write ablation.json", out.display()))?;
+    write_report(out, &rep)?;
     Ok(rep)
 }
 
-fn view_score_from_json(v: &serde_json::Value) -> Result<ViewScore> {
-    let f = |k: &str| v[k].as_f64().unwrap_or(f64::NAN);
-    Ok(ViewScore {
-        view: v["view"]
-            .as_str()
-            .context("eval.json: view name")?
-            .to_string(),
-        psnr: f("psnr"),
-        ssim: f("ssim"),
-        flip: f("flip"),
-        psnr_masked: f("psnr_masked"),
-        ssim_masked: f("ssim_masked"),
-        flip_masked: f("flip_masked"),
-        hit_fraction: f("hit_fraction"),
-        mask_miss: v["mask_miss"].as_f64(),
-    })
+/// What every variant shares: the scene, its mesh and where derived meshes go.
+struct Shared<'a> {
+    scene: &'a Path,
+    mesh: Mesh,
+    mesh_path: String,
+    mesh_dir: PathBuf,
+    n_train: usize,
+    ratio: f64,
+    subdivide: Option<u32>,
+}
+
+/// The mesh a variant trained on: file, faces, vertices.
+type UsedMesh = (String, usize, usize);
+
+/// The step count that makes the full model train about `minutes` (a 20-step timing probe).
+fn probe_steps(scene: &Path, probe_dir: &Path, base: &RunConfig, minutes: f64) -> Result<u64> {
+    ensure!(minutes > 0.0, "--minutes must be positive");
+    let mut cfg = base.clone();
+    cfg.train.steps = 20;
+    cfg.train.eval_every = 0;
+    cfg.train.checkpoint_every = 0;
+    let s = train(
+        scene,
+        probe_dir,
+        cfg,
+        &TrainOptions {
+            no_final_eval: true,
+            quiet: true,
+            ..TrainOptions::default()
+        },
+    )?;
+    let per_step = s.seconds / s.steps.max(1) as f64;
+    let _ = std::fs::remove_dir_all(probe_dir);
+    Ok(((minutes * 60.0 / per_step).floor() as u64).max(1))
+}
+
+/// The variant's configuration (and the mesh it trains on, written under `meshes/` when derived).
+fn configure(
+    v: Variant,
+    base: &RunConfig,
+    ctx: &Shared,
+    full_params: Option<usize>,
+    say: &dyn Fn(String),
+) -> Result<(RunConfig, UsedMesh)> {
+    let mut cfg = base.clone();
+    let mut used: UsedMesh = (
+        ctx.mesh_path.clone(),
+        ctx.mesh.triangles.len(),
+        ctx.mesh.vertices.len(),
+    );
+    match v {
+        Variant::Full => {}
+        Variant::NoDeform => cfg.model.deform.enabled = false,
+        Variant::NoMultisampling => cfg.model.gamma = 1,
+        Variant::Mesh10 => {
+            let (m, r) = decimate_report(&ctx.mesh, ctx.ratio)?;
+            let path = ctx.mesh_dir.join(format!("decimated_{}.ply", ctx.ratio));
+            write_ply(&path, &m)?;
+            say(format!(
+                "mesh10: decimated {} → {} faces (target {}), relative error {:.2e} → {}",
+                r.faces_in,
+                r.faces_out,
+                r.faces_target,
+                r.relative_error,
+                path.display()
+            ));
+            used = (
+                path.display().to_string(),
+                m.triangles.len(),
+                m.vertices.len(),
+            );
+            cfg.train.mesh = Some(std::fs::canonicalize(&path).unwrap_or(path));
+        }
+        Variant::Vertex | Variant::VertexSubdiv => {
+            let target = match full_params {
+                Some(p) => p,
+                None => hash_params(ctx.scene, base)?,
+            };
+            let m = if v == Variant::Vertex {
+                ctx.mesh.clone()
+            } else {
+                let (m, path) = subdivided(ctx, target, say)?;
+                used = (
+                    path.display().to_string(),
+                    m.triangles.len(),
+                    m.vertices.len(),
+                );
+                cfg.train.mesh = Some(std::fs::canonicalize(&path).unwrap_or(path));
+                m
+            };
+            let z = choose_z(base, m.vertices.len(), target, Z_MAX, ctx.n_train);
+            say(format!(
+                "{}: Z = {z} features per vertex on {} vertices (closest to the hash model's {target} parameters, Z ≤ {Z_MAX})",
+                v.name(),
+                m.vertices.len()
+            ));
+            cfg.model.featurization = Featurization::Vertex;
+            cfg.model.vertex_features = z;
+            cfg.model.deform.enabled = false;
+        }
+    }
+    Ok((cfg, used))
+}
+
+/// The hash model's parameter count on this scene, from an initialisation-only model of `base`
+/// (used to size the vertex baselines when `full` did not run first).
+fn hash_params(scene: &Path, base: &RunConfig) -> Result<usize> {
+    let prepared = crate::train::setup::prepare(scene, base, false, &mut |_| {})?;
+    let mut cfg = base.clone();
+    crate::train::setup::resolve_levels(&mut cfg, &prepared.samples);
+    Ok(TrainState::init(cfg, &prepared)?.ckpt.model.layout.total)
+}
+
+/// `vertex_subdiv`'s mesh: subdivided `ctx.subdivide` levels, or the smallest k with
+/// `target / V_k ≤ Z_SUBDIV` (module doc); written to `meshes/subdivided_<k>.ply`.
+fn subdivided(ctx: &Shared, target: usize, say: &dyn Fn(String)) -> Result<(Mesh, PathBuf)> {
+    let levels = match ctx.subdivide {
+        Some(k) => k,
+        None => {
+            // Vertex counts by subdividing one level at a time.
+            let mut k = 0;
+            let mut m = ctx.mesh.clone();
+            while k < MAX_SUBDIV && target as f64 / m.vertices.len() as f64 > Z_SUBDIV as f64 {
+                m = subdivide(&m, 1)?;
+                k += 1;
+            }
+            k.max(1)
+        }
+    };
+    let m = subdivide(&ctx.mesh, levels)?;
+    let path = ctx.mesh_dir.join(format!("subdivided_{levels}.ply"));
+    write_ply(&path, &m)?;
+    say(format!(
+        "vertex_subdiv: {levels} subdivision levels: {} → {} faces, {} vertices → {}",
+        ctx.mesh.triangles.len(),
+        m.triangles.len(),
+        m.vertices.len(),
+        path.display()
+    ));
+    Ok((m, path))
+}
+
+/// Train one variant into `run_dir` and collect its scores (returned by the trainer).
+fn run_variant(
+    v: Variant,
+    cfg: RunConfig,
+    used_mesh: UsedMesh,
+    ctx: &Shared,
+    run_dir: &Path,
+    full_params: Option<usize>,
+    say: &dyn Fn(String),
+) -> Result<VariantResult> {
+    say(format!(
+        "== {}: {} ({} steps of {} pixels) → {}",
+        v.name(),
+        v.description(),
+        cfg.train.steps,
+        cfg.train.batch_pixels,
+        run_dir.display()
+    ));
+    let summary = train(
+        ctx.scene,
+        run_dir,
+        cfg.clone(),
+        &TrainOptions {
+            quiet: true,
+            ..TrainOptions::default()
+        },
+    )
+    .with_context(|| format!("ablation variant {}", v.name()))?;
+    let st = TrainState::load(&run_dir.join("checkpoint.safetensors"))?;
+    let params = st.ckpt.model.layout.total;
+    let mean = summary
+        .final_scores
+        .clone()
+        .context("the run has no final evaluation")?;
+    let r = VariantResult {
+        name: v,
+        description: v.description().to_string(),
+        featurization: if cfg.model.featurization.is_hash() {
+            "hash".into()
+        } else {
+            "vertex".into()
+        },
+        gamma: cfg.model.gamma,
+        deform: cfg.model.deform.enabled,
+        mesh: used_mesh.0,
+        mesh_faces: used_mesh.1,
+        mesh_vertices: used_mesh.2,
+        feature_width: st.ckpt.model.feat_dim(),
+        params,
+        params_ratio: full_params
+            .or((v == Variant::Full).then_some(params))
+            .map(|f| params as f64 / f as f64),
+        steps: summary.steps,
+        train_seconds: summary.seconds,
+        mean,
+        views: summary.views,
+    };
+    say(format!(
+        "   {}: PSNR masked {:.2} / full {:.2}, SSIM masked {:.4}, {} params, {:.1} s",
+        v.name(),
+        r.mean.psnr_masked,
+        r.mean.psnr,
+        r.mean.ssim_masked,
+        r.params,
+        r.train_seconds
+    ));
+    Ok(r)
+}
+
+/// `OUT/ablation.md` and `OUT/ablation.json`.
+fn write_report(out: &Path, rep: &AblationReport) -> Result<()> {
+    std::fs::write(out.join("ablation.md"), markdown(rep))
+        .with_context(|| format!("{}: cannot write ablation.md", out.display()))?;
+    std::fs::write(
+        out.join("ablation.json"),
+        serde_json::to_string_pretty(rep)?,
+    )
+    .with_context(|| format!("{}: cannot write ablation.json", out.display()))
 }
 
 /// The claims on the measured masked PSNR.
 fn check_claims(results: &[VariantResult]) -> Vec<Claim> {
-    let get = |n: &str| {
+    let get = |n: Variant| {
         results
             .iter()
             .find(|r| r.name == n)
             .map(|r| r.mean.psnr_masked)
     };
     let mut out = Vec::new();
-    let mut diff = |claim: &str, a: &str, b: &str, test: &dyn Fn(f64) -> bool| {
+    let mut diff = |claim: &str, a: Variant, b: Variant, test: &dyn Fn(f64) -> bool| {
         let (holds, measured) = match (get(a), get(b)) {
             (Some(x), Some(y)) => (
                 Some(test(x - y)),
-                format!("{a} {x:.2} dB − {b} {y:.2} dB = {:+.2} dB", x - y),
+                format!(
+                    "{} {x:.2} dB − {} {y:.2} dB = {:+.2} dB",
+                    a.name(),
+                    b.name(),
+                    x - y
+                ),
             ),
-            _ => (None, format!("needs {a} and {b}")),
+            _ => (None, format!("needs {} and {}", a.name(), b.name())),
         };
         out.push(Claim {
             claim: claim.to_string(),
@@ -454,38 +530,38 @@ fn check_claims(results: &[VariantResult]) -> Vec<Claim> {
     };
     diff(
         "the full model beats the vertex-feature baseline by ≥ 2 dB (masked PSNR)",
-        "full",
-        "vertex",
+        Variant::Full,
+        Variant::Vertex,
         &|d| d >= 2.0,
     );
     diff(
         "the full model beats the parameter-matched (subdivided) vertex baseline by ≥ 2 dB",
-        "full",
-        "vertex_subdiv",
+        Variant::Full,
+        Variant::VertexSubdiv,
         &|d| d >= 2.0,
     );
     diff(
         "removing deformation costs PSNR (Table 4)",
-        "full",
-        "no_deform",
+        Variant::Full,
+        Variant::NoDeform,
         &|d| d > 0.0,
     );
     diff(
         "removing multisampling costs PSNR (Table 4)",
-        "full",
-        "no_multisampling",
+        Variant::Full,
+        Variant::NoMultisampling,
         &|d| d > 0.0,
     );
     diff(
         "w/o multisampling is worse than w/o deformation (Table 4 ordering)",
-        "no_deform",
-        "no_multisampling",
+        Variant::NoDeform,
+        Variant::NoMultisampling,
         &|d| d > 0.0,
     );
     diff(
         "the decimated mesh costs ≤ 1 dB (Table 5)",
-        "full",
-        "mesh10",
+        Variant::Full,
+        Variant::Mesh10,
         &|d| d <= 1.0,
     );
     out
@@ -512,7 +588,7 @@ pub fn markdown(rep: &AblationReport) -> String {
         let _ = writeln!(
             s,
             "| {} | {} | {} | {} | {} | {} | {} | {} | {:.2} | {:.4} | {:.2} | {:.4} | {:.1} |",
-            r.name,
+            r.name.name(),
             r.featurization,
             r.mesh_faces,
             r.gamma,
@@ -532,7 +608,11 @@ pub fn markdown(rep: &AblationReport) -> String {
         let _ = writeln!(
             s,
             "- `{}`: {}; mesh `{}` ({} faces, {} vertices).",
-            r.name, r.description, r.mesh, r.mesh_faces, r.mesh_vertices
+            r.name.name(),
+            r.description,
+            r.mesh,
+            r.mesh_faces,
+            r.mesh_vertices
         );
     }
     let _ = writeln!(s, "\nClaims (masked PSNR):\n");

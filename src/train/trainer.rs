@@ -236,7 +236,10 @@ pub struct TrainOptions {
 pub struct TrainSummary {
     pub steps: u64,
     pub interrupted: bool,
+    /// The mean over the held-out views (`None` without a final evaluation).
     pub final_scores: Option<ViewScore>,
+    /// Each held-out view's scores, as in `eval.json` (empty without a final evaluation).
+    pub views: Vec<ViewScore>,
     pub seconds: f64,
 }
 
@@ -487,6 +490,7 @@ pub fn train(
             steps: state.step,
             interrupted: true,
             final_scores: None,
+            views: Vec::new(),
             seconds,
         });
     }
@@ -508,6 +512,7 @@ pub fn train(
         )?;
     }
     let mut final_scores = None;
+    let mut views = Vec::new();
     if !opts.no_final_eval && !prepared.scene.test.is_empty() {
         let scores = evaluate(&state, &prepared, 0, Some(run_dir))?;
         let m = mean_score(&scores);
@@ -528,11 +533,13 @@ pub fn train(
             run_dir.join("eval").display()
         ));
         final_scores = Some(m);
+        views = scores;
     }
     Ok(TrainSummary {
         steps: state.step,
         interrupted: false,
         final_scores,
+        views,
         seconds,
     })
 }

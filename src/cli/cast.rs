@@ -82,6 +82,31 @@ pub fn run(args: Args) -> Result<ExitCode> {
         ..LoadOptions::default()
     };
     let (scene, report) = Scene::load_report(&args.scene, &opts)?;
+    let tracer = build_tracer(&args, &scene, &report, t0)?;
+    let indices: Vec<usize> = match args.views {
+        Which::Train => scene.train(),
+        Which::Test => scene.test.clone(),
+        Which::All => (0..scene.views.len()).collect(),
+    };
+    if indices.is_empty() {
+        bail!("{}: no views to cast", args.scene.display());
+    }
+    let (cache, rays, cast_s) = cast_views(&args, &scene, &tracer, &indices)?;
+    print_report(&args, &scene, &cache, indices.len(), rays, cast_s);
+    if cache.is_empty() {
+        eprintln!("error: no view sees the mesh");
+        return Ok(ExitCode::from(1));
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+/// Report the loaded scene, build the BVH and report it.
+fn build_tracer(
+    args: &Args,
+    scene: &Scene,
+    report: &crate::scene::LoadReport,
+    t0: Instant,
+) -> Result<Tracer> {
     eprintln!(
         "scene {}: {} views ({} test), cameras {:?}, mesh {} ({} vertices, {} triangles, {} degenerate dropped), loaded in {:.2} s",
         args.scene.display(),
@@ -111,15 +136,16 @@ pub fn run(args: Args) -> Result<ExitCode> {
             "SSE, 4 rays per packet"
         }
     );
+    Ok(tracer)
+}
 
-    let indices: Vec<usize> = match args.views {
-        Which::Train => scene.train(),
-        Which::Test => scene.test.clone(),
-        Which::All => (0..scene.views.len()).collect(),
-    };
-    if indices.is_empty() {
-        bail!("{}: no views to cast", args.scene.display());
-    }
+/// Cast every view of `indices` into a sample cache: (cache, rays cast, seconds casting).
+fn cast_views(
+    args: &Args,
+    scene: &Scene,
+    tracer: &Tracer,
+    indices: &[usize],
+) -> Result<(SampleCache, u64, f64)> {
     let mut cache = SampleCache::new(args.gamma)?;
     let (mut rays, mut cast_s) = (0u64, 0.0f64);
     for (k, &i) in indices.iter().enumerate() {
@@ -145,7 +171,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
         };
         let mask = scene.load_mask(i)?;
         cache.add_view(
-            &tracer,
+            tracer,
             i,
             &view.camera,
             img.as_ref(),
@@ -155,12 +181,23 @@ pub fn run(args: Args) -> Result<ExitCode> {
         cast_s += t.elapsed().as_secs_f64();
         rays += (view.camera.width * view.camera.height * args.gamma * args.gamma) as u64;
     }
+    Ok((cache, rays, cast_s))
+}
 
+/// What the cache holds, on stdout.
+fn print_report(
+    args: &Args,
+    scene: &Scene,
+    cache: &SampleCache,
+    n_cast: usize,
+    rays: u64,
+    cast_s: f64,
+) {
     let g2 = cache.samples_per_pixel();
     let valid: u64 = (0..cache.len())
         .map(|i| cache.valid(i).count_ones() as u64)
         .sum();
-    println!("views cast:        {}", indices.len());
+    println!("views cast:        {n_cast}");
     println!("views kept:        {}", cache.views.len());
     if !cache.dropped.is_empty() {
         let names: Vec<&str> = cache
@@ -205,9 +242,4 @@ pub fn run(args: Args) -> Result<ExitCode> {
         cast_s,
         rays as f64 / cast_s.max(1e-9) / 1e6
     );
-    if cache.is_empty() {
-        eprintln!("error: no view sees the mesh");
-        return Ok(ExitCode::from(1));
-    }
-    Ok(ExitCode::SUCCESS)
 }

@@ -714,6 +714,57 @@ fn load_ply_ascii(path: &Path, data: &[u8], h: &Header, lay: &Layout) -> Result<
     Ok((out.mesh, out.stats))
 }
 
+/// Binary PLY fast path: an element of scalars only is a fixed-size record (vertices,
+/// usually); returns the position after it.
+#[allow(clippy::too_many_arguments)]
+fn read_fixed_records(
+    path: &Path,
+    data: &[u8],
+    pos: usize,
+    el: &Element,
+    types: &[Scalar],
+    lay: &Layout,
+    big: bool,
+    out: &mut PlyMesh,
+) -> Result<usize> {
+    let p = path.display();
+    let mut offs = Vec::with_capacity(types.len());
+    let mut rec = 0usize;
+    for t in types {
+        offs.push(rec);
+        rec += t.size();
+    }
+    let need = rec.checked_mul(el.count);
+    if need.is_none_or(|n| pos + n > data.len()) {
+        let k = (data.len() - pos) / rec.max(1);
+        bail!(
+            "{p}: truncated: file ends inside {} {k} of {} declared",
+            el.name,
+            el.count
+        );
+    }
+    if el.name == "vertex" {
+        for k in 0..el.count {
+            let r = &data[pos + k * rec..pos + (k + 1) * rec];
+            let mut v = [0f64; 3];
+            for axis in 0..3 {
+                let pi = lay.xyz[axis];
+                let x = types[pi].read(&r[offs[pi]..], big);
+                if !x.is_finite() {
+                    bail!(
+                        "{p}: vertex {k}: coordinate {} is {x} (must be finite)",
+                        ["x", "y", "z"][axis]
+                    );
+                }
+                v[axis] = x;
+            }
+            out.mesh.vertices.push(DVec3::from_array(v));
+        }
+        out.vertices_done();
+    }
+    Ok(pos + rec * el.count)
+}
+
 fn load_ply_binary(
     path: &Path,
     data: &[u8],
@@ -747,41 +798,7 @@ fn load_ply_binary(
             })
             .collect();
         if let Some(types) = scalars {
-            let mut offs = Vec::with_capacity(types.len());
-            let mut rec = 0usize;
-            for t in &types {
-                offs.push(rec);
-                rec += t.size();
-            }
-            let need = rec.checked_mul(el.count);
-            if need.is_none_or(|n| pos + n > data.len()) {
-                let k = (data.len() - pos) / rec.max(1);
-                bail!(
-                    "{p}: truncated: file ends inside {} {k} of {} declared",
-                    el.name,
-                    el.count
-                );
-            }
-            if is_vertex {
-                for k in 0..el.count {
-                    let r = &data[pos + k * rec..pos + (k + 1) * rec];
-                    let mut v = [0f64; 3];
-                    for axis in 0..3 {
-                        let pi = lay.xyz[axis];
-                        let x = types[pi].read(&r[offs[pi]..], big);
-                        if !x.is_finite() {
-                            bail!(
-                                "{p}: vertex {k}: coordinate {} is {x} (must be finite)",
-                                ["x", "y", "z"][axis]
-                            );
-                        }
-                        v[axis] = x;
-                    }
-                    out.mesh.vertices.push(DVec3::from_array(v));
-                }
-                out.vertices_done();
-            }
-            pos += rec * el.count;
+            pos = read_fixed_records(path, data, pos, el, &types, lay, big, &mut out)?;
             continue;
         }
         for k in 0..el.count {

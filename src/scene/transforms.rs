@@ -127,128 +127,145 @@ pub fn load(path: &Path) -> Result<Vec<View>> {
                 super::mvsnet::IMAGE_EXTS.join(",")
             )
         })?;
-
-        // transform_matrix: 4x4 (a 3x4 is accepted too) camera→world, OpenGL axes.
-        let m = fr
-            .get("transform_matrix")
-            .and_then(|v| v.as_array())
-            .ok_or_else(|| anyhow!("{wh}: missing 'transform_matrix' (4x4 array)"))?;
-        if m.len() != 4 && m.len() != 3 {
-            bail!(
-                "{wh}: 'transform_matrix' must have 4 rows, found {}",
-                m.len()
-            );
-        }
-        let mut a = [[0f64; 4]; 4];
-        for (r, row) in m.iter().enumerate() {
-            let row = row
-                .as_array()
-                .filter(|row| row.len() == 4)
-                .ok_or_else(|| anyhow!("{wh}: 'transform_matrix' row {r} must have 4 numbers"))?;
-            for (c, v) in row.iter().enumerate() {
-                a[r][c] = v.as_f64().filter(|x| x.is_finite()).ok_or_else(|| {
-                    anyhow!("{wh}: 'transform_matrix'[{r}][{c}] is not a finite number")
-                })?;
-            }
-        }
-        if m.len() == 4 && (a[3] != [0.0, 0.0, 0.0, 1.0]) {
-            bail!(
-                "{wh}: 'transform_matrix' last row must be [0,0,0,1], found {:?}",
-                a[3]
-            );
-        }
-        // Columns of the camera→world rotation in OpenCV axes: x, -y, -z of the GL one.
-        let col = |c: usize, s: f64| DVec3::new(s * a[0][c], s * a[1][c], s * a[2][c]);
-        let c2w = DMat3::from_cols(col(0, 1.0), col(1, -1.0), col(2, -1.0));
-        let ortho = (c2w.transpose() * c2w - DMat3::IDENTITY)
-            .to_cols_array()
-            .iter()
-            .fold(0f64, |mx, v| mx.max(v.abs()));
-        if ortho > 1e-3 || c2w.determinant() <= 0.0 {
-            bail!("{wh}: the rotation part of 'transform_matrix' is not a rotation (|RᵀR − I| = {ortho:.2e})");
-        }
-        let center = DVec3::new(a[0][3], a[1][3], a[2][3]);
-        let rotation = c2w.transpose();
-        let translation = -(rotation * center);
-
-        // Intrinsics.
-        let mut w = num(&wh, fr, top, "w")?;
-        let mut h = num(&wh, fr, top, "h")?;
-        if w.is_none() || h.is_none() {
-            let (iw, ih) = super::image::dimensions(&image_path)?;
-            w = w.or(Some(iw as f64));
-            h = h.or(Some(ih as f64));
-        }
-        let (w, h) = (w.unwrap(), h.unwrap());
-        if !(w >= 1.0
-            && h >= 1.0
-            && w.fract() == 0.0
-            && h.fract() == 0.0
-            && w <= u32::MAX as f64
-            && h <= u32::MAX as f64)
-        {
-            bail!("{wh}: image size w={w}, h={h} must be positive integers");
-        }
-        let fx = match num(&wh, fr, top, "fl_x")? {
-            Some(f) => f,
-            None => match num(&wh, fr, top, "camera_angle_x")? {
-                Some(ax) => 0.5 * w / (0.5 * ax).tan(),
-                None => bail!("{wh}: no focal length: neither 'fl_x' nor 'camera_angle_x' given"),
-            },
-        };
-        let fy = match num(&wh, fr, top, "fl_y")? {
-            Some(f) => f,
-            None => match num(&wh, fr, top, "camera_angle_y")? {
-                Some(ay) => 0.5 * h / (0.5 * ay).tan(),
-                None => fx,
-            },
-        };
-        if !(fx > 0.0 && fy > 0.0 && fx.is_finite() && fy.is_finite()) {
-            bail!("{wh}: focal lengths must be positive (fl_x={fx}, fl_y={fy})");
-        }
-        let cx = num(&wh, fr, top, "cx")?.unwrap_or(0.5 * w);
-        let cy = num(&wh, fr, top, "cy")?.unwrap_or(0.5 * h);
-        let mut k = [0.0; 4];
-        for (i, key) in ["k1", "k2", "k3", "k4"].iter().enumerate() {
-            k[i] = num(&wh, fr, top, key)?.unwrap_or(0.0);
-        }
-        let p1 = num(&wh, fr, top, "p1")?.unwrap_or(0.0);
-        let p2 = num(&wh, fr, top, "p2")?.unwrap_or(0.0);
-        let distortion = if model == "OPENCV_FISHEYE" {
-            if p1 != 0.0 || p2 != 0.0 {
-                bail!("{wh}: OPENCV_FISHEYE has no tangential terms, but p1/p2 are given");
-            }
-            Distortion::Fisheye { k }
-        } else {
-            for key in ["k3", "k4"] {
-                if num(&wh, fr, top, key)?.unwrap_or(0.0) != 0.0 {
-                    bail!("{wh}: distortion term '{key}' needs camera_model OPENCV_FISHEYE (OPENCV has k1, k2, p1, p2)");
-                }
-            }
-            let [k1, k2, ..] = k;
-            if k1 == 0.0 && k2 == 0.0 && p1 == 0.0 && p2 == 0.0 {
-                Distortion::None
-            } else {
-                Distortion::OpenCv { k1, k2, p1, p2 }
-            }
-        };
+        let (rotation, translation) = pose(&wh, fr)?;
+        let camera = intrinsics(&wh, fr, top, model, &image_path, rotation, translation)?;
         views.push(View {
             name,
-            camera: Camera {
-                width: w as u32,
-                height: h as u32,
-                fx,
-                fy,
-                cx,
-                cy,
-                distortion,
-                rotation,
-                translation,
-            },
+            camera,
             image_path,
         });
     }
     Ok(views)
+}
+
+/// A frame's `transform_matrix` (4x4, or 3x4; camera→world, OpenGL axes) as the world→camera
+/// rotation and translation in OpenCV axes.
+fn pose(wh: &str, fr: &Map<String, Value>) -> Result<(DMat3, DVec3)> {
+    let m = fr
+        .get("transform_matrix")
+        .and_then(|v| v.as_array())
+        .ok_or_else(|| anyhow!("{wh}: missing 'transform_matrix' (4x4 array)"))?;
+    if m.len() != 4 && m.len() != 3 {
+        bail!(
+            "{wh}: 'transform_matrix' must have 4 rows, found {}",
+            m.len()
+        );
+    }
+    let mut a = [[0f64; 4]; 4];
+    for (r, row) in m.iter().enumerate() {
+        let row = row
+            .as_array()
+            .filter(|row| row.len() == 4)
+            .ok_or_else(|| anyhow!("{wh}: 'transform_matrix' row {r} must have 4 numbers"))?;
+        for (c, v) in row.iter().enumerate() {
+            a[r][c] = v.as_f64().filter(|x| x.is_finite()).ok_or_else(|| {
+                anyhow!("{wh}: 'transform_matrix'[{r}][{c}] is not a finite number")
+            })?;
+        }
+    }
+    if m.len() == 4 && (a[3] != [0.0, 0.0, 0.0, 1.0]) {
+        bail!(
+            "{wh}: 'transform_matrix' last row must be [0,0,0,1], found {:?}",
+            a[3]
+        );
+    }
+    // Columns of the camera→world rotation in OpenCV axes: x, -y, -z of the GL one.
+    let col = |c: usize, s: f64| DVec3::new(s * a[0][c], s * a[1][c], s * a[2][c]);
+    let c2w = DMat3::from_cols(col(0, 1.0), col(1, -1.0), col(2, -1.0));
+    let ortho = (c2w.transpose() * c2w - DMat3::IDENTITY)
+        .to_cols_array()
+        .iter()
+        .fold(0f64, |mx, v| mx.max(v.abs()));
+    if ortho > 1e-3 || c2w.determinant() <= 0.0 {
+        bail!("{wh}: the rotation part of 'transform_matrix' is not a rotation (|RᵀR − I| = {ortho:.2e})");
+    }
+    let center = DVec3::new(a[0][3], a[1][3], a[2][3]);
+    let rotation = c2w.transpose();
+    Ok((rotation, -(rotation * center)))
+}
+
+/// A frame's camera: size (or the image's), focal lengths (or field of view), principal point
+/// and distortion, each from the frame or else the top level.
+fn intrinsics(
+    wh: &str,
+    fr: &Map<String, Value>,
+    top: &Map<String, Value>,
+    model: &str,
+    image_path: &Path,
+    rotation: DMat3,
+    translation: DVec3,
+) -> Result<Camera> {
+    let mut w = num(wh, fr, top, "w")?;
+    let mut h = num(wh, fr, top, "h")?;
+    if w.is_none() || h.is_none() {
+        let (iw, ih) = super::image::dimensions(image_path)?;
+        w = w.or(Some(iw as f64));
+        h = h.or(Some(ih as f64));
+    }
+    let (w, h) = (w.unwrap(), h.unwrap());
+    if !(w >= 1.0
+        && h >= 1.0
+        && w.fract() == 0.0
+        && h.fract() == 0.0
+        && w <= u32::MAX as f64
+        && h <= u32::MAX as f64)
+    {
+        bail!("{wh}: image size w={w}, h={h} must be positive integers");
+    }
+    let fx = match num(wh, fr, top, "fl_x")? {
+        Some(f) => f,
+        None => match num(wh, fr, top, "camera_angle_x")? {
+            Some(ax) => 0.5 * w / (0.5 * ax).tan(),
+            None => bail!("{wh}: no focal length: neither 'fl_x' nor 'camera_angle_x' given"),
+        },
+    };
+    let fy = match num(wh, fr, top, "fl_y")? {
+        Some(f) => f,
+        None => match num(wh, fr, top, "camera_angle_y")? {
+            Some(ay) => 0.5 * h / (0.5 * ay).tan(),
+            None => fx,
+        },
+    };
+    if !(fx > 0.0 && fy > 0.0 && fx.is_finite() && fy.is_finite()) {
+        bail!("{wh}: focal lengths must be positive (fl_x={fx}, fl_y={fy})");
+    }
+    let cx = num(wh, fr, top, "cx")?.unwrap_or(0.5 * w);
+    let cy = num(wh, fr, top, "cy")?.unwrap_or(0.5 * h);
+    let mut k = [0.0; 4];
+    for (i, key) in ["k1", "k2", "k3", "k4"].iter().enumerate() {
+        k[i] = num(wh, fr, top, key)?.unwrap_or(0.0);
+    }
+    let p1 = num(wh, fr, top, "p1")?.unwrap_or(0.0);
+    let p2 = num(wh, fr, top, "p2")?.unwrap_or(0.0);
+    let distortion = if model == "OPENCV_FISHEYE" {
+        if p1 != 0.0 || p2 != 0.0 {
+            bail!("{wh}: OPENCV_FISHEYE has no tangential terms, but p1/p2 are given");
+        }
+        Distortion::Fisheye { k }
+    } else {
+        for key in ["k3", "k4"] {
+            if num(wh, fr, top, key)?.unwrap_or(0.0) != 0.0 {
+                bail!("{wh}: distortion term '{key}' needs camera_model OPENCV_FISHEYE (OPENCV has k1, k2, p1, p2)");
+            }
+        }
+        let [k1, k2, ..] = k;
+        if k1 == 0.0 && k2 == 0.0 && p1 == 0.0 && p2 == 0.0 {
+            Distortion::None
+        } else {
+            Distortion::OpenCv { k1, k2, p1, p2 }
+        }
+    };
+    Ok(Camera {
+        width: w as u32,
+        height: h as u32,
+        fx,
+        fy,
+        cx,
+        cy,
+        distortion,
+        rotation,
+        translation,
+    })
 }
 
 /// Intrinsics as JSON fields (`camera_model`, `fl_x`, …, `k1, k2, p1, p2` or OPENCV_FISHEYE's

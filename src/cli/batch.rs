@@ -11,24 +11,28 @@ use std::process::ExitCode;
 
 #[derive(clap::Args, Debug)]
 pub struct Args {
+    /// Scene directory.
     #[arg(long)]
     pub scene: PathBuf,
     /// Pixels in the batch.
     #[arg(long)]
     pub size: usize,
+    /// Seed of the batch draw (as `[train] seed`).
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
     /// Which step's batch.
     #[arg(long, default_value_t = 0)]
     pub step: u64,
     /// Preset (for γ and the image downsampling).
-    #[arg(long, default_value = "cpu")]
+    #[arg(long, default_value = "cpu", value_parser = ["tiny", "cpu", "paper"])]
     pub preset: String,
+    /// TOML overrides (as `xscale train --config`).
     #[arg(long)]
     pub config: Option<PathBuf>,
     /// Override γ (sub-samples per pixel = γ²).
     #[arg(long)]
     pub gamma: Option<u32>,
+    /// Batch file to write (safetensors, tensor names in docs/spec.md).
     #[arg(long)]
     pub out: PathBuf,
 }

@@ -13,8 +13,8 @@ use std::path::{Path, PathBuf};
 /// fields (`--steps`, `--batch`, `--seed`) on top.
 #[derive(clap::Args, Debug)]
 pub struct RunArgs {
-    /// Preset: tiny, cpu or paper (SPEC §9).
-    #[arg(long, default_value = "cpu")]
+    /// Preset (SPEC §9).
+    #[arg(long, default_value = "cpu", value_parser = ["tiny", "cpu", "paper"])]
     pub preset: String,
     /// TOML file overriding any field of the preset (`[model]`, `[train]` tables).
     #[arg(long)]

@@ -56,11 +56,13 @@ pub fn run(a: Args) -> Result<ExitCode> {
 /// `xscale subdivide --in MESH --levels N --out MESH`.
 #[derive(clap::Args, Debug)]
 pub struct SubdivideArgs {
+    /// Input mesh (PLY or OBJ).
     #[arg(long = "in")]
     pub input: PathBuf,
     /// Rounds of 1→4 midpoint subdivision (faces × 4^N).
     #[arg(long)]
     pub levels: u32,
+    /// Output mesh (.ply or .obj).
     #[arg(long)]
     pub out: PathBuf,
 }

@@ -9,15 +9,20 @@ use std::process::ExitCode;
 
 #[derive(clap::Args, Debug)]
 pub struct Args {
+    /// Scene directory (its mesh and views size the model: normalisation, level range,
+    /// appearance codes).
     #[arg(long)]
     pub scene: PathBuf,
-    #[arg(long, default_value = "cpu")]
+    /// Preset (docs/spec.md §9).
+    #[arg(long, default_value = "cpu", value_parser = ["tiny", "cpu", "paper"])]
     pub preset: String,
     /// TOML overrides (as `xscale train --config`).
     #[arg(long)]
     pub config: Option<PathBuf>,
+    /// Seed of the parameter initialisation.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
+    /// Checkpoint file to write (safetensors).
     #[arg(long)]
     pub out: PathBuf,
 }

@@ -23,6 +23,7 @@ pub enum Format {
 pub struct Args {
     #[command(flatten)]
     pub model: ModelArgs,
+    /// Folder for the frames (created; one file per view, or frame_NNNN for a path).
     #[arg(long)]
     pub out: PathBuf,
     /// test, train, all, or a comma-separated list of view names / indices.
@@ -34,6 +35,7 @@ pub struct Args {
     /// Frames on the path (both ends included).
     #[arg(long, default_value_t = 30)]
     pub frames: usize,
+    /// Image format: 8-bit PNG, or 32-bit float EXR (the same values, not quantised).
     #[arg(long, value_enum, default_value = "png")]
     pub format: Format,
     /// Multisampling factor for rendering (default: the model's γ).

@@ -397,15 +397,26 @@ pub fn train(
     let (mut win_t, mut win_samples, mut win_pixels) = (Instant::now(), 0usize, 0usize);
     let mut interrupted = false;
     let stop = opts.stop_at.unwrap_or(u64::MAX).min(tc.steps);
-    while state.step < stop {
-        let batch = sample_batch(
+    let draw = |k: u64| {
+        sample_batch(
             &prepared.samples,
             &prepared.tracer,
             tc.seed,
-            state.step,
+            k,
             tc.batch_pixels,
+        )
+    };
+    let mut next = (state.step < stop).then(|| draw(state.step));
+    while let Some(batch) = next.take() {
+        // Batch k+1 is drawn (its rays cast) while step k runs: a pure function of (seed, k+1),
+        // so overlapping it changes no result, only fills the cores the step leaves idle.
+        let k1 = state.step + 1;
+        let (st, nb) = rayon::join(
+            || state.step(&batch, &mut grads),
+            || (k1 < stop).then(|| draw(k1)),
         );
-        let st = state.step(&batch, &mut grads)?;
+        next = nb;
+        let st = st?;
         if !st.loss.is_finite() {
             state.save(&run_dir.join("checkpoint-diverged.safetensors"))?;
             bail!(

@@ -8,12 +8,15 @@
 //! | `sampler.rs` | batch k as a pure function of (seed, k); streamed or cached samples |
 //! | `memory.rs` | the memory estimate and budget, peak RSS |
 //! | `adam.rs` | the optimizer |
-//! | `trainer.rs` | the loop, metrics, checkpoints, exact resume, Ctrl-C |
+//! | `trainer.rs` | the state, one step, the loop, checkpoints, exact resume, Ctrl-C |
+//! | `report.rs` | what a run tells the user: progress, `metrics.jsonl`, `eval.json` |
+//! | `ablate.rs` | the paper's ablations and the vertex baseline (`xscale ablate`) |
 
 pub mod ablate;
 pub mod adam;
 pub mod config;
 pub mod memory;
+pub mod report;
 pub mod sampler;
 pub mod setup;
 pub mod trainer;

@@ -15,17 +15,17 @@
 //! the whole Adam state (m, v and per-parameter t); nothing in a checkpoint depends on wall time.
 //! So a run stopped at step k and resumed writes the same bytes as one never stopped.
 
-use crate::eval::protocol::{evaluate_view, mean_score, table, write_evaluated, ViewScore};
+use crate::eval::protocol::{evaluate_view, write_evaluated, ViewScore};
 use crate::io::tensors::TensorFile;
 use crate::model::batch::Batch;
 use crate::model::checkpoint::{init_checkpoint_for_mesh, Checkpoint};
 use crate::model::params::{Grads, Group, ParamLayout};
 use crate::train::adam::AdamState;
 use crate::train::config::RunConfig;
+use crate::train::report::Reporter;
 use crate::train::sampler::sample_batch;
 use crate::train::setup::{prepare, resolve_levels, Prepared};
 use anyhow::{bail, Context, Result};
-use std::io::{IsTerminal, Write};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
@@ -243,10 +243,6 @@ pub struct TrainSummary {
     pub seconds: f64,
 }
 
-fn psnr_of(mse: f64) -> f64 {
-    -10.0 * mse.log10()
-}
-
 /// Keep only the metrics lines of steps ≤ `step` (resume rewrites history from there on).
 fn truncate_metrics(path: &Path, step: u64) -> Result<()> {
     let Ok(text) = std::fs::read_to_string(path) else {
@@ -308,12 +304,62 @@ pub fn train(
 ) -> Result<TrainSummary> {
     std::fs::create_dir_all(run_dir)
         .with_context(|| format!("{}: cannot create the run folder", run_dir.display()))?;
+    let ckpt_path = run_checkpoint(run_dir);
+    let metrics_path = run_dir.join("metrics.jsonl");
+    let (mut state, prepared) = open_run(scene_dir, run_dir, cfg, opts)?;
+    let tc = state.cfg.train.clone();
+    let mut rep = Reporter::open(&metrics_path, opts.quiet, tc.steps, state.step)?;
+    rep.model(&state);
+    let interrupted = run_loop(&mut state, &prepared, &ckpt_path, opts, &mut rep)?;
+    rep.loop_done();
+    state.save(&ckpt_path)?;
+    let seconds = rep.elapsed();
+    if interrupted || state.step < tc.steps {
+        rep.say(format!(
+            "stopped at step {} of {}; checkpoint written to {} (continue with --resume)",
+            state.step,
+            tc.steps,
+            ckpt_path.display()
+        ));
+        return Ok(TrainSummary {
+            steps: state.step,
+            interrupted: true,
+            final_scores: None,
+            views: Vec::new(),
+            seconds,
+        });
+    }
+    rep.trained(state.step, seconds, &ckpt_path)?;
+    let (mut final_scores, mut views) = (None, Vec::new());
+    if !opts.no_final_eval && !prepared.scene.test.is_empty() {
+        let scores = evaluate(&state, &prepared, 0, Some(run_dir))?;
+        final_scores = Some(rep.final_eval(state.step, &scores, run_dir)?);
+        views = scores;
+    }
+    Ok(TrainSummary {
+        steps: state.step,
+        interrupted: false,
+        final_scores,
+        views,
+        seconds,
+    })
+}
+
+/// The run's state and prepared scene: resumed from `RUN/checkpoint.safetensors` (its stored
+/// configuration wins; `metrics.jsonl` is cut back to its step) or freshly initialised (the
+/// level range resolved for the scene, an old `metrics.jsonl` removed). Writes `config.toml`.
+fn open_run(
+    scene_dir: &Path,
+    run_dir: &Path,
+    cfg: RunConfig,
+    opts: &TrainOptions,
+) -> Result<(TrainState, Prepared)> {
     let say = |s: String| {
         if !opts.quiet {
             eprintln!("{s}");
         }
     };
-    let ckpt_path = run_dir.join("checkpoint.safetensors");
+    let ckpt_path = run_checkpoint(run_dir);
     let metrics_path = run_dir.join("metrics.jsonl");
     let resumed = if opts.resume {
         if !ckpt_path.exists() {
@@ -332,70 +378,39 @@ pub fn train(
     } else {
         None
     };
-    let run_cfg = resumed.as_ref().map_or(cfg.clone(), |s| s.cfg.clone());
+    let run_cfg = resumed.as_ref().map_or(cfg, |s| s.cfg.clone());
     let prepared = prepare(scene_dir, &run_cfg, true, &mut |m| say(m))?;
-    let mut state = match resumed {
+    let state = match resumed {
         Some(s) => s,
         None => {
             let mut cfg = run_cfg;
             for msg in resolve_levels(&mut cfg, &prepared.samples) {
                 say(msg);
             }
-            if let Ok(old) = std::fs::metadata(&metrics_path) {
-                if old.is_file() {
-                    std::fs::remove_file(&metrics_path)?;
-                }
+            if metrics_path.is_file() {
+                std::fs::remove_file(&metrics_path)
+                    .with_context(|| format!("{}: cannot remove", metrics_path.display()))?;
             }
             TrainState::init(cfg, &prepared)?
         }
     };
     std::fs::write(run_dir.join("config.toml"), state.cfg.to_toml())
         .with_context(|| format!("{}: cannot write config.toml", run_dir.display()))?;
-    let mut metrics = std::fs::OpenOptions::new()
-        .create(true)
-        .append(true)
-        .open(&metrics_path)
-        .with_context(|| format!("{}: cannot open", metrics_path.display()))?;
+    Ok((state, prepared))
+}
+
+/// Steps until the configured count, `opts.stop_at` or an interrupt (then `Ok(true)`), with
+/// periodic evaluations and checkpoints. A non-finite loss saves the state aside and fails.
+fn run_loop(
+    state: &mut TrainState,
+    prepared: &Prepared,
+    ckpt_path: &Path,
+    opts: &TrainOptions,
+    rep: &mut Reporter,
+) -> Result<bool> {
     let tc = state.cfg.train.clone();
-    let feat = match &state.ckpt.model.vertex {
-        Some(vt) => format!(
-            "vertex features Z={} on {} vertices",
-            vt.features, vt.n_vertices
-        ),
-        None => format!("{} grid H levels", state.cfg.model.grid_h.levels),
-    };
-    say(format!(
-        "model: {} parameters ({feat}, deformation {}, γ={}, A={}); {} steps of {} pixels",
-        state.ckpt.model.layout.total,
-        if state.cfg.model.deform.enabled {
-            "on"
-        } else {
-            "off"
-        },
-        state.cfg.model.gamma,
-        state.cfg.model.appearance_dim,
-        tc.steps,
-        tc.batch_pixels
-    ));
-    let bar = if !opts.quiet && std::io::stderr().is_terminal() {
-        let b = indicatif::ProgressBar::new(tc.steps);
-        b.set_style(
-            indicatif::ProgressStyle::with_template(
-                "{bar:30} {pos}/{len} [{elapsed_precise} < {eta_precise}] {msg}",
-            )
-            .expect("valid template"),
-        );
-        b.set_position(state.step);
-        Some(b)
-    } else {
-        None
-    };
-    let t0 = Instant::now();
     let mut grads = Grads::new(&state.ckpt.model.layout);
     grads.inputs = false; // positions and directions are data, not parameters
-    let mut ema_mse: Option<f64> = None;
-    let (mut win_t, mut win_samples, mut win_pixels) = (Instant::now(), 0usize, 0usize);
-    let mut interrupted = false;
     let stop = opts.stop_at.unwrap_or(u64::MAX).min(tc.steps);
     let draw = |k: u64| {
         sample_batch(
@@ -418,141 +433,32 @@ pub fn train(
         next = nb;
         let st = st?;
         if !st.loss.is_finite() {
-            state.save(&run_dir.join("checkpoint-diverged.safetensors"))?;
+            let aside = ckpt_path.with_file_name("checkpoint-diverged.safetensors");
+            state.save(&aside)?;
             bail!(
                 "step {}: loss is {} (diverged); state saved to checkpoint-diverged.safetensors",
                 state.step,
                 st.loss
             );
         }
-        ema_mse = Some(ema_mse.map_or(st.mse, |e| 0.9 * e + 0.1 * st.mse));
-        win_samples += st.samples;
-        win_pixels += batch.n_pixels();
         let k = state.step;
-        if k % tc.log_every.max(1) == 0 || k == tc.steps {
-            let dt = win_t.elapsed().as_secs_f64().max(1e-9);
-            let line = serde_json::json!({
-                "step": k, "loss": st.loss, "psnr": psnr_of(ema_mse.unwrap()),
-                "pixels_per_s": win_pixels as f64 / dt, "samples_per_s": win_samples as f64 / dt,
-                "elapsed_s": t0.elapsed().as_secs_f64(),
-            });
-            writeln!(metrics, "{line}")?;
-            let msg = format!(
-                "loss {:.4}  psnr {:.2}  {:.0} px/s",
-                st.loss,
-                psnr_of(ema_mse.unwrap()),
-                win_pixels as f64 / dt
-            );
-            match &bar {
-                Some(b) => b.set_message(msg),
-                None => say(format!("step {k}/{}  {msg}", tc.steps)),
-            }
-            (win_t, win_samples, win_pixels) = (Instant::now(), 0, 0);
-        }
-        if let Some(b) = &bar {
-            b.set_position(k);
-        }
+        rep.step(k, &st, batch.n_pixels(), tc.log_every)?;
         if tc.eval_every > 0
             && k % tc.eval_every == 0
             && k < tc.steps
             && !prepared.scene.test.is_empty()
         {
-            let scores = evaluate(&state, &prepared, tc.eval_max_views, None)?;
-            let m = mean_score(&scores);
-            writeln!(
-                metrics,
-                "{}",
-                serde_json::json!({"step": k, "eval": m, "elapsed_s": t0.elapsed().as_secs_f64()})
-            )?;
-            let msg = format!(
-                "eval @ {k}: PSNR {:.2} (masked {:.2}), SSIM {:.4} (masked {:.4}) on {} views",
-                m.psnr,
-                m.psnr_masked,
-                m.ssim,
-                m.ssim_masked,
-                scores.len()
-            );
-            match &bar {
-                Some(b) => b.println(msg),
-                None => say(msg),
-            }
+            let scores = evaluate(state, prepared, tc.eval_max_views, None)?;
+            rep.eval(k, &scores)?;
         }
         if tc.checkpoint_every > 0 && k % tc.checkpoint_every == 0 && k < tc.steps {
-            state.save(&ckpt_path)?;
+            state.save(ckpt_path)?;
         }
         if opts.interrupt.is_some_and(|f| f.load(Ordering::SeqCst)) {
-            interrupted = true;
-            break;
+            return Ok(true);
         }
     }
-    if let Some(b) = &bar {
-        b.finish_and_clear();
-    }
-    state.save(&ckpt_path)?;
-    let seconds = t0.elapsed().as_secs_f64();
-    if interrupted || state.step < tc.steps {
-        say(format!(
-            "stopped at step {} of {}; checkpoint written to {} (continue with --resume)",
-            state.step,
-            tc.steps,
-            ckpt_path.display()
-        ));
-        return Ok(TrainSummary {
-            steps: state.step,
-            interrupted: true,
-            final_scores: None,
-            views: Vec::new(),
-            seconds,
-        });
-    }
-    let peak = crate::train::memory::peak_rss_bytes();
-    say(format!(
-        "trained {} steps in {seconds:.1} s; checkpoint {}{}",
-        state.step,
-        ckpt_path.display(),
-        peak.map_or(String::new(), |b| format!(
-            "; peak memory {:.2} GB",
-            b as f64 / 1e9
-        ))
-    ));
-    if let Some(b) = peak {
-        writeln!(
-            metrics,
-            "{}",
-            serde_json::json!({"step": state.step, "peak_rss_bytes": b})
-        )?;
-    }
-    let mut final_scores = None;
-    let mut views = Vec::new();
-    if !opts.no_final_eval && !prepared.scene.test.is_empty() {
-        let scores = evaluate(&state, &prepared, 0, Some(run_dir))?;
-        let m = mean_score(&scores);
-        say(table(&scores));
-        writeln!(
-            metrics,
-            "{}",
-            serde_json::json!({"step": state.step, "eval": m, "final": true, "elapsed_s": t0.elapsed().as_secs_f64()})
-        )?;
-        let json = serde_json::json!({ "views": scores, "mean": m, "step": state.step });
-        std::fs::write(
-            run_dir.join("eval.json"),
-            serde_json::to_string_pretty(&json)?,
-        )?;
-        say(format!(
-            "renders in {}, side-by-sides in {}",
-            run_dir.join("render").display(),
-            run_dir.join("eval").display()
-        ));
-        final_scores = Some(m);
-        views = scores;
-    }
-    Ok(TrainSummary {
-        steps: state.step,
-        interrupted: false,
-        final_scores,
-        views,
-        seconds,
-    })
+    Ok(false)
 }
 
 /// `RUN/checkpoint.safetensors` of a run folder.

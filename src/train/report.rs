@@ -1,0 +1,205 @@
+//! What a training run tells its user and writes down: the terminal (progress bar or lines),
+//! `RUN/metrics.jsonl`, and the final `RUN/eval.json`. Nothing here affects the numbers.
+
+use crate::eval::protocol::{mean_score, table, ViewScore};
+use crate::train::trainer::{StepStats, TrainState};
+use anyhow::{Context, Result};
+use std::fs::File;
+use std::io::{IsTerminal, Write};
+use std::path::Path;
+use std::time::Instant;
+
+/// The terminal and `metrics.jsonl` of one run.
+pub struct Reporter {
+    quiet: bool,
+    bar: Option<indicatif::ProgressBar>,
+    metrics: File,
+    steps: u64,
+    t0: Instant,
+    /// Running mean squared error (exponential, 0.9) for the logged PSNR.
+    ema_mse: Option<f64>,
+    /// Since the last log line: start, valid sub-samples, pixels.
+    window: (Instant, usize, usize),
+}
+
+/// `-10 log10(mse)`.
+pub fn psnr_of(mse: f64) -> f64 {
+    -10.0 * mse.log10()
+}
+
+impl Reporter {
+    /// Append to `metrics_path`; a progress bar on a terminal unless `quiet`.
+    pub fn open(metrics_path: &Path, quiet: bool, steps: u64, first_step: u64) -> Result<Reporter> {
+        let metrics = std::fs::OpenOptions::new()
+            .create(true)
+            .append(true)
+            .open(metrics_path)
+            .with_context(|| format!("{}: cannot open", metrics_path.display()))?;
+        let bar = (!quiet && std::io::stderr().is_terminal()).then(|| {
+            let b = indicatif::ProgressBar::new(steps);
+            b.set_style(
+                indicatif::ProgressStyle::with_template(
+                    "{bar:30} {pos}/{len} [{elapsed_precise} < {eta_precise}] {msg}",
+                )
+                .expect("valid template"),
+            );
+            b.set_position(first_step);
+            b
+        });
+        Ok(Reporter {
+            quiet,
+            bar,
+            metrics,
+            steps,
+            t0: Instant::now(),
+            ema_mse: None,
+            window: (Instant::now(), 0, 0),
+        })
+    }
+
+    /// A line for the user (above the bar when there is one).
+    pub fn say(&self, msg: String) {
+        match &self.bar {
+            Some(b) => b.println(msg),
+            None if !self.quiet => eprintln!("{msg}"),
+            None => {}
+        }
+    }
+
+    /// Seconds since the reporter was opened (the loop's wall time).
+    pub fn elapsed(&self) -> f64 {
+        self.t0.elapsed().as_secs_f64()
+    }
+
+    /// The model and the run's shape, once at the start.
+    pub fn model(&self, state: &TrainState) {
+        let feat = match &state.ckpt.model.vertex {
+            Some(vt) => format!(
+                "vertex features Z={} on {} vertices",
+                vt.features, vt.n_vertices
+            ),
+            None => format!("{} grid H levels", state.cfg.model.grid_h.levels),
+        };
+        let deform = if state.cfg.model.deform.enabled {
+            "on"
+        } else {
+            "off"
+        };
+        self.say(format!(
+            "model: {} parameters ({feat}, deformation {deform}, γ={}, A={}); {} steps of {} pixels",
+            state.ckpt.model.layout.total,
+            state.cfg.model.gamma,
+            state.cfg.model.appearance_dim,
+            self.steps,
+            state.cfg.train.batch_pixels
+        ));
+    }
+
+    /// After step `k` (1-based count of steps done): the running PSNR, and every `log_every`
+    /// steps a metrics line and a progress message.
+    pub fn step(&mut self, k: u64, st: &StepStats, pixels: usize, log_every: u64) -> Result<()> {
+        let ema = self.ema_mse.map_or(st.mse, |e| 0.9 * e + 0.1 * st.mse);
+        self.ema_mse = Some(ema);
+        self.window.1 += st.samples;
+        self.window.2 += pixels;
+        if k % log_every.max(1) == 0 || k == self.steps {
+            let dt = self.window.0.elapsed().as_secs_f64().max(1e-9);
+            let px_s = self.window.2 as f64 / dt;
+            let line = serde_json::json!({
+                "step": k, "loss": st.loss, "psnr": psnr_of(ema),
+                "pixels_per_s": px_s, "samples_per_s": self.window.1 as f64 / dt,
+                "elapsed_s": self.elapsed(),
+            });
+            writeln!(self.metrics, "{line}")?;
+            let msg = format!(
+                "loss {:.4}  psnr {:.2}  {px_s:.0} px/s",
+                st.loss,
+                psnr_of(ema)
+            );
+            match &self.bar {
+                Some(b) => b.set_message(msg),
+                None => self.say(format!("step {k}/{}  {msg}", self.steps)),
+            }
+            self.window = (Instant::now(), 0, 0);
+        }
+        if let Some(b) = &self.bar {
+            b.set_position(k);
+        }
+        Ok(())
+    }
+
+    /// A periodic evaluation at step `k`.
+    pub fn eval(&mut self, k: u64, scores: &[ViewScore]) -> Result<()> {
+        let m = mean_score(scores);
+        writeln!(
+            self.metrics,
+            "{}",
+            serde_json::json!({"step": k, "eval": m, "elapsed_s": self.elapsed()})
+        )?;
+        self.say(format!(
+            "eval @ {k}: PSNR {:.2} (masked {:.2}), SSIM {:.4} (masked {:.4}) on {} views",
+            m.psnr,
+            m.psnr_masked,
+            m.ssim,
+            m.ssim_masked,
+            scores.len()
+        ));
+        Ok(())
+    }
+
+    /// The loop is over: remove the bar.
+    pub fn loop_done(&mut self) {
+        if let Some(b) = self.bar.take() {
+            b.finish_and_clear();
+        }
+    }
+
+    /// A completed run: its time, checkpoint and peak memory (also in `metrics.jsonl`).
+    pub fn trained(&mut self, step: u64, seconds: f64, ckpt_path: &Path) -> Result<()> {
+        let peak = crate::train::memory::peak_rss_bytes();
+        self.say(format!(
+            "trained {step} steps in {seconds:.1} s; checkpoint {}{}",
+            ckpt_path.display(),
+            peak.map_or(String::new(), |b| format!(
+                "; peak memory {:.2} GB",
+                b as f64 / 1e9
+            ))
+        ));
+        if let Some(b) = peak {
+            writeln!(
+                self.metrics,
+                "{}",
+                serde_json::json!({"step": step, "peak_rss_bytes": b})
+            )?;
+        }
+        Ok(())
+    }
+
+    /// The final evaluation: the table, a metrics line and `RUN/eval.json`; returns the mean.
+    pub fn final_eval(
+        &mut self,
+        step: u64,
+        scores: &[ViewScore],
+        run_dir: &Path,
+    ) -> Result<ViewScore> {
+        let m = mean_score(scores);
+        self.say(table(scores));
+        writeln!(
+            self.metrics,
+            "{}",
+            serde_json::json!({"step": step, "eval": m, "final": true, "elapsed_s": self.elapsed()})
+        )?;
+        let json = serde_json::json!({ "views": scores, "mean": m, "step": step });
+        std::fs::write(
+            run_dir.join("eval.json"),
+            serde_json::to_string_pretty(&json)?,
+        )
+        .with_context(|| format!("{}: cannot write eval.json", run_dir.display()))?;
+        self.say(format!(
+            "renders in {}, side-by-sides in {}",
+            run_dir.join("render").display(),
+            run_dir.join("eval").display()
+        ));
+        Ok(m)
+    }
+}

@@ -13,9 +13,9 @@ use std::path::{Path, PathBuf};
 /// fields (`--steps`, `--batch`, `--seed`) on top.
 #[derive(clap::Args, Debug)]
 pub struct RunArgs {
-    /// Preset (SPEC §9).
-    #[arg(long, default_value = "cpu", value_parser = ["tiny", "cpu", "paper"])]
-    pub preset: String,
+    /// Preset (SPEC §9) [default: cpu].
+    #[arg(long, value_parser = ["tiny", "cpu", "paper"])]
+    pub preset: Option<String>,
     /// TOML file overriding any field of the preset (`[model]`, `[train]` tables).
     #[arg(long)]
     pub config: Option<PathBuf>,
@@ -33,7 +33,18 @@ pub struct RunArgs {
 impl RunArgs {
     /// The preset, the file's overrides, then the flags (not yet validated).
     pub fn resolve(&self) -> Result<RunConfig> {
-        let mut cfg = RunConfig::resolve(&self.preset, self.config.as_deref())?;
+        if let (Some(p), Some(file)) = (&self.preset, &self.config) {
+            if let Some(q) = config_file_preset(file)? {
+                if &q != p {
+                    bail!(
+                        "--preset {p} conflicts with `preset = \"{q}\"` in {}: give the preset in one place",
+                        file.display()
+                    );
+                }
+            }
+        }
+        let preset = self.preset.as_deref().unwrap_or("cpu");
+        let mut cfg = RunConfig::resolve(preset, self.config.as_deref())?;
         if let Some(s) = self.steps {
             cfg.train.steps = s;
         }
@@ -45,6 +56,15 @@ impl RunArgs {
         }
         Ok(cfg)
     }
+}
+
+/// The `preset` key of a `--config` file, if it has one.
+pub fn config_file_preset(file: &Path) -> Result<Option<String>> {
+    let text = std::fs::read_to_string(file)
+        .with_context(|| format!("{}: cannot read config", file.display()))?;
+    let v: toml::Value =
+        toml::from_str(&text).with_context(|| format!("{}: not valid TOML", file.display()))?;
+    Ok(v.get("preset").and_then(|p| p.as_str()).map(str::to_string))
 }
 
 /// A trained model and the scene to use it on (`--run RUN | --checkpoint FILE --scene DIR`).

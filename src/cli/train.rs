@@ -1,7 +1,9 @@
 //! `xscale train`: train on a scene directory into a run folder (see `train/trainer.rs`).
 
 use super::common::RunArgs;
+use crate::train::config::RunConfig;
 use crate::train::trainer::{train, TrainOptions};
+use anyhow::{bail, Context};
 use std::path::PathBuf;
 use std::process::ExitCode;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -21,9 +23,14 @@ pub struct Args {
     /// that of this mesh.
     #[arg(long)]
     pub mesh: Option<PathBuf>,
-    /// Continue from RUN/checkpoint.safetensors, bit-identically to an uninterrupted run.
-    #[arg(long)]
+    /// Continue from RUN/checkpoint.safetensors, bit-identically to an uninterrupted run. The
+    /// run's stored configuration is used; `--steps N` sets the total (not the steps to add);
+    /// any other option that differs from the run is an error (docs/runs.md).
+    #[arg(long, conflicts_with = "overwrite")]
     pub resume: bool,
+    /// Replace the run this folder already holds (without it, a folder holding a run is refused).
+    #[arg(long)]
+    pub overwrite: bool,
     /// Stop after this many steps with a checkpoint, as if interrupted (for resume tests).
     #[arg(long, hide = true)]
     pub stop_at: Option<u64>,
@@ -38,10 +45,21 @@ pub struct Args {
 static INTERRUPTED: AtomicBool = AtomicBool::new(false);
 
 pub fn run(a: Args) -> anyhow::Result<ExitCode> {
-    let mut cfg = a.run.resolve()?;
-    if let Some(m) = &a.mesh {
-        cfg.train.mesh = Some(super::common::absolute_mesh_path(m, &a.scene));
+    if let Some(pid) = crate::train::run_dir::RunLock::holder(&a.out) {
+        bail!(
+            "{}: another xscale process (pid {pid}) is training into this run folder; wait for it, stop it, or choose another --out",
+            a.out.display()
+        );
     }
+    let cfg = if a.resume {
+        resume_config(&a)?
+    } else {
+        let mut cfg = a.run.resolve()?;
+        if let Some(m) = &a.mesh {
+            cfg.train.mesh = Some(super::common::absolute_mesh_path(m, &a.scene));
+        }
+        cfg
+    };
     cfg.validate()?;
     // First Ctrl-C: finish the step, write a checkpoint, exit. Second: exit at once.
     let _ = ctrlc::set_handler(|| {
@@ -52,6 +70,7 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
     });
     let opts = TrainOptions {
         resume: a.resume,
+        overwrite: a.overwrite,
         stop_at: a.stop_at,
         interrupt: Some(&INTERRUPTED),
         no_final_eval: a.no_eval,
@@ -63,4 +82,114 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
     } else {
         ExitCode::SUCCESS
     })
+}
+
+/// For `--resume`: the run's stored configuration with the total step count asked for
+/// (`--steps`, else the stored one). Every other option given must agree with the run; a
+/// difference is an error naming the field (the stored configuration always wins).
+fn resume_config(a: &Args) -> anyhow::Result<RunConfig> {
+    let ckpt = crate::train::trainer::run_checkpoint(&a.out);
+    if !ckpt.is_file() {
+        bail!(
+            "--resume: {} does not exist (nothing to resume; drop --resume to start a run)",
+            ckpt.display()
+        );
+    }
+    let (_, stored) = super::common::load_model(&ckpt)?;
+    let mut stored = stored.ok_or_else(|| {
+        anyhow::anyhow!(
+            "{}: the checkpoint has no run configuration",
+            ckpt.display()
+        )
+    })?;
+    let mut diffs: Vec<String> = Vec::new();
+    let r = &a.run;
+    if let Some(p) = r.preset.as_ref().filter(|p| **p != stored.preset) {
+        diffs.push(format!(
+            "--preset {p} (the run's preset is {})",
+            stored.preset
+        ));
+    }
+    if let Some(s) = r.seed.filter(|&s| s != stored.train.seed) {
+        diffs.push(format!("--seed {s} (the run's is {})", stored.train.seed));
+    }
+    if let Some(b) = r.batch.filter(|&b| b != stored.train.batch_pixels) {
+        diffs.push(format!(
+            "--batch {b} (the run's is {})",
+            stored.train.batch_pixels
+        ));
+    }
+    if let Some(m) = &a.mesh {
+        let m = super::common::absolute_mesh_path(m, &a.scene);
+        if stored.train.mesh.as_ref() != Some(&m) {
+            diffs.push(format!(
+                "--mesh {} (the run's mesh is {})",
+                m.display(),
+                stored
+                    .train
+                    .mesh
+                    .as_ref()
+                    .map_or("the scene's own".to_string(), |p| p.display().to_string())
+            ));
+        }
+    }
+    if let Some(file) = &r.config {
+        diffs.extend(config_differences(file, &stored)?);
+    }
+    if !diffs.is_empty() {
+        bail!(
+            "--resume continues the run with its stored configuration, but these options differ from it:\n  {}\nleave them out to resume, or start a new run (another --out, or --overwrite)",
+            diffs.join("\n  ")
+        );
+    }
+    if let Some(n) = r.steps {
+        stored.train.steps = n;
+    }
+    Ok(stored)
+}
+
+/// Every key a `--config` file sets whose value differs from the stored configuration's
+/// (`train.steps` aside: it is the total asked for).
+fn config_differences(file: &std::path::Path, stored: &RunConfig) -> anyhow::Result<Vec<String>> {
+    let text = std::fs::read_to_string(file)
+        .with_context(|| format!("{}: cannot read config", file.display()))?;
+    let given: toml::Value =
+        toml::from_str(&text).with_context(|| format!("{}: not valid TOML", file.display()))?;
+    let have: toml::Value = toml::from_str(&stored.to_toml()).expect("a RunConfig serialises");
+    let mut out = Vec::new();
+    walk(&given, &have, String::new(), &mut out);
+    out.retain(|d| !d.starts_with("train.steps "));
+    return Ok(out
+        .into_iter()
+        .map(|d| format!("{d} (in {})", file.display()))
+        .collect());
+
+    fn walk(g: &toml::Value, h: &toml::Value, key: String, out: &mut Vec<String>) {
+        match g {
+            toml::Value::Table(t) => {
+                for (k, v) in t {
+                    let sub = if key.is_empty() {
+                        k.clone()
+                    } else {
+                        format!("{key}.{k}")
+                    };
+                    match h.get(k) {
+                        Some(hv) => walk(v, hv, sub, out),
+                        None => out.push(format!("{sub} = {v} (the run has no such setting)")),
+                    }
+                }
+            }
+            _ => {
+                let same = match (g, h) {
+                    // Integers and floats compare by value (1 == 1.0).
+                    (toml::Value::Integer(a), toml::Value::Float(b))
+                    | (toml::Value::Float(b), toml::Value::Integer(a)) => *a as f64 == *b,
+                    _ => g == h,
+                };
+                if !same {
+                    out.push(format!("{key} = {g} (the run has {h})"));
+                }
+            }
+        }
+    }
 }

@@ -306,6 +306,8 @@ fn probe_steps(scene: &Path, probe_dir: &Path, base: &RunConfig, minutes: f64) -
         &TrainOptions {
             no_final_eval: true,
             quiet: true,
+            // An ablation re-run into the same folder replaces its variant runs.
+            overwrite: true,
             ..TrainOptions::default()
         },
     )?;
@@ -444,6 +446,8 @@ fn run_variant(
         cfg.clone(),
         &TrainOptions {
             quiet: true,
+            // An ablation re-run into the same folder replaces its variant runs.
+            overwrite: true,
             ..TrainOptions::default()
         },
     )

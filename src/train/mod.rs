@@ -9,14 +9,18 @@
 //! | `memory.rs` | the memory estimate and budget, peak RSS |
 //! | `adam.rs` | the optimizer |
 //! | `trainer.rs` | the state, one step, the loop, checkpoints, exact resume, Ctrl-C |
+//! | `run_dir.rs` | the run folder's lock, its protection, the scene fingerprint |
+//! | `divergence.rs` | stopping a run whose loss never falls or blows up |
 //! | `report.rs` | what a run tells the user: progress, `metrics.jsonl`, `eval.json` |
 //! | `ablate.rs` | the paper's ablations and the vertex baseline (`xscale ablate`) |
 
 pub mod ablate;
 pub mod adam;
 pub mod config;
+pub mod divergence;
 pub mod memory;
 pub mod report;
+pub mod run_dir;
 pub mod sampler;
 pub mod setup;
 pub mod trainer;

@@ -22,7 +22,9 @@ use crate::model::checkpoint::{init_checkpoint_for_mesh, Checkpoint};
 use crate::model::params::{Grads, Group, ParamLayout};
 use crate::train::adam::AdamState;
 use crate::train::config::RunConfig;
+use crate::train::divergence::Guard;
 use crate::train::report::Reporter;
+use crate::train::run_dir::{prepare_run_dir, RunLock, SceneFingerprint};
 use crate::train::sampler::sample_batch;
 use crate::train::setup::{prepare, resolve_levels, Prepared};
 use anyhow::{bail, Context, Result};
@@ -220,8 +222,12 @@ impl TrainState {
 /// How a training run is driven (not part of its result).
 #[derive(Default)]
 pub struct TrainOptions {
-    /// Continue from `RUN/checkpoint.safetensors`.
+    /// Continue from `RUN/checkpoint.safetensors`: the stored configuration is used, except
+    /// `train.steps`, taken from the `cfg` passed in (the total; not below the stored step).
     pub resume: bool,
+    /// Replace the run a non-empty folder holds (its files only; see `run_dir.rs`). Without it
+    /// (and without `resume`) such a folder is refused.
+    pub overwrite: bool,
     /// Stop (with a checkpoint) once this many steps are done, as if interrupted.
     pub stop_at: Option<u64>,
     /// Set by a Ctrl-C handler: stop with a checkpoint at the next step.
@@ -304,6 +310,8 @@ pub fn train(
 ) -> Result<TrainSummary> {
     std::fs::create_dir_all(run_dir)
         .with_context(|| format!("{}: cannot create the run folder", run_dir.display()))?;
+    let _lock = RunLock::acquire(run_dir)?;
+    prepare_run_dir(run_dir, opts.resume, opts.overwrite)?;
     let ckpt_path = run_checkpoint(run_dir);
     let metrics_path = run_dir.join("metrics.jsonl");
     let (mut state, prepared) = open_run(scene_dir, run_dir, cfg, opts)?;
@@ -366,12 +374,21 @@ fn open_run(
             bail!("--resume: {} does not exist", ckpt_path.display());
         }
         let mut st = TrainState::load(&ckpt_path)?;
-        // A resumed run keeps its configuration; only the number of steps may be raised.
-        st.cfg.train.steps = st.cfg.train.steps.max(cfg.train.steps);
+        // A resumed run keeps its configuration; `cfg.train.steps` is the total asked for.
+        if cfg.train.steps < st.step {
+            bail!(
+                "--resume: the run is already at step {}; --steps {} would be fewer (give a total of at least {})",
+                st.step,
+                cfg.train.steps,
+                st.step
+            );
+        }
+        st.cfg.train.steps = cfg.train.steps;
         say(format!(
-            "resuming {} at step {}",
+            "resuming {} at step {} of {}",
             ckpt_path.display(),
-            st.step
+            st.step,
+            st.cfg.train.steps
         ));
         truncate_metrics(&metrics_path, st.step)?;
         Some(st)
@@ -380,6 +397,13 @@ fn open_run(
     };
     let run_cfg = resumed.as_ref().map_or(cfg, |s| s.cfg.clone());
     let prepared = prepare(scene_dir, &run_cfg, true, &mut |m| say(m))?;
+    let fingerprint = SceneFingerprint::of(scene_dir, &prepared.scene);
+    if resumed.is_some() {
+        if let Some(stored) = SceneFingerprint::read(run_dir)? {
+            stored.check_same(&fingerprint)?;
+        }
+    }
+    fingerprint.write(run_dir)?;
     let state = match resumed {
         Some(s) => s,
         None => {
@@ -421,6 +445,20 @@ fn run_loop(
             tc.batch_pixels,
         )
     };
+    let a = &tc.adam;
+    let warmup = [
+        &a.shader,
+        &a.deform,
+        &a.grid_h,
+        &a.grid_d,
+        &a.appearance,
+        &a.vertex,
+    ]
+    .iter()
+    .map(|g| g.schedule.warmup_steps as u64)
+    .max()
+    .unwrap_or(0);
+    let mut guard = Guard::new(state.step + warmup);
     let mut next = (state.step < stop).then(|| draw(state.step));
     while let Some(batch) = next.take() {
         // Batch k+1 is drawn (its rays cast) while step k runs: a pure function of (seed, k+1),
@@ -443,6 +481,21 @@ fn run_loop(
         }
         let k = state.step;
         rep.step(k, &st, batch.n_pixels(), tc.log_every)?;
+        if let Some(why) = guard.step(k, st.loss) {
+            let aside = ckpt_path.with_file_name("checkpoint-diverged.safetensors");
+            state.save(&aside)?;
+            let kept = if ckpt_path.is_file() {
+                format!(
+                    "the last checkpoint before it, {}, is kept",
+                    ckpt_path.display()
+                )
+            } else {
+                "no earlier checkpoint was written".to_string()
+            };
+            bail!(
+                "step {k}: training diverged: {why}. The state is saved to checkpoint-diverged.safetensors; {kept}"
+            );
+        }
         if tc.eval_every > 0
             && k % tc.eval_every == 0
             && k < tc.steps

@@ -1,0 +1,274 @@
+//! A run folder's protection and identity (docs/runs.md):
+//! - [`RunLock`]: `RUN/.lock` holds the training process's pid while it runs, so two runs
+//!   into one folder cannot both proceed (a lock whose process is gone is taken over).
+//! - [`prepare_run_dir`]: a folder that already holds a run is refused unless the caller
+//!   resumes it or asks to overwrite it; leftover temporary checkpoint files are removed.
+//! - [`SceneFingerprint`]: hashes of the cameras (names, sizes, intrinsics, poses), the split and
+//!   the mesh, stored in `RUN/scene.json` with the scene's path, so a resume on another scene is
+//!   an error and `eval`/`render --run` can find the scene.
+
+use crate::scene::Scene;
+use anyhow::{bail, Context, Result};
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+
+/// Files and folders a run writes (what `--overwrite` removes; nothing else is touched).
+pub const RUN_FILES: [&str; 9] = [
+    "checkpoint.safetensors",
+    "checkpoint-diverged.safetensors",
+    "metrics.jsonl",
+    "config.toml",
+    "eval.json",
+    "scene.json",
+    "render",
+    "eval",
+    "refined.ply",
+];
+
+/// Holds `RUN/.lock` (our pid) until dropped.
+pub struct RunLock {
+    path: PathBuf,
+}
+
+impl RunLock {
+    /// The pid of a live process holding `run_dir`'s lock, if any.
+    pub fn holder(run_dir: &Path) -> Option<u32> {
+        let text = std::fs::read_to_string(run_dir.join(".lock")).ok()?;
+        text.trim()
+            .parse()
+            .ok()
+            .filter(|&p| p != std::process::id() && process_alive(p))
+    }
+
+    /// Take the lock of `run_dir` (which must exist).
+    pub fn acquire(run_dir: &Path) -> Result<RunLock> {
+        let path = run_dir.join(".lock");
+        for _ in 0..2 {
+            match std::fs::OpenOptions::new()
+                .write(true)
+                .create_new(true)
+                .open(&path)
+            {
+                Ok(mut f) => {
+                    use std::io::Write;
+                    writeln!(f, "{}", std::process::id())
+                        .with_context(|| format!("{}: cannot write", path.display()))?;
+                    return Ok(RunLock { path });
+                }
+                Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {
+                    let text = std::fs::read_to_string(&path).unwrap_or_default();
+                    let pid: Option<u32> = text.trim().parse().ok();
+                    if let Some(p) = pid.filter(|&p| process_alive(p)) {
+                        bail!(
+                            "{}: another xscale process (pid {p}) is training into this run folder; wait for it, stop it, or choose another --out",
+                            run_dir.display()
+                        );
+                    }
+                    // Stale: its process is gone (killed). Take it over.
+                    std::fs::remove_file(&path)
+                        .with_context(|| format!("{}: cannot remove stale lock", path.display()))?;
+                }
+                Err(e) => {
+                    return Err(e).with_context(|| format!("{}: cannot create", path.display()))
+                }
+            }
+        }
+        bail!("{}: could not take the run lock", path.display())
+    }
+}
+
+impl Drop for RunLock {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_file(&self.path);
+    }
+}
+
+/// Whether process `pid` exists (Linux: `/proc/<pid>`; elsewhere assumed alive, so a stale lock
+/// must be removed by hand).
+fn process_alive(pid: u32) -> bool {
+    let proc = Path::new("/proc");
+    if !proc.is_dir() {
+        return true;
+    }
+    pid == std::process::id() || proc.join(pid.to_string()).exists()
+}
+
+/// Make `run_dir` ready for a run: create it; refuse one that holds a run unless `resume`
+/// (then it must hold a checkpoint) or `overwrite` (then the run's files are removed); remove
+/// temporary checkpoint files left by killed runs. Call with the lock held.
+pub fn prepare_run_dir(run_dir: &Path, resume: bool, overwrite: bool) -> Result<()> {
+    if resume && overwrite {
+        bail!("give either --resume or --overwrite, not both");
+    }
+    let mut leftovers = 0u64;
+    for e in std::fs::read_dir(run_dir)
+        .with_context(|| format!("{}: cannot list", run_dir.display()))?
+        .flatten()
+    {
+        let name = e.file_name().to_string_lossy().to_string();
+        if name.starts_with('.') && name.contains(".tmp.") {
+            leftovers += e.metadata().map(|m| m.len()).unwrap_or(0);
+            let _ = std::fs::remove_file(e.path());
+        }
+    }
+    if leftovers > 0 {
+        eprintln!(
+            "removed temporary checkpoint files left by an interrupted write ({:.1} MB)",
+            leftovers as f64 / 1e6
+        );
+    }
+    let existing: Vec<&str> = RUN_FILES
+        .iter()
+        .copied()
+        .filter(|f| run_dir.join(f).exists())
+        .collect();
+    if resume || existing.is_empty() {
+        return Ok(());
+    }
+    if !overwrite {
+        bail!(
+            "{}: this folder already holds a run ({}); continue it with --resume, replace it with --overwrite, or choose another --out",
+            run_dir.display(),
+            existing.join(", ")
+        );
+    }
+    for f in existing {
+        let p = run_dir.join(f);
+        let r = if p.is_dir() {
+            std::fs::remove_dir_all(&p)
+        } else {
+            std::fs::remove_file(&p)
+        };
+        r.with_context(|| format!("{}: cannot remove (--overwrite)", p.display()))?;
+    }
+    Ok(())
+}
+
+/// `RUN/scene.json`: where the scene was and what it held.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct SceneFingerprint {
+    /// The scene directory (absolute when it could be resolved).
+    pub scene: PathBuf,
+    /// Hash of every view's name, image size, intrinsics, distortion and pose (hex).
+    pub cameras: String,
+    /// Hash of the held-out view indices.
+    pub split: String,
+    /// Hash of the mesh's vertices and triangles.
+    pub mesh: String,
+}
+
+/// 64-bit FNV-1a, fed with exact bit patterns (so any change of any value changes the hash
+/// with overwhelming probability; not a cryptographic hash).
+struct Fnv(u64);
+
+impl Fnv {
+    fn new() -> Fnv {
+        Fnv(0xcbf2_9ce4_8422_2325)
+    }
+    fn bytes(&mut self, b: &[u8]) {
+        for &x in b {
+            self.0 = (self.0 ^ x as u64).wrapping_mul(0x0000_0100_0000_01b3);
+        }
+    }
+    fn f64(&mut self, x: f64) {
+        self.bytes(&x.to_bits().to_le_bytes());
+    }
+    fn u64(&mut self, x: u64) {
+        self.bytes(&x.to_le_bytes());
+    }
+    fn hex(&self) -> String {
+        format!("{:016x}", self.0)
+    }
+}
+
+impl SceneFingerprint {
+    /// The fingerprint of a loaded scene (cameras after downsampling, as trained on).
+    pub fn of(dir: &Path, scene: &Scene) -> SceneFingerprint {
+        let mut cams = Fnv::new();
+        for v in &scene.views {
+            cams.bytes(v.name.as_bytes());
+            cams.u64(0xff);
+            let c = &v.camera;
+            cams.u64(c.width as u64);
+            cams.u64(c.height as u64);
+            for x in [c.fx, c.fy, c.cx, c.cy] {
+                cams.f64(x);
+            }
+            cams.bytes(format!("{:?}", c.distortion).as_bytes());
+            for x in c.rotation.to_cols_array() {
+                cams.f64(x);
+            }
+            for x in c.translation.to_array() {
+                cams.f64(x);
+            }
+        }
+        let mut split = Fnv::new();
+        for &t in &scene.test {
+            split.u64(t as u64);
+        }
+        let mut mesh = Fnv::new();
+        mesh.u64(scene.mesh.vertices.len() as u64);
+        for v in &scene.mesh.vertices {
+            for x in v.to_array() {
+                mesh.f64(x);
+            }
+        }
+        for t in &scene.mesh.triangles {
+            for &i in t {
+                mesh.u64(i as u64);
+            }
+        }
+        SceneFingerprint {
+            scene: std::fs::canonicalize(dir).unwrap_or_else(|_| dir.to_path_buf()),
+            cameras: cams.hex(),
+            split: split.hex(),
+            mesh: mesh.hex(),
+        }
+    }
+
+    pub fn path(run_dir: &Path) -> PathBuf {
+        run_dir.join("scene.json")
+    }
+
+    /// `RUN/scene.json`, `None` if the run has none (made before fingerprints existed).
+    pub fn read(run_dir: &Path) -> Result<Option<SceneFingerprint>> {
+        let p = SceneFingerprint::path(run_dir);
+        if !p.is_file() {
+            return Ok(None);
+        }
+        let text =
+            std::fs::read_to_string(&p).with_context(|| format!("{}: cannot read", p.display()))?;
+        Ok(Some(serde_json::from_str(&text).with_context(|| {
+            format!("{}: not a scene fingerprint", p.display())
+        })?))
+    }
+
+    pub fn write(&self, run_dir: &Path) -> Result<()> {
+        let p = SceneFingerprint::path(run_dir);
+        std::fs::write(&p, serde_json::to_string_pretty(self)?)
+            .with_context(|| format!("{}: cannot write", p.display()))
+    }
+
+    /// An error naming what differs when `now` is not the scene this run was trained on.
+    pub fn check_same(&self, now: &SceneFingerprint) -> Result<()> {
+        let mut diff = Vec::new();
+        if self.cameras != now.cameras {
+            diff.push("cameras");
+        }
+        if self.split != now.split {
+            diff.push("train/test split");
+        }
+        if self.mesh != now.mesh {
+            diff.push("mesh");
+        }
+        if !diff.is_empty() {
+            bail!(
+                "--resume: the scene {} differs from the one this run was trained on ({}): its {} changed; resume on the same scene, or start a new run",
+                now.scene.display(),
+                self.scene.display(),
+                diff.join(" and ")
+            );
+        }
+        Ok(())
+    }
+}

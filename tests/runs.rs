@@ -1,0 +1,341 @@
+//! Run folders as users meet them (docs/runs.md): a folder holding a run is refused unless
+//! resumed or overwritten, one lock per folder, `--resume` keeps the stored configuration and
+//! takes `--steps` as the total, a resume on another scene is refused, SIGTERM stops like
+//! Ctrl-C with a checkpoint, a diverging run is stopped, and image names with folders
+//! (`images/0000.png`) keep their folders in the outputs.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+
+fn fixture() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/tiny")
+}
+
+fn tmp(name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("xscale-test-runs-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    d
+}
+
+/// (exit code, stderr)
+fn xscale(args: &[&str]) -> (i32, String) {
+    let out = Command::new(env!("CARGO_BIN_EXE_xscale"))
+        .args(args)
+        .output()
+        .unwrap();
+    (
+        out.status.code().unwrap_or(-1),
+        String::from_utf8_lossy(&out.stderr).into_owned(),
+    )
+}
+
+fn train(run: &Path, extra: &[&str]) -> (i32, String) {
+    let scene = fixture();
+    let mut args = vec![
+        "train",
+        "--scene",
+        scene.to_str().unwrap(),
+        "--out",
+        run.to_str().unwrap(),
+        "--no-eval",
+        "-q",
+    ];
+    args.extend_from_slice(extra);
+    xscale(&args)
+}
+
+fn step_of(run: &Path) -> u64 {
+    xscale::train::trainer::TrainState::load(&run.join("checkpoint.safetensors"))
+        .unwrap()
+        .step
+}
+
+#[test]
+fn a_folder_holding_a_run_is_refused_unless_resumed_or_overwritten() {
+    let run = tmp("protect");
+    let base = ["--preset", "tiny", "--steps", "20"];
+    assert_eq!(train(&run, &base).0, 0);
+    let first = std::fs::read(run.join("checkpoint.safetensors")).unwrap();
+    let (code, err) = train(&run, &["--preset", "tiny", "--steps", "30", "--seed", "5"]);
+    assert_ne!(code, 0);
+    assert!(
+        err.contains("already holds a run") && err.contains("--overwrite"),
+        "{err}"
+    );
+    // Nothing was touched.
+    assert_eq!(
+        std::fs::read(run.join("checkpoint.safetensors")).unwrap(),
+        first
+    );
+    // Leftover temporary checkpoint files are removed; --overwrite replaces the run.
+    std::fs::write(run.join(".checkpoint.safetensors.tmp.1.2"), b"partial").unwrap();
+    let (code, err) = train(&run, &["--preset", "tiny", "--steps", "30", "--overwrite"]);
+    assert_eq!(code, 0, "{err}");
+    assert_eq!(step_of(&run), 30);
+    assert!(!run.join(".checkpoint.safetensors.tmp.1.2").exists());
+    let _ = std::fs::remove_dir_all(&run);
+}
+
+#[test]
+fn a_live_lock_refuses_a_second_run_and_a_stale_one_is_taken_over() {
+    let run = tmp("lock");
+    std::fs::create_dir_all(&run).unwrap();
+    // This test process is alive: its pid in the lock stands for a concurrent run.
+    std::fs::write(run.join(".lock"), format!("{}\n", std::process::id())).unwrap();
+    let (code, err) = train(&run, &["--preset", "tiny", "--steps", "5"]);
+    assert_ne!(code, 0);
+    assert!(err.contains("another xscale process"), "{err}");
+    assert!(!run.join("checkpoint.safetensors").exists());
+    // A pid that does not exist: the lock is stale.
+    std::fs::write(run.join(".lock"), "4000000000\n").unwrap();
+    let (code, err) = train(&run, &["--preset", "tiny", "--steps", "5"]);
+    assert_eq!(code, 0, "{err}");
+    assert!(!run.join(".lock").exists(), "the lock is released at exit");
+    let _ = std::fs::remove_dir_all(&run);
+}
+
+#[test]
+fn resume_keeps_the_run_config_and_steps_is_the_total() {
+    let run = tmp("resume");
+    assert_eq!(
+        train(
+            &run,
+            &["--preset", "tiny", "--steps", "100", "--stop-at", "40"]
+        )
+        .0,
+        0
+    );
+    assert_eq!(step_of(&run), 40);
+    // Options that differ from the run are named.
+    let (code, err) = train(&run, &["--resume", "--preset", "cpu", "--seed", "3"]);
+    assert_ne!(code, 0);
+    assert!(
+        err.contains("--preset cpu") && err.contains("--seed 3"),
+        "{err}"
+    );
+    let cfg = run.join("c.toml");
+    std::fs::write(&cfg, "[model]\ngamma = 1\n").unwrap();
+    let (code, err) = train(&run, &["--resume", "--config", cfg.to_str().unwrap()]);
+    assert_ne!(code, 0);
+    assert!(err.contains("model.gamma = 1"), "{err}");
+    // Fewer steps than done is refused; --steps N is a total, not an addition.
+    let (code, err) = train(&run, &["--resume", "--steps", "20"]);
+    assert_ne!(code, 0);
+    assert!(err.contains("already at step 40"), "{err}");
+    let (code, err) = train(&run, &["--resume", "--steps", "60"]);
+    assert_eq!(code, 0, "{err}");
+    assert_eq!(step_of(&run), 60);
+    // Without --steps the stored total (now 60) stands: nothing left to do.
+    let (code, err) = train(&run, &["--resume"]);
+    assert_eq!(code, 0, "{err}");
+    assert_eq!(step_of(&run), 60);
+    // An option equal to the run's is accepted.
+    let (code, err) = train(&run, &["--resume", "--steps", "70", "--preset", "tiny"]);
+    assert_eq!(code, 0, "{err}");
+    assert_eq!(step_of(&run), 70);
+    let _ = std::fs::remove_dir_all(&run);
+}
+
+#[test]
+fn resume_on_another_scene_is_refused() {
+    let run = tmp("scene");
+    assert_eq!(
+        train(
+            &run,
+            &["--preset", "tiny", "--steps", "30", "--stop-at", "10"]
+        )
+        .0,
+        0
+    );
+    // The same photos, one camera moved.
+    let other = tmp("scene-copy");
+    copy_dir(&fixture(), &other);
+    let t = other.join("sparse/0/images.txt");
+    let text = std::fs::read_to_string(&t).unwrap();
+    let mut lines: Vec<String> = text.lines().map(str::to_string).collect();
+    let i = lines
+        .iter()
+        .position(|l| !l.starts_with('#') && !l.trim().is_empty())
+        .unwrap();
+    let mut f: Vec<String> = lines[i].split_whitespace().map(str::to_string).collect();
+    let tx: f64 = f[5].parse().unwrap();
+    f[5] = format!("{}", tx + 0.01);
+    lines[i] = f.join(" ");
+    std::fs::write(&t, lines.join("\n") + "\n").unwrap();
+    let (code, err) = xscale(&[
+        "train",
+        "--scene",
+        other.to_str().unwrap(),
+        "--out",
+        run.to_str().unwrap(),
+        "--resume",
+        "-q",
+    ]);
+    assert_ne!(code, 0);
+    assert!(err.contains("cameras changed"), "{err}");
+    assert_eq!(step_of(&run), 10);
+    let _ = std::fs::remove_dir_all(&run);
+    let _ = std::fs::remove_dir_all(&other);
+}
+
+fn copy_dir(from: &Path, to: &Path) {
+    std::fs::create_dir_all(to).unwrap();
+    for e in std::fs::read_dir(from).unwrap().flatten() {
+        let p = e.path();
+        if p.is_dir() {
+            copy_dir(&p, &to.join(e.file_name()));
+        } else {
+            std::fs::copy(&p, to.join(e.file_name())).unwrap();
+        }
+    }
+}
+
+#[test]
+fn sigterm_stops_with_a_checkpoint_that_resumes() {
+    let run = tmp("sigterm");
+    let scene = fixture();
+    let child = Command::new(env!("CARGO_BIN_EXE_xscale"))
+        .args([
+            "train",
+            "--scene",
+            scene.to_str().unwrap(),
+            "--out",
+            run.to_str().unwrap(),
+            "--preset",
+            "tiny",
+            "--steps",
+            "1000000",
+            "--no-eval",
+            "-q",
+        ])
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    // Wait until it is training (its first metrics line), then SIGTERM it.
+    let t0 = Instant::now();
+    while !std::fs::read_to_string(run.join("metrics.jsonl")).is_ok_and(|t| t.lines().count() > 1) {
+        assert!(
+            t0.elapsed() < Duration::from_secs(60),
+            "the run never started"
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let st = Command::new("kill")
+        .args(["-TERM", &child.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(st.success());
+    let out = child.wait_with_output().unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(130), "{err}");
+    let k = step_of(&run);
+    assert!(k > 0, "a checkpoint of the work done is written");
+    assert!(!run.join(".lock").exists());
+    let (code, err) = train(&run, &["--resume", "--steps", &(k + 5).to_string()]);
+    assert_eq!(code, 0, "{err}");
+    assert_eq!(step_of(&run), k + 5);
+    let _ = std::fs::remove_dir_all(&run);
+}
+
+#[test]
+fn a_diverging_run_is_stopped_and_says_why() {
+    let run = tmp("diverge");
+    let cfg = run.with_extension("toml");
+    std::fs::write(
+        &cfg,
+        "[train.adam.shader]\nlr = 10.0\n[train.adam.grid_h]\nlr = 10.0\n[train.adam.grid_d]\nlr = 10.0\n[train.adam.deform]\nlr = 1.0\n[train.adam.appearance]\nlr = 10.0\n",
+    )
+    .unwrap();
+    let (code, err) = train(
+        &run,
+        &[
+            "--preset",
+            "tiny",
+            "--steps",
+            "2000",
+            "--config",
+            cfg.to_str().unwrap(),
+        ],
+    );
+    assert_ne!(code, 0, "{err}");
+    assert!(
+        err.contains("diverged") && err.contains("learning rate"),
+        "{err}"
+    );
+    assert!(run.join("checkpoint-diverged.safetensors").is_file());
+    let _ = std::fs::remove_dir_all(&run);
+    let _ = std::fs::remove_file(&cfg);
+}
+
+#[test]
+fn image_names_with_folders_keep_them_in_every_output() {
+    let scene = tmp("nested-scene");
+    copy_dir(&fixture(), &scene);
+    // Use the transforms.json layout, whose names are `images/NNNN.png` (as nerfstudio writes).
+    std::fs::write(scene.join("scene.toml"), "format = \"transforms\"\n").unwrap();
+    let run = tmp("nested-run");
+    let (code, err) = xscale(&[
+        "train",
+        "--scene",
+        scene.to_str().unwrap(),
+        "--out",
+        run.to_str().unwrap(),
+        "--preset",
+        "tiny",
+        "--steps",
+        "10",
+        "-q",
+    ]);
+    assert_eq!(code, 0, "{err}");
+    for f in [
+        "render/images/0000.png",
+        "eval/images/0007.png",
+        "eval.json",
+    ] {
+        assert!(run.join(f).is_file(), "{f} missing");
+    }
+    let frames = tmp("nested-frames");
+    let (code, err) = xscale(&[
+        "render",
+        "--run",
+        run.to_str().unwrap(),
+        "--scene",
+        scene.to_str().unwrap(),
+        "--out",
+        frames.to_str().unwrap(),
+        "--views",
+        "all",
+    ]);
+    assert_eq!(code, 0, "{err}");
+    let n = std::fs::read_dir(frames.join("images")).unwrap().count();
+    assert_eq!(n, 8, "one file per view");
+    for d in [&scene, &run, &frames] {
+        let _ = std::fs::remove_dir_all(d);
+    }
+}
+
+#[test]
+fn usage_errors_and_runtime_errors_have_distinct_exit_codes() {
+    // A typo in a flag: clap's message with a suggestion, exit 64 (EX_USAGE).
+    let (code, err) = xscale(&["train", "--presett", "tiny"]);
+    assert_eq!(code, 64, "{err}");
+    assert!(err.contains("--preset"), "{err}");
+    let (code, err) = xscale(&["train", "--scene", "x", "--out", "y", "--preset", "cpux"]);
+    assert_eq!(code, 64, "{err}");
+    assert!(err.contains("tiny") && err.contains("paper"), "{err}");
+    // A missing scene: a runtime error, exit 2, naming it.
+    let run = tmp("usage");
+    let (code, err) = xscale(&[
+        "train",
+        "--scene",
+        "/nonexistent/scene",
+        "--out",
+        run.to_str().unwrap(),
+    ]);
+    assert_eq!(code, 2, "{err}");
+    assert!(err.contains("/nonexistent/scene"), "{err}");
+    let _ = std::fs::remove_dir_all(&run);
+    // --help is not an error.
+    assert_eq!(xscale(&["train", "--help"]).0, 0);
+}

@@ -339,3 +339,35 @@ fn usage_errors_and_runtime_errors_have_distinct_exit_codes() {
     // --help is not an error.
     assert_eq!(xscale(&["train", "--help"]).0, 0);
 }
+
+#[test]
+fn eval_and_render_find_the_runs_scene() {
+    let run = tmp("findscene");
+    assert_eq!(train(&run, &["--preset", "tiny", "--steps", "10"]).0, 0);
+    let json = run.join("e.json");
+    let (code, err) = xscale(&[
+        "eval",
+        "--run",
+        run.to_str().unwrap(),
+        "--json",
+        json.to_str().unwrap(),
+    ]);
+    assert_eq!(code, 0, "{err}");
+    assert!(json.is_file());
+    let frames = run.join("frames");
+    let (code, err) = xscale(&[
+        "render",
+        "--run",
+        run.to_str().unwrap(),
+        "--out",
+        frames.to_str().unwrap(),
+    ]);
+    assert_eq!(code, 0, "{err}");
+    assert!(frames.join("0000.png").is_file());
+    // A bare checkpoint does not know its scene: the message says what to give.
+    let ck = run.join("checkpoint.safetensors");
+    let (code, err) = xscale(&["eval", "--checkpoint", ck.to_str().unwrap()]);
+    assert_eq!(code, 2);
+    assert!(err.contains("--scene"), "{err}");
+    let _ = std::fs::remove_dir_all(&run);
+}

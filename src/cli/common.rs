@@ -76,9 +76,9 @@ pub struct ModelArgs {
     /// A checkpoint file instead of a run folder.
     #[arg(long)]
     pub checkpoint: Option<PathBuf>,
-    /// Scene directory.
+    /// Scene directory (default with --run: the scene the run was trained on, from RUN/scene.json).
     #[arg(long)]
-    pub scene: PathBuf,
+    pub scene: Option<PathBuf>,
     /// Integer image downsample factor (default: the run's).
     #[arg(long)]
     pub downsample: Option<u32>,
@@ -92,14 +92,41 @@ impl ModelArgs {
     pub fn load(&self) -> Result<(PathBuf, Checkpoint, SceneForModel)> {
         let path = checkpoint_path(&self.run, &self.checkpoint)?;
         let (ck, cfg) = load_model(&path)?;
+        let dir = self.scene_dir()?;
         let s = scene_for_model(
-            &self.scene,
+            &dir,
             &ck,
             cfg.as_ref(),
             self.downsample,
             self.mesh.as_deref(),
         )?;
         Ok((path, ck, s))
+    }
+}
+
+impl ModelArgs {
+    /// `--scene`, else the scene recorded in `RUN/scene.json` by `xscale train`.
+    pub fn scene_dir(&self) -> Result<PathBuf> {
+        if let Some(s) = &self.scene {
+            return Ok(s.clone());
+        }
+        let Some(run) = &self.run else {
+            bail!(
+                "give --scene DIR (a --checkpoint file does not say which scene it was trained on)"
+            );
+        };
+        match crate::train::run_dir::SceneFingerprint::read(run)? {
+            Some(f) if f.scene.is_dir() => Ok(f.scene),
+            Some(f) => bail!(
+                "{}: the run's scene {} no longer exists; give --scene DIR",
+                run.display(),
+                f.scene.display()
+            ),
+            None => bail!(
+                "{}: the run does not record its scene (made by an older xscale); give --scene DIR",
+                run.display()
+            ),
+        }
     }
 }
 

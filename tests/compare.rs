@@ -181,10 +181,15 @@ fn perturbed_element_exit_1_names_tensor_and_index() {
         .any(|t| t["name"] == "fwd.grid_h"
             && t["status"] == "fail"
             && t["stats"]["worst_fail"]["index"] == serde_json::json!([1, 1, 1])));
-    // Without a tolerance file nothing has a rule: reported, not failed.
+    // Without a tolerance file or limits the comparison is exact: it cannot pass by default.
     let (code, out) = run_cli(&[a.to_str().unwrap(), b.to_str().unwrap()]);
-    assert_eq!(code, 0, "{out}");
-    assert!(out.contains("norule"), "{out}");
+    assert_eq!(code, 1, "{out}");
+    assert!(
+        out.contains("exact comparison (strict)") && out.contains("FAIL"),
+        "{out}"
+    );
+    let (code, out) = run_cli(&[a.to_str().unwrap(), a.to_str().unwrap()]);
+    assert_eq!(code, 0, "a file equals itself: {out}");
     // --strict: no rule means exact equality.
     let (code, _) = run_cli(&[a.to_str().unwrap(), b.to_str().unwrap(), "--strict"]);
     assert_eq!(code, 1);
@@ -315,7 +320,33 @@ fn nan_handling_in_files() {
     fa.insert("x", Tensor::f32(vec![3], &[f32::NAN, 1.0, 2.0]).unwrap());
     fb.insert("x", Tensor::f32(vec![3], &[f32::NAN, 1.0, 2.0]).unwrap());
     let tol = Tolerances::from_toml("[default]\nmax_ulp = 0\n", "t").unwrap();
-    assert_eq!(compare(&fa, &fb, &tol).exit_code(), 0);
+    // NaN against NaN fails under every rule (an all-NaN gradient must not pass) ...
+    let r = compare(&fa, &fb, &tol);
+    assert_eq!(r.exit_code(), 1);
+    assert_eq!(r.tensors[0].stats.as_ref().unwrap().n_nan, 1);
+    let loose = Tolerances::from_toml("[default]\nmax_abs = 1e300\n", "t").unwrap();
+    assert_eq!(compare(&fa, &fb, &loose).exit_code(), 1);
+    // ... and even without any rule ...
+    assert_eq!(compare(&fa, &fb, &Tolerances::default()).exit_code(), 1);
+    // ... unless allowed, by the rule or for the whole file.
+    let allow = Tolerances::from_toml("[default]\nmax_ulp = 0\nallow_nan = true\n", "t").unwrap();
+    assert_eq!(compare(&fa, &fb, &allow).exit_code(), 0);
+    let allow_all =
+        Tolerances::from_toml("allow_nan = true\n[default]\nmax_ulp = 0\n", "t").unwrap();
+    assert_eq!(compare(&fa, &fb, &allow_all).exit_code(), 0);
+    // An infinity passes only against the same infinity in the same place.
+    let (mut ia, mut ib) = (TensorFile::new(), TensorFile::new());
+    ia.insert("y", Tensor::f32(vec![2], &[f32::INFINITY, 1.0]).unwrap());
+    ib.insert("y", Tensor::f32(vec![2], &[f32::INFINITY, 1.0]).unwrap());
+    assert_eq!(compare(&ia, &ib, &loose).exit_code(), 0);
+    ib.insert(
+        "y",
+        Tensor::f32(vec![2], &[f32::NEG_INFINITY, 1.0]).unwrap(),
+    );
+    assert_eq!(compare(&ia, &ib, &loose).exit_code(), 1);
+    ib.insert("y", Tensor::f32(vec![2], &[1.0, f32::INFINITY]).unwrap());
+    assert_eq!(compare(&ia, &ib, &loose).exit_code(), 1);
+    let tol = allow;
     fb.insert(
         "x",
         Tensor::f32(vec![3], &[f32::NAN, f32::NAN, 2.0]).unwrap(),

@@ -1,6 +1,7 @@
 //! `xscale compare A B`: tensor-by-tensor comparison of two safetensors files (SPEC §6).
 //! Definitions of the errors and of the tolerance file: `io::compare`.
-//! Exit code 0 = all within limits, 1 = a limit exceeded, 2 = bad input.
+//! Exit code 0 = all within limits, 1 = a limit exceeded, 2 = bad input. With no tolerance file and
+//! no `--max-*` limit the comparison is exact (strict); a NaN fails unless `--allow-nan`.
 
 use crate::io::compare::{compare_files, report_json, Rule, Tolerances};
 use anyhow::Context;
@@ -35,6 +36,9 @@ pub struct Args {
     /// Default rule's limit on abs error / the tensor's largest |value|.
     #[arg(long)]
     pub max_rel_peak: Option<f64>,
+    /// Accept NaN where both files have it (by default any NaN fails its tensor).
+    #[arg(long)]
+    pub allow_nan: bool,
     /// Print only failures and the summary.
     #[arg(long, short)]
     pub quiet: bool,
@@ -45,14 +49,25 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         Some(p) => Tolerances::read(p)?,
         None => Tolerances::default(),
     };
+    let limits_given = args.max_abs.is_some()
+        || args.max_rel.is_some()
+        || args.max_ulp.is_some()
+        || args.max_rel_peak.is_some();
     if args.strict {
         tol.strict = true;
     }
-    if args.max_abs.is_some()
-        || args.max_rel.is_some()
-        || args.max_ulp.is_some()
-        || args.max_rel_peak.is_some()
-    {
+    if args.allow_nan {
+        tol.allow_nan = true;
+    }
+    if args.tolerances.is_none() && !limits_given {
+        // Nothing said: the strictest rule. Every tensor must be exactly equal, and a tensor in
+        // only one file is an error (a comparison must not pass by default).
+        tol.strict = true;
+        if !args.quiet {
+            println!("no --tolerances or --max-* given: exact comparison (strict)");
+        }
+    }
+    if limits_given {
         tol.default = Some(Rule {
             pattern: String::new(),
             max_abs: args.max_abs,

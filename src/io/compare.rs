@@ -15,9 +15,12 @@
 //!   measures how many f32 ulps the backend is from the correctly rounded result), F64 if both are
 //!   F64. For two integer tensors the ULP distance is the integer difference; an integer compared
 //!   with a float takes the float's rules.
-//! - **NaN / Inf**: NaN vs NaN and equal infinities count as equal (all errors 0). NaN vs anything
+//! - **NaN / Inf**: as error measures, NaN vs NaN and equal infinities give 0, and NaN vs anything
 //!   else, or an infinity vs anything different, is infinitely wrong (abs = rel = ∞, ULP = u64::MAX;
-//!   in JSON ∞ is written as `null`).
+//!   in JSON ∞ is written as `null`). So an infinity passes only against the same infinity, in the
+//!   same place. **A NaN in either file fails its tensor under every rule** (and even without a
+//!   rule), unless the rule or the whole file says `allow_nan = true` (`--allow-nan`): an all-NaN
+//!   gradient must never pass.
 //!
 //! Tolerances (TOML, see [`Tolerances`]): rules matched by tensor-name glob (`*` any run of
 //! characters, dots included; `?` one character); the first matching rule in file order wins, then
@@ -63,6 +66,9 @@ pub struct Rule {
     /// Matched tensors are listed but not compared.
     #[serde(default)]
     pub ignore: bool,
+    /// NaN is accepted where both files have NaN (without it, any NaN fails the tensor).
+    #[serde(default)]
+    pub allow_nan: bool,
 }
 
 impl Rule {
@@ -138,6 +144,9 @@ impl Rule {
 pub struct Tolerances {
     #[serde(default)]
     pub strict: bool,
+    /// NaN is accepted (where both files have it) under every rule.
+    #[serde(default)]
+    pub allow_nan: bool,
     pub default: Option<Rule>,
     #[serde(default, rename = "rule")]
     pub rules: Vec<Rule>,
@@ -380,6 +389,8 @@ pub struct Stats {
     pub n_fail: usize,
     /// The out-of-tolerance element with the largest abs error (largest ULP distance on ties).
     pub worst_fail: Option<Element>,
+    /// Elements that are NaN in either file.
+    pub n_nan: usize,
 }
 
 /// Outcome for one tensor name.
@@ -651,6 +662,7 @@ pub fn compare_tensors(a: &Tensor, b: &Tensor, rule: Option<&Rule>) -> Stats {
         worst_ulp: None,
         n_fail: 0,
         worst_fail: None,
+        n_nan: 0,
     };
     let mut i_abs = None;
     let mut i_ulp = None;
@@ -658,6 +670,8 @@ pub fn compare_tensors(a: &Tensor, b: &Tensor, rule: Option<&Rule>) -> Stats {
     for i in 0..n {
         let (x, y) = (elem(a, i), elem(b, i));
         let e = element_error(x, y, mode);
+        let nan = x.is_nan() || y.is_nan();
+        st.n_nan += nan as usize;
         if i_abs.is_none() || e.abs > st.max_abs {
             st.max_abs = e.abs;
             i_abs = Some(i);
@@ -670,7 +684,7 @@ pub fn compare_tensors(a: &Tensor, b: &Tensor, rule: Option<&Rule>) -> Stats {
             i_ulp = Some(i);
         }
         if let Some(r) = rule {
-            if !r.accepts_with_peak(&e, peak) {
+            if !r.accepts_with_peak(&e, peak) || (nan && !r.allow_nan) {
                 st.n_fail += 1;
                 let worse = match &i_fail {
                     None => true,
@@ -809,12 +823,39 @@ pub fn compare(a: &TensorFile, b: &TensorFile, tol: &Tolerances) -> Report {
                 }
                 None => None,
             };
+            let with_nan;
+            let effective = match effective {
+                Some(r) if tol.allow_nan && !r.allow_nan => {
+                    with_nan = Rule {
+                        allow_nan: true,
+                        ..r.clone()
+                    };
+                    Some(&with_nan)
+                }
+                e => e,
+            };
             let st = compare_tensors(ta, tb, effective);
             tr.status = match effective {
+                // A NaN fails even a tensor no rule covers, unless NaN is allowed.
+                None if st.n_nan > 0 && !tol.allow_nan => Status::Fail,
                 None => Status::NoRule,
                 Some(_) if st.n_fail > 0 => Status::Fail,
                 Some(_) => Status::Pass,
             };
+            if st.n_nan > 0 {
+                tr.limits = Some(format!(
+                    "{}{} NaN{}",
+                    tr.limits
+                        .as_deref()
+                        .map_or(String::new(), |l| format!("{l}; ")),
+                    st.n_nan,
+                    if tol.allow_nan || effective.is_some_and(|r| r.allow_nan) {
+                        " (allowed)"
+                    } else {
+                        ""
+                    }
+                ));
+            }
             tr.stats = Some(st);
         }
         report.tensors.push(tr);

@@ -371,3 +371,50 @@ fn eval_and_render_find_the_runs_scene() {
     assert!(err.contains("--scene"), "{err}");
     let _ = std::fs::remove_dir_all(&run);
 }
+
+#[test]
+fn limits_and_bad_settings_get_clear_messages() {
+    let scene = fixture();
+    // A huge --threads is capped instead of spending minutes creating threads.
+    let (code, err) = xscale(&[
+        "--threads",
+        "100000",
+        "cast",
+        "--scene",
+        scene.to_str().unwrap(),
+    ]);
+    assert_eq!(code, 0, "{err}");
+    assert!(err.contains("--threads 100000: using"), "{err}");
+    let run = tmp("limits");
+    std::fs::create_dir_all(&run).unwrap();
+    let cfg = run.join("bad.toml");
+    // A shader without width.
+    std::fs::write(&cfg, "[model.shader]\nwidth = 0\n").unwrap();
+    let out = run.join("r");
+    let (code, err) = train(
+        &out,
+        &["--preset", "tiny", "--config", cfg.to_str().unwrap()],
+    );
+    assert_eq!(code, 2);
+    assert!(err.contains("model.shader.width = 0"), "{err}");
+    // A bad learning rate names the field, not a Rust struct.
+    std::fs::write(&cfg, "[train.adam.shader]\nlr = -1.0\n").unwrap();
+    let (code, err) = train(
+        &out,
+        &["--preset", "tiny", "--config", cfg.to_str().unwrap()],
+    );
+    assert_eq!(code, 2);
+    assert!(
+        err.contains("adam.shader: lr = -1") && !err.contains("AdamGroup"),
+        "{err}"
+    );
+    // A preset in the file that disagrees with --preset.
+    std::fs::write(&cfg, "preset = \"cpu\"\n").unwrap();
+    let (code, err) = train(
+        &out,
+        &["--preset", "tiny", "--config", cfg.to_str().unwrap()],
+    );
+    assert_eq!(code, 2);
+    assert!(err.contains("conflicts with"), "{err}");
+    let _ = std::fs::remove_dir_all(&run);
+}

@@ -62,6 +62,16 @@ pub enum Command {
 /// Run a parsed command line. `Ok(code)` is the process exit code; errors exit with 2.
 pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
     if let Some(n) = cli.threads {
+        // More threads than cores only adds contention (results never depend on the count);
+        // a huge count would spend minutes creating threads. 0 is rayon's "all cores".
+        let cores = std::thread::available_parallelism().map_or(1, |c| c.get());
+        let cap = 4 * cores;
+        let n = if n > cap {
+            eprintln!("--threads {n}: using {cap} (4 × the {cores} cores this machine has)");
+            cap
+        } else {
+            n
+        };
         rayon::ThreadPoolBuilder::new()
             .num_threads(n)
             .build_global()?;

@@ -170,16 +170,40 @@ impl AdamGroup {
     }
 
     fn check(&self) -> Result<()> {
-        let ok = self.lr.is_finite()
-            && self.lr >= 0.0
-            && (0.0..1.0).contains(&self.beta1)
-            && (0.0..1.0).contains(&self.beta2)
-            && self.epsilon.is_finite()
-            && self.epsilon >= 0.0
-            && self.l2.is_finite()
-            && self.schedule.decay_base.is_finite();
-        if !ok {
-            bail!("bad Adam group {self:?}: need lr >= 0, 0 <= β1, β2 < 1, finite ε >= 0, l2, decay_base");
+        let bad: Vec<String> = [
+            (
+                !(self.lr.is_finite() && self.lr >= 0.0),
+                format!("lr = {} (need a finite value >= 0)", self.lr),
+            ),
+            (
+                !(0.0..1.0).contains(&self.beta1),
+                format!("beta1 = {} (need 0 <= beta1 < 1)", self.beta1),
+            ),
+            (
+                !(0.0..1.0).contains(&self.beta2),
+                format!("beta2 = {} (need 0 <= beta2 < 1)", self.beta2),
+            ),
+            (
+                !(self.epsilon.is_finite() && self.epsilon >= 0.0),
+                format!("epsilon = {} (need a finite value >= 0)", self.epsilon),
+            ),
+            (
+                !self.l2.is_finite(),
+                format!("l2 = {} (need a finite value)", self.l2),
+            ),
+            (
+                !self.schedule.decay_base.is_finite(),
+                format!(
+                    "schedule.decay_base = {} (need a finite value)",
+                    self.schedule.decay_base
+                ),
+            ),
+        ]
+        .into_iter()
+        .filter_map(|(b, m)| b.then_some(m))
+        .collect();
+        if !bad.is_empty() {
+            bail!("{}", bad.join("; "));
         }
         Ok(())
     }

@@ -254,6 +254,16 @@ impl RunConfig {
             bail!("model.gamma must be 1..=4, got {}", self.model.gamma);
         }
         t.adam.validate().context("train.adam")?;
+        let sh = &self.model.shader;
+        if sh.width == 0 && sh.hidden_layers > 0 {
+            bail!(
+                "model.shader.width = 0 with {} hidden layers: a hidden layer needs width >= 1",
+                sh.hidden_layers
+            );
+        }
+        if self.model.deform.enabled && self.model.deform.hidden == 0 {
+            bail!("model.deform.hidden must be >= 1 when the deformation is enabled");
+        }
         if !self.model.featurization.is_hash() {
             if self.model.vertex_features == 0 {
                 bail!("model.vertex_features must be > 0 with featurization = \"vertex\"");

@@ -339,6 +339,12 @@ pub fn train(
     }
     rep.trained(state.step, seconds, &ckpt_path)?;
     let (mut final_scores, mut views) = (None, Vec::new());
+    if !opts.no_final_eval && prepared.scene.test.is_empty() {
+        rep.say(
+            "no held-out views in this scene (scene.toml holds none out): no final evaluation"
+                .into(),
+        );
+    }
     if !opts.no_final_eval && !prepared.scene.test.is_empty() {
         let scores = evaluate(&state, &prepared, 0, Some(run_dir))?;
         final_scores = Some(rep.final_eval(state.step, &scores, run_dir)?);

@@ -251,3 +251,44 @@ fn eval_reports_mask_coverage() {
     assert!(json["mean"]["mask_miss"].as_f64().is_some());
     let _ = std::fs::remove_dir_all(&run);
 }
+
+/// Scores grouped by scale: factor-2 bins of the views' median footprints, and a near/far split
+/// at the geometric mean of the finest and coarsest; a mean over all views would hide the
+/// close-ups' failure.
+#[test]
+fn scores_are_grouped_by_footprint() {
+    use xscale::eval::protocol::{mean_score, scale_summary, scale_table, ViewScore};
+    let v = |name: &str, fp: f64, psnr: f64| ViewScore {
+        view: name.into(),
+        psnr,
+        ssim: 0.9,
+        flip: 0.1,
+        psnr_masked: psnr,
+        ssim_masked: 0.9,
+        flip_masked: 0.1,
+        hit_fraction: 1.0,
+        mask_miss: None,
+        footprint: Some(fp),
+    };
+    let scores = vec![
+        v("far1", 0.70, 36.0),
+        v("close1", 0.024, 27.0),
+        v("far2", 0.60, 36.0),
+        v("close2", 0.021, 28.0),
+    ];
+    let s = scale_summary(&scores);
+    assert_eq!(s.bins.len(), 2);
+    assert_eq!((s.bins[0].lo, s.bins[0].hi), (2f64.powi(-6), 2f64.powi(-5)));
+    assert_eq!(s.bins[0].views, vec!["close1", "close2"]);
+    assert_eq!(s.bins[0].mean.psnr_masked, 27.5);
+    assert_eq!(s.bins[1].views, vec!["far1", "far2"]);
+    let (split, near, far) = s.near_far.expect("scales 28x apart");
+    assert!((split - (0.021f64 * 0.70).sqrt()).abs() < 1e-12);
+    assert_eq!((near.mean.psnr_masked, far.mean.psnr_masked), (27.5, 36.0));
+    assert_eq!(mean_score(&scores).psnr_masked, 31.75);
+    assert!(scale_table(&scores).contains("near"));
+    // One scale only: no split, no table.
+    let one = vec![v("a", 0.5, 30.0), v("b", 0.7, 31.0)];
+    assert!(scale_summary(&one).near_far.is_none());
+    assert!(scale_table(&one).is_empty());
+}

@@ -3,7 +3,9 @@
 //! side-by-side PNG per view (render | photo | error heat map | ꟻLIP) when `--out` is given.
 
 use super::common::{select_views, ModelArgs};
-use crate::eval::protocol::{evaluate_view, mean_score, table, write_evaluated};
+use crate::eval::protocol::{
+    evaluate_view, mean_score, scale_summary, scale_table, table, write_evaluated,
+};
 use anyhow::{Context, Result};
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -55,9 +57,12 @@ pub fn run(a: Args) -> Result<ExitCode> {
         }
         scores.push(e.scored.score);
     }
-    print!("{}", table(&scores));
+    print!("{}{}", table(&scores), scale_table(&scores));
     if let Some(j) = &a.json {
-        let json = serde_json::json!({ "checkpoint": ck_path, "views": scores, "mean": mean_score(&scores) });
+        let json = serde_json::json!({
+            "checkpoint": ck_path, "views": scores, "mean": mean_score(&scores),
+            "by_scale": scale_summary(&scores)
+        });
         std::fs::write(j, serde_json::to_string_pretty(&json)?)
             .with_context(|| format!("{}: cannot write", j.display()))?;
     }

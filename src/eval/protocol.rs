@@ -41,6 +41,10 @@ pub struct ViewScore {
     /// Fraction of object-mask pixels the mesh misses (scenes with masks only).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub mask_miss: Option<f64>,
+    /// Median pixel footprint on the surface over the view's hit pixels, in scene units (the
+    /// scale the view sees; `None` when no pixel hits or for a mean).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub footprint: Option<f64>,
 }
 
 /// A scored view: the scores, the photo with misses painted in the background colour (for the
@@ -96,6 +100,7 @@ pub fn score_view(
         flip_masked: masked_mean(&fmap_masked, Some(&hit_in)),
         hit_fraction: hit.iter().filter(|&&x| x).count() as f64 / hit.len().max(1) as f64,
         mask_miss,
+        footprint: None,
     };
     Scored {
         score,
@@ -126,7 +131,92 @@ pub fn mean_score(scores: &[ViewScore]) -> ViewScore {
         flip_masked: mean(&|s| s.flip_masked),
         hit_fraction: mean(&|s| s.hit_fraction),
         mask_miss: any_mask.then(|| mean(&|s| s.mask_miss.unwrap_or(f64::NAN))),
+        footprint: None,
     }
+}
+
+/// Scores of the views whose median footprint lies in `[lo, hi)` (scene units).
+#[derive(Clone, Debug, Serialize)]
+pub struct ScaleGroup {
+    pub lo: f64,
+    pub hi: f64,
+    pub views: Vec<String>,
+    pub mean: ViewScore,
+}
+
+/// Held-out scores grouped by the scale each view sees: factor-2 bins of the views' median
+/// footprints (`[2^k, 2^(k+1))` scene units), finest first, and a near/far split at the geometric
+/// mean of the finest and coarsest view footprints (`None` when all views see one scale, i.e.
+/// they lie within a factor 2). A mean over all views hides a close-up failure; these do not.
+#[derive(Clone, Debug, Serialize)]
+pub struct ScaleSummary {
+    pub bins: Vec<ScaleGroup>,
+    /// `(split, near, far)`: near = footprint below `split`.
+    pub near_far: Option<(f64, ScaleGroup, ScaleGroup)>,
+}
+
+pub fn scale_summary(scores: &[ViewScore]) -> ScaleSummary {
+    let with: Vec<(&ViewScore, f64)> = scores
+        .iter()
+        .filter_map(|s| {
+            s.footprint
+                .filter(|f| *f > 0.0 && f.is_finite())
+                .map(|f| (s, f))
+        })
+        .collect();
+    let group = |lo: f64, hi: f64| {
+        let members: Vec<ViewScore> = with
+            .iter()
+            .filter(|(_, f)| *f >= lo && *f < hi)
+            .map(|(s, _)| (*s).clone())
+            .collect();
+        ScaleGroup {
+            lo,
+            hi,
+            views: members.iter().map(|s| s.view.clone()).collect(),
+            mean: mean_score(&members),
+        }
+    };
+    let mut ks: Vec<i32> = with.iter().map(|(_, f)| f.log2().floor() as i32).collect();
+    ks.sort_unstable();
+    ks.dedup();
+    let bins = ks
+        .iter()
+        .map(|&k| group(2f64.powi(k), 2f64.powi(k + 1)))
+        .collect();
+    let (fmin, fmax) = with.iter().fold((f64::INFINITY, 0.0f64), |(a, b), (_, f)| {
+        (a.min(*f), b.max(*f))
+    });
+    let near_far = (with.len() >= 2 && fmax >= 2.0 * fmin).then(|| {
+        let split = (fmin * fmax).sqrt();
+        (split, group(0.0, split), group(split, f64::INFINITY))
+    });
+    ScaleSummary { bins, near_far }
+}
+
+/// The per-scale lines printed under the score table.
+pub fn scale_table(scores: &[ViewScore]) -> String {
+    let s = scale_summary(scores);
+    if s.bins.len() < 2 {
+        return String::new();
+    }
+    let line = |label: String, g: &ScaleGroup| {
+        format!(
+            "{label:<34} {:>3} views  PSNR(mask) {}  SSIM(mask) {}\n",
+            g.views.len(),
+            cell(g.mean.psnr_masked, 7, 3),
+            cell(g.mean.ssim_masked, 6, 4)
+        )
+    };
+    let mut out = String::from("by scale (median pixel footprint of each view, scene units):\n");
+    for g in &s.bins {
+        out += &line(format!("  footprint {:.3e} .. {:.3e}", g.lo, g.hi), g);
+    }
+    if let Some((split, near, far)) = &s.near_far {
+        out += &line(format!("  near (footprint < {split:.3e})"), near);
+        out += &line(format!("  far  (footprint >= {split:.3e})"), far);
+    }
+    out
 }
 
 /// Names of the views left out of the masked means (no pixel hits the mesh).
@@ -209,7 +299,7 @@ pub fn evaluate_view(
     let rendered = render_camera(model, params, tracer, &view.camera, gamma, row, background)?;
     let gt = scene.load_image(i)?;
     let mask = scene.load_mask(i)?;
-    let scored = score_view(
+    let mut scored = score_view(
         &view.name,
         &rendered.image,
         &gt,
@@ -217,6 +307,19 @@ pub fn evaluate_view(
         mask.as_deref(),
         background,
     );
+    // Median footprint of the hit pixels, normalised units → scene units (largest extent).
+    let mut fp: Vec<f32> = rendered
+        .footprint
+        .iter()
+        .zip(&rendered.hit)
+        .filter(|(f, &h)| h && **f > 0.0)
+        .map(|(f, _)| *f)
+        .collect();
+    if !fp.is_empty() {
+        let mid = fp.len() / 2;
+        let (_, m, _) = fp.select_nth_unstable_by(mid, f32::total_cmp);
+        scored.score.footprint = Some(*m as f64 * scene.normalization.extent.max_element());
+    }
     Ok(Evaluated { rendered, scored })
 }
 

@@ -1,7 +1,7 @@
 //! What a training run tells its user and writes down: the terminal (progress bar or lines),
 //! `RUN/metrics.jsonl`, and the final `RUN/eval.json`. Nothing here affects the numbers.
 
-use crate::eval::protocol::{mean_score, table, ViewScore};
+use crate::eval::protocol::{mean_score, scale_summary, scale_table, table, ViewScore};
 use crate::train::trainer::{StepStats, TrainState};
 use anyhow::{Context, Result};
 use std::fs::File;
@@ -183,13 +183,15 @@ impl Reporter {
         run_dir: &Path,
     ) -> Result<ViewScore> {
         let m = mean_score(scores);
-        self.say(table(scores));
+        self.say(table(scores) + &scale_table(scores));
         writeln!(
             self.metrics,
             "{}",
             serde_json::json!({"step": step, "eval": m, "final": true, "elapsed_s": self.elapsed()})
         )?;
-        let json = serde_json::json!({ "views": scores, "mean": m, "step": step });
+        let json = serde_json::json!({
+            "views": scores, "mean": m, "by_scale": scale_summary(scores), "step": step
+        });
         std::fs::write(
             run_dir.join("eval.json"),
             serde_json::to_string_pretty(&json)?,

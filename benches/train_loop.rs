@@ -12,32 +12,14 @@
 //! Run: `cargo bench --bench train_loop` (`XSCALE_BENCH_BATCH=16384` for larger batches,
 //! `XSCALE_BENCH_STEPS`, `XSCALE_BENCH_ROUNDS`).
 
-use std::path::PathBuf;
+mod common;
+use common::{env, small_scene as scene};
 use std::time::Instant;
 use xscale::model::params::Grads;
 use xscale::train::config::RunConfig;
 use xscale::train::sampler::sample_batch;
 use xscale::train::setup::{prepare, resolve_levels};
 use xscale::train::trainer::TrainState;
-
-fn env(name: &str, default: usize) -> usize {
-    std::env::var(name)
-        .ok()
-        .and_then(|s| s.parse().ok())
-        .unwrap_or(default)
-}
-
-fn scene() -> PathBuf {
-    let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("target/bench-scenes/small");
-    if !dir.join("scene.toml").is_file() {
-        eprintln!("generating the small scene into {}", dir.display());
-        let s = xscale::synth::build(xscale::synth::Preset::Small, 1);
-        let summary = s.summary();
-        let images = s.render();
-        xscale::synth::output::write(&s, &images, &summary, &dir, false).unwrap();
-    }
-    dir
-}
 
 #[derive(Default, Clone, Copy)]
 struct Phases {

@@ -34,6 +34,8 @@ import xscale_ref as ref  # noqa: E402  (checkpoint and batch loading, SH)
 
 P1, P2 = 2654435761, 805459861
 U32 = 0xFFFFFFFF
+P1_I32 = P1 - (1 << 32)  # the same 32 bits as a signed int32
+P2_I32 = P2
 
 
 class Grid:
@@ -49,6 +51,11 @@ class Grid:
         self.smooth = interpolation == "smoothstep"
         self.tcnn = positions == "tcnn"
         self.n = len(levels)
+        self.dense_l = torch.nonzero(self.dense).flatten()
+        self.hashed_l = torch.nonzero(~self.dense).flatten()
+        hs = self.size[self.hashed_l]
+        assert bool(((hs & (hs - 1)) == 0).all()), "hashed levels have power-of-two sizes"
+        self.mask_h = (hs - 1).to(torch.int32)
 
     def forward(self, x: torch.Tensor, table: torch.Tensor) -> torch.Tensor:
         """x [M,3] float64 -> [M, L, F] float32 (Eq. 2)."""
@@ -63,15 +70,23 @@ class Grid:
         c = c.to(torch.int64)
         w = t * t * (3 - 2 * t) if self.smooth else t  # [M,L,3]
         lo_hi = torch.stack([c, c + 1], dim=-1) & U32  # [M,L,3,2]
-        # Per-axis index terms, dense: x + y*res + z*res^2; hashed: x ^ y*P1 ^ z*P2 (u32 wrapping).
-        res = self.res[None, :, None]
-        dx, dy, dz = lo_hi[:, :, 0], (lo_hi[:, :, 1] * res) & U32, (lo_hi[:, :, 2] * ((res * res) & U32)) & U32
-        hx, hy, hz = lo_hi[:, :, 0], (lo_hi[:, :, 1] * P1) & U32, (lo_hi[:, :, 2] * P2) & U32
-        # Corner k = (a, b, c) bits along x, y, z: broadcast [.,2,1,1] (z) x [.,1,2,1] (y) x [.,1,1,2] (x).
-        dense = (dz[..., :, None, None] + dy[..., None, :, None] + dx[..., None, None, :]) & U32
-        hashed = hz[..., :, None, None] ^ hy[..., None, :, None] ^ hx[..., None, None, :]
-        idx = torch.where(self.dense[None, :, None, None, None], dense, hashed)  # [M,L,2,2,2] (z,y,x)
-        idx = idx % self.size[None, :, None, None, None] + self.offset[None, :, None, None, None]
+        # Corner k = (a, b, c) bits along x, y, z: per-axis terms broadcast [.,2,1,1] (z) x [.,1,2,1] (y) x
+        # [.,1,1,2] (x). Hashed levels (table size a power of two): x ^ y*P1 ^ z*P2 in int32 (two's complement
+        # wrapping = u32 wrapping for *, ^ and the final mask). Dense levels: x + y*res + z*res^2 mod size (int64).
+        d, h = self.dense_l, self.hashed_l
+        out = torch.empty(lo_hi.shape[:2] + (2, 2, 2), dtype=torch.int64)
+        if len(h):
+            q = lo_hi[:, h].to(torch.int32)
+            hx, hy, hz = q[:, :, 0], q[:, :, 1] * P1_I32, q[:, :, 2] * P2_I32
+            hashed = hz[..., :, None, None] ^ hy[..., None, :, None] ^ hx[..., None, None, :]
+            out[:, h] = (hashed & self.mask_h[None, :, None, None, None]).to(torch.int64)
+        if len(d):
+            q = lo_hi[:, d]
+            res = self.res[d][None, :, None]
+            dx, dy, dz = q[:, :, 0], (q[:, :, 1] * res) & U32, (q[:, :, 2] * ((res * res) & U32)) & U32
+            dense = (dz[..., :, None, None] + dy[..., None, :, None] + dx[..., None, None, :]) & U32
+            out[:, d] = dense % self.size[d][None, :, None, None, None]
+        idx = out + self.offset[None, :, None, None, None]  # [M,L,2,2,2] (z,y,x)
         one = 1 - w
         wx = torch.stack([one[..., 0], w[..., 0]], dim=-1)
         wy = torch.stack([one[..., 1], w[..., 1]], dim=-1)

@@ -31,9 +31,7 @@
 
 use super::bvh::Tracer;
 use super::cache::{decode_coord, encode_coord, CacheEvent};
-use super::cast::{
-    cast_pixel, cast_strip, check_gamma, strips, CamCtx, PixelSummary, SubSample, MAX_GAMMA,
-};
+use super::cast::{cast_pixel, cast_strip, check_gamma, strips, CamCtx, PixelSummary, SubSample};
 use super::footprint::FootprintHist;
 use crate::model::batch::Batch;
 use crate::scene::{Camera, Image};
@@ -42,8 +40,6 @@ use rayon::prelude::*;
 
 /// Pixels per parallel work item when casting a batch (a constant: determinism, SPEC §5).
 pub const BATCH_CHUNK: usize = 64;
-
-const MAX_GAMMA_SQ: usize = (MAX_GAMMA * MAX_GAMMA) as usize;
 
 /// One bit per pixel: at least one of its γ² rays hits the mesh.
 #[derive(Clone, Debug, PartialEq)]
@@ -435,30 +431,30 @@ impl RayStream {
             .collect();
         order.sort_unstable();
         let keep = self.keep_triangles;
-        let cast: Vec<Vec<(PixelSummary, [SubSample; MAX_GAMMA_SQ])>> = order
-            .par_chunks(BATCH_CHUNK)
-            .map_init(
+        // Each pixel's γ² sub-samples and summary, in cast order (chunks of BATCH_CHUNK pixels
+        // written in place: no per-pixel arrays of the largest γ).
+        let mut subs_all = vec![SubSample::default(); n * s];
+        let mut sums = vec![PixelSummary::default(); n];
+        subs_all
+            .par_chunks_mut(BATCH_CHUNK * s)
+            .zip(sums.par_chunks_mut(BATCH_CHUNK))
+            .zip(order.par_chunks(BATCH_CHUNK))
+            .for_each_init(
                 || tracer.scratch(),
-                |sc, chunk| {
-                    chunk
-                        .iter()
-                        .map(|&(slot, v, u, _)| {
-                            let mut subs = [SubSample::default(); MAX_GAMMA_SQ];
-                            let sum = cast_pixel(
-                                tracer,
-                                &ctxs[slot],
-                                self.gamma,
-                                u,
-                                v,
-                                sc,
-                                &mut subs[..s],
-                            );
-                            (sum, subs)
-                        })
-                        .collect()
+                |sc, ((sub, sum), chunk)| {
+                    for (j, &(slot, v, u, _)) in chunk.iter().enumerate() {
+                        sum[j] = cast_pixel(
+                            tracer,
+                            &ctxs[slot],
+                            self.gamma,
+                            u,
+                            v,
+                            sc,
+                            &mut sub[j * s..(j + 1) * s],
+                        );
+                    }
                 },
-            )
-            .collect();
+            );
         let mut b = Batch {
             positions: vec![[0.0; 3]; n * s],
             valid: vec![0; n * s],
@@ -472,7 +468,8 @@ impl RayStream {
             b.triangle = vec![u32::MAX; n * s];
             b.bary = vec![[0.0; 2]; n * s];
         }
-        for (&(slot, v, u, k), (sum, subs)) in order.iter().zip(cast.iter().flatten()) {
+        for (i, (&(slot, v, u, k), sum)) in order.iter().zip(&sums).enumerate() {
+            let subs = &subs_all[i * s..(i + 1) * s];
             let sv = &self.views[slot];
             for (j, ss) in subs[..s].iter().enumerate() {
                 let hit = ss.hit();

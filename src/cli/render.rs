@@ -6,7 +6,7 @@
 
 use super::common::{select_views, ModelArgs};
 use crate::eval::protocol::output_name;
-use crate::render::{footprint_image, interpolate_camera, mask_image, render_camera};
+use crate::render::{fly_camera, footprint_image, look_at_point, mask_image, render_camera};
 use crate::scene::image::{write_exr, write_png8};
 use crate::scene::{Camera, Image};
 use anyhow::{bail, Context, Result};
@@ -90,11 +90,13 @@ pub fn run(a: Args) -> Result<ExitCode> {
             if a.frames == 0 {
                 bail!("--frames 0: a path needs at least one frame");
             }
+            let ta = look_at_point(&s.tracer, &s.scene.mesh, &va.camera);
+            let tb = look_at_point(&s.tracer, &s.scene.mesh, &vb.camera);
             (0..a.frames)
                 .map(|i| {
                     (
                         PathBuf::from(format!("frame_{i:04}")),
-                        interpolate_camera(&va.camera, &vb.camera, i, a.frames),
+                        fly_camera(&va.camera, &vb.camera, ta, tb, i, a.frames),
                         -1,
                     )
                 })

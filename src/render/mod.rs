@@ -8,7 +8,7 @@ use crate::model::hfm::Hfm;
 use crate::raycast::{cast_rows, Tracer};
 use crate::scene::{Camera, Image};
 use anyhow::Result;
-use glam::{DMat3, DQuat};
+use glam::{DMat3, DQuat, DVec3};
 
 /// Pixels per forward call while rendering (bounds memory; results do not depend on it because
 /// every pixel's colour is computed independently).
@@ -110,8 +110,10 @@ pub fn render_camera(
     })
 }
 
-/// Camera `i` of `n` on the path from `a` to `b` (both ends included): rotation by slerp,
-/// centre by lerp, intrinsics interpolated linearly; the image size is `a`'s.
+/// Camera `i` of `n` on the straight path from `a` to `b` (both ends included): rotation by
+/// slerp, centre by lerp, intrinsics interpolated linearly; the image size is `a`'s. Between an
+/// aerial view and a close-up its middle frames look past the scene; `render --path` uses
+/// [`fly_camera`].
 pub fn interpolate_camera(a: &Camera, b: &Camera, i: usize, n: usize) -> Camera {
     let s = if n <= 1 {
         0.0
@@ -137,6 +139,57 @@ pub fn interpolate_camera(a: &Camera, b: &Camera, i: usize, n: usize) -> Camera 
         rotation: rot,
         translation: -(rot * centre),
     }
+}
+
+/// Where a camera looks: the first mesh hit of its optical axis, else the point of the axis
+/// closest to the mesh's bounding-box centre (at least a bounding-box diagonal away when that is
+/// behind the camera).
+pub fn look_at_point(
+    tracer: &crate::raycast::Tracer,
+    mesh: &crate::scene::Mesh,
+    c: &Camera,
+) -> DVec3 {
+    let o = c.center();
+    let axis = (c.rotation.transpose() * DVec3::Z).normalize();
+    if let Some(h) = tracer.closest_hit(o, axis) {
+        return o + axis * h.t;
+    }
+    let (lo, hi) = mesh.bbox();
+    let t = (0.5 * (lo + hi) - o).dot(axis);
+    o + axis * if t > 0.0 { t } else { (hi - lo).length() }
+}
+
+/// Camera `i` of `n` on a fly-through from `a` to `b` that keeps the scene in view, where `ta`
+/// and `tb` are the points the end cameras look at ([`look_at_point`]): the look-at point moves
+/// linearly, the distance to it geometrically (so an aerial-to-close-up path spends its frames
+/// evenly across scales instead of rushing through them at the end), the viewing direction turns
+/// by slerp, and the orientation is the slerp of the ends' orientations turned so that its optical
+/// axis points at the look-at point. Intrinsics are interpolated linearly; the size is `a`'s.
+/// At `i = 0` and `i = n − 1` the end cameras are reproduced (to rounding).
+pub fn fly_camera(a: &Camera, b: &Camera, ta: DVec3, tb: DVec3, i: usize, n: usize) -> Camera {
+    let s = if n <= 1 {
+        0.0
+    } else {
+        i as f64 / (n - 1) as f64
+    };
+    let (ca, cb) = (a.center(), b.center());
+    let (da, db) = (
+        (ta - ca).length().max(1e-300),
+        (tb - cb).length().max(1e-300),
+    );
+    let (ua, ub) = ((ta - ca) / da, (tb - cb) / db);
+    let target = ta.lerp(tb, s);
+    let dist = da.powf(1.0 - s) * db.powf(s);
+    let dir = (DQuat::IDENTITY.slerp(DQuat::from_rotation_arc(ua, ub), s) * ua).normalize();
+    let centre = target - dir * dist;
+    let mut c = interpolate_camera(a, b, i, n);
+    // Turn the slerped orientation so its optical axis is `dir` (a world-space rotation).
+    let axis = (c.rotation.transpose() * DVec3::Z).normalize();
+    let fix = DMat3::from_quat(DQuat::from_rotation_arc(axis, dir));
+    let rot = c.rotation * fix.transpose();
+    c.rotation = rot;
+    c.translation = -(rot * centre);
+    c
 }
 
 /// A white/black image of the hit mask.

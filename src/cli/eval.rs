@@ -4,8 +4,9 @@
 
 use super::common::{select_views, ModelArgs};
 use crate::eval::protocol::{
-    evaluate_view, mean_score, scale_summary, scale_table, table, write_evaluated,
+    evaluate_view, mean_score, scale_summary, scale_table, score_rendered, table, write_evaluated,
 };
+use crate::render::ulr::{render_ulr, Source};
 use anyhow::{Context, Result};
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -27,6 +28,18 @@ pub struct Args {
     /// (default: the scene's `background` in scene.toml, else white).
     #[arg(long, value_parser = super::common::parse_background)]
     pub background: Option<[f32; 3]>,
+    /// What renders the views: the trained model, or `ulr` (unstructured lumigraph rendering of
+    /// the training photos on the mesh: a no-learning baseline, `src/render/ulr.rs`; the run
+    /// gives only the scene, its split and its mesh).
+    #[arg(long, value_enum, default_value = "model")]
+    pub method: Method,
+}
+
+/// What renders the evaluated views.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum Method {
+    Model,
+    Ulr,
 }
 
 pub fn run(a: Args) -> Result<ExitCode> {
@@ -40,18 +53,43 @@ pub fn run(a: Args) -> Result<ExitCode> {
         std::fs::create_dir_all(d).with_context(|| format!("{}: cannot create", d.display()))?;
     }
     let background = a.background.unwrap_or(s.scene.background);
+    let sources: Vec<Source> = if a.method == Method::Ulr {
+        let train = s.scene.train();
+        eprintln!(
+            "ULR baseline: blending the {} training photos (k = {})",
+            train.len(),
+            crate::render::ulr::K
+        );
+        train
+            .iter()
+            .map(|&j| {
+                Ok(Source::new(
+                    s.scene.views[j].camera.clone(),
+                    &s.scene.load_image(j)?,
+                ))
+            })
+            .collect::<Result<_>>()?
+    } else {
+        Vec::new()
+    };
     let mut scores = Vec::new();
     for &i in &views {
-        let e = evaluate_view(
-            &ck.model,
-            &ck.params,
-            &s.tracer,
-            &s.scene,
-            i,
-            ck.model.cfg.gamma,
-            s.rows[i],
-            background,
-        )?;
+        let e = match a.method {
+            Method::Model => evaluate_view(
+                &ck.model,
+                &ck.params,
+                &s.tracer,
+                &s.scene,
+                i,
+                ck.model.cfg.gamma,
+                s.rows[i],
+                background,
+            )?,
+            Method::Ulr => {
+                let r = render_ulr(&s.tracer, &sources, &s.scene.views[i].camera, background);
+                score_rendered(&s.scene, i, r, background)?
+            }
+        };
         if let Some(d) = &a.out {
             write_evaluated(&e, &s.scene.views[i].name, None, Some(d))?;
         }

@@ -297,6 +297,18 @@ pub fn evaluate_view(
 ) -> Result<Evaluated> {
     let view = &scene.views[i];
     let rendered = render_camera(model, params, tracer, &view.camera, gamma, row, background)?;
+    score_rendered(scene, i, rendered, background)
+}
+
+/// Score a render of view `i` (by the model or any other method, e.g. `render::ulr`) against its
+/// photo, with the view's median footprint.
+pub fn score_rendered(
+    scene: &Scene,
+    i: usize,
+    rendered: Rendered,
+    background: [f32; 3],
+) -> Result<Evaluated> {
+    let view = &scene.views[i];
     let gt = scene.load_image(i)?;
     let mask = scene.load_mask(i)?;
     let mut scored = score_view(

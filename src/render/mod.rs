@@ -3,6 +3,8 @@
 //! official protocol; the scene's `background`), plus camera paths between two views and the
 //! hit-mask / footprint / side-by-side images.
 
+pub mod ulr;
+
 use crate::model::batch::Batch;
 use crate::model::hfm::Hfm;
 use crate::raycast::{cast_rows, Tracer};

@@ -55,6 +55,7 @@ fn ablate_writes_the_table_for_every_variant() {
         "vertex",
         "vertex_subdiv",
     ];
+    assert!(md.contains("| ulr |"), "ulr row missing:\n{md}");
     for v in variants {
         assert!(md.contains(&format!("| {v} |")), "{v} row missing:\n{md}");
         // Each variant is an ordinary run folder.
@@ -64,13 +65,14 @@ fn ablate_writes_the_table_for_every_variant() {
     let json: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(out.join("ablation.json")).unwrap()).unwrap();
     let results = json["results"].as_array().unwrap();
-    assert_eq!(results.len(), 6);
+    assert_eq!(results.len(), 7);
     assert_eq!(json["steps"], 4);
     let get = |name: &str| results.iter().find(|r| r["name"] == name).unwrap();
     for r in results {
         let p = r["mean"]["psnr_masked"].as_f64().unwrap();
         assert!(p.is_finite() && p > 5.0, "{r}");
-        assert_eq!(r["steps"], 4);
+        let steps = if r["name"] == "ulr" { 0 } else { 4 };
+        assert_eq!(r["steps"], steps);
     }
     // The switches took effect.
     assert_eq!(get("no_multisampling")["gamma"], 1);

@@ -17,8 +17,10 @@
 //!   with `P_full / V_k ≤ Z_SUBDIV` (16), so the baseline gets a parameter budget comparable to
 //!   the hash grid's at a moderate Z (the small proxy meshes are far too coarse for that). The
 //!   subdivided surface is the same surface; only the feature discretisation is finer.
+//! - `ulr`: no learning at all: the held-out views rendered by unstructured lumigraph rendering
+//!   of the training photos on the scene mesh (`render/ulr.rs`), zero training time.
 //!
-//! Every variant trains `steps` steps with the same seed and batch size, then is scored on every
+//! Every variant but `ulr` trains `steps` steps with the same seed and batch size, then is scored on every
 //! held-out view (SPEC §7: masked = hit pixels only; full = misses painted white in both). The
 //! table goes to `OUT/ablation.md`, the numbers to `OUT/ablation.json`. `minutes` (when no step
 //! count is given) sets the step count from a 20-step timing probe of the full model so that
@@ -57,17 +59,20 @@ pub enum Variant {
     Vertex,
     #[value(name = "vertex_subdiv")]
     VertexSubdiv,
+    #[value(name = "ulr")]
+    Ulr,
 }
 
 impl Variant {
     /// Every variant, in table order.
-    pub const ALL: [Variant; 6] = [
+    pub const ALL: [Variant; 7] = [
         Variant::Full,
         Variant::NoDeform,
         Variant::NoMultisampling,
         Variant::Mesh10,
         Variant::Vertex,
         Variant::VertexSubdiv,
+        Variant::Ulr,
     ];
 
     /// The name used on the command line, as the run folder and in the reports.
@@ -79,6 +84,7 @@ impl Variant {
             Variant::Mesh10 => "mesh10",
             Variant::Vertex => "vertex",
             Variant::VertexSubdiv => "vertex_subdiv",
+            Variant::Ulr => "ulr",
         }
     }
 
@@ -90,6 +96,7 @@ impl Variant {
             Variant::Mesh10 => "full model on the decimated mesh",
             Variant::Vertex => "vertex features (Fig. 2b) on the scene mesh",
             Variant::VertexSubdiv => "vertex features (Fig. 2b) on the subdivided mesh",
+            Variant::Ulr => "no learning: unstructured lumigraph rendering of the training photos",
         }
     }
 }
@@ -227,6 +234,7 @@ pub fn run_ablation(scene: &Path, out: &Path, opts: &AblateOptions) -> Result<Ab
     }
     let ctx = Shared {
         scene,
+        load: load.clone(),
         mesh_dir: out.join("meshes"),
         mesh_path: report.mesh_path.display().to_string(),
         n_train: sc.views.len() - sc.test.len(),
@@ -253,6 +261,10 @@ pub fn run_ablation(scene: &Path, out: &Path, opts: &AblateOptions) -> Result<Ab
             .iter()
             .find(|r| r.name == Variant::Full)
             .map(|r| r.params);
+        if v == Variant::Ulr {
+            results.push(ulr_variant(&ctx, &say)?);
+            continue;
+        }
         let (cfg, used_mesh) = configure(v, &base, &ctx, full_params, &say)?;
         let r = run_variant(
             v,
@@ -281,6 +293,7 @@ pub fn run_ablation(scene: &Path, out: &Path, opts: &AblateOptions) -> Result<Ab
 /// What every variant shares: the scene, its mesh and where derived meshes go.
 struct Shared<'a> {
     scene: &'a Path,
+    load: LoadOptions,
     mesh: Mesh,
     mesh_path: String,
     mesh_dir: PathBuf,
@@ -332,6 +345,7 @@ fn configure(
     );
     match v {
         Variant::Full => {}
+        Variant::Ulr => unreachable!("ULR trains nothing (ulr_variant)"),
         Variant::NoDeform => cfg.model.deform.enabled = false,
         Variant::NoMultisampling => cfg.model.gamma = 1,
         Variant::Mesh10 => {
@@ -493,6 +507,56 @@ fn run_variant(
     Ok(r)
 }
 
+/// The ULR baseline (`render::ulr`) on the held-out views: no training, no parameters.
+fn ulr_variant(ctx: &Shared, say: &dyn Fn(String)) -> Result<VariantResult> {
+    let v = Variant::Ulr;
+    say(format!("== ulr: {}", v.description()));
+    let sc = Scene::load(ctx.scene, &ctx.load)?;
+    let tracer = crate::raycast::Tracer::new(&sc.mesh, &sc.normalization)?;
+    let sources: Vec<crate::render::ulr::Source> = sc
+        .train()
+        .iter()
+        .map(|&j| {
+            Ok(crate::render::ulr::Source::new(
+                sc.views[j].camera.clone(),
+                &sc.load_image(j)?,
+            ))
+        })
+        .collect::<Result<_>>()?;
+    let mut views = Vec::new();
+    for &i in &sc.test {
+        let r =
+            crate::render::ulr::render_ulr(&tracer, &sources, &sc.views[i].camera, sc.background);
+        views.push(
+            crate::eval::protocol::score_rendered(&sc, i, r, sc.background)?
+                .scored
+                .score,
+        );
+    }
+    let mean = crate::eval::protocol::mean_score(&views);
+    say(format!(
+        "   ulr: PSNR masked {:.2} / full {:.2}, SSIM masked {:.4}, no training",
+        mean.psnr_masked, mean.psnr, mean.ssim_masked
+    ));
+    Ok(VariantResult {
+        name: v,
+        description: v.description().to_string(),
+        featurization: "none (photos)".into(),
+        gamma: 1,
+        deform: false,
+        mesh: ctx.mesh_path.clone(),
+        mesh_faces: ctx.mesh.triangles.len(),
+        mesh_vertices: ctx.mesh.vertices.len(),
+        feature_width: 0,
+        params: 0,
+        params_ratio: None,
+        steps: 0,
+        train_seconds: 0.0,
+        mean,
+        views,
+    })
+}
+
 /// `OUT/ablation.md` and `OUT/ablation.json`.
 fn write_report(out: &Path, rep: &AblationReport) -> Result<()> {
     std::fs::write(out.join("ablation.md"), markdown(rep))
@@ -567,6 +631,12 @@ fn check_claims(results: &[VariantResult]) -> Vec<Claim> {
         Variant::Full,
         Variant::Mesh10,
         &|d| d <= 1.0,
+    );
+    diff(
+        "learning beats reprojecting the photos: the full model over the ULR baseline (masked PSNR)",
+        Variant::Full,
+        Variant::Ulr,
+        &|d| d > 0.0,
     );
     out
 }

@@ -364,6 +364,21 @@ fn eval_and_render_find_the_runs_scene() {
     ]);
     assert_eq!(code, 0, "{err}");
     assert!(frames.join("0000.png").is_file());
+    // The no-learning baseline through the same commands.
+    let ulr = run.join("ulr");
+    let (code, err) = xscale(&[
+        "render",
+        "--run",
+        run.to_str().unwrap(),
+        "--out",
+        ulr.to_str().unwrap(),
+        "--method",
+        "ulr",
+    ]);
+    assert_eq!(code, 0, "{err}");
+    assert!(ulr.join("0000.png").is_file());
+    let (code, err) = xscale(&["eval", "--run", run.to_str().unwrap(), "--method", "ulr"]);
+    assert_eq!(code, 0, "{err}");
     // A bare checkpoint does not know its scene: the message says what to give.
     let ck = run.join("checkpoint.safetensors");
     let (code, err) = xscale(&["eval", "--checkpoint", ck.to_str().unwrap()]);

@@ -5,7 +5,9 @@
 //! whose rays all miss are white.
 
 use super::common::{select_views, ModelArgs};
+use super::eval::Method;
 use crate::eval::protocol::output_name;
+use crate::render::ulr::{render_ulr, Source};
 use crate::render::{fly_camera, footprint_image, look_at_point, mask_image, render_camera};
 use crate::scene::image::{write_exr, write_png8};
 use crate::scene::{Camera, Image};
@@ -35,6 +37,10 @@ pub struct Args {
     /// Frames on the path (both ends included).
     #[arg(long, default_value_t = 30)]
     pub frames: usize,
+    /// What renders: the trained model, or `ulr` (the no-learning baseline: unstructured lumigraph
+    /// rendering of the training photos on the mesh, `src/render/ulr.rs`).
+    #[arg(long, value_enum, default_value = "model")]
+    pub method: Method,
     /// Image format: 8-bit PNG, or 32-bit float EXR (the same values, not quantised).
     #[arg(long, value_enum, default_value = "png")]
     pub format: Format,
@@ -127,11 +133,28 @@ pub fn run(a: Args) -> Result<ExitCode> {
             c.height
         );
     }
+    let sources: Vec<Source> = if a.method == Method::Ulr {
+        s.scene
+            .train()
+            .iter()
+            .map(|&j| {
+                Ok(Source::new(
+                    s.scene.views[j].camera.clone(),
+                    &s.scene.load_image(j)?,
+                ))
+            })
+            .collect::<Result<_>>()?
+    } else {
+        Vec::new()
+    };
     let t0 = std::time::Instant::now();
     for (k, (stem, cam, row)) in jobs.iter().enumerate() {
-        let r = render_camera(
-            &ck.model, &ck.params, &s.tracer, cam, gamma, *row, background,
-        )?;
+        let r = match a.method {
+            Method::Model => render_camera(
+                &ck.model, &ck.params, &s.tracer, cam, gamma, *row, background,
+            )?,
+            Method::Ulr => render_ulr(&s.tracer, &sources, cam, background),
+        };
         let base = a.out.join(stem);
         if let Some(parent) = base.parent() {
             std::fs::create_dir_all(parent)

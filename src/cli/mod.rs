@@ -6,6 +6,7 @@ use std::process::ExitCode;
 
 pub mod ablate;
 pub mod batch;
+pub mod bench_quality;
 pub mod cast;
 pub mod common;
 pub mod compare;
@@ -57,6 +58,8 @@ pub enum Command {
     Subdivide(decimate::SubdivideArgs),
     /// Train the paper's ablations and the vertex-feature baseline; write a comparison table.
     Ablate(ablate::Args),
+    /// Run time against error: train configurations for a time budget, write bench.csv and pareto.png
+    BenchQuality(bench_quality::Args),
 }
 
 /// Run a parsed command line. `Ok(code)` is the process exit code; errors exit with 2.
@@ -89,5 +92,6 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Decimate(a) => decimate::run(a),
         Command::Subdivide(a) => decimate::run_subdivide(a),
         Command::Ablate(a) => ablate::run(a),
+        Command::BenchQuality(a) => bench_quality::run(a),
     }
 }

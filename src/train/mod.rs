@@ -16,6 +16,7 @@
 
 pub mod ablate;
 pub mod adam;
+pub mod bench_quality;
 pub mod config;
 pub mod divergence;
 pub mod memory;

@@ -1,0 +1,55 @@
+//! `xscale bench-quality --scene DIR --out DIR [--minutes M] [--configs a,b] [--list]`: run time
+//! against error (`train/bench_quality.rs`).
+
+use crate::train::bench_quality::{bench_quality, CONFIGS};
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+#[derive(clap::Args, Debug)]
+pub struct Args {
+    /// Scene directory (it must hold views out for evaluation).
+    #[arg(long, required_unless_present = "list")]
+    pub scene: Option<PathBuf>,
+    /// Output folder: bench.csv, pareto.png.
+    #[arg(long, required_unless_present = "list")]
+    pub out: Option<PathBuf>,
+    /// Training wall-clock budget per configuration, in minutes.
+    #[arg(long, default_value_t = 1.0)]
+    pub minutes: f64,
+    /// Comma-separated configurations (default: all; see --list).
+    #[arg(long, value_delimiter = ',')]
+    pub configs: Vec<String>,
+    /// List the configurations and exit.
+    #[arg(long)]
+    pub list: bool,
+}
+
+pub fn run(a: Args) -> anyhow::Result<ExitCode> {
+    if a.list {
+        for (n, d) in CONFIGS {
+            println!("{n:<14} {d}");
+        }
+        println!(
+            "{:<14} the no-learning ULR baseline (nothing trained)",
+            "ulr"
+        );
+        return Ok(ExitCode::SUCCESS);
+    }
+    let configs: Vec<String> = if a.configs.is_empty() {
+        CONFIGS
+            .iter()
+            .map(|c| c.0.to_string())
+            .chain(["ulr".to_string()])
+            .collect()
+    } else {
+        a.configs.clone()
+    };
+    let (scene, out) = (a.scene.unwrap(), a.out.unwrap());
+    bench_quality(&scene, &out, &configs, a.minutes, &mut |m| eprintln!("{m}"))?;
+    eprintln!(
+        "wrote {} and {}",
+        out.join("bench.csv").display(),
+        out.join("pareto.png").display()
+    );
+    Ok(ExitCode::SUCCESS)
+}

@@ -1,0 +1,262 @@
+//! `xscale bench-quality`: run time against error. Trains each configuration for the same
+//! wall-clock budget on one scene, evaluates the held-out views at `budget · 2^-k` (k = 5 … 0;
+//! evaluation time is not counted), and writes `bench.csv` (appended as it goes), `pareto.png`
+//! (masked PSNR against seconds, one curve per configuration, the Pareto front marked) and a
+//! summary: the front, and the best configuration for each time budget.
+//!
+//! Configurations ([`CONFIGS`]): the presets, and the `cpu` preset with one change each (table
+//! size, batch size, γ, deformation), plus `ulr`, the no-learning baseline (its time is the time
+//! it takes to render the held-out views; nothing is trained). f32 against f64 arithmetic is not
+//! a configuration yet: the training step exists in f32 only.
+
+use crate::eval::plot::{pareto_front, pareto_png, Curve};
+use crate::eval::protocol::{mean_score, scale_summary, score_rendered};
+use crate::model::params::Grads;
+use crate::train::config::RunConfig;
+use crate::train::sampler::sample_batch;
+use crate::train::setup::{prepare, resolve_levels};
+use crate::train::trainer::{evaluate, TrainState};
+use anyhow::{bail, Context, Result};
+use std::io::Write;
+use std::path::Path;
+use std::time::Instant;
+
+/// Every configuration: name and what it is.
+pub const CONFIGS: [(&str, &str); 9] = [
+    (
+        "tiny",
+        "the tiny preset (4 levels, 2^12 table): a smoke test",
+    ),
+    ("cpu", "the cpu preset (default)"),
+    ("paper", "the paper preset (official code's settings)"),
+    (
+        "cpu-table17",
+        "cpu with log2_table_size = 17 (a quarter of the table)",
+    ),
+    (
+        "cpu-table21",
+        "cpu with log2_table_size = 21 (4x the table)",
+    ),
+    ("cpu-batch1k", "cpu with 1,024-pixel batches"),
+    ("cpu-batch16k", "cpu with 16,384-pixel batches"),
+    ("cpu-gamma1", "cpu with gamma = 1 (no multisampling)"),
+    ("cpu-no-deform", "cpu without the deformation xi"),
+];
+
+/// The run configuration of `name` (`None` for `ulr`).
+pub fn config(name: &str) -> Result<Option<RunConfig>> {
+    let cpu = || RunConfig::preset("cpu");
+    let c = match name {
+        "ulr" => return Ok(None),
+        "tiny" | "cpu" | "paper" => RunConfig::preset(name)?,
+        "cpu-table17" | "cpu-table21" => {
+            let mut c = cpu()?;
+            c.model.grid_h.log2_table_size = if name == "cpu-table17" { 17 } else { 21 };
+            c
+        }
+        "cpu-batch1k" | "cpu-batch16k" => {
+            let mut c = cpu()?;
+            c.train.batch_pixels = if name == "cpu-batch1k" { 1024 } else { 16384 };
+            c
+        }
+        "cpu-gamma1" => {
+            let mut c = cpu()?;
+            c.model.gamma = 1;
+            c
+        }
+        "cpu-no-deform" => {
+            let mut c = cpu()?;
+            c.model.deform.enabled = false;
+            c
+        }
+        _ => bail!(
+            "unknown configuration {name:?}: expected some of {}, ulr",
+            CONFIGS.map(|c| c.0).join(", ")
+        ),
+    };
+    Ok(Some(c))
+}
+
+/// One evaluation.
+#[derive(Clone, Debug)]
+pub struct Row {
+    pub config: String,
+    pub setup_s: f64,
+    pub wall_s: f64,
+    pub step: u64,
+    pub psnr_masked: f64,
+    pub ssim_masked: f64,
+    pub psnr_near: f64,
+    pub psnr_far: f64,
+}
+
+const HEADER: &str = "config,setup_s,wall_s,step,psnr_masked,ssim_masked,psnr_near,psnr_far";
+
+impl Row {
+    fn csv(&self) -> String {
+        format!(
+            "{},{:.3},{:.3},{},{:.4},{:.5},{:.4},{:.4}",
+            self.config,
+            self.setup_s,
+            self.wall_s,
+            self.step,
+            self.psnr_masked,
+            self.ssim_masked,
+            self.psnr_near,
+            self.psnr_far
+        )
+    }
+}
+
+fn near_far(scores: &[crate::eval::protocol::ViewScore]) -> (f64, f64) {
+    match scale_summary(scores).near_far {
+        Some((_, n, f)) => (n.mean.psnr_masked, f.mean.psnr_masked),
+        None => (f64::NAN, f64::NAN),
+    }
+}
+
+/// Train `name` for `budget_s` seconds on `scene`, evaluating at `budget · 2^-k`.
+fn bench_one(scene: &Path, name: &str, budget_s: f64, log: &mut dyn FnMut(Row)) -> Result<()> {
+    let t_setup = Instant::now();
+    let Some(mut cfg) = config(name)? else {
+        // ULR: render the held-out views from the training photos; its time is that render.
+        let opts = crate::scene::LoadOptions::default();
+        let sc = crate::scene::Scene::load(scene, &opts)?;
+        let tracer = crate::raycast::Tracer::new(&sc.mesh, &sc.normalization)?;
+        let sources: Vec<crate::render::ulr::Source> = sc
+            .train()
+            .iter()
+            .map(|&j| {
+                Ok(crate::render::ulr::Source::new(
+                    sc.views[j].camera.clone(),
+                    &sc.load_image(j)?,
+                ))
+            })
+            .collect::<Result<_>>()?;
+        let setup_s = t_setup.elapsed().as_secs_f64();
+        let t0 = Instant::now();
+        let mut scores = Vec::new();
+        for &i in &sc.test {
+            let r = crate::render::ulr::render_ulr(
+                &tracer,
+                &sources,
+                &sc.views[i].camera,
+                sc.background,
+            );
+            scores.push(score_rendered(&sc, i, r, sc.background)?.scored.score);
+        }
+        let m = mean_score(&scores);
+        let (pn, pf) = near_far(&scores);
+        log(Row {
+            config: name.into(),
+            setup_s,
+            wall_s: t0.elapsed().as_secs_f64(),
+            step: 0,
+            psnr_masked: m.psnr_masked,
+            ssim_masked: m.ssim_masked,
+            psnr_near: pn,
+            psnr_far: pf,
+        });
+        return Ok(());
+    };
+    let prepared = prepare(scene, &cfg, true, &mut |_| {})?;
+    if prepared.scene.test.is_empty() {
+        bail!(
+            "{}: the scene holds no view out to evaluate",
+            scene.display()
+        );
+    }
+    resolve_levels(&mut cfg, &prepared.samples);
+    cfg.train.steps = u64::MAX / 4;
+    let mut state = TrainState::init(cfg, &prepared)?;
+    let mut grads = Grads::new(&state.ckpt.model.layout);
+    grads.inputs = false;
+    let setup_s = t_setup.elapsed().as_secs_f64();
+    let (seed, px) = (state.cfg.train.seed, state.cfg.train.batch_pixels);
+    let mut trained = 0.0f64;
+    for k in (0..=5).rev() {
+        let until = budget_s / f64::from(1u32 << k);
+        while trained < until {
+            let t = Instant::now();
+            let b = sample_batch(&prepared.samples, &prepared.tracer, seed, state.step, px);
+            let st = state.step(&b, &mut grads)?;
+            trained += t.elapsed().as_secs_f64();
+            if !st.loss.is_finite() {
+                bail!("{name}: the loss became {} at step {}", st.loss, state.step);
+            }
+        }
+        let scores = evaluate(&state, &prepared, 0, None)?;
+        let m = mean_score(&scores);
+        let (pn, pf) = near_far(&scores);
+        log(Row {
+            config: name.into(),
+            setup_s,
+            wall_s: trained,
+            step: state.step,
+            psnr_masked: m.psnr_masked,
+            ssim_masked: m.ssim_masked,
+            psnr_near: pn,
+            psnr_far: pf,
+        });
+    }
+    Ok(())
+}
+
+/// Run the benchmark; returns every row (also in `OUT/bench.csv`) and writes `OUT/pareto.png`.
+pub fn bench_quality(
+    scene: &Path,
+    out: &Path,
+    configs: &[String],
+    minutes: f64,
+    say: &mut dyn FnMut(String),
+) -> Result<Vec<Row>> {
+    if !(minutes > 0.0 && minutes.is_finite()) {
+        bail!("--minutes {minutes}: expected a positive number");
+    }
+    for c in configs {
+        config(c)?;
+    }
+    std::fs::create_dir_all(out).with_context(|| format!("{}: cannot create", out.display()))?;
+    let csv_path = out.join("bench.csv");
+    let mut csv = std::fs::File::create(&csv_path)
+        .with_context(|| format!("{}: cannot create", csv_path.display()))?;
+    writeln!(csv, "{HEADER}")?;
+    let mut rows: Vec<Row> = Vec::new();
+    for name in configs {
+        say(format!("== {name} ({:.1} min of training)", minutes));
+        let mut log = |r: Row| {
+            let _ = writeln!(csv, "{}", r.csv());
+            let _ = csv.flush();
+            say(format!(
+                "   {:>8.1} s  step {:>6}  masked PSNR {:.2}  SSIM {:.4}  (near {:.2}, far {:.2})",
+                r.wall_s, r.step, r.psnr_masked, r.ssim_masked, r.psnr_near, r.psnr_far
+            ));
+            rows.push(r);
+        };
+        bench_one(scene, name, minutes * 60.0, &mut log)
+            .with_context(|| format!("configuration {name}"))?;
+    }
+    let curves: Vec<Curve> = configs
+        .iter()
+        .map(|c| Curve {
+            name: c.clone(),
+            points: rows
+                .iter()
+                .filter(|r| &r.config == c)
+                .map(|r| (r.wall_s.max(1e-3), r.psnr_masked))
+                .collect(),
+        })
+        .collect();
+    let title = format!(
+        "{}: held-out masked PSNR against training time",
+        scene
+            .file_name()
+            .map_or("scene".into(), |n| n.to_string_lossy().to_string())
+    );
+    pareto_png(&out.join("pareto.png"), &title, &curves)?;
+    say("Pareto front (no configuration is better in less time):".into());
+    for (t, p, c) in pareto_front(&curves) {
+        say(format!("  {t:>8.1} s  {p:6.2} dB  {c}"));
+    }
+    Ok(rows)
+}

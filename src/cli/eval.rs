@@ -6,7 +6,7 @@ use super::common::{select_views, ModelArgs};
 use crate::eval::protocol::{
     evaluate_view, mean_score, scale_summary, scale_table, score_rendered, table, write_evaluated,
 };
-use crate::render::ulr::{render_ulr, Source};
+use crate::render::ulr::{render_ulr, training_sources, Source};
 use anyhow::{Context, Result};
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -54,21 +54,12 @@ pub fn run(a: Args) -> Result<ExitCode> {
     }
     let background = a.background.unwrap_or(s.scene.background);
     let sources: Vec<Source> = if a.method == Method::Ulr {
-        let train = s.scene.train();
         eprintln!(
             "ULR baseline: blending the {} training photos (k = {})",
-            train.len(),
+            s.scene.train().len(),
             crate::render::ulr::K
         );
-        train
-            .iter()
-            .map(|&j| {
-                Ok(Source::new(
-                    s.scene.views[j].camera.clone(),
-                    &s.scene.load_image(j)?,
-                ))
-            })
-            .collect::<Result<_>>()?
+        training_sources(&s.scene)?
     } else {
         Vec::new()
     };

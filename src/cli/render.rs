@@ -7,7 +7,7 @@
 use super::common::{select_views, ModelArgs};
 use super::eval::Method;
 use crate::eval::protocol::output_name;
-use crate::render::ulr::{render_ulr, Source};
+use crate::render::ulr::{render_ulr, training_sources, Source};
 use crate::render::{fly_camera, footprint_image, look_at_point, mask_image, render_camera};
 use crate::scene::image::{write_exr, write_png8};
 use crate::scene::{Camera, Image};
@@ -134,16 +134,7 @@ pub fn run(a: Args) -> Result<ExitCode> {
         );
     }
     let sources: Vec<Source> = if a.method == Method::Ulr {
-        s.scene
-            .train()
-            .iter()
-            .map(|&j| {
-                Ok(Source::new(
-                    s.scene.views[j].camera.clone(),
-                    &s.scene.load_image(j)?,
-                ))
-            })
-            .collect::<Result<_>>()?
+        training_sources(&s.scene)?
     } else {
         Vec::new()
     };

@@ -49,6 +49,20 @@ fn to_srgb(v: f32) -> f32 {
     }
 }
 
+/// The training photos of a scene as ULR sources.
+pub fn training_sources(scene: &crate::scene::Scene) -> anyhow::Result<Vec<Source>> {
+    scene
+        .train()
+        .iter()
+        .map(|&j| {
+            Ok(Source::new(
+                scene.views[j].camera.clone(),
+                &scene.load_image(j)?,
+            ))
+        })
+        .collect()
+}
+
 impl Source {
     /// A photo (sRGB-encoded values, as loaded) and its camera.
     pub fn new(camera: Camera, photo: &Image) -> Source {

@@ -513,16 +513,7 @@ fn ulr_variant(ctx: &Shared, say: &dyn Fn(String)) -> Result<VariantResult> {
     say(format!("== ulr: {}", v.description()));
     let sc = Scene::load(ctx.scene, &ctx.load)?;
     let tracer = crate::raycast::Tracer::new(&sc.mesh, &sc.normalization)?;
-    let sources: Vec<crate::render::ulr::Source> = sc
-        .train()
-        .iter()
-        .map(|&j| {
-            Ok(crate::render::ulr::Source::new(
-                sc.views[j].camera.clone(),
-                &sc.load_image(j)?,
-            ))
-        })
-        .collect::<Result<_>>()?;
+    let sources = crate::render::ulr::training_sources(&sc)?;
     let mut views = Vec::new();
     for &i in &sc.test {
         let r =

@@ -123,16 +123,7 @@ fn bench_one(scene: &Path, name: &str, budget_s: f64, log: &mut dyn FnMut(Row)) 
         let opts = crate::scene::LoadOptions::default();
         let sc = crate::scene::Scene::load(scene, &opts)?;
         let tracer = crate::raycast::Tracer::new(&sc.mesh, &sc.normalization)?;
-        let sources: Vec<crate::render::ulr::Source> = sc
-            .train()
-            .iter()
-            .map(|&j| {
-                Ok(crate::render::ulr::Source::new(
-                    sc.views[j].camera.clone(),
-                    &sc.load_image(j)?,
-                ))
-            })
-            .collect::<Result<_>>()?;
+        let sources = crate::render::ulr::training_sources(&sc)?;
         let setup_s = t_setup.elapsed().as_secs_f64();
         let t0 = Instant::now();
         let mut scores = Vec::new();

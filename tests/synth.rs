@@ -528,3 +528,67 @@ fn large_preset_is_large_and_lean() {
     }
     assert!(trees[0] == trees[1], "same seed, different bytes");
 }
+
+/// `cross` measures reach, not the model: its finest texture (grain at half the tile period) is
+/// 2–3 nominal close-up pixels whatever a model's settings, aerial and close-up footprints are
+/// ≥ 20× apart, the mesh is the true surface, and the default held-out views (every
+/// `HOLDOUT_EVERY`th) include a close-up of each material: a wall, a roof, pavement and grass.
+#[test]
+fn cross_preset_holds_out_a_close_up_of_each_material() {
+    use synth::surface::SurfaceKind;
+    let s = synth::build(Preset::Cross, 1);
+    let p = &s.params;
+    let (fx, _, _, _) =
+        synth::cameras::intrinsics(p.cameras.width, p.cameras.height, p.cameras.hfov_deg);
+    let nominal = p.cameras.close_distance / fx;
+    let grain = 0.5 * p.look.fine_period;
+    assert!(
+        (2.0..=3.0).contains(&(grain / nominal)),
+        "finest detail {grain} m vs close-up pixel {nominal} m"
+    );
+    assert_eq!(p.proxy.stride, 1);
+    assert_eq!(p.proxy.displacement, 0.0);
+    assert_eq!(
+        s.proxy.triangles.len(),
+        2 * s.truth.terrain.n * s.truth.terrain.n + 10 * s.truth.buildings.len()
+    );
+    let min_aerial = s
+        .views
+        .iter()
+        .filter(|v| v.kind == ViewKind::Aerial)
+        .map(|v| v.distance)
+        .fold(f64::INFINITY, f64::min);
+    let max_close = s
+        .views
+        .iter()
+        .filter(|v| v.kind == ViewKind::Close)
+        .map(|v| v.distance)
+        .fold(0.0, f64::max);
+    assert!(max_close <= min_aerial / 20.0);
+
+    let shader = s.shader();
+    let mut seen = BTreeMap::new();
+    for i in (0..s.views.len()).step_by(scene::HOLDOUT_EVERY) {
+        let v = &s.views[i];
+        if v.kind != ViewKind::Close {
+            continue;
+        }
+        let o = v.camera.center();
+        let h = s
+            .truth
+            .trace(o, (v.target - o).normalize(), 0.0, f64::INFINITY)
+            .unwrap();
+        let material = match h.kind {
+            SurfaceKind::Wall { .. } => "wall",
+            SurfaceKind::Roof { .. } => "roof",
+            SurfaceKind::Terrain if shader.paved(h.pos.x, h.pos.y) => "pavement",
+            SurfaceKind::Terrain => "grass",
+        };
+        *seen.entry(material).or_insert(0) += 1;
+    }
+    assert_eq!(
+        seen.keys().copied().collect::<Vec<_>>(),
+        ["grass", "pavement", "roof", "wall"],
+        "held-out close-ups by material: {seen:?}"
+    );
+}

@@ -78,7 +78,33 @@ pub struct CameraParams {
     #[serde(skip_serializing_if = "is_one")]
     pub close_cluster: usize,
     pub min_hit_fraction: f64,
+    /// Close-up cluster `k` looks at `CLOSE_MATERIALS[k % 7]` (so the held-out close-ups cover
+    /// every material), instead of cycling target types with each placement attempt.
+    #[serde(skip_serializing_if = "std::ops::Not::not")]
+    pub close_by_material: bool,
 }
+
+/// What a close-up cluster looks at.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Target {
+    Wall,
+    Roof,
+    /// The ground where the terrain is paved (`true`) or grass (`false`).
+    Ground(bool),
+}
+
+/// The cycle of close-up targets with `close_by_material`: with 7 clusters of 4 interleaved
+/// among as many aerial views, the every-7th held-out views are close-ups of clusters 0, 2, 4, 6:
+/// a wall, a roof, grass and pavement.
+pub const CLOSE_MATERIALS: [Target; 7] = [
+    Target::Wall,
+    Target::Ground(true),
+    Target::Roof,
+    Target::Wall,
+    Target::Ground(false),
+    Target::Roof,
+    Target::Ground(true),
+];
 
 fn camera(p: &CameraParams, eye: DVec3, target: DVec3) -> Camera {
     let (fx, fy, cx, cy) = intrinsics(p.width, p.height, p.hfov_deg);
@@ -129,7 +155,14 @@ fn is_one(n: &usize) -> bool {
 /// Place every camera. `close[i]` says whether view i is a close-up (interleaved by the caller).
 /// Close-up `c` belongs to cluster `c / close_cluster`: the first of a cluster picks a target,
 /// the others look at the same target from nearby eyes ([`place_near`]).
-pub fn place(seed: u64, p: &CameraParams, surface: &TrueSurface, close: &[bool]) -> Vec<Placed> {
+/// `paved(x, y)` says whether the terrain at (x, y) is pavement (used with `close_by_material`).
+pub fn place(
+    seed: u64,
+    p: &CameraParams,
+    surface: &TrueSurface,
+    close: &[bool],
+    paved: &dyn Fn(f64, f64) -> bool,
+) -> Vec<Placed> {
     let mut out = Vec::with_capacity(close.len());
     let (mut ia, mut ic) = (0usize, 0usize);
     let cluster = p.close_cluster.max(1);
@@ -140,7 +173,7 @@ pub fn place(seed: u64, p: &CameraParams, surface: &TrueSurface, close: &[bool])
             let c = ic - 1;
             let placed = match &anchor {
                 Some(a) if c % cluster != 0 => place_near(seed, p, surface, a, c),
-                _ => place_close(seed, p, surface, c / cluster),
+                _ => place_close(seed, p, surface, c / cluster, paved),
             };
             if c % cluster == 0 {
                 anchor = Some(placed.clone());
@@ -195,7 +228,13 @@ fn place_aerial(seed: u64, p: &CameraParams, s: &TrueSurface, k: usize) -> Place
     fallback.expect("no admissible aerial camera")
 }
 
-fn place_close(seed: u64, p: &CameraParams, s: &TrueSurface, k: usize) -> Placed {
+fn place_close(
+    seed: u64,
+    p: &CameraParams,
+    s: &TrueSurface,
+    k: usize,
+    paved: &dyn Fn(f64, f64) -> bool,
+) -> Placed {
     let r = |attempt: u64, c: u64| {
         rng::uniform_f64(
             seed,
@@ -207,8 +246,17 @@ fn place_close(seed: u64, p: &CameraParams, s: &TrueSurface, k: usize) -> Placed
     let mut fallback = None;
     let d = p.close_distance;
     for attempt in 0..MAX_ATTEMPTS {
-        // Cycle through target types: wall, ground, roof, wall, ground, …
-        let kind = (k + attempt as usize) % 5;
+        // Cycle through target types: wall, ground, roof, wall, ground, … (with each attempt,
+        // unless `close_by_material` fixes the cluster's target).
+        let want = p
+            .close_by_material
+            .then(|| CLOSE_MATERIALS[k % CLOSE_MATERIALS.len()]);
+        let kind = match want {
+            Some(Target::Wall) => 0,
+            Some(Target::Roof) => 2,
+            Some(Target::Ground(_)) => 1,
+            None => (k + attempt as usize) % 5,
+        };
         let (target, eye) = if (kind == 0 || kind == 3) && !s.buildings.is_empty() {
             // A wall: a point on one face, the camera in front of it, tilted down 15–30°.
             let b = &s.buildings[(r(attempt, 0) * s.buildings.len() as f64) as usize];
@@ -250,6 +298,13 @@ fn place_close(seed: u64, p: &CameraParams, s: &TrueSurface, k: usize) -> Placed
             let Some(hit) = s.trace(o, DVec3::NEG_Z, 0.0, f64::INFINITY) else {
                 continue;
             };
+            if let Some(Target::Ground(pave)) = want {
+                // The wanted material, and open ground (not a roof) around the target.
+                let open = s.buildings.iter().all(|b| !b.contains(hit.pos, 2.0 * d));
+                if paved(tx, ty) != pave || !open {
+                    continue;
+                }
+            }
             let t = hit.pos;
             let az = std::f64::consts::TAU * r(attempt, 3);
             let el = (45.0 + 35.0 * r(attempt, 4)).to_radians();

@@ -39,6 +39,12 @@ pub enum Preset {
     /// learn, not how far a model's resolution reaches: it cannot show that a grid too coarse for
     /// the close-ups blurs them.
     Small,
+    /// 56 views (28 aerial, 28 close-up in 7 clusters of 4: walls, roofs, pavement and grass, each
+    /// with a held-out close-up) at 200×150,
+    /// with the exact mesh, and texture detail that reaches 2.5× the close-ups' nominal pixel
+    /// footprint whatever a model's settings (tiles 5×, grain 2.5×): it measures how far a model
+    /// reaches across scales. Aerial and close-up footprints are ~30× apart (medians).
+    Cross,
     /// 104 views (64 aerial, 40 close-up) at 1024×768: 81.8 million pixels, one ray per pixel
     /// (cheap), COLMAP and transforms.json layouts only (no MVSNet copy of the images). For
     /// memory and throughput at size, not for quality.
@@ -50,6 +56,7 @@ impl Preset {
         match self {
             Preset::Tiny => "tiny",
             Preset::Small => "small",
+            Preset::Cross => "cross",
             Preset::Large => "large",
         }
     }
@@ -107,6 +114,7 @@ impl Params {
         let (width, height, n_aerial, n_close, cells, close_cluster) = match p {
             Preset::Tiny => (64, 48, 4, 4, 256, 1),
             Preset::Small => (200, 150, 24, 16, 512, 4),
+            Preset::Cross => (200, 150, 28, 28, 512, 4),
             Preset::Large => (1024, 768, 64, 40, 512, 4),
         };
         let hfov_deg = 60.0;
@@ -114,13 +122,16 @@ impl Params {
         // Close-ups at 1/30 of the aerial distance (≤ 1/20 required): per-view median footprints then differ ≥ 20× too.
         let close_distance = aerial_distance / 30.0;
         let (fx, _, _, _) = cameras::intrinsics(width, height, hfov_deg);
-        // Fine pattern period: 3× the nominal close-up pixel footprint (tiny), or — for `small`,
+        // Fine pattern period: 3× the nominal close-up pixel footprint (tiny), 5× (`cross`: its
+        // grain at half the period is 2.5 close-up pixels, the finest detail the cameras see
+        // whatever the model), or — for `small`,
         // the training benchmark — at least 2.5 cells of the `cpu` preset's finest hash level
         // (2048 cells across the 200 m scene, 0.24 m), so the benchmark measures what can be
         // learnt, not detail below the model's resolution. Aerial views (0.65 m footprint) still
         // cannot resolve it; close-ups see it at ~10 pixels per period.
         let fine_period = match p {
             Preset::Tiny => 3.0 * close_distance / fx,
+            Preset::Cross => 5.0 * close_distance / fx,
             Preset::Small | Preset::Large => (3.0 * close_distance / fx).max(2.5 * 200.0 / 2048.0),
         };
         let el: f64 = 50.0f64.to_radians();
@@ -159,12 +170,21 @@ impl Params {
                 close_region: 40.0,
                 close_cluster,
                 min_hit_fraction: 0.97,
+                close_by_material: p == Preset::Cross,
             },
             // The proxy: `tiny` is a coarse, visibly displaced reconstruction (1/8 resolution,
             // ±0.6 m ≈ an aerial pixel). `small` is what an MVS run that used the close-ups
             // would give: 1/2 resolution, ±5 cm (≈ 2 close-up pixels), so a held-out close-up's
             // surface is consistent with its training neighbours to a few of their pixels.
+            // `cross` gets the exact surface (full resolution, no displacement, no shift): it
+            // measures reach across scales, not the cost of a wrong mesh.
             proxy: match p {
+                Preset::Cross => ProxyParams {
+                    stride: 1,
+                    displacement: 0.0,
+                    displacement_wavelength: 60.0,
+                    building_shift: 0.0,
+                },
                 Preset::Tiny => ProxyParams {
                     stride: 8,
                     displacement: 0.6,
@@ -312,7 +332,13 @@ pub fn build_with(preset: Preset, params: Params, seed: u64) -> Synth {
     };
     let proxy = proxy::proxy_mesh(seed, &params.proxy, &truth);
     let close = interleave(params.cameras.n_aerial, params.cameras.n_close);
-    let views = cameras::place(seed, &params.cameras, &truth, &close);
+    let shader = Shader {
+        surface: &truth,
+        look: &params.look,
+        seed,
+    };
+    let paved = |x: f64, y: f64| shader.paved(x, y);
+    let views = cameras::place(seed, &params.cameras, &truth, &close, &paved);
     let names = (0..views.len()).map(|i| format!("{i:04}.png")).collect();
     Synth {
         preset,

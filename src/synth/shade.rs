@@ -117,19 +117,25 @@ pub struct Shader<'a> {
 }
 
 impl Shader<'_> {
-    /// Terrain albedo at (x, y) for a surface footprint `fp` (0 = full detail), and material.
-    pub fn terrain_material(&self, x: f64, y: f64, fp: f64) -> Material {
-        let (seed, l) = (self.seed, self.look);
+    /// Whether the terrain at (x, y) is pavement (else grass / soil).
+    pub fn paved(&self, x: f64, y: f64) -> bool {
+        let l = self.look;
         let region = noise::value(
-            seed,
+            self.seed,
             stream::REGION,
             x / l.coarse_wavelength,
             y / l.coarse_wavelength,
         );
+        region > 0.56
+    }
+
+    /// Terrain albedo at (x, y) for a surface footprint `fp` (0 = full detail), and material.
+    pub fn terrain_material(&self, x: f64, y: f64, fp: f64) -> Material {
+        let (seed, l) = (self.seed, self.look);
         let tint = noise::centred(seed, stream::TINT, x, y, 0.5 * l.coarse_wavelength);
         let mid = octave(seed, stream::MID_A, x, y, l.mid_wavelength, fp)
             + 0.8 * octave(seed, stream::MID_B, x, y, 0.25 * l.mid_wavelength, fp);
-        if region > 0.56 {
+        if self.paved(x, y) {
             // Pavement: warm grey, square tiles at the fine period.
             let base = DVec3::new(0.62, 0.58, 0.52) + DVec3::new(0.10, 0.06, 0.0) * tint * 2.0;
             let t = tiles(

@@ -39,6 +39,10 @@ pub struct Args {
     /// Accept NaN where both files have it (by default any NaN fails its tensor).
     #[arg(long)]
     pub allow_nan: bool,
+    /// Ignore the `kink.slack.*` tensors of an f64 dump: elements a correct backend may get wrong
+    /// at a ReLU or L1 kink then fail like any other (docs/oracle.md §7).
+    #[arg(long)]
+    pub no_kink_slack: bool,
     /// Print only failures and the summary.
     #[arg(long, short)]
     pub quiet: bool,
@@ -58,6 +62,9 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     }
     if args.allow_nan {
         tol.allow_nan = true;
+    }
+    if args.no_kink_slack {
+        tol.kink_slack = false;
     }
     if args.tolerances.is_none() && !limits_given {
         // Nothing said: the strictest rule. Every tensor must be exactly equal, and a tensor in

@@ -2,7 +2,7 @@
 //! checkpoint on a batch and write every intermediate, the loss and every gradient (SPEC §6) —
 //! the golden file a backend compares against with `xscale compare`.
 
-use crate::model::checkpoint::{dump, Checkpoint};
+use crate::model::checkpoint::{dump_with, Checkpoint};
 use crate::model::Batch;
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -27,14 +27,28 @@ pub struct Args {
     /// Instantiate the model in this precision (the dump's float dtype).
     #[arg(long, value_enum, default_value = "f64")]
     pub precision: Precision,
+    /// f64 dumps: pixels whose relative distance to a ReLU or L1 kink is at most this are kink
+    /// pixels, and the dump carries how far a correct backend's gradients may be off there
+    /// (`kink.*` tensors, docs/oracle.md §7); 0 writes no kink tensors.
+    #[arg(long, default_value_t = crate::model::kink::DEFAULT_THRESHOLD)]
+    pub kink_threshold: f64,
 }
 
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
+    anyhow::ensure!(
+        args.kink_threshold >= 0.0 && args.kink_threshold.is_finite(),
+        "--kink-threshold {}: must be a finite number >= 0",
+        args.kink_threshold
+    );
     let ckpt = Checkpoint::load(&args.checkpoint)?;
     let batch = Batch::load(&args.batch)?;
     let file = match args.precision {
-        Precision::F64 => dump::<f64>(&ckpt, &batch)?,
-        Precision::F32 => dump::<f32>(&ckpt, &batch)?,
+        Precision::F64 => dump_with::<f64>(
+            &ckpt,
+            &batch,
+            (args.kink_threshold > 0.0).then_some(args.kink_threshold),
+        )?,
+        Precision::F32 => dump_with::<f32>(&ckpt, &batch, None)?,
     };
     file.write_atomic(&args.out)?;
     let loss = file.get("loss")?.to_f64()?[0];
@@ -45,5 +59,12 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         batch.n_pixels(),
         args.precision
     );
+    if let Ok(k) = file.get("kink.pixels") {
+        eprintln!(
+            "kink pixels: {} (relative margin <= {:e})",
+            k.numel(),
+            args.kink_threshold
+        );
+    }
     Ok(ExitCode::SUCCESS)
 }

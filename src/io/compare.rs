@@ -40,6 +40,15 @@
 //! file. Unreadable files and bad tolerance files are errors of [`compare_files`] (exit 2 from the
 //! CLI). `strict = true` also makes a tensor with no matching rule (and no default) require exact
 //! equality (ULP distance 0); without `strict` such a tensor is reported as "norule" and never fails.
+//!
+//! **Kinks** (`model/kink.rs`, `docs/oracle.md` §7): tensors named `kink.*` are not data but what
+//! an f64 dump says about its own kinks; they are never compared, never "only in one file". A
+//! `kink.slack.<name>` tensor in either file (the larger where both have one) widens the limits of
+//! tensor `<name>` element by element: an element outside its rule still passes if `abs − slack`
+//! is within it (and neither value is NaN) — the gradient a correct backend may have because it evaluated a
+//! ReLU unit or an L1 residual of a *kink pixel* on the other side of its kink. Such elements are
+//! counted apart (`n_kink`), the report shows the number of kink pixels, and `kink_slack = false`
+//! in the tolerance file (`--no-kink-slack`) turns the widening off.
 
 use super::tensors::{DType, Tensor, TensorFile};
 use anyhow::{bail, Context, Result};
@@ -139,7 +148,7 @@ impl Rule {
 /// pattern = "adam.*"
 /// ignore = true
 /// ```
-#[derive(Clone, Debug, Default, Deserialize, Serialize, PartialEq)]
+#[derive(Clone, Debug, Deserialize, Serialize, PartialEq)]
 #[serde(deny_unknown_fields)]
 pub struct Tolerances {
     #[serde(default)]
@@ -150,6 +159,34 @@ pub struct Tolerances {
     pub default: Option<Rule>,
     #[serde(default, rename = "rule")]
     pub rules: Vec<Rule>,
+    /// Use the files' `kink.slack.*` tensors (module doc). Default true.
+    #[serde(default = "yes", skip_serializing_if = "is_true")]
+    pub kink_slack: bool,
+}
+
+fn yes() -> bool {
+    true
+}
+
+fn is_true(b: &bool) -> bool {
+    *b
+}
+
+impl Default for Tolerances {
+    fn default() -> Self {
+        Tolerances {
+            strict: false,
+            allow_nan: false,
+            default: None,
+            rules: Vec::new(),
+            kink_slack: true,
+        }
+    }
+}
+
+/// Names of tensors that describe a dump's kinks rather than hold data (module doc).
+pub fn is_kink_meta(name: &str) -> bool {
+    name.starts_with("kink.")
 }
 
 impl Tolerances {
@@ -391,6 +428,8 @@ pub struct Stats {
     pub worst_fail: Option<Element>,
     /// Elements that are NaN in either file.
     pub n_nan: usize,
+    /// Elements outside the rule's limits that passed by their kink slack (module doc).
+    pub n_kink: usize,
 }
 
 /// Outcome for one tensor name.
@@ -439,6 +478,12 @@ pub struct Report {
     /// never affects the exit code).
     pub metadata_differs: Vec<String>,
     pub strict: bool,
+    /// Kink pixels the files report (`kink.pixels`; the larger count if both do), with the
+    /// threshold that made them; `None` if neither file has kink tensors.
+    pub kink_pixels: Option<usize>,
+    pub kink_threshold: Option<f64>,
+    /// Whether `kink.slack.*` widened the limits (module doc).
+    pub kink_slack: bool,
 }
 
 impl Report {
@@ -594,6 +639,23 @@ impl Report {
                 self.metadata_differs.join(", ")
             ));
         }
+        if let Some(k) = self.kink_pixels {
+            let (n, t) = self
+                .tensors
+                .iter()
+                .filter_map(|t| t.stats.as_ref().map(|s| s.n_kink))
+                .filter(|&n| n > 0)
+                .fold((0, 0), |(n, t), k| (n + k, t + 1));
+            out.push_str(&format!(
+                "kink pixels: {k} (relative margin <= {}); {}\n",
+                self.kink_threshold.map_or("?".into(), |t| format!("{t:e}")),
+                if self.kink_slack {
+                    format!("{n} elements in {t} tensors passed only by their kink slack")
+                } else {
+                    "kink slack not used (--no-kink-slack)".into()
+                }
+            ));
+        }
         for m in &self.missing_required {
             out.push_str(&format!("MISSING {m}\n"));
         }
@@ -644,6 +706,17 @@ fn fmt_ulp(x: u64) -> String {
 
 /// Compare two tensors of equal shape under an optional rule.
 pub fn compare_tensors(a: &Tensor, b: &Tensor, rule: Option<&Rule>) -> Stats {
+    compare_tensors_with_slack(a, b, rule, None)
+}
+
+/// [`compare_tensors`] where an element outside the rule also passes if its abs error is at most
+/// `slack[i]` (kink slack, module doc; `slack` has the tensors' element count).
+pub fn compare_tensors_with_slack(
+    a: &Tensor,
+    b: &Tensor,
+    rule: Option<&Rule>,
+    slack: Option<&[f64]>,
+) -> Stats {
     let mode = CompareIn::for_dtypes(a.dtype, b.dtype);
     let n = a.numel().min(b.numel());
     let peak = (0..n)
@@ -663,6 +736,7 @@ pub fn compare_tensors(a: &Tensor, b: &Tensor, rule: Option<&Rule>) -> Stats {
         n_fail: 0,
         worst_fail: None,
         n_nan: 0,
+        n_kink: 0,
     };
     let mut i_abs = None;
     let mut i_ulp = None;
@@ -684,7 +758,23 @@ pub fn compare_tensors(a: &Tensor, b: &Tensor, rule: Option<&Rule>) -> Stats {
             i_ulp = Some(i);
         }
         if let Some(r) = rule {
-            if !r.accepts_with_peak(&e, peak) || (nan && !r.allow_nan) {
+            let within = r.accepts_with_peak(&e, peak);
+            // The rule's limits on top of the slack: the backend's own rounding still counts.
+            let by_slack = !within
+                && !nan
+                && slack.is_some_and(|s| {
+                    e.abs <= s[i]
+                        || r.accepts_with_peak(
+                            &ElementError {
+                                abs: e.abs - s[i],
+                                ..e
+                            },
+                            peak,
+                        )
+                });
+            if !within && by_slack {
+                st.n_kink += 1;
+            } else if !within || (nan && !r.allow_nan) {
                 st.n_fail += 1;
                 let worse = match &i_fail {
                     None => true,
@@ -734,13 +824,13 @@ pub fn compare(a: &TensorFile, b: &TensorFile, tol: &Tolerances) -> Report {
         only_in_a: a
             .tensors
             .keys()
-            .filter(|k| !b.tensors.contains_key(*k))
+            .filter(|k| !b.tensors.contains_key(*k) && !is_kink_meta(k))
             .cloned()
             .collect(),
         only_in_b: b
             .tensors
             .keys()
-            .filter(|k| !a.tensors.contains_key(*k))
+            .filter(|k| !a.tensors.contains_key(*k) && !is_kink_meta(k))
             .cloned()
             .collect(),
         missing_required: Vec::new(),
@@ -752,6 +842,16 @@ pub fn compare(a: &TensorFile, b: &TensorFile, tol: &Tolerances) -> Report {
             .cloned()
             .collect(),
         strict: tol.strict,
+        kink_pixels: [a, b]
+            .iter()
+            .filter_map(|f| f.tensors.get("kink.pixels").map(|t| t.numel()))
+            .max(),
+        kink_threshold: [a, b]
+            .iter()
+            .filter_map(|f| f.tensors.get("kink.threshold"))
+            .filter_map(|t| t.to_f64().ok()?.first().copied())
+            .reduce(f64::max),
+        kink_slack: tol.kink_slack,
     };
     // Required rules: every tensor whose first matching rule is required must be in both files;
     // and a required rule must match at least one tensor present in both.
@@ -774,7 +874,7 @@ pub fn compare(a: &TensorFile, b: &TensorFile, tol: &Tolerances) -> Report {
         let any = a
             .tensors
             .keys()
-            .any(|k| b.tensors.contains_key(k) && glob_match(&r.pattern, k));
+            .any(|k| b.tensors.contains_key(k) && !is_kink_meta(k) && glob_match(&r.pattern, k));
         if !any {
             report.missing_required.push(format!(
                 "rule \"{}\" is required but no tensor in both files matches it",
@@ -786,6 +886,9 @@ pub fn compare(a: &TensorFile, b: &TensorFile, tol: &Tolerances) -> Report {
         let Some(tb) = b.tensors.get(name) else {
             continue;
         };
+        if is_kink_meta(name) {
+            continue;
+        }
         let rule = tol.rule_for(name);
         let is_default = rule.is_some()
             && tol.default.as_ref().map(|d| d as *const Rule) == rule.map(|r| r as *const Rule);
@@ -834,7 +937,12 @@ pub fn compare(a: &TensorFile, b: &TensorFile, tol: &Tolerances) -> Report {
                 }
                 e => e,
             };
-            let st = compare_tensors(ta, tb, effective);
+            let slack = if tol.kink_slack {
+                kink_slack(a, b, name, ta.numel(), &mut report.missing_required)
+            } else {
+                None
+            };
+            let st = compare_tensors_with_slack(ta, tb, effective, slack.as_deref());
             tr.status = match effective {
                 // A NaN fails even a tensor no rule covers, unless NaN is allowed.
                 None if st.n_nan > 0 && !tol.allow_nan => Status::Fail,
@@ -861,6 +969,35 @@ pub fn compare(a: &TensorFile, b: &TensorFile, tol: &Tolerances) -> Report {
         report.tensors.push(tr);
     }
     report
+}
+
+/// The kink slack of tensor `name` (`kink.slack.<name>` of either file, the larger where both
+/// have it); a slack tensor of the wrong size is reported as bad input and not used.
+fn kink_slack(
+    a: &TensorFile,
+    b: &TensorFile,
+    name: &str,
+    numel: usize,
+    problems: &mut Vec<String>,
+) -> Option<Vec<f64>> {
+    let key = format!("kink.slack.{name}");
+    let mut out: Option<Vec<f64>> = None;
+    for (f, which) in [(a, "A"), (b, "B")] {
+        let Some(t) = f.tensors.get(&key) else {
+            continue;
+        };
+        match t.to_f64() {
+            Ok(v) if v.len() == numel => match &mut out {
+                Some(o) => o.iter_mut().zip(&v).for_each(|(x, y)| *x = x.max(*y)),
+                None => out = Some(v),
+            },
+            _ => problems.push(format!(
+                "{key} in {which}: {} elements where {name} has {numel}",
+                t.numel()
+            )),
+        }
+    }
+    out
 }
 
 /// Read two files and compare them. Errors (unreadable file) name the file.

@@ -381,8 +381,24 @@ fn concat<R: Real>(
 }
 
 /// Evaluate a checkpoint on a batch in precision `R` and return the dump: inputs, every
-/// intermediate, the loss and every gradient (SPEC §6).
+/// intermediate, the loss and every gradient (SPEC §6). An f64 dump also carries the `kink.*`
+/// tensors at [`kink::DEFAULT_THRESHOLD`](crate::model::kink::DEFAULT_THRESHOLD) (see
+/// [`dump_with`]).
 pub fn dump<R: Real>(ckpt: &Checkpoint, batch: &Batch) -> Result<TensorFile> {
+    let kinks = (R::DTYPE == "F64").then_some(crate::model::kink::DEFAULT_THRESHOLD);
+    dump_with::<R>(ckpt, batch, kinks)
+}
+
+/// [`dump`] with the kink threshold given: `Some(t)` adds `kink.margin` `[N]` (each pixel's
+/// smallest relative distance to a ReLU or L1 kink), `kink.threshold` `[]`, `kink.pixels` `[K]`
+/// (the pixels with margin ≤ t, as floats) and, when K > 0, `kink.slack.<grad tensor>` for every
+/// `grad.*` tensor: how far a correct backend on the other side of those kinks may be
+/// (`model/kink.rs`; `xscale compare` adds it to the tolerance, `docs/oracle.md` §7).
+pub fn dump_with<R: Real>(
+    ckpt: &Checkpoint,
+    batch: &Batch,
+    kink_threshold: Option<f64>,
+) -> Result<TensorFile> {
     let model = &ckpt.model;
     let params: Vec<R> = ckpt.params.iter().map(|&v| R::from_f32(v)).collect();
     let fwd = model.forward(&params, batch)?;
@@ -458,6 +474,44 @@ pub fn dump<R: Real>(ckpt: &Checkpoint, batch: &Batch) -> Result<TensorFile> {
         tensor_of(vec![n, s, 3], &grads.positions)?,
     );
     f.insert("grad.batch.dirs", tensor_of(vec![n, 3], &grads.dirs)?);
+    if let Some(t) = kink_threshold {
+        let kinks = crate::model::kink::Kinks::find(model, &params, batch, &fwd, t);
+        let pixels: Vec<f64> = kinks.pixels().iter().map(|&p| p as f64).collect();
+        f.insert("kink.margin", Tensor::f64(vec![n], &kinks.margin)?);
+        f.insert("kink.threshold", Tensor::f64(vec![], &[t])?);
+        f.insert("kink.pixels", Tensor::f64(vec![pixels.len()], &pixels)?);
+        if !pixels.is_empty() {
+            // f32, rounded up: a bound stays a bound, and the file grows by half as much.
+            let up = |v: &[R]| -> Vec<f32> {
+                v.iter()
+                    .map(|x| {
+                        let (x, y) = (x.to_f64(), x.to_f64() as f32);
+                        if (y as f64) < x {
+                            // next float up (y ≥ 0 here: a slack is a sum of magnitudes)
+                            f32::from_bits(y.to_bits() + 1)
+                        } else {
+                            y
+                        }
+                    })
+                    .collect()
+            };
+            let slack = kinks.slack(model, &params, batch, &fwd, &grads);
+            for t in &model.layout.tensors {
+                f.insert(
+                    format!("kink.slack.grad.{}", t.name),
+                    Tensor::f32(t.shape.clone(), &up(&slack.params[t.range()]))?,
+                );
+            }
+            f.insert(
+                "kink.slack.grad.batch.positions",
+                Tensor::f32(vec![n, s, 3], &up(&slack.positions))?,
+            );
+            f.insert(
+                "kink.slack.grad.batch.dirs",
+                Tensor::f32(vec![n, 3], &up(&slack.dirs))?,
+            );
+        }
+    }
     Ok(f)
 }
 

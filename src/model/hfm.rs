@@ -74,8 +74,8 @@ pub struct Hfm {
     r_grid_h: Range<usize>,
     r_vertex: Range<usize>,
     r_grid_d: Range<usize>,
-    r_deform: Range<usize>,
-    r_shader: Range<usize>,
+    pub(crate) r_deform: Range<usize>,
+    pub(crate) r_shader: Range<usize>,
     r_codes: Range<usize>,
 }
 

@@ -7,6 +7,7 @@ pub mod checkpoint;
 pub mod config;
 pub mod hashgrid;
 pub mod hfm;
+pub mod kink;
 pub mod level_weight;
 pub mod loss;
 pub mod mlp;

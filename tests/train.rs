@@ -50,16 +50,61 @@ fn checkpoint_bytes(run: &Path) -> Vec<u8> {
 /// (and the same across thread counts).
 #[test]
 fn resume_is_exact_and_thread_independent() {
+    resume_exact(cfg(200), "f32");
+}
+
+/// The same with the model's arithmetic in f64 (`[train] arithmetic = "f64"`, train/precision.rs):
+/// exact resume and thread independence, a result that differs from f32 training (the switch is
+/// real) and a held-out loss as good.
+#[test]
+fn f64_arithmetic_resumes_exactly_and_differs_from_f32() {
+    let mut c = cfg(200);
+    c.train.arithmetic = xscale::train::config::Arithmetic::F64;
+    let f64_bytes = resume_exact(c, "f64");
+    let f32_run = tmp("f32ref");
+    in_pool(2, || {
+        train(&fixture(), &f32_run, cfg(200), &quiet(false, None))
+    })
+    .unwrap();
+    let f32_bytes = checkpoint_bytes(&f32_run);
+    assert!(
+        f64_bytes != f32_bytes,
+        "f64 arithmetic trained the same bits as f32"
+    );
+    let (a, b) = (
+        TrainState::load(&f32_run.join("checkpoint.safetensors")).unwrap(),
+        TrainState::from_tensor_file(
+            &xscale::io::tensors::TensorFile::from_bytes(&f64_bytes, "f64 run").unwrap(),
+        )
+        .unwrap(),
+    );
+    let diff = a
+        .ckpt
+        .params
+        .iter()
+        .zip(&b.ckpt.params)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0f32, f32::max);
+    assert!(
+        diff > 0.0 && diff < 0.5,
+        "largest parameter difference {diff}"
+    );
+    let _ = std::fs::remove_dir_all(&f32_run);
+}
+
+/// Train `c` straight and interrupted + resumed, on 1 and 2 threads; all four checkpoints must
+/// be the same bytes. Returns them.
+fn resume_exact(c: RunConfig, tag: &str) -> Vec<u8> {
     let mut finals = Vec::new();
     for threads in [1, 2] {
-        let straight = tmp(&format!("straight{threads}"));
+        let straight = tmp(&format!("straight{tag}{threads}"));
         in_pool(threads, || {
-            train(&fixture(), &straight, cfg(200), &quiet(false, None))
+            train(&fixture(), &straight, c.clone(), &quiet(false, None))
         })
         .unwrap();
-        let split = tmp(&format!("split{threads}"));
+        let split = tmp(&format!("split{tag}{threads}"));
         let s = in_pool(threads, || {
-            train(&fixture(), &split, cfg(200), &quiet(false, Some(100)))
+            train(&fixture(), &split, c.clone(), &quiet(false, Some(100)))
         })
         .unwrap();
         assert!(s.interrupted && s.steps == 100);
@@ -70,13 +115,13 @@ fn resume_is_exact_and_thread_independent() {
             100
         );
         in_pool(threads, || {
-            train(&fixture(), &split, cfg(200), &quiet(true, None))
+            train(&fixture(), &split, c.clone(), &quiet(true, None))
         })
         .unwrap();
         let (a, b) = (checkpoint_bytes(&straight), checkpoint_bytes(&split));
         assert!(
             a == b,
-            "{threads} threads: resumed checkpoint differs from the uninterrupted one"
+            "{tag}, {threads} threads: resumed checkpoint differs from the uninterrupted one"
         );
         finals.push(a);
         let _ = std::fs::remove_dir_all(&straight);
@@ -84,8 +129,9 @@ fn resume_is_exact_and_thread_independent() {
     }
     assert!(
         finals[0] == finals[1],
-        "1 and 2 threads give different checkpoints"
+        "{tag}: 1 and 2 threads give different checkpoints"
     );
+    finals.pop().unwrap()
 }
 
 /// Training lowers the loss and reaches a held-out PSNR well above the untrained model's.

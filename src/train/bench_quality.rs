@@ -22,7 +22,7 @@ use std::path::Path;
 use std::time::Instant;
 
 /// Every configuration: name and what it is.
-pub const CONFIGS: [(&str, &str); 9] = [
+pub const CONFIGS: [(&str, &str); 10] = [
     (
         "tiny",
         "the tiny preset (4 levels, 2^12 table): a smoke test",
@@ -41,6 +41,10 @@ pub const CONFIGS: [(&str, &str); 9] = [
     ("cpu-batch16k", "cpu with 16,384-pixel batches"),
     ("cpu-gamma1", "cpu with gamma = 1 (no multisampling)"),
     ("cpu-no-deform", "cpu without the deformation xi"),
+    (
+        "cpu-f64",
+        "cpu with the model's forward and backward in f64 (Adam and parameters f32)",
+    ),
 ];
 
 /// The run configuration of `name` (`None` for `ulr`).
@@ -67,6 +71,11 @@ pub fn config(name: &str) -> Result<Option<RunConfig>> {
         "cpu-no-deform" => {
             let mut c = cpu()?;
             c.model.deform.enabled = false;
+            c
+        }
+        "cpu-f64" => {
+            let mut c = cpu()?;
+            c.train.arithmetic = crate::train::config::Arithmetic::F64;
             c
         }
         _ => bail!(
@@ -162,6 +171,7 @@ fn bench_one(scene: &Path, name: &str, budget_s: f64, log: &mut dyn FnMut(Row)) 
     let mut state = TrainState::init(cfg, &prepared)?;
     let mut grads = Grads::new(&state.ckpt.model.layout);
     grads.inputs = false;
+    let mut f64s = crate::train::precision::F64Step::for_config(&state);
     let setup_s = t_setup.elapsed().as_secs_f64();
     let (seed, px) = (state.cfg.train.seed, state.cfg.train.batch_pixels);
     let mut trained = 0.0f64;
@@ -170,7 +180,7 @@ fn bench_one(scene: &Path, name: &str, budget_s: f64, log: &mut dyn FnMut(Row)) 
         while trained < until {
             let t = Instant::now();
             let b = sample_batch(&prepared.samples, &prepared.tracer, seed, state.step, px);
-            let st = state.step(&b, &mut grads)?;
+            let st = state.step_in(&b, &mut grads, f64s.as_mut())?;
             trained += t.elapsed().as_secs_f64();
             if !st.loss.is_finite() {
                 bail!("{name}: the loss became {} at step {}", st.loss, state.step);

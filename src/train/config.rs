@@ -78,6 +78,20 @@ pub struct TrainConfig {
     /// the system reports as available.
     #[serde(default)]
     pub memory_gb: f64,
+    /// Arithmetic of the model's forward and backward in training: `f32` (default) or `f64`
+    /// (`train/precision.rs`: the gradient is rounded once to f32 and Adam, the parameters and
+    /// the checkpoint stay f32). Absent from older configs (= f32).
+    #[serde(default)]
+    pub arithmetic: Arithmetic,
+}
+
+/// `[train] arithmetic`.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Arithmetic {
+    #[default]
+    F32,
+    F64,
 }
 
 impl TrainConfig {
@@ -107,6 +121,7 @@ impl TrainConfig {
             mesh: None,
             samples: SampleMode::Stream,
             memory_gb: 0.0,
+            arithmetic: Arithmetic::F32,
         };
         Ok(match name {
             "tiny" => TrainConfig {

@@ -20,6 +20,7 @@ pub mod bench_quality;
 pub mod config;
 pub mod divergence;
 pub mod memory;
+pub mod precision;
 pub mod report;
 pub mod run_dir;
 pub mod sampler;

@@ -135,20 +135,40 @@ impl TrainState {
         let t1 = Instant::now();
         model.backward(&self.ckpt.params, batch, &fwd, grads);
         let t2 = Instant::now();
-        let (mut se, mut n) = (0.0f64, 0usize);
-        for c in &fwd.chunks {
-            for (k, p) in c.pixels.clone().enumerate() {
-                for ch in 0..3 {
-                    let d = c.rgb[k * 3 + ch] as f64 - batch.target[p][ch] as f64;
-                    se += d * d;
-                }
-                n += 3;
-            }
+        let mse = batch_mse(&fwd, batch);
+        self.apply_adam(grads);
+        let t3 = Instant::now();
+        for t in [
+            &mut grads.touched_h,
+            &mut grads.touched_d,
+            &mut grads.touched_v,
+        ] {
+            t.entries.clear();
         }
+        grads.positions.fill(0.0);
+        grads.dirs.fill(0.0);
+        self.step += 1;
+        Ok(StepStats {
+            loss: fwd.loss,
+            mse,
+            samples: fwd.points.len(),
+            timing: StepTiming {
+                forward: (t1 - t0).as_secs_f64(),
+                backward: (t2 - t1).as_secs_f64(),
+                adam: (t3 - t2).as_secs_f64(),
+                zero: t3.elapsed().as_secs_f64(),
+            },
+        })
+    }
+
+    /// Adam on every parameter tensor at the current step (`self.step` is not advanced), zeroing
+    /// each gradient as it is read: the grids' touched entries only (the touched lists are left
+    /// for the caller to clear), every other tensor densely.
+    pub fn apply_adam(&mut self, grads: &mut Grads<f32>) {
+        let model = &self.ckpt.model;
         let (fh, fd) = model.grid_features();
         let k = self.step;
         let a = &self.cfg.train.adam;
-        // Adam, zeroing each gradient as it is read (the grids' touched entries only).
         let Grads {
             params: gp,
             touched_h,
@@ -198,25 +218,25 @@ impl TrainState {
                 }
             }
         }
-        let t3 = Instant::now();
-        for t in [touched_h, touched_d, touched_v] {
-            t.entries.clear();
-        }
-        grads.positions.fill(0.0);
-        grads.dirs.fill(0.0);
-        self.step += 1;
-        Ok(StepStats {
-            loss: fwd.loss,
-            mse: se / n.max(1) as f64,
-            samples: fwd.points.len(),
-            timing: StepTiming {
-                forward: (t1 - t0).as_secs_f64(),
-                backward: (t2 - t1).as_secs_f64(),
-                adam: (t3 - t2).as_secs_f64(),
-                zero: t3.elapsed().as_secs_f64(),
-            },
-        })
     }
+}
+
+/// Mean squared error of a forward pass's RGB against the batch targets (f64 sums).
+pub fn batch_mse<R: crate::model::real::Real>(
+    fwd: &crate::model::hfm::Forward<R>,
+    batch: &Batch,
+) -> f64 {
+    let (mut se, mut n) = (0.0f64, 0usize);
+    for c in &fwd.chunks {
+        for (k, p) in c.pixels.clone().enumerate() {
+            for ch in 0..3 {
+                let d = c.rgb[k * 3 + ch].to_f64() - batch.target[p][ch] as f64;
+                se += d * d;
+            }
+            n += 3;
+        }
+    }
+    se / n.max(1) as f64
 }
 
 /// How a training run is driven (not part of its result).
@@ -465,13 +485,14 @@ fn run_loop(
     .max()
     .unwrap_or(0);
     let mut guard = Guard::new(state.step + warmup);
+    let mut f64s = crate::train::precision::F64Step::for_config(state);
     let mut next = (state.step < stop).then(|| draw(state.step));
     while let Some(batch) = next.take() {
         // Batch k+1 is drawn (its rays cast) while step k runs: a pure function of (seed, k+1),
         // so overlapping it changes no result, only fills the cores the step leaves idle.
         let k1 = state.step + 1;
         let (st, nb) = rayon::join(
-            || state.step(&batch, &mut grads),
+            || state.step_in(&batch, &mut grads, f64s.as_mut()),
             || (k1 < stop).then(|| draw(k1)),
         );
         next = nb;

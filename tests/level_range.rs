@@ -6,7 +6,7 @@ use std::path::PathBuf;
 use xscale::model::config::per_level_scale_for;
 use xscale::train::config::{LevelRange, RunConfig};
 use xscale::train::sampler::SampleMode;
-use xscale::train::setup::{prepare, resolve_levels, LEVEL_QUANTILE};
+use xscale::train::setup::{auto_levels, prepare, resolve_levels, LEVEL_QUANTILE};
 
 fn fixture() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("fixtures/tiny")
@@ -41,9 +41,21 @@ fn auto_follows_the_footprints_in_both_sample_modes() {
         );
         let msgs = resolve_levels(&mut cfg, &p.samples);
         assert!(msgs[0].contains("auto"), "{msgs:?}");
+        let preset_scale = RunConfig::preset("cpu")
+            .unwrap()
+            .model
+            .grid_h
+            .per_level_scale;
         let g = &cfg.model.grid_h;
-        let want = per_level_scale_for(16.0, (1.0 / fp).max(32.0), 16);
+        let finest = (1.0 / fp).max(32.0);
+        let levels = auto_levels(16.0, finest, preset_scale, 16);
+        assert_eq!(g.levels, levels);
+        let want = per_level_scale_for(16.0, finest, levels);
         assert_eq!(g.per_level_scale, want);
+        assert!(
+            want <= preset_scale * (1.0 + 1e-12),
+            "levels are added rather than spread thinner: {want} > {preset_scale}"
+        );
         assert_eq!(g.finest_resolution, Some((1.0 / fp).max(32.0)));
         scales.push(g.per_level_scale);
     }
@@ -89,4 +101,23 @@ fn config_files_fix_the_range() {
         config("[train]\nsteps = 5\n").unwrap().train.level_range,
         LevelRange::Auto
     );
+}
+
+/// `auto_levels`: the configured count when the configured scale already reaches the finest
+/// resolution, more levels (about the configured scale apart) when it does not, never above
+/// `MAX_LEVELS`.
+#[test]
+fn auto_adds_levels_rather_than_thinning_them() {
+    let b = per_level_scale_for(16.0, 2048.0, 16);
+    assert_eq!(auto_levels(16.0, 2048.0, b, 16), 16);
+    assert_eq!(auto_levels(16.0, 512.0, b, 16), 16);
+    let l = auto_levels(16.0, 14079.0, b, 16);
+    assert_eq!(l, 22, "16 · b^21 ≥ 14079 > 16 · b^20");
+    let spread = per_level_scale_for(16.0, 14079.0, l);
+    assert!(spread <= b && spread > 1.36, "{spread}");
+    assert_eq!(
+        auto_levels(16.0, 1e300, b, 16),
+        xscale::model::hashgrid::MAX_LEVELS
+    );
+    assert_eq!(auto_levels(16.0, 16.0, b, 4), 4);
 }

@@ -58,3 +58,37 @@ fn ulr_reproduces_training_photos_and_scores_held_out_views() {
     );
     assert!(s.footprint.is_some());
 }
+
+/// `xscale eval --method ulr --scene DIR` needs no trained model; `--method model` without one
+/// says what to give.
+#[test]
+fn ulr_eval_needs_only_a_scene() {
+    let exe = env!("CARGO_BIN_EXE_xscale");
+    let scene = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/tiny");
+    let json =
+        std::env::temp_dir().join(format!("xscale-ulr-scene-only-{}.json", std::process::id()));
+    let out = std::process::Command::new(exe)
+        .args(["eval", "--method", "ulr", "--scene"])
+        .arg(&scene)
+        .arg("--json")
+        .arg(&json)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    assert!(!v["views"].as_array().unwrap().is_empty());
+    assert!(v["mean"]["psnr_masked"].as_f64().unwrap() > 10.0, "{v}");
+    let _ = std::fs::remove_file(&json);
+    let out = std::process::Command::new(exe)
+        .args(["eval", "--scene"])
+        .arg(&scene)
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("--run"));
+}

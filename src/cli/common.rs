@@ -105,6 +105,30 @@ impl ModelArgs {
 }
 
 impl ModelArgs {
+    /// Whether a model was given (`--run` or `--checkpoint`).
+    pub fn has_model(&self) -> bool {
+        self.run.is_some() || self.checkpoint.is_some()
+    }
+
+    /// The scene alone, for renderers that need no model (ULR): `--scene` with its own
+    /// normalisation, `--downsample`, `--mesh`; every view without an appearance row.
+    pub fn scene_only(&self) -> Result<SceneForModel> {
+        let dir = self.scene_dir()?;
+        let opts = LoadOptions {
+            downsample: self.downsample.unwrap_or(1),
+            mesh: self.mesh.clone(),
+            ..LoadOptions::default()
+        };
+        let scene = Scene::load(&dir, &opts)?;
+        let tracer = Tracer::new(&scene.mesh, &scene.normalization).context("building the BVH")?;
+        let rows = vec![-1; scene.views.len()];
+        Ok(SceneForModel {
+            scene,
+            tracer,
+            rows,
+        })
+    }
+
     /// `--scene`, else the scene recorded in `RUN/scene.json` by `xscale train`.
     pub fn scene_dir(&self) -> Result<PathBuf> {
         if let Some(s) = &self.scene {

@@ -29,8 +29,8 @@ pub struct Args {
     #[arg(long, value_parser = super::common::parse_background)]
     pub background: Option<[f32; 3]>,
     /// What renders the views: the trained model, or `ulr` (unstructured lumigraph rendering of
-    /// the training photos on the mesh: a no-learning baseline, `src/render/ulr.rs`; the run
-    /// gives only the scene, its split and its mesh).
+    /// the training photos on the mesh: a no-learning baseline, `src/render/ulr.rs`; it needs
+    /// no model: `--scene DIR` alone, or a run for its scene, split and mesh).
     #[arg(long, value_enum, default_value = "model")]
     pub method: Method,
 }
@@ -43,7 +43,13 @@ pub enum Method {
 }
 
 pub fn run(a: Args) -> Result<ExitCode> {
-    let (ck_path, ck, s) = a.model.load()?;
+    // ULR needs no model: `--scene` alone is enough.
+    let (ck_path, ck, s) = if a.method == Method::Ulr && !a.model.has_model() {
+        (None, None, a.model.scene_only()?)
+    } else {
+        let (p, ck, s) = a.model.load()?;
+        (Some(p), Some(ck), s)
+    };
     let views = select_views(&s.scene, &a.views)?;
     anyhow::ensure!(
         !views.is_empty(),
@@ -66,16 +72,19 @@ pub fn run(a: Args) -> Result<ExitCode> {
     let mut scores = Vec::new();
     for &i in &views {
         let e = match a.method {
-            Method::Model => evaluate_view(
-                &ck.model,
-                &ck.params,
-                &s.tracer,
-                &s.scene,
-                i,
-                ck.model.cfg.gamma,
-                s.rows[i],
-                background,
-            )?,
+            Method::Model => {
+                let ck = ck.as_ref().expect("a model is loaded for --method model");
+                evaluate_view(
+                    &ck.model,
+                    &ck.params,
+                    &s.tracer,
+                    &s.scene,
+                    i,
+                    ck.model.cfg.gamma,
+                    s.rows[i],
+                    background,
+                )?
+            }
             Method::Ulr => {
                 let r = render_ulr(&s.tracer, &sources, &s.scene.views[i].camera, background);
                 score_rendered(&s.scene, i, r, background)?

@@ -170,8 +170,13 @@ pub const CELLS_PER_FOOTPRINT: f64 = 1.0;
 ///
 /// 1. `train.level_range = "auto"` (the `cpu` preset): grid H's finest resolution follows the
 ///    footprints (`N_max = CELLS_PER_FOOTPRINT / fp`, `fp` as [`LEVEL_QUANTILE`] says, in cells per
-///    normalised unit) and `per_level_scale = (N_max / N0)^(1/(L-1))` (tiny-cuda-nn's formula),
-///    N0 and L as configured; `N_max` is kept at least `2·N0`.
+///    normalised unit; at least `2·N0`). Levels are added while the configured per-level scale b
+///    would not reach it — `L = max(L_cfg, 1 + ⌈log_b(N_max / N0)⌉)` ([`auto_levels`]) — and then
+///    `per_level_scale = (N_max / N0)^(1/(L-1))` (tiny-cuda-nn's formula), so the levels stay about
+///    as far apart as configured however wide the scene's range of scales is. (Stretching a fixed
+///    L = 16 to the close-ups' resolution thinned the levels the aerial views use and cost them
+///    0.5–0.8 dB on `synth --preset cross`; adding levels gained close-ups 3.9 dB and aerial
+///    views 0.5 dB over the fixed range, `docs/cross-scale.md`.)
 /// 2. `train.drop_fine_levels`: grid H levels finer than the finest footprint of any training view
 ///    are dropped ([`drop_fine_levels`]).
 ///
@@ -188,6 +193,7 @@ pub fn resolve_levels(cfg: &mut RunConfig, samples: &Samples) -> Vec<String> {
                 let n0 = g.base_resolution as f64;
                 let finest = (CELLS_PER_FOOTPRINT / fp).max(2.0 * n0);
                 let before = tcnn_scales(g).last().copied().unwrap_or(0.0);
+                g.levels = auto_levels(n0, finest, g.per_level_scale, g.levels);
                 g.per_level_scale = per_level_scale_for(n0, finest, g.levels);
                 g.finest_resolution = Some(finest);
                 out.push(format!(
@@ -213,6 +219,16 @@ pub fn resolve_levels(cfg: &mut RunConfig, samples: &Samples) -> Vec<String> {
         }
     }
     out
+}
+
+/// The number of grid H levels for `level_range = "auto"`: at least `levels`, and enough that
+/// levels `per_level_scale` apart reach `finest` from `n0` (at most `MAX_LEVELS`).
+pub fn auto_levels(n0: f64, finest: f64, per_level_scale: f64, levels: u32) -> u32 {
+    let need = 1.0 + ((finest / n0).ln() / per_level_scale.ln() - 1e-9).ceil();
+    let need = if need.is_finite() { need.max(1.0) } else { 1.0 };
+    (need as u32)
+        .max(levels)
+        .min(crate::model::hashgrid::MAX_LEVELS)
 }
 
 /// Number of levels of `grid` whose cells are not finer than `footprint` (normalised units):

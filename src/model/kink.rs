@@ -194,7 +194,10 @@ impl Kinks {
 
     /// The slack of every gradient (module doc): `|G_toggled(site) − G|` summed over every site
     /// of every kink pixel, in a [`Grads`] laid out like `grads` (`grads` = the gradients of
-    /// `fwd`, with inputs). One backward per site.
+    /// `fwd`, with inputs). A site changes only its own pixel's contribution to the gradients, so
+    /// each kink pixel is evaluated alone (a one-pixel batch: one forward, then one backward for
+    /// its own sides and one per site, the difference divided by N to give the batch's
+    /// normalisation) instead of one backward of the whole batch per site.
     pub fn slack<R: Real>(
         &self,
         model: &Hfm,
@@ -206,31 +209,63 @@ impl Kinks {
         let mut slack = Grads::<R>::new(&model.layout);
         slack.positions = vec![R::ZERO; grads.positions.len()];
         slack.dirs = vec![R::ZERO; grads.dirs.len()];
+        let s = batch.samples_per_pixel();
+        let inv_n = R::ONE / R::from_f64(batch.n_pixels() as f64);
+        let (fh, fd) = model.grid_features();
+        // Reused buffers, zeroed where the last backward wrote (the touched table rows): a
+        // one-pixel backward costs what the pixel touches, not the table size.
+        let mut base = Grads::<R>::new(&model.layout);
+        let mut g = Grads::<R>::new(&model.layout);
         for p in self.pixels() {
             let k = &self.per_pixel[p];
+            let sub = one_pixel(batch, p);
+            let fwd1 = model
+                .forward(params, &sub)
+                .expect("a pixel of a valid batch is a valid batch");
+            base.zero_sparse(&model.layout, fh, fd);
+            model.backward(params, &sub, &fwd1, &mut base);
+            // The pixel's first compacted sub-sample, relative to its chunk in `fwd`.
+            let first = fwd.start[p] - fwd.chunks[k.chunk].samples.start;
             for &(site, _) in &k.sites {
-                let mut toggled = fwd.clone();
-                let c = &mut toggled.chunks[k.chunk];
+                let mut toggled = fwd1.clone();
+                let c = &mut toggled.chunks[0];
                 match site {
-                    Site::Shader { layer, row, unit } => {
-                        let w = model.shader.layers[layer].out_dim;
-                        flip_relu(&mut c.shader.hidden[layer][row * w + unit]);
+                    Site::Shader { layer, unit, .. } => {
+                        flip_relu(&mut c.shader.hidden[layer][unit]);
                     }
                     Site::Deform { layer, row, unit } => {
                         let w = model.deform.as_ref().unwrap().layers[layer].out_dim;
-                        flip_relu(&mut c.deform.hidden[layer][row * w + unit]);
+                        flip_relu(&mut c.deform.hidden[layer][(row - first) * w + unit]);
                     }
-                    Site::Loss { row, ch } => {
-                        let t = R::from_f32(batch.target[c.pixels.start + row][ch]);
-                        let y = &mut c.rgb[row * 3 + ch];
+                    Site::Loss { ch, .. } => {
+                        let t = R::from_f32(sub.target[0][ch]);
+                        let y = &mut c.rgb[ch];
                         *y = t - (*y - t);
                     }
                 }
-                let mut g = Grads::<R>::new(&model.layout);
-                model.backward(params, batch, &toggled, &mut g);
-                add_abs_diff(&mut slack.params, &g.params, &grads.params);
-                add_abs_diff(&mut slack.positions, &g.positions, &grads.positions);
-                add_abs_diff(&mut slack.dirs, &g.dirs, &grads.dirs);
+                g.zero_sparse(&model.layout, fh, fd);
+                model.backward(params, &sub, &toggled, &mut g);
+                // Every element either backward can have written, once (a table row whose
+                // gradient is exactly 0 is not recorded as touched, so both sides' rows count).
+                let mut reach = written(model, &base);
+                reach.extend(written(model, &g));
+                reach.sort_unstable();
+                reach.dedup();
+                for i in reach {
+                    slack.params[i] += (g.params[i] - base.params[i]).abs() * inv_n;
+                }
+                add_abs_diff(
+                    &mut slack.positions[p * s * 3..(p + 1) * s * 3],
+                    &g.positions,
+                    &base.positions,
+                    inv_n,
+                );
+                add_abs_diff(
+                    &mut slack.dirs[p * 3..p * 3 + 3],
+                    &g.dirs,
+                    &base.dirs,
+                    inv_n,
+                );
             }
         }
         slack
@@ -252,9 +287,61 @@ fn flip_relu<R: Real>(h: &mut R) {
     };
 }
 
-fn add_abs_diff<R: Real>(acc: &mut [R], a: &[R], b: &[R]) {
+/// `acc += |a − b| · scale`.
+fn add_abs_diff<R: Real>(acc: &mut [R], a: &[R], b: &[R], scale: R) {
     for ((s, x), y) in acc.iter_mut().zip(a).zip(b) {
-        *s += (*x - *y).abs();
+        *s += (*x - *y).abs() * scale;
+    }
+}
+
+/// Flat parameter indices a backward can have written into `g`: every tensor outside the grid
+/// and vertex tables whole, those tables at their touched rows.
+fn written<R>(model: &Hfm, g: &Grads<R>) -> Vec<usize> {
+    use crate::model::params::Group;
+    let (fh, fd) = model.grid_features();
+    let mut out = Vec::new();
+    for t in &model.layout.tensors {
+        let (touched, f) = match t.group {
+            Group::GridH => (&g.touched_h, fh),
+            Group::GridD => (&g.touched_d, fd),
+            Group::Vertex => (&g.touched_v, t.shape[1]),
+            _ => {
+                out.extend(t.range());
+                continue;
+            }
+        };
+        for &e in &touched.entries {
+            let e0 = t.offset + e as usize * f;
+            out.extend(e0..e0 + f);
+        }
+    }
+    out
+}
+
+/// The one-pixel batch of pixel `p`.
+fn one_pixel(batch: &Batch, p: usize) -> Batch {
+    let s = batch.samples_per_pixel();
+    let r = p * s..(p + 1) * s;
+    let part = |v: &[[f64; 2]]| {
+        if v.is_empty() {
+            Vec::new()
+        } else {
+            v[r.clone()].to_vec()
+        }
+    };
+    Batch {
+        positions: batch.positions[r.clone()].to_vec(),
+        valid: batch.valid[r.clone()].to_vec(),
+        dirs: vec![batch.dirs[p]],
+        view: vec![batch.view[p]],
+        target: vec![batch.target[p]],
+        footprint: batch.footprint.get(p).map(|&f| vec![f]).unwrap_or_default(),
+        triangle: if batch.triangle.is_empty() {
+            Vec::new()
+        } else {
+            batch.triangle[r.clone()].to_vec()
+        },
+        bary: part(&batch.bary),
     }
 }
 

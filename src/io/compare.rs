@@ -43,8 +43,10 @@
 //!
 //! **Kinks** (`model/kink.rs`, `docs/oracle.md` §7): tensors named `kink.*` are not data but what
 //! an f64 dump says about its own kinks; they are never compared, never "only in one file". A
-//! `kink.slack.<name>` tensor in either file (the larger where both have one) widens the limits of
-//! tensor `<name>` element by element: an element outside its rule still passes if `abs − slack`
+//! `kink.slack.<name>` tensor of file A — the reference: the kink tensors of file B are ignored
+//! (and the report says so), since a file must not be able to excuse its own differences —
+//! widens the limits of tensor `<name>` element by element (a slack that is not a finite number
+//! ≥ 0, or of the wrong size, is bad input): an element outside its rule still passes if `abs − slack`
 //! is within it (and neither value is NaN) — the gradient a correct backend may have because it evaluated a
 //! ReLU unit or an L1 residual of a *kink pixel* on the other side of its kink. Such elements are
 //! counted apart (`n_kink`), the report shows the number of kink pixels, and `kink_slack = false`
@@ -484,6 +486,9 @@ pub struct Report {
     pub kink_threshold: Option<f64>,
     /// Whether `kink.slack.*` widened the limits (module doc).
     pub kink_slack: bool,
+    /// File B has `kink.*` tensors; they are not used (only the reference, file A, may excuse a
+    /// difference).
+    pub kink_in_b_ignored: bool,
 }
 
 impl Report {
@@ -655,6 +660,11 @@ impl Report {
                     "kink slack not used (--no-kink-slack)".into()
                 }
             ));
+        }
+        if self.kink_in_b_ignored {
+            out.push_str(
+                "kink tensors in B ignored: only the reference (file A) may excuse a difference\n",
+            );
         }
         for m in &self.missing_required {
             out.push_str(&format!("MISSING {m}\n"));
@@ -842,16 +852,13 @@ pub fn compare(a: &TensorFile, b: &TensorFile, tol: &Tolerances) -> Report {
             .cloned()
             .collect(),
         strict: tol.strict,
-        kink_pixels: [a, b]
-            .iter()
-            .filter_map(|f| f.tensors.get("kink.pixels").map(|t| t.numel()))
-            .max(),
-        kink_threshold: [a, b]
-            .iter()
-            .filter_map(|f| f.tensors.get("kink.threshold"))
-            .filter_map(|t| t.to_f64().ok()?.first().copied())
-            .reduce(f64::max),
+        kink_pixels: a.tensors.get("kink.pixels").map(|t| t.numel()),
+        kink_threshold: a
+            .tensors
+            .get("kink.threshold")
+            .and_then(|t| t.to_f64().ok()?.first().copied()),
         kink_slack: tol.kink_slack,
+        kink_in_b_ignored: b.tensors.keys().any(|k| is_kink_meta(k)),
     };
     // Required rules: every tensor whose first matching rule is required must be in both files;
     // and a required rule must match at least one tensor present in both.
@@ -938,7 +945,7 @@ pub fn compare(a: &TensorFile, b: &TensorFile, tol: &Tolerances) -> Report {
                 e => e,
             };
             let slack = if tol.kink_slack {
-                kink_slack(a, b, name, ta.numel(), &mut report.missing_required)
+                kink_slack(a, name, ta.numel(), &mut report.missing_required)
             } else {
                 None
             };
@@ -971,33 +978,37 @@ pub fn compare(a: &TensorFile, b: &TensorFile, tol: &Tolerances) -> Report {
     report
 }
 
-/// The kink slack of tensor `name` (`kink.slack.<name>` of either file, the larger where both
-/// have it); a slack tensor of the wrong size is reported as bad input and not used.
+/// The kink slack of tensor `name`: file A's `kink.slack.<name>` (module doc). A slack tensor of
+/// the wrong size, or with a value that is not a finite number ≥ 0, is reported as bad input
+/// and not used.
 fn kink_slack(
     a: &TensorFile,
-    b: &TensorFile,
     name: &str,
     numel: usize,
     problems: &mut Vec<String>,
 ) -> Option<Vec<f64>> {
     let key = format!("kink.slack.{name}");
-    let mut out: Option<Vec<f64>> = None;
-    for (f, which) in [(a, "A"), (b, "B")] {
-        let Some(t) = f.tensors.get(&key) else {
-            continue;
-        };
-        match t.to_f64() {
-            Ok(v) if v.len() == numel => match &mut out {
-                Some(o) => o.iter_mut().zip(&v).for_each(|(x, y)| *x = x.max(*y)),
-                None => out = Some(v),
-            },
-            _ => problems.push(format!(
-                "{key} in {which}: {} elements where {name} has {numel}",
+    let t = a.tensors.get(&key)?;
+    match t.to_f64() {
+        Ok(v) if v.len() == numel => {
+            if let Some(i) = v.iter().position(|x| !(x.is_finite() && *x >= 0.0)) {
+                problems.push(format!(
+                    "{key} in A: element {i} is {}, expected a finite number >= 0",
+                    v[i]
+                ));
+                None
+            } else {
+                Some(v)
+            }
+        }
+        _ => {
+            problems.push(format!(
+                "{key} in A: {} elements where {name} has {numel}",
                 t.numel()
-            )),
+            ));
+            None
         }
     }
-    out
 }
 
 /// Read two files and compare them. Errors (unreadable file) name the file.
@@ -1066,6 +1077,38 @@ mod tests {
         assert!(
             Tolerances::from_toml("[[rule]]\npattern = \"a\"\nmax_rel_peak = -1\n", "t").is_err()
         );
+    }
+
+    /// Only the reference (file A) may excuse a difference, and only by a finite slack ≥ 0.
+    #[test]
+    fn kink_slack_only_from_a_and_only_finite() {
+        let tol =
+            Tolerances::from_toml("[[rule]]\npattern = \"grad.*\"\nmax_abs = 1e-3\n", "t").unwrap();
+        let file = |v: &[f64], slack: Option<&[f64]>| {
+            let mut f = TensorFile::new();
+            f.insert("grad.x", Tensor::f64(vec![2], v).unwrap());
+            if let Some(s) = slack {
+                f.insert("kink.slack.grad.x", Tensor::f64(vec![2], s).unwrap());
+            }
+            f
+        };
+        let a = file(&[1.0, 2.0], None);
+        let b = file(&[1.5, 2.0], None);
+        assert_eq!(compare(&a, &b, &tol).exit_code(), 1);
+        // B's own slack is ignored, and the report says so.
+        let r = compare(&a, &file(&[1.5, 2.0], Some(&[1.0, 0.0])), &tol);
+        assert_eq!(r.exit_code(), 1, "{}", r.to_table());
+        assert!(r.kink_in_b_ignored && r.to_table().contains("kink tensors in B ignored"));
+        // A's slack excuses exactly what it covers.
+        let r = compare(&file(&[1.0, 2.0], Some(&[0.6, 0.0])), &b, &tol);
+        assert_eq!(r.exit_code(), 0, "{}", r.to_table());
+        let r = compare(&file(&[1.0, 2.0], Some(&[0.4, 0.0])), &b, &tol);
+        assert_eq!(r.exit_code(), 1, "{}", r.to_table());
+        // A slack that is not a finite number >= 0 is bad input, never a pass.
+        for bad in [f64::INFINITY, f64::NAN, -1.0] {
+            let r = compare(&file(&[1.0, 2.0], Some(&[bad, 0.0])), &b, &tol);
+            assert_eq!(r.exit_code(), 2, "{bad}: {}", r.to_table());
+        }
     }
 
     #[test]

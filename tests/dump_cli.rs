@@ -73,3 +73,48 @@ fn dump_cli_bad_input_names_the_file() {
     assert!(!d.join("out.safetensors").exists());
     std::fs::remove_dir_all(&d).ok();
 }
+
+/// `--kink-threshold` is checked: not for f32 dumps (it used to be ignored silently), in [0, 1)
+/// (1 would make every unit a kink site); 0 writes no kink tensors, the default writes them.
+#[test]
+fn dump_cli_kink_threshold_is_checked() {
+    let d = dir("kink");
+    let ckpt = init_checkpoint(&ModelConfig::tiny(), 5, Normalization::unit(), 4).unwrap();
+    ckpt.save(d.join("ckpt.safetensors")).unwrap();
+    Batch::random(9, 16, 4, 4, 0.25)
+        .save(d.join("batch.safetensors"))
+        .unwrap();
+    let run = |extra: &[&str]| {
+        let out = d.join("out.safetensors");
+        std::fs::remove_file(&out).ok();
+        let o = Command::new(env!("CARGO_BIN_EXE_xscale"))
+            .args(["dump", "--checkpoint"])
+            .arg(d.join("ckpt.safetensors"))
+            .arg("--batch")
+            .arg(d.join("batch.safetensors"))
+            .arg("--out")
+            .arg(&out)
+            .args(extra)
+            .output()
+            .unwrap();
+        let kinks = TensorFile::read(&out)
+            .ok()
+            .map(|f| f.tensors.contains_key("kink.margin"));
+        (
+            o.status.code(),
+            String::from_utf8_lossy(&o.stderr).into_owned(),
+            kinks,
+        )
+    };
+    let (code, err, file) = run(&["--precision", "f32", "--kink-threshold", "1e-3"]);
+    assert_eq!((code, file), (Some(2), None), "{err}");
+    assert!(err.contains("--kink-threshold"), "{err}");
+    for bad in ["1", "2", "nan", "inf"] {
+        let (code, err, file) = run(&["--kink-threshold", bad]);
+        assert_eq!((code, file), (Some(2), None), "{bad}: {err}");
+    }
+    assert_eq!(run(&["--kink-threshold", "0"]).2, Some(false));
+    assert_eq!(run(&[]).2, Some(true));
+    assert_eq!(run(&["--precision", "f32"]).2, Some(false));
+    std::fs::remove_dir_all(&d).ok();
+}

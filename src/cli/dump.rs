@@ -29,24 +29,35 @@ pub struct Args {
     pub precision: Precision,
     /// f64 dumps: pixels whose relative distance to a ReLU or L1 kink is at most this are kink
     /// pixels, and the dump carries how far a correct backend's gradients may be off there
-    /// (`kink.*` tensors, docs/oracle.md §7); 0 writes no kink tensors.
-    #[arg(long, default_value_t = crate::model::kink::DEFAULT_THRESHOLD)]
-    pub kink_threshold: f64,
+    /// (`kink.*` tensors, docs/oracle.md §7); 0 writes no kink tensors. Default 2^-16
+    /// (1.52587890625e-5); in [0, 1) (a margin is at most 1). Not for f32 dumps.
+    #[arg(long)]
+    pub kink_threshold: Option<f64>,
 }
 
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
-    anyhow::ensure!(
-        args.kink_threshold >= 0.0 && args.kink_threshold.is_finite(),
-        "--kink-threshold {}: must be a finite number >= 0",
-        args.kink_threshold
-    );
+    if let Some(t) = args.kink_threshold {
+        anyhow::ensure!(
+            (0.0..1.0).contains(&t),
+            "--kink-threshold {t}: must be a number in [0, 1) (0 = no kink analysis; a relative \
+             margin is at most 1, so 1 would make every unit a kink)"
+        );
+        anyhow::ensure!(
+            args.precision == Precision::F64,
+            "--kink-threshold: the kink analysis is part of the f64 oracle dump; an f32 dump has none \
+             (drop the option, or use --precision f64)"
+        );
+    }
+    let kink_threshold = args
+        .kink_threshold
+        .unwrap_or(crate::model::kink::DEFAULT_THRESHOLD);
     let ckpt = Checkpoint::load(&args.checkpoint)?;
     let batch = Batch::load(&args.batch)?;
     let file = match args.precision {
         Precision::F64 => dump_with::<f64>(
             &ckpt,
             &batch,
-            (args.kink_threshold > 0.0).then_some(args.kink_threshold),
+            (kink_threshold > 0.0).then_some(kink_threshold),
         )?,
         Precision::F32 => dump_with::<f32>(&ckpt, &batch, None)?,
     };
@@ -63,7 +74,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         eprintln!(
             "kink pixels: {} (relative margin <= {:e})",
             k.numel(),
-            args.kink_threshold
+            kink_threshold
         );
     }
     Ok(ExitCode::SUCCESS)

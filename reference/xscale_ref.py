@@ -670,6 +670,52 @@ def compute_dump(ck: Checkpoint, batch: Batch, dtype: str) -> dict[str, np.ndarr
     return dump
 
 
+def kink_margin(ck: Checkpoint, batch: Batch, dump: dict[str, np.ndarray]) -> np.ndarray:
+    """[N] each pixel's smallest relative distance to a kink (docs/oracle.md section 7, "Kinks"), from a float64
+    dump's own forward tensors: for every hidden ReLU unit (shader per pixel; xi per valid sub-sample, counted for
+    its pixel) |pre| / (|b| + sum_j |W_j x_j|) with pre = b + sum_j W_j x_j (1 where that sum is 0); for the L1
+    loss, per channel |rgb - target| / max(|rgb|, |target|) (0 where both are 0). 1 for a pixel without units.
+    The Rust oracle's `kink.margin` is the same quantity; computing it here is an independent check."""
+    n = batch.positions.shape[0]
+    margin = np.ones(n)
+    vn, vs = np.nonzero(batch.valid)
+
+    def units(x: np.ndarray, net: str, n_layers: int, bias: bool, hidden: list[np.ndarray]) -> np.ndarray:
+        """[rows] smallest margin over the hidden units of every layer but the last."""
+        best = np.ones(x.shape[0])
+        for i in range(n_layers - 1):
+            inp = x if i == 0 else hidden[i - 1]
+            w = np.asarray(ck.tensors[f"{net}.layers.{i}.weight"], dtype=np.float64)  # [out, in]
+            terms = inp[:, None, :] * w[None, :, :]  # [rows, out, in]
+            pre = terms.sum(axis=2)
+            mag = np.abs(terms).sum(axis=2)
+            if bias:
+                b = np.asarray(ck.tensors[f"{net}.layers.{i}.bias"], dtype=np.float64)
+                pre = pre + b
+                mag = mag + np.abs(b)
+            m = np.where(mag > 0, np.abs(pre) / np.where(mag > 0, mag, 1.0), 1.0)
+            best = np.minimum(best, m.min(axis=1))
+        return best
+
+    sh = dump["fwd.sh"].astype(np.float64)
+    shader_hidden = [dump[f"fwd.shader_hidden.{i}"].astype(np.float64) for i in range(ck.shader_layers - 1)]
+    margin = np.minimum(margin, units(dump["fwd.shader_in"].astype(np.float64), "shader", ck.shader_layers,
+                                      ck.cfg.bias, shader_hidden))
+    if ck.cfg.deform_enabled:
+        gd = dump["fwd.grid_d"].astype(np.float64)[vn, vs]
+        hidden = [dump[f"fwd.deform_hidden.{i}"].astype(np.float64)[vn, vs] for i in range(ck.deform_layers - 1)]
+        per_sample = units(np.concatenate([gd, sh[vn]], axis=1), "deform", ck.deform_layers, ck.deform_bias,
+                           hidden)
+        np.minimum.at(margin, vn, per_sample)
+    if ck.cfg.loss == "l1":
+        y = dump["fwd.rgb"].astype(np.float64)
+        t = batch.target.astype(np.float64)
+        scale = np.maximum(np.abs(y), np.abs(t))
+        m = np.where(scale > 0, np.abs(y - t) / np.where(scale > 0, scale, 1.0), 0.0)
+        margin = np.minimum(margin, m.min(axis=1))
+    return margin
+
+
 def compute_grid_fma(ck: Checkpoint, batch: Batch) -> dict[str, np.ndarray]:
     vn, vs = np.nonzero(batch.valid)
     xv = batch.positions[vn, vs]
@@ -707,6 +753,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", required=True)
     if sub == "dump":
         ap.add_argument("--dtype", choices=["float64", "float32"], default="float64")
+        ap.add_argument("--kink-margin", action="store_true",
+                        help="float64 only: also write kink.margin [N] (each pixel's smallest relative distance "
+                             "to a ReLU or L1 kink; never compared, see docs/oracle.md section 7)")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)  # deterministic reduction order on CPU
     try:
@@ -717,6 +766,10 @@ def main(argv: list[str] | None = None) -> int:
             save_file(out, args.out, metadata=_metadata(ck, "grid-fma", "float32"))
         else:
             out = compute_dump(ck, batch, args.dtype)
+            if args.kink_margin:
+                if args.dtype != "float64":
+                    raise RefError("--kink-margin: the kink margin belongs to the float64 dump")
+                out["kink.margin"] = kink_margin(ck, batch, out)
             save_file(out, args.out, metadata=_metadata(ck, "dump", args.dtype))
     except RefError as e:
         print(f"error: {e}", file=sys.stderr)

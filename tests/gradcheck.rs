@@ -688,6 +688,90 @@ fn pipeline_gradients_match_fd() {
     rep.finish("pipeline", 400);
 }
 
+/// The check can fail: a backward that scales the grid H feature gradients by the square of the
+/// footprint level weights instead of the weights (the same where a level is fully on or off, wrong
+/// where it is partly weighted) disagrees with the finite differences, while the real backward
+/// passes on the same entries.
+#[test]
+fn a_broken_level_weight_derivative_fails_the_check() {
+    let case = cases()
+        .into_iter()
+        .find(|c| c.cfg.level_weight == LevelWeight::Footprint)
+        .unwrap();
+    let model = Hfm::new(&case.cfg).unwrap();
+    let params = random_params(&model, 170);
+    let batch = make_batch(&model, &case, 180);
+    let fwd = model.forward(&params, &batch).unwrap();
+    let mut sabotaged = fwd.clone();
+    let mut partial = 0;
+    for ch in &mut sabotaged.chunks {
+        for w in &mut ch.level_w {
+            partial += (*w > 0.0 && *w < 1.0) as usize;
+            *w *= *w;
+        }
+    }
+    assert!(partial > 0, "the case has no partly weighted level");
+    let (mut good, mut bad) = (
+        Grads::<f64>::new(&model.layout),
+        Grads::<f64>::new(&model.layout),
+    );
+    model.backward(&params, &batch, &fwd, &mut good);
+    model.backward(&params, &batch, &sabotaged, &mut bad);
+    let base_sig = signature(&model, &fwd, &batch);
+    let t = model
+        .layout
+        .tensors
+        .iter()
+        .find(|t| t.group == Group::GridH)
+        .unwrap();
+    let f = case.cfg.grid_h.features as usize;
+    let (mut ok, mut broken_rep) = (Report::default(), Report::default());
+    let entries: Vec<u32> = good
+        .touched_h
+        .entries
+        .iter()
+        .chain(&bad.touched_h.entries)
+        .copied()
+        .collect();
+    for e in entries.iter().step_by(2) {
+        for k in 0..f {
+            let g = t.offset + *e as usize * f + k;
+            let (mut pp, mut pm) = (params.clone(), params.clone());
+            pp[g] += H;
+            pm[g] -= H;
+            let (fp, fm) = (
+                model.forward(&pp, &batch).unwrap(),
+                model.forward(&pm, &batch).unwrap(),
+            );
+            if signature(&model, &fp, &batch) != base_sig
+                || signature(&model, &fm, &batch) != base_sig
+            {
+                continue;
+            }
+            let fd = (fp.loss - fm.loss) / (2.0 * H);
+            ok.check(&format!("table[{g}]"), fd, good.params[g]);
+            broken_rep.check(&format!("table[{g}]"), fd, bad.params[g]);
+        }
+    }
+    assert!(ok.checked >= 50, "only {} entries checked", ok.checked);
+    assert!(
+        ok.fails.is_empty(),
+        "the real backward fails: {:?}",
+        &ok.fails[..ok.fails.len().min(5)]
+    );
+    assert!(
+        broken_rep.fails.len() >= 10,
+        "a backward with squared level weights failed only {} of {} checks",
+        broken_rep.fails.len(),
+        broken_rep.checked
+    );
+    eprintln!(
+        "squared level weights: {} of {} table checks fail; the real backward: 0",
+        broken_rep.fails.len(),
+        broken_rep.checked
+    );
+}
+
 // ---------------------------------------------------------------------------------------------
 // Vertex featurization (Fig. 2b baseline)
 // ---------------------------------------------------------------------------------------------

@@ -39,12 +39,48 @@ pub fn pareto_front(curves: &[Curve]) -> Vec<(f64, f64, String)> {
     front
 }
 
-/// Held-out masked PSNR against wall-clock seconds (log scale), one line per curve, the Pareto
-/// front marked with circles.
+/// The run-time-against-error plot: PSNR against wall-clock seconds (log scale), one curve per
+/// configuration, the Pareto front circled.
 pub fn pareto_png(path: &Path, title: &str, curves: &[Curve]) -> Result<()> {
+    let front: Vec<(f64, f64)> = pareto_front(curves)
+        .iter()
+        .map(|(t, p, _)| (*t, *p))
+        .collect();
+    lines_png(
+        path,
+        &Axes {
+            title,
+            x_desc: "wall-clock seconds of training (log scale)",
+            y_desc: "held-out masked PSNR (dB)",
+            log_x: true,
+        },
+        curves,
+        &front,
+        "Pareto front",
+    )
+}
+
+/// Titles and scale of a [`lines_png`] plot.
+pub struct Axes<'a> {
+    pub title: &'a str,
+    pub x_desc: &'a str,
+    pub y_desc: &'a str,
+    /// Logarithmic x axis (all x > 0).
+    pub log_x: bool,
+}
+
+/// Curves of (x, y) points with dots, plus `marks` circled in black under the legend entry
+/// `marks_label` (none if empty). Non-finite y values are left out.
+pub fn lines_png(
+    path: &Path,
+    axes: &Axes,
+    curves: &[Curve],
+    marks: &[(f64, f64)],
+    marks_label: &str,
+) -> Result<()> {
     register_font();
     let pts = || curves.iter().flat_map(|c| c.points.iter().copied());
-    let (tmin, tmax) = pts().fold((f64::INFINITY, 0.0f64), |(a, b), (t, _)| {
+    let (tmin, tmax) = pts().fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), (t, _)| {
         (a.min(t), b.max(t))
     });
     let (pmin, pmax) = pts()
@@ -55,25 +91,55 @@ pub fn pareto_png(path: &Path, title: &str, curves: &[Curve]) -> Result<()> {
     if !(tmin.is_finite() && pmin.is_finite()) {
         return Err(anyhow!("nothing to plot"));
     }
-    let (tmin, tmax) = ((tmin * 0.8).max(1e-3), tmax * 1.25);
     let (pmin, pmax) = (pmin.floor() - 0.5, pmax.ceil() + 0.5);
     let root = BitMapBackend::new(path, (1000, 650)).into_drawing_area();
     let e = |e: &dyn std::fmt::Display| anyhow!("{}: plot: {e}", path.display());
     root.fill(&WHITE).map_err(|x| e(&x))?;
-    let mut chart = ChartBuilder::on(&root)
-        .caption(title, ("sans-serif", 22))
+    let mut builder = ChartBuilder::on(&root);
+    builder
+        .caption(axes.title, ("sans-serif", 22))
         .margin(15)
         .x_label_area_size(45)
-        .y_label_area_size(60)
-        .build_cartesian_2d((tmin..tmax).log_scale(), pmin..pmax)
-        .map_err(|x| e(&x))?;
+        .y_label_area_size(60);
+    if axes.log_x {
+        let (tmin, tmax) = ((tmin * 0.8).max(1e-3), tmax * 1.25);
+        let chart = builder
+            .build_cartesian_2d((tmin..tmax).log_scale(), pmin..pmax)
+            .map_err(|x| e(&x))?;
+        draw_lines(chart, axes, curves, marks, marks_label).map_err(|x| e(&x))?;
+    } else {
+        let pad = 0.05 * (tmax - tmin).max(1e-9);
+        let chart = builder
+            .build_cartesian_2d(tmin - pad..tmax + pad, pmin..pmax)
+            .map_err(|x| e(&x))?;
+        draw_lines(chart, axes, curves, marks, marks_label).map_err(|x| e(&x))?;
+    }
+    root.present().map_err(|x| e(&x))?;
+    Ok(())
+}
+
+type PlotResult = std::result::Result<(), Box<dyn std::error::Error>>;
+
+fn draw_lines<'a, X>(
+    mut chart: ChartContext<
+        'a,
+        BitMapBackend<'a>,
+        Cartesian2d<X, plotters::coord::types::RangedCoordf64>,
+    >,
+    axes: &Axes,
+    curves: &[Curve],
+    marks: &[(f64, f64)],
+    marks_label: &str,
+) -> PlotResult
+where
+    X: Ranged<ValueType = f64> + plotters::coord::ranged1d::ValueFormatter<f64>,
+{
     chart
         .configure_mesh()
-        .x_desc("wall-clock seconds of training (log scale)")
-        .y_desc("held-out masked PSNR (dB)")
+        .x_desc(axes.x_desc)
+        .y_desc(axes.y_desc)
         .label_style(("sans-serif", 15))
-        .draw()
-        .map_err(|x| e(&x))?;
+        .draw()?;
     for (i, c) in curves.iter().enumerate() {
         let color = Palette99::pick(i).to_rgba();
         let p: Vec<(f64, f64)> = c
@@ -83,35 +149,30 @@ pub fn pareto_png(path: &Path, title: &str, curves: &[Curve]) -> Result<()> {
             .filter(|(_, y)| y.is_finite())
             .collect();
         chart
-            .draw_series(LineSeries::new(p.clone(), color.stroke_width(2)))
-            .map_err(|x| e(&x))?
+            .draw_series(LineSeries::new(p.clone(), color.stroke_width(2)))?
             .label(c.name.clone())
             .legend(move |(x, y)| {
                 PathElement::new(vec![(x, y), (x + 18, y)], color.stroke_width(2))
             });
-        chart
-            .draw_series(p.iter().map(|&q| Circle::new(q, 3, color.filled())))
-            .map_err(|x| e(&x))?;
+        chart.draw_series(p.iter().map(|&q| Circle::new(q, 3, color.filled())))?;
     }
-    let front = pareto_front(curves);
-    chart
-        .draw_series(
-            front
-                .iter()
-                .map(|(t, p, _)| Circle::new((*t, *p), 8, BLACK.stroke_width(2))),
-        )
-        .map_err(|x| e(&x))?
-        .label("Pareto front")
-        .legend(|(x, y)| Circle::new((x + 9, y), 6, BLACK.stroke_width(2)));
+    if !marks.is_empty() {
+        chart
+            .draw_series(
+                marks
+                    .iter()
+                    .map(|&(t, p)| Circle::new((t, p), 8, BLACK.stroke_width(2))),
+            )?
+            .label(marks_label.to_string())
+            .legend(|(x, y)| Circle::new((x + 9, y), 6, BLACK.stroke_width(2)));
+    }
     chart
         .configure_series_labels()
         .position(SeriesLabelPosition::LowerRight)
         .background_style(WHITE.mix(0.85))
         .border_style(BLACK)
         .label_font(("sans-serif", 15))
-        .draw()
-        .map_err(|x| e(&x))?;
-    root.present().map_err(|x| e(&x))?;
+        .draw()?;
     Ok(())
 }
 

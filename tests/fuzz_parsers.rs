@@ -168,6 +168,9 @@ fn mutate(seed: &[u8], others: &[Vec<u8>], text: bool, rng: &mut Rng) -> Vec<u8>
     d
 }
 
+/// Parse `bytes` (written into the work dir); returns the path errors must name, and the result.
+type RunFn = dyn Fn(&[u8], &Path) -> (String, anyhow::Result<()>);
+
 /// One parser under test: seed files (all of the same kind), whether the format is text, and a
 /// function that writes the mutated bytes where the parser reads them and runs it.
 struct Target {
@@ -177,7 +180,7 @@ struct Target {
     /// Cases in the default run.
     quick: usize,
     /// Writes `bytes` into the work dir and parses; returns the path that errors must name.
-    run: Box<dyn Fn(&[u8], &Path) -> (String, anyhow::Result<()>)>,
+    run: Box<RunFn>,
 }
 
 #[derive(Default)]

@@ -38,7 +38,7 @@ struct Variant {
 }
 
 /// Every sub-sample valid: an invalid one takes its pixel's first valid position (so it is
-/// evaluated like a real one, at a place the grids know).
+/// evaluated like a real one, at a place the grids know; the footprint is per pixel).
 fn fill_invalid(b: &mut Batch) {
     let s = b.samples_per_pixel();
     for p in 0..b.n_pixels() {
@@ -48,9 +48,6 @@ fn fill_invalid(b: &mut Batch) {
         for k in 0..s {
             if b.valid[p * s + k] == 0 {
                 b.positions[p * s + k] = b.positions[p * s + first];
-                if !b.footprint.is_empty() {
-                    b.footprint[p * s + k] = b.footprint[p * s + first];
-                }
                 b.valid[p * s + k] = 1;
             }
         }

@@ -84,7 +84,7 @@ fn rays_through_vertices_and_edges_are_never_lost() {
         let (lo, hi) = mesh.bbox();
         let centre = (lo + hi) * 0.5;
         let mut targets: Vec<DVec3> = mesh.vertices.clone();
-        for t in mesh.triangles.iter().take(200) {
+        for t in mesh.triangles.iter().take(300) {
             for k in 0..3 {
                 let a = mesh.vertices[t[k] as usize];
                 let b = mesh.vertices[t[(k + 1) % 3] as usize];
@@ -117,6 +117,10 @@ fn rays_through_vertices_and_edges_are_never_lost() {
             }
         }
     }
+    eprintln!(
+        "{rays} rays through vertices and edge midpoints, {} failures",
+        failures.len()
+    );
     assert!(rays > 1000);
     assert!(
         failures.is_empty(),

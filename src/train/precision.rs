@@ -12,7 +12,7 @@
 use crate::model::batch::Batch;
 use crate::model::params::{Grads, Group};
 use crate::train::config::Arithmetic;
-use crate::train::trainer::{batch_mse, StepStats, StepTiming, TrainState};
+use crate::train::trainer::{batch_mse, StepStats, TrainState};
 use anyhow::{ensure, Result};
 use std::time::Instant;
 
@@ -172,25 +172,6 @@ impl TrainState {
                 }
             }
         }
-        let t3 = Instant::now();
-        for t in [
-            &mut grads.touched_h,
-            &mut grads.touched_d,
-            &mut grads.touched_v,
-        ] {
-            t.entries.clear();
-        }
-        self.step += 1;
-        Ok(StepStats {
-            loss: fwd.loss,
-            mse,
-            samples: fwd.points.len(),
-            timing: StepTiming {
-                forward: (t1 - t0).as_secs_f64(),
-                backward: (t2 - t1).as_secs_f64(),
-                adam: (t3 - t2).as_secs_f64(),
-                zero: t3.elapsed().as_secs_f64(),
-            },
-        })
+        Ok(self.finish_step(grads, fwd.loss, mse, fwd.points.len(), [t0, t1, t2]))
     }
 }

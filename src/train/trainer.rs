@@ -137,6 +137,19 @@ impl TrainState {
         let t2 = Instant::now();
         let mse = batch_mse(&fwd, batch);
         self.apply_adam(grads);
+        Ok(self.finish_step(grads, fwd.loss, mse, fwd.points.len(), [t0, t1, t2]))
+    }
+
+    /// The end of a step (after Adam): clear the touched lists and input gradients, advance the
+    /// step, and report. `t` = the starts of forward, backward and Adam.
+    pub(crate) fn finish_step(
+        &mut self,
+        grads: &mut Grads<f32>,
+        loss: f64,
+        mse: f64,
+        samples: usize,
+        t: [Instant; 3],
+    ) -> StepStats {
         let t3 = Instant::now();
         for t in [
             &mut grads.touched_h,
@@ -148,17 +161,17 @@ impl TrainState {
         grads.positions.fill(0.0);
         grads.dirs.fill(0.0);
         self.step += 1;
-        Ok(StepStats {
-            loss: fwd.loss,
+        StepStats {
+            loss,
             mse,
-            samples: fwd.points.len(),
+            samples,
             timing: StepTiming {
-                forward: (t1 - t0).as_secs_f64(),
-                backward: (t2 - t1).as_secs_f64(),
-                adam: (t3 - t2).as_secs_f64(),
+                forward: (t[1] - t[0]).as_secs_f64(),
+                backward: (t[2] - t[1]).as_secs_f64(),
+                adam: (t3 - t[2]).as_secs_f64(),
                 zero: t3.elapsed().as_secs_f64(),
             },
-        })
+        }
     }
 
     /// Adam on every parameter tensor at the current step (`self.step` is not advanced), zeroing

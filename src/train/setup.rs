@@ -175,7 +175,7 @@ pub const CELLS_PER_FOOTPRINT: f64 = 1.0;
 ///    `per_level_scale = (N_max / N0)^(1/(L-1))` (tiny-cuda-nn's formula), so the levels stay about
 ///    as far apart as configured however wide the scene's range of scales is. (Stretching a fixed
 ///    L = 16 to the close-ups' resolution thinned the levels the aerial views use and cost them
-///    0.5–0.8 dB on `synth --preset cross`; adding levels gained close-ups 3.9 dB and aerial
+///    0.5–0.8 dB on `synth --preset cross`; adding levels gained close-ups 3.4 dB and aerial
 ///    views 0.5 dB over the fixed range, `docs/cross-scale.md`.)
 /// 2. `train.drop_fine_levels`: grid H levels finer than the finest footprint of any training view
 ///    are dropped ([`drop_fine_levels`]).

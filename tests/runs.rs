@@ -433,3 +433,30 @@ fn limits_and_bad_settings_get_clear_messages() {
     assert!(err.contains("conflicts with"), "{err}");
     let _ = std::fs::remove_dir_all(&run);
 }
+
+/// A file-size limit (`ulimit -f`) used to kill the process with SIGXFSZ and no message; now the
+/// write fails, the error names the file and a hint names the limit, and no temporary file stays.
+#[cfg(unix)]
+#[test]
+fn a_file_size_limit_gets_a_message_not_a_silent_kill() {
+    let run = tmp("fsize");
+    let scene = fixture();
+    let cmd = format!(
+        "ulimit -f 100; exec '{}' train --scene '{}' --out '{}' --preset tiny --steps 20 --no-eval -q",
+        env!("CARGO_BIN_EXE_xscale"),
+        scene.display(),
+        run.display()
+    );
+    let out = Command::new("sh").arg("-c").arg(&cmd).output().unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "killed or wrong exit: {out:?}");
+    assert!(err.contains("File too large"), "{err}");
+    assert!(err.contains("ulimit -f"), "no hint: {err}");
+    let leftovers: Vec<_> = std::fs::read_dir(&run)
+        .unwrap()
+        .filter_map(|e| e.ok())
+        .filter(|e| e.file_name().to_string_lossy().contains(".tmp."))
+        .collect();
+    assert!(leftovers.is_empty(), "temporary files left: {leftovers:?}");
+    let _ = std::fs::remove_dir_all(&run);
+}

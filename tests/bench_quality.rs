@@ -2,7 +2,7 @@
 //! with growing wall time, the ULR row, the plot, and a clear error for an unknown configuration.
 
 use std::path::Path;
-use xscale::train::bench_quality::bench_quality;
+use xscale::train::bench_quality::{bench_quality, replot};
 
 #[test]
 fn bench_quality_writes_rows_and_the_plot() {
@@ -42,6 +42,38 @@ fn bench_quality_writes_rows_and_the_plot() {
     assert!(
         format!("{e:#}").contains("unknown configuration \"cpux\""),
         "{e:#}"
+    );
+    let _ = std::fs::remove_dir_all(&out);
+}
+
+/// `--replot` reads bench.csv back (rows of two runs concatenated) and redraws the plot; a bad
+/// line is an error naming the file and line.
+#[test]
+fn replot_reads_the_csv_back_and_names_a_bad_line() {
+    let out = std::env::temp_dir().join(format!("xscale-test-replot-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&out);
+    std::fs::create_dir_all(&out).unwrap();
+    let header = "config,setup_s,wall_s,step,psnr_masked,ssim_masked,psnr_near,psnr_far\n";
+    let csv = format!(
+        "{header}a,0.5,1.0,10,20.0,0.5,19.0,21.0\na,0.5,2.0,20,22.0,0.6,21.0,23.0\n\
+         {header}b,0.1,1.0,0,21.0,0.7,20.0,22.0\n"
+    );
+    std::fs::write(out.join("bench.csv"), &csv).unwrap();
+    let mut said = Vec::new();
+    let rows = replot(&out, "t", &mut |m| said.push(m)).unwrap();
+    assert_eq!(rows.len(), 3);
+    assert_eq!(rows[2].config, "b");
+    assert!(out.join("pareto.png").is_file());
+    assert!(said.iter().any(|m| m.contains("22.00 dB  a")), "{said:?}");
+    std::fs::write(
+        out.join("bench.csv"),
+        format!("{header}a,0.5,x,10,20.0,0.5,19.0,21.0\n"),
+    )
+    .unwrap();
+    let e = format!("{:#}", replot(&out, "t", &mut |_| {}).unwrap_err());
+    assert!(
+        e.contains("bench.csv: line 2") && e.contains("\"x\""),
+        "{e}"
     );
     let _ = std::fs::remove_dir_all(&out);
 }

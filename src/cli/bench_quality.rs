@@ -1,14 +1,14 @@
 //! `xscale bench-quality --scene DIR --out DIR [--minutes M] [--configs a,b] [--list]`: run time
 //! against error (`train/bench_quality.rs`).
 
-use crate::train::bench_quality::{bench_quality, CONFIGS};
+use crate::train::bench_quality::{bench_quality, replot, CONFIGS};
 use std::path::PathBuf;
 use std::process::ExitCode;
 
 #[derive(clap::Args, Debug)]
 pub struct Args {
     /// Scene directory (it must hold views out for evaluation).
-    #[arg(long, required_unless_present = "list")]
+    #[arg(long, required_unless_present_any = ["list", "replot"])]
     pub scene: Option<PathBuf>,
     /// Output folder: bench.csv, pareto.png.
     #[arg(long, required_unless_present = "list")]
@@ -22,6 +22,9 @@ pub struct Args {
     /// List the configurations and exit.
     #[arg(long)]
     pub list: bool,
+    /// Train nothing: redraw OUT/pareto.png from OUT/bench.csv (e.g. after merging runs).
+    #[arg(long, conflicts_with_all = ["configs", "list"])]
+    pub replot: bool,
 }
 
 pub fn run(a: Args) -> anyhow::Result<ExitCode> {
@@ -44,6 +47,16 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
     } else {
         a.configs.clone()
     };
+    if a.replot {
+        let out = a.out.unwrap();
+        let name = a.scene.as_ref().unwrap_or(&out);
+        let name = name
+            .file_name()
+            .map_or("scene".into(), |n| n.to_string_lossy().to_string());
+        replot(&out, &name, &mut |m| eprintln!("{m}"))?;
+        eprintln!("wrote {}", out.join("pareto.png").display());
+        return Ok(ExitCode::SUCCESS);
+    }
     let (scene, out) = (a.scene.unwrap(), a.out.unwrap());
     bench_quality(&scene, &out, &configs, a.minutes, &mut |m| eprintln!("{m}"))?;
     eprintln!(

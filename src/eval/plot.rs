@@ -118,6 +118,29 @@ pub fn lines_png(
     Ok(())
 }
 
+/// A log axis gets a tick at every 1…9 × 10^k; labelling only 1, 2, 3 and 5 × 10^k keeps the
+/// labels from running into each other near the end of each decade.
+fn log_tick_label(v: &f64) -> String {
+    if !(*v > 0.0) {
+        return String::new();
+    }
+    let decade = 10f64.powf(v.log10().floor());
+    let m = v / decade;
+    if [1.0, 2.0, 3.0, 5.0, 10.0]
+        .iter()
+        .any(|k| (m - k).abs() < 1e-6 * k)
+    {
+        let r = m.round() * decade;
+        if r >= 1.0 {
+            format!("{r:.0}")
+        } else {
+            format!("{r}")
+        }
+    } else {
+        String::new()
+    }
+}
+
 type PlotResult = std::result::Result<(), Box<dyn std::error::Error>>;
 
 fn draw_lines<'a, X>(
@@ -134,12 +157,14 @@ fn draw_lines<'a, X>(
 where
     X: Ranged<ValueType = f64> + plotters::coord::ranged1d::ValueFormatter<f64>,
 {
-    chart
-        .configure_mesh()
-        .x_desc(axes.x_desc)
+    let mut mesh = chart.configure_mesh();
+    mesh.x_desc(axes.x_desc)
         .y_desc(axes.y_desc)
-        .label_style(("sans-serif", 15))
-        .draw()?;
+        .label_style(("sans-serif", 15));
+    if axes.log_x {
+        mesh.x_label_formatter(&log_tick_label);
+    }
+    mesh.draw()?;
     for (i, c) in curves.iter().enumerate() {
         let color = Palette99::pick(i).to_rgba();
         let p: Vec<(f64, f64)> = c

@@ -16,7 +16,7 @@ use crate::train::config::RunConfig;
 use crate::train::sampler::sample_batch;
 use crate::train::setup::{prepare, resolve_levels};
 use crate::train::trainer::{evaluate, TrainState};
-use anyhow::{bail, Context, Result};
+use anyhow::{anyhow, bail, Context, Result};
 use std::io::Write;
 use std::path::Path;
 use std::time::Instant;
@@ -237,27 +237,82 @@ pub fn bench_quality(
         bench_one(scene, name, minutes * 60.0, &mut log)
             .with_context(|| format!("configuration {name}"))?;
     }
+    let title = scene
+        .file_name()
+        .map_or("scene".into(), |n| n.to_string_lossy().to_string());
+    plot(out, &title, &rows, say)?;
+    Ok(rows)
+}
+
+/// Draw `OUT/pareto.png` from `rows` (one curve per configuration, in order of first appearance)
+/// and say the Pareto front.
+fn plot(out: &Path, scene_name: &str, rows: &[Row], say: &mut dyn FnMut(String)) -> Result<()> {
+    let mut configs: Vec<&str> = Vec::new();
+    for r in rows {
+        if !configs.contains(&r.config.as_str()) {
+            configs.push(&r.config);
+        }
+    }
     let curves: Vec<Curve> = configs
         .iter()
         .map(|c| Curve {
-            name: c.clone(),
+            name: c.to_string(),
             points: rows
                 .iter()
-                .filter(|r| &r.config == c)
+                .filter(|r| r.config == *c)
                 .map(|r| (r.wall_s.max(1e-3), r.psnr_masked))
                 .collect(),
         })
         .collect();
-    let title = format!(
-        "{}: held-out masked PSNR against training time",
-        scene
-            .file_name()
-            .map_or("scene".into(), |n| n.to_string_lossy().to_string())
-    );
+    let title = format!("{scene_name}: held-out masked PSNR against training time");
     pareto_png(&out.join("pareto.png"), &title, &curves)?;
     say("Pareto front (no configuration is better in less time):".into());
     for (t, p, c) in pareto_front(&curves) {
         say(format!("  {t:>8.1} s  {p:6.2} dB  {c}"));
     }
+    Ok(())
+}
+
+/// Read `OUT/bench.csv` back (for instance after concatenating runs made apart) and redraw
+/// `OUT/pareto.png`; returns the rows.
+pub fn replot(out: &Path, scene_name: &str, say: &mut dyn FnMut(String)) -> Result<Vec<Row>> {
+    let path = out.join("bench.csv");
+    let text = std::fs::read_to_string(&path)
+        .with_context(|| format!("{}: cannot read", path.display()))?;
+    let mut rows = Vec::new();
+    for (i, line) in text.lines().enumerate() {
+        if i == 0 || line.trim().is_empty() || line == HEADER {
+            continue;
+        }
+        let bad = |what: &str| {
+            anyhow!(
+                "{}: line {}: {what} (expected {HEADER})",
+                path.display(),
+                i + 1
+            )
+        };
+        let f: Vec<&str> = line.split(',').collect();
+        if f.len() != 8 {
+            return Err(bad(&format!("{} fields", f.len())));
+        }
+        let num = |k: usize| -> Result<f64> {
+            f[k].parse::<f64>()
+                .map_err(|_| bad(&format!("field {} is not a number: {:?}", k + 1, f[k])))
+        };
+        rows.push(Row {
+            config: f[0].to_string(),
+            setup_s: num(1)?,
+            wall_s: num(2)?,
+            step: num(3)? as u64,
+            psnr_masked: num(4)?,
+            ssim_masked: num(5)?,
+            psnr_near: num(6)?,
+            psnr_far: num(7)?,
+        });
+    }
+    if rows.is_empty() {
+        bail!("{}: no rows", path.display());
+    }
+    plot(out, scene_name, &rows, say)?;
     Ok(rows)
 }

@@ -121,7 +121,7 @@ pub fn lines_png(
 /// A log axis gets a tick at every 1…9 × 10^k; labelling only 1, 2, 3 and 5 × 10^k keeps the
 /// labels from running into each other near the end of each decade.
 fn log_tick_label(v: &f64) -> String {
-    if !(*v > 0.0) {
+    if v.is_nan() || *v <= 0.0 {
         return String::new();
     }
     let decade = 10f64.powf(v.log10().floor());

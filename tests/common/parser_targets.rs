@@ -16,7 +16,7 @@ use xscale::scene::{colmap, mesh, mvsnet, transforms, LoadOptions, Scene};
 use xscale::train::config::RunConfig;
 
 /// Parse `bytes` (written into the work dir); returns the path errors must name, and the result.
-pub type RunFn = dyn Fn(&[u8], &Path) -> (String, anyhow::Result<()>);
+pub type RunFn = dyn Fn(&[u8], &Path) -> (String, anyhow::Result<()>) + Send + Sync;
 
 /// One parser under test: seed files (all of the same kind), whether the format is text, and a
 /// function that writes the mutated bytes where the parser reads them and runs it.

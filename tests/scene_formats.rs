@@ -995,3 +995,29 @@ fn nerf_synthetic_train_test_files_give_the_split() {
     );
     assert!("blender".parse::<CameraFormat>().is_err());
 }
+
+/// A mesh in other units than the cameras (scaled by 1e7 or 1e-7 about the origin, as a unit
+/// mix-up does) loads but is flagged; the unscaled scene and a mesh 10× off are not.
+#[test]
+fn a_mesh_in_other_units_than_the_cameras_is_flagged() {
+    let tiny = Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/tiny");
+    let (m0, _) = mesh::load_mesh(&tiny.join("mesh.ply")).unwrap();
+    let mut seen = Vec::new();
+    for (k, scale) in [1.0, 10.0, 1e7, 1e-7].into_iter().enumerate() {
+        let d = scratch(&format!("units-{k}"));
+        copy_dir(&tiny, &d);
+        let _ = fs::remove_file(d.join("mesh.obj"));
+        let mut m = m0.clone();
+        m.vertices.iter_mut().for_each(|v| *v *= scale);
+        mesh::write_ply(&d.join("mesh.ply"), &m).unwrap();
+        let (_, rep) = Scene::load_report(&d, &LoadOptions::default()).unwrap();
+        seen.push((scale, rep.warnings));
+    }
+    for (scale, w) in &seen {
+        let flagged = (*scale - 1.0).abs() > 100.0 || *scale < 0.01;
+        assert_eq!(!w.is_empty(), flagged, "scale {scale}: {w:?}");
+        if flagged {
+            assert_contains(&w[0], &["mesh.ply", "different units"]);
+        }
+    }
+}

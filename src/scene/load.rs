@@ -9,6 +9,7 @@ use super::{
     View,
 };
 use anyhow::{anyhow, bail, Result};
+use glam::DVec3;
 use std::path::{Path, PathBuf};
 
 /// Which camera layout a scene directory uses (SPEC §3).
@@ -97,6 +98,51 @@ pub struct LoadReport {
     pub format: CameraFormat,
     pub mesh_path: PathBuf,
     pub mesh_stats: mesh::MeshStats,
+    /// Things that load but are probably wrong (printed by the callers as `warning: …`).
+    pub warnings: Vec<String>,
+}
+
+/// How far apart the mesh's size and the cameras' layout may be before the scene is flagged as a
+/// probable unit or frame mismatch. Real scenes stay well inside: the mesh's bounding-box
+/// diagonal is about 0.1–10 times the spread of the camera centres (object scans, aerial
+/// surveys, indoor scans), and the cameras stand within a few diagonals of the mesh; a mesh in
+/// millimetres with cameras in metres is off by 1000, the mismatches seen in practice by more.
+pub const SCALE_MISMATCH: f64 = 1000.0;
+
+/// A warning when the mesh is [`SCALE_MISMATCH`] times larger than the spread of the camera
+/// centres (their bounding-box diagonal), or the cameras stand a median [`SCALE_MISMATCH`] mesh
+/// diagonals away from its centre. (A ratio of the mesh's size to the cameras' distance from
+/// its centre alone misses a mesh scaled about an origin far from it.)
+pub fn scale_mismatch(mesh: &mesh::Mesh, views: &[View], mesh_path: &Path) -> Option<String> {
+    let (lo, hi) = mesh.bbox();
+    let diag = (hi - lo).length();
+    if views.is_empty() || !(diag > 0.0 && diag.is_finite()) {
+        return None;
+    }
+    let centres: Vec<DVec3> = views.iter().map(|v| v.camera.center()).collect();
+    let (clo, chi) = centres.iter().fold(
+        (DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY)),
+        |(a, b), c| (a.min(*c), b.max(*c)),
+    );
+    let spread = (chi - clo).length();
+    let mid = 0.5 * (lo + hi);
+    let mut d: Vec<f64> = centres.iter().map(|c| (*c - mid).length()).collect();
+    d.sort_by(f64::total_cmp);
+    let away = d[d.len() / 2] / diag;
+    let mesh_vs_rig = if spread > 0.0 { diag / spread } else { 1.0 };
+    let what = if mesh_vs_rig > SCALE_MISMATCH {
+        format!("the mesh is {diag:.3e} across, {mesh_vs_rig:.3e}× the spread of the camera centres ({spread:.3e})")
+    } else if away > SCALE_MISMATCH {
+        format!("the mesh is {diag:.3e} across and the cameras stand a median {away:.3e} of that from its centre")
+    } else {
+        return None;
+    };
+    Some(format!(
+        "{}: {what}: mesh and cameras are probably in different units or frames (a mesh in \
+         millimetres with cameras in metres, an unaligned reconstruction); training will run but \
+         learn little",
+        mesh_path.display()
+    ))
 }
 
 /// Default split: every 7th view held out (indices 0, 7, 14, …), the official protocol.
@@ -221,6 +267,9 @@ impl Scene {
         };
         let (mesh, mesh_stats) = mesh::load_mesh(&mesh_path)?;
         let normalization = Normalization::from_mesh(&mesh, opts.normalize);
+        let warnings: Vec<String> = scale_mismatch(&mesh, &views, &mesh_path)
+            .into_iter()
+            .collect();
         let background = cfg.background.unwrap_or([1.0; 3]);
         if background.iter().any(|c| !(0.0..=1.0).contains(c)) {
             bail!(
@@ -243,6 +292,7 @@ impl Scene {
             format,
             mesh_path,
             mesh_stats,
+            warnings,
         };
         Ok((scene, report))
     }

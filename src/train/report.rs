@@ -61,7 +61,7 @@ impl Reporter {
     pub fn say(&self, msg: String) {
         match &self.bar {
             Some(b) => b.println(msg),
-            None if !self.quiet => eprintln!("{msg}"),
+            None if !self.quiet || msg.starts_with("warning:") => eprintln!("{msg}"),
             None => {}
         }
     }

@@ -61,6 +61,9 @@ pub fn prepare(
         scene.mesh.triangles.len(),
         report.mesh_stats.dropped_degenerate
     ));
+    for w in &report.warnings {
+        log(format!("warning: {w}"));
+    }
     if train_views.is_empty() {
         bail!(
             "{}: no training views (all {} are held out)",

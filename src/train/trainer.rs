@@ -401,8 +401,9 @@ fn open_run(
     cfg: RunConfig,
     opts: &TrainOptions,
 ) -> Result<(TrainState, Prepared)> {
+    // `-q` silences progress, never a warning.
     let say = |s: String| {
-        if !opts.quiet {
+        if !opts.quiet || s.starts_with("warning:") {
             eprintln!("{s}");
         }
     };

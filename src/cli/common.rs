@@ -230,6 +230,11 @@ pub fn scene_for_model(
         }
     }
     scene.normalization = ckpt.normalization;
+    if let Some(r) = &ckpt.refine {
+        // The model refined its training mesh (`[model.refine]`): render on the refined one.
+        scene.mesh =
+            crate::model::refine::refined_mesh(&scene.mesh, &scene.normalization, &r.offsets)?;
+    }
     let tracer = Tracer::new(&scene.mesh, &scene.normalization).context("building the BVH")?;
     let train = scene.train();
     let mut rows = vec![-1; scene.views.len()];

@@ -6,6 +6,7 @@ use std::process::ExitCode;
 
 pub mod ablate;
 pub mod batch;
+pub mod bench_geometry;
 pub mod bench_quality;
 pub mod cast;
 pub mod common;
@@ -14,6 +15,7 @@ pub mod decimate;
 pub mod dump;
 pub mod eval;
 pub mod init;
+pub mod mesh_distance;
 pub mod render;
 pub mod synth;
 pub mod train;
@@ -56,10 +58,15 @@ pub enum Command {
     Decimate(decimate::Args),
     /// Subdivide a mesh (midpoint, 1→4 per level).
     Subdivide(decimate::SubdivideArgs),
+    /// Geometry error of a mesh against a reference surface (mean / RMS point-to-surface distance).
+    MeshDistance(mesh_distance::Args),
     /// Train the paper's ablations and the vertex-feature baseline; write a comparison table.
     Ablate(ablate::Args),
     /// Run time against error: train configurations for a time budget, write bench.csv and pareto.png
     BenchQuality(bench_quality::Args),
+    /// How much an imperfect mesh costs: proxies of a synthetic scene's true surface, trained with
+    /// ξ (and mesh refinement) on and off; writes geometry.md/.csv and plots
+    BenchGeometry(bench_geometry::Args),
 }
 
 /// Run a parsed command line. `Ok(code)` is the process exit code; errors exit with 2.
@@ -91,7 +98,9 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Eval(a) => eval::run(a),
         Command::Decimate(a) => decimate::run(a),
         Command::Subdivide(a) => decimate::run_subdivide(a),
+        Command::MeshDistance(a) => mesh_distance::run(a),
         Command::Ablate(a) => ablate::run(a),
         Command::BenchQuality(a) => bench_quality::run(a),
+        Command::BenchGeometry(a) => bench_geometry::run(a),
     }
 }

@@ -38,6 +38,9 @@ pub struct Checkpoint {
     /// `[model.layout.total]`.
     pub params: Vec<f32>,
     pub normalization: Normalization,
+    /// Mesh refinement (`[model.refine] enabled`, `model/refine.rs`): the offset field's
+    /// parameters and the per-vertex offsets eval/render apply to the training mesh.
+    pub refine: Option<crate::model::refine::RefineParams>,
 }
 
 /// A freshly initialised checkpoint: `n_train_views` appearance rows (zero), parameters from
@@ -75,10 +78,20 @@ pub fn init_checkpoint_for_mesh(
     };
     // On huge pages: the tables are read and updated at random entries every step.
     let params = crate::memhint::copied(&model.init_params(seed));
+    let refine = if cfg.refine.enabled {
+        let mesh = mesh.context("[model.refine] needs the scene's mesh")?;
+        Some(crate::model::refine::RefineParams::zeros(
+            &cfg.refine,
+            mesh.vertices.len(),
+        ))
+    } else {
+        None
+    };
     Ok(Checkpoint {
         model,
         params,
         normalization,
+        refine,
     })
 }
 
@@ -167,6 +180,9 @@ impl Checkpoint {
         f.set_meta("config", toml::to_string(&self.model.cfg)?);
         f.set_meta("normalization", serde_json::to_string(&self.normalization)?);
         layout_to_tensors(&mut f, &self.model.layout, "", &self.params)?;
+        if let Some(r) = &self.refine {
+            r.to_tensors(&mut f)?;
+        }
         if let Some(vt) = &self.model.vertex {
             let faces: Vec<u32> = vt.faces.iter().flatten().copied().collect();
             f.insert(
@@ -244,10 +260,20 @@ impl Checkpoint {
                 i - t.offset
             );
         }
+        let refine = if cfg.refine.enabled {
+            Some(crate::model::refine::RefineParams::from_tensors(
+                file,
+                &cfg.refine,
+                &label,
+            )?)
+        } else {
+            None
+        };
         Ok(Checkpoint {
             model,
             params,
             normalization,
+            refine,
         })
     }
 

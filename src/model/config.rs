@@ -2,6 +2,7 @@
 //! `config` metadata; a reader (the PyTorch reference, a backend) takes the numbers from here and
 //! the per-level scale table from the checkpoint's `grid_*.scales` tensor.
 
+pub use crate::model::refine::RefineConfig;
 use serde::{Deserialize, Serialize};
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
@@ -150,6 +151,10 @@ pub struct ModelConfig {
     /// configs that do not use it, so they are unchanged by its existence.
     #[serde(default, skip_serializing_if = "LevelWeight::is_none")]
     pub level_weight: LevelWeight,
+    /// Joint refinement of the mesh through the hit point (`[model.refine]`, beyond the paper;
+    /// `model/refine.rs`). Absent from configs that keep the default (off).
+    #[serde(default, skip_serializing_if = "RefineConfig::is_default")]
+    pub refine: RefineConfig,
 }
 
 /// `(finest / base)^(1/(levels-1))`, the per-level scale that reaches `finest` at the last level.
@@ -198,6 +203,7 @@ impl ModelConfig {
             vertex_features: 0,
             vertex_count: 0,
             level_weight: LevelWeight::None,
+            refine: RefineConfig::default(),
         }
     }
 
@@ -242,6 +248,7 @@ impl ModelConfig {
             vertex_count: 0,
             // Measured better on synth small (+0.7 dB masked PSNR, 18% faster per step; SPEC §4.10).
             level_weight: LevelWeight::Footprint,
+            refine: RefineConfig::default(),
         }
     }
 

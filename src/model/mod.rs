@@ -13,6 +13,7 @@ pub mod loss;
 pub mod mlp;
 pub mod params;
 pub mod real;
+pub mod refine;
 pub mod sh;
 pub mod vertex;
 

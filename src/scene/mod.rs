@@ -14,6 +14,7 @@
 
 pub mod camera;
 pub mod colmap;
+pub mod distance;
 pub mod image;
 pub mod load;
 pub mod mask;

@@ -15,6 +15,7 @@
 pub mod cameras;
 pub mod noise;
 pub mod output;
+pub mod perturb;
 pub mod proxy;
 pub mod render;
 pub mod shade;

@@ -269,6 +269,7 @@ impl RunConfig {
             bail!("model.gamma must be 1..=4, got {}", self.model.gamma);
         }
         t.adam.validate().context("train.adam")?;
+        crate::train::refine::validate(self)?;
         let sh = &self.model.shader;
         if sh.width == 0 && sh.hidden_layers > 0 {
             bail!(

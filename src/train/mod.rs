@@ -16,11 +16,13 @@
 
 pub mod ablate;
 pub mod adam;
+pub mod bench_geometry;
 pub mod bench_quality;
 pub mod config;
 pub mod divergence;
 pub mod memory;
 pub mod precision;
+pub mod refine;
 pub mod report;
 pub mod run_dir;
 pub mod sampler;

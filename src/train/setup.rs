@@ -95,8 +95,9 @@ pub fn prepare(
     memory::check_budget(cfg, &sizes, scene.downsample)?;
     let t0 = std::time::Instant::now();
     let gamma = cfg.model.gamma;
-    // The vertex featurization needs each sub-sample's triangle and barycentrics.
-    let keep_triangles = !cfg.model.featurization.is_hash();
+    // The vertex featurization needs each sub-sample's triangle and barycentrics, the mesh
+    // refinement its triangle (`train/refine.rs`).
+    let keep_triangles = !cfg.model.featurization.is_hash() || cfg.model.refine.enabled;
     let mut samples = match cfg.train.samples {
         SampleMode::Stream => Samples::Stream(RayStream::new(gamma, keep_triangles)?),
         SampleMode::Cache => Samples::Cache(Box::new(if keep_triangles {

@@ -19,7 +19,7 @@ use crate::eval::protocol::{evaluate_view, write_evaluated, ViewScore};
 use crate::io::tensors::TensorFile;
 use crate::model::batch::Batch;
 use crate::model::checkpoint::{init_checkpoint_for_mesh, Checkpoint};
-use crate::model::params::{Grads, Group, ParamLayout};
+use crate::model::params::{Grads, Group};
 use crate::train::adam::AdamState;
 use crate::train::config::RunConfig;
 use crate::train::divergence::Guard;
@@ -62,12 +62,13 @@ pub struct StepTiming {
     pub zero: f64,
 }
 
-fn param_specs(layout: &ParamLayout) -> Vec<(String, Vec<usize>)> {
-    layout
-        .tensors
-        .iter()
-        .map(|t| (t.name.clone(), t.shape.clone()))
-        .collect()
+/// Adam's parameters: the model's layout, then the mesh refinement's (`train/refine.rs`), if any.
+fn param_specs(ckpt: &Checkpoint) -> Vec<(String, Vec<usize>)> {
+    let mut v = ckpt.model.layout.name_shapes();
+    if let Some(r) = &ckpt.refine {
+        v.extend(r.specs());
+    }
+    v
 }
 
 impl TrainState {
@@ -81,7 +82,7 @@ impl TrainState {
             prepared.train_views.len(),
             Some(&prepared.scene.mesh),
         )?;
-        let adam = AdamState::new(&param_specs(&ckpt.model.layout));
+        let adam = AdamState::new(&param_specs(&ckpt));
         Ok(TrainState {
             cfg,
             ckpt,
@@ -110,7 +111,7 @@ impl TrainState {
             .meta("step")?
             .parse()
             .with_context(|| format!("{label}: \"step\""))?;
-        let adam = AdamState::load(f, &param_specs(&ckpt.model.layout))?;
+        let adam = AdamState::load(f, &param_specs(&ckpt))?;
         Ok(TrainState {
             cfg,
             ckpt,
@@ -313,12 +314,14 @@ pub fn evaluate(
     } else {
         prepared.scene.test.iter().copied().take(max).collect()
     };
+    let refined = crate::train::refine::eval_tracer(state, prepared)?;
+    let tracer = refined.as_ref().unwrap_or(&prepared.tracer);
     let mut scores = Vec::new();
     for &i in &views {
         let e = evaluate_view(
             &state.ckpt.model,
             &state.ckpt.params,
-            &prepared.tracer,
+            tracer,
             &prepared.scene,
             i,
             state.cfg.model.gamma,
@@ -354,6 +357,7 @@ pub fn train(
     let interrupted = run_loop(&mut state, &prepared, &ckpt_path, opts, &mut rep)?;
     rep.loop_done();
     state.save(&ckpt_path)?;
+    crate::train::refine::write_refined(&state, &prepared, run_dir)?;
     let seconds = rep.elapsed();
     if interrupted || state.step < tc.steps {
         rep.say(format!(
@@ -500,15 +504,29 @@ fn run_loop(
     .unwrap_or(0);
     let mut guard = Guard::new(state.step + warmup);
     let mut f64s = crate::train::precision::F64Step::for_config(state);
-    let mut next = (state.step < stop).then(|| draw(state.step));
-    while let Some(batch) = next.take() {
+    // Mesh refinement (`[model.refine]`) steps and draws batches itself (`train/refine.rs`).
+    let mut refiner = crate::train::refine::Refiner::for_run(state, prepared, opts.interrupt)?;
+    let mut next = (state.step < stop).then(|| match &refiner {
+        Some(r) => r.draw(prepared, state.step),
+        None => draw(state.step),
+    });
+    while let Some(mut batch) = next.take() {
         // Batch k+1 is drawn (its rays cast) while step k runs: a pure function of (seed, k+1),
         // so overlapping it changes no result, only fills the cores the step leaves idle.
         let k1 = state.step + 1;
-        let (st, nb) = rayon::join(
-            || state.step_in(&batch, &mut grads, f64s.as_mut()),
-            || (k1 < stop).then(|| draw(k1)),
-        );
+        let (st, nb) = match refiner.as_mut() {
+            Some(r) => r.step_and_draw(
+                state,
+                prepared,
+                &mut batch,
+                &mut grads,
+                (k1 < stop).then_some(k1),
+            ),
+            None => rayon::join(
+                || state.step_in(&batch, &mut grads, f64s.as_mut()),
+                || (k1 < stop).then(|| draw(k1)),
+            ),
+        };
         next = nb;
         let st = st?;
         if !st.loss.is_finite() {

@@ -1,0 +1,39 @@
+//! `xscale mesh-distance --mesh A --truth B [--samples N]`: mean / RMS / max point-to-surface
+//! distance of area samples of A to B, and of B to A (`scene/distance.rs`).
+
+use crate::scene::distance::{surface_distance, SurfaceIndex};
+use crate::scene::mesh::load_mesh;
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+#[derive(clap::Args, Debug)]
+pub struct Args {
+    /// The mesh to measure (PLY or OBJ).
+    #[arg(long)]
+    pub mesh: PathBuf,
+    /// The reference surface (PLY or OBJ), e.g. a synthetic scene's truth.ply.
+    #[arg(long)]
+    pub truth: PathBuf,
+    /// Area samples on each mesh.
+    #[arg(long, default_value_t = crate::train::bench_geometry::DISTANCE_SAMPLES)]
+    pub samples: usize,
+}
+
+pub fn run(a: Args) -> anyhow::Result<ExitCode> {
+    let (m, _) = load_mesh(&a.mesh)?;
+    let (t, _) = load_mesh(&a.truth)?;
+    let diag = crate::synth::perturb::diagonal(&t);
+    let to = surface_distance(&m, &SurfaceIndex::new(&t), a.samples);
+    let from = surface_distance(&t, &SurfaceIndex::new(&m), a.samples);
+    for (what, d) in [("mesh → truth", to), ("truth → mesh", from)] {
+        println!(
+            "{what}: mean {:.5}  RMS {:.5} ({:.4} % of the truth's diagonal {diag:.3})  max {:.5}  ({} samples)",
+            d.mean,
+            d.rms,
+            100.0 * d.rms / diag,
+            d.max,
+            d.samples
+        );
+    }
+    Ok(ExitCode::SUCCESS)
+}

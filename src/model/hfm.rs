@@ -617,7 +617,17 @@ impl Hfm {
         let cg: Vec<ChunkGrad<R>> = fwd
             .chunks
             .par_iter()
-            .map(|ch| self.backward_chunk(params, batch, fwd, ch, scale, inputs))
+            .map(|ch| {
+                self.backward_chunk(
+                    params,
+                    batch,
+                    fwd,
+                    ch,
+                    scale,
+                    inputs,
+                    grads.position_max_scale,
+                )
+            })
             .collect();
 
         // Combine MLP weight gradients in chunk order.
@@ -710,6 +720,7 @@ impl Hfm {
         );
     }
 
+    #[allow(clippy::too_many_arguments)]
     fn backward_chunk<R: Real>(
         &self,
         params: &[R],
@@ -718,6 +729,7 @@ impl Hfm {
         ch: &ChunkFwd<R>,
         scale: R,
         inputs: bool,
+        position_max_scale: Option<f32>,
     ) -> ChunkGrad<R> {
         let mode = self.cfg.positions;
         let lf = self.feat_dim();
@@ -798,14 +810,14 @@ impl Hfm {
                     &params[self.r_grid_h.clone()],
                     pts,
                     mode,
-                    &d_feat,
+                    &coarse_levels(&self.grid_h, &d_feat, position_max_scale),
                     &mut d_points,
                 );
                 gd.backward_points(
                     &params[self.r_grid_d.clone()],
                     pts,
                     mode,
-                    &d_grid_d,
+                    &coarse_levels(gd, &d_grid_d, position_max_scale),
                     &mut d_points,
                 );
             }
@@ -818,7 +830,7 @@ impl Hfm {
                 &params[self.r_grid_h.clone()],
                 pts,
                 mode,
-                &d_feat,
+                &coarse_levels(&self.grid_h, &d_feat, position_max_scale),
                 &mut d_points,
             );
         }
@@ -866,6 +878,29 @@ impl Hfm {
             self.cfg.deform.grid.features as usize,
         )
     }
+}
+
+/// `d_out` `[v, L·F]` of `grid` with the columns of levels finer than `max_scale` cells per unit
+/// zeroed (`Grads::position_max_scale`), borrowed unchanged when every level is kept.
+fn coarse_levels<'a, R: Real>(
+    grid: &HashGrid,
+    d_out: &'a [R],
+    max_scale: Option<f32>,
+) -> std::borrow::Cow<'a, [R]> {
+    let Some(m) = max_scale else {
+        return std::borrow::Cow::Borrowed(d_out);
+    };
+    let kept = grid.scales.iter().take_while(|&&s| s <= m).count();
+    if kept == grid.scales.len() {
+        return std::borrow::Cow::Borrowed(d_out);
+    }
+    let f = grid.cfg.features as usize;
+    let od = grid.out_dim();
+    let mut v = d_out.to_vec();
+    for row in v.chunks_exact_mut(od) {
+        row[kept * f..].fill(R::ZERO);
+    }
+    std::borrow::Cow::Owned(v)
 }
 
 /// Eq. 4 forward: `out[n, lf] = (Σ_{j ∈ start[n]..start[n+1]} (feat[j] + delta[j])) / count_n`,

@@ -171,6 +171,11 @@ pub struct Grads<R> {
     pub touched_d: Touched,
     /// Rows of the vertex table (vertex featurization) that received gradient.
     pub touched_v: Touched,
+    /// With `inputs`: the position gradient goes through only the grid levels (of H and D)
+    /// whose scale is at most this many cells per unit (`None`: every level, the exact
+    /// gradient). The mesh refinement's coarse-to-fine schedule (`train/refine.rs`); parameter
+    /// gradients are unaffected.
+    pub position_max_scale: Option<f32>,
 }
 
 impl<R: Copy + Default> Grads<R> {
@@ -184,6 +189,7 @@ impl<R: Copy + Default> Grads<R> {
             touched_h: Touched::default(),
             touched_d: Touched::default(),
             touched_v: Touched::default(),
+            position_max_scale: None,
         }
     }
 

@@ -79,6 +79,12 @@ pub struct RefineConfig {
     pub laplacian: f64,
     /// Weight of the thin-plate (bi-Laplacian) energy of the per-vertex residual.
     pub bilaplacian: f64,
+    /// The vertex gradient goes through the hash-grid levels (H and D) of at most this many cells
+    /// per unit only, from `[0]` when the mesh starts moving to `[1]` at the end of the run
+    /// (geometric interpolation): coarse to fine. `[0, 0]` = every level (the exact gradient).
+    /// Fine levels carry texture, not shape: through them the gradient on a proxy is noise
+    /// (`examples/refine_probe.rs`, docs/geometry.md).
+    pub gradient_cells: [f64; 2],
     /// Rebuild the BVH from the moved mesh every this many steps (batches in between re-intersect
     /// their triangles' current planes).
     pub rebuild_every: u32,
@@ -99,9 +105,10 @@ impl Default for RefineConfig {
             coarse_to_fine: 0.3,
             levels: 5,
             base_resolution: 4,
-            per_vertex: true,
+            per_vertex: false,
             laplacian: 0.0,
             bilaplacian: 1e-3,
+            gradient_cells: [32.0, 512.0],
             rebuild_every: 50,
             min_cos: 0.1,
             lr: 2e-5,
@@ -158,6 +165,13 @@ impl RefineConfig {
             if !(v.is_finite() && v >= 0.0) {
                 bad.push(format!("{k} = {v} (a finite value ≥ 0)"));
             }
+        }
+        let [g0, g1] = self.gradient_cells;
+        if !(g0.is_finite() && g1.is_finite() && g0 >= 0.0 && g1 >= 0.0 && (g0 > 0.0) == (g1 > 0.0))
+        {
+            bad.push(format!(
+                "gradient_cells = [{g0}, {g1}] (two finite values > 0, or [0, 0] for every level)"
+            ));
         }
         if self.rebuild_every == 0 {
             bad.push("rebuild_every = 0 (at least 1)".into());

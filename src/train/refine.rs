@@ -193,6 +193,19 @@ impl Refiner {
         (grids, on > self.cfg.levels as usize)
     }
 
+    /// `Grads::position_max_scale` at step k (`gradient_cells`, geometric from the first moving
+    /// step to the last).
+    pub fn gradient_scale(&self, k: u64) -> Option<f32> {
+        let [g0, g1] = self.cfg.gradient_cells;
+        if g0 <= 0.0 {
+            return None;
+        }
+        let k0 = self.start_step();
+        let span = self.steps.saturating_sub(k0 + 1).max(1) as f64;
+        let f = (k.saturating_sub(k0) as f64 / span).min(1.0);
+        Some((g0 * (g1 / g0).powf(f)) as f32)
+    }
+
     fn needs_rebuild(&self, k: u64) -> bool {
         let k0 = self.start_step();
         k > k0 && (k - k0) % self.cfg.rebuild_every as u64 == 0
@@ -290,6 +303,7 @@ impl Refiner {
             Vec::new()
         };
         grads.inputs = moving;
+        grads.position_max_scale = self.gradient_scale(k);
         let model = &state.ckpt.model;
         let fwd = model.forward(&state.ckpt.params, batch)?;
         let t1 = Instant::now();

@@ -1,0 +1,149 @@
+//! Mesh refinement during training (`[model.refine]`, train/refine.rs): bit-identical on 1, 2
+//! and 4 threads, exact resume across a BVH rebuild, the refined mesh in the checkpoint, in
+//! `refined.ply` and in what eval/render load, and clear errors for configurations it cannot run.
+
+use std::path::{Path, PathBuf};
+use xscale::train::config::RunConfig;
+use xscale::train::trainer::{train, TrainOptions, TrainState};
+
+fn fixture() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/tiny")
+}
+
+fn tmp(name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("xscale-test-refine-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    d
+}
+
+/// The tiny preset with refinement from step 40 of 160, BVH rebuilt every 17 steps (so the resume
+/// point, 100, falls between rebuilds), every level switched on by step 88.
+fn cfg() -> RunConfig {
+    let mut c = RunConfig::preset("tiny").unwrap();
+    c.train.steps = 160;
+    c.train.batch_pixels = 512;
+    c.train.eval_every = 0;
+    c.train.checkpoint_every = 30;
+    let r = &mut c.model.refine;
+    r.enabled = true;
+    r.start = 0.25;
+    r.coarse_to_fine = 0.3;
+    r.rebuild_every = 17;
+    r.lr = 1e-3;
+    c.validate().unwrap();
+    c
+}
+
+fn opts(resume: bool, stop_at: Option<u64>) -> TrainOptions {
+    TrainOptions {
+        resume,
+        stop_at,
+        no_final_eval: true,
+        quiet: true,
+        ..Default::default()
+    }
+}
+
+fn in_pool<T: Send>(threads: usize, f: impl FnOnce() -> T + Send) -> T {
+    rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .unwrap()
+        .install(f)
+}
+
+#[test]
+fn refinement_is_thread_independent_resumes_exactly_and_moves_the_mesh() {
+    let mut finals = Vec::new();
+    for threads in [1, 2, 4] {
+        let run = tmp(&format!("straight{threads}"));
+        in_pool(threads, || {
+            train(&fixture(), &run, cfg(), &opts(false, None))
+        })
+        .unwrap();
+        finals.push(std::fs::read(run.join("checkpoint.safetensors")).unwrap());
+        if threads == 2 {
+            // Stopped at 100 (between the rebuilds at 91 and 108) and resumed.
+            let split = tmp("split");
+            let s = in_pool(2, || {
+                train(&fixture(), &split, cfg(), &opts(false, Some(100)))
+            })
+            .unwrap();
+            assert!(s.interrupted && s.steps == 100);
+            in_pool(2, || train(&fixture(), &split, cfg(), &opts(true, None))).unwrap();
+            let resumed = std::fs::read(split.join("checkpoint.safetensors")).unwrap();
+            assert!(
+                resumed == finals[1],
+                "a resumed refinement run differs from the uninterrupted one"
+            );
+            let _ = std::fs::remove_dir_all(&split);
+        }
+        if threads == 4 {
+            // The mesh moved, the checkpoint and refined.ply agree, and eval/render load it.
+            let st = TrainState::load(&run.join("checkpoint.safetensors")).unwrap();
+            let r = st.ckpt.refine.as_ref().unwrap();
+            let moved = r.offsets.iter().filter(|&&t| t != 0.0).count();
+            assert!(
+                moved * 2 > r.offsets.len(),
+                "{moved} of {} vertices moved",
+                r.offsets.len()
+            );
+            let refined = xscale::scene::mesh::load_mesh(&run.join("refined.ply"))
+                .unwrap()
+                .0;
+            let (base, _) = xscale::scene::mesh::load_mesh(&fixture().join("mesh.ply")).unwrap();
+            assert_eq!(refined.triangles, base.triangles);
+            assert!(refined.vertices != base.vertices);
+            let (ck, rc) =
+                xscale::cli::common::load_model(&run.join("checkpoint.safetensors")).unwrap();
+            let s = xscale::cli::common::scene_for_model(&fixture(), &ck, rc.as_ref(), None, None)
+                .unwrap();
+            assert_eq!(s.scene.mesh.vertices, refined.vertices);
+        }
+        let _ = std::fs::remove_dir_all(&run);
+    }
+    assert!(finals[0] == finals[1], "1 and 2 threads differ");
+    assert!(finals[0] == finals[2], "1 and 4 threads differ");
+}
+
+#[test]
+fn configurations_refinement_cannot_run_are_errors() {
+    let check = |text: &str, want: &str| {
+        let e = RunConfig::from_toml_str(text, "tiny", "r.toml").unwrap_err();
+        let msg = format!("{e:#}");
+        assert!(msg.contains("r.toml") && msg.contains(want), "{msg}");
+    };
+    check(
+        "[model.refine]\nenabled = true\n[train]\nsamples = \"cache\"\n",
+        "stream",
+    );
+    check(
+        "[model.refine]\nenabled = true\n[train]\narithmetic = \"f64\"\n",
+        "f32",
+    );
+    check(
+        "[model]\nfeaturization = \"vertex\"\nvertex_features = 4\n[model.deform]\nenabled = false\n[model.refine]\nenabled = true\n",
+        "hash",
+    );
+    check("[model.refine]\nenabled = true\nstart = 1.5\n", "start");
+    check("[model.refine]\nrebuild_every = 0\n", "rebuild_every");
+    check(
+        "[model.refine]\nlevels = 0\nper_vertex = false\n",
+        "nothing can move",
+    );
+    check("[model.refine]\nenabeld = true\n", "enabeld");
+    // Defaults are absent from the saved config; a refinement config round-trips.
+    let plain = RunConfig::preset("cpu").unwrap().to_toml();
+    assert!(!plain.contains("refine"), "{plain}");
+    let c = RunConfig::from_toml_str(
+        "[model.refine]\nenabled = true\nlr = 3e-5\n",
+        "cpu",
+        "r.toml",
+    )
+    .unwrap();
+    assert!(c.model.refine.enabled && c.model.refine.lr == 3e-5);
+    assert_eq!(
+        RunConfig::from_toml_str(&c.to_toml(), "cpu", "again").unwrap(),
+        c
+    );
+}

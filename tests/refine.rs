@@ -16,8 +16,9 @@ fn tmp(name: &str) -> PathBuf {
     d
 }
 
-/// The tiny preset with refinement from step 40 of 160, BVH rebuilt every 17 steps (so the resume
-/// point, 100, falls between rebuilds), every level switched on by step 88.
+/// The tiny preset with refinement from step 40 to 144 of 160, updates (and BVH rebuilds) every
+/// 17 steps (so the resume point, 100, falls between two, with gradient pending), every level on
+/// by step 88, the per-vertex residual with its smoothness terms.
 fn cfg() -> RunConfig {
     let mut c = RunConfig::preset("tiny").unwrap();
     c.train.steps = 160;
@@ -28,7 +29,10 @@ fn cfg() -> RunConfig {
     r.enabled = true;
     r.start = 0.25;
     r.coarse_to_fine = 0.3;
-    r.rebuild_every = 17;
+    r.update_every = 17;
+    r.stop = 0.9;
+    r.per_vertex = true;
+    r.laplacian = 1e-3;
     r.lr = 1e-3;
     c.validate().unwrap();
     c
@@ -126,7 +130,12 @@ fn configurations_refinement_cannot_run_are_errors() {
         "hash",
     );
     check("[model.refine]\nenabled = true\nstart = 1.5\n", "start");
-    check("[model.refine]\nrebuild_every = 0\n", "rebuild_every");
+    check("[model.refine]\nupdate_every = 0\n", "update_every");
+    check("[model.refine]\nstart = 0.5\nstop = 0.4\n", "stop");
+    check(
+        "[model.refine]\ngradient_cells = [0, 64]\n",
+        "gradient_cells",
+    );
     check(
         "[model.refine]\nlevels = 0\nper_vertex = false\n",
         "nothing can move",

@@ -85,9 +85,13 @@ pub struct RefineConfig {
     /// Fine levels carry texture, not shape: through them the gradient on a proxy is noise
     /// (`examples/refine_probe.rs`, docs/geometry.md).
     pub gradient_cells: [f64; 2],
-    /// Rebuild the BVH from the moved mesh every this many steps (batches in between re-intersect
-    /// their triangles' current planes).
-    pub rebuild_every: u32,
+    /// Fraction of `train.steps` after which the mesh stops moving (the features converge on the
+    /// final mesh).
+    pub stop: f64,
+    /// The vertex gradient is summed over this many steps, then the offsets take one Adam step
+    /// and the BVH is rebuilt from the moved mesh (a batch's gradient alone is mostly noise on the
+    /// coarse grids: `examples/refine_probe.rs`).
+    pub update_every: u32,
     /// Sub-samples whose ray meets the triangle's plane at |cos| below this give no vertex gradient.
     pub min_cos: f64,
     /// Adam on the offset parameters (sparse: untouched nodes keep their moments).
@@ -109,9 +113,10 @@ impl Default for RefineConfig {
             laplacian: 0.0,
             bilaplacian: 1e-3,
             gradient_cells: [32.0, 512.0],
-            rebuild_every: 50,
+            stop: 0.85,
+            update_every: 20,
             min_cos: 0.1,
-            lr: 2e-5,
+            lr: 1e-4,
             beta1: 0.9,
             beta2: 0.99,
             epsilon: 1e-15,
@@ -173,8 +178,14 @@ impl RefineConfig {
                 "gradient_cells = [{g0}, {g1}] (two finite values > 0, or [0, 0] for every level)"
             ));
         }
-        if self.rebuild_every == 0 {
-            bad.push("rebuild_every = 0 (at least 1)".into());
+        if !frac(self.stop) || self.stop < self.start {
+            bad.push(format!(
+                "stop = {} (a fraction of train.steps, in [start, 1] = [{}, 1])",
+                self.stop, self.start
+            ));
+        }
+        if self.update_every == 0 {
+            bad.push("update_every = 0 (at least 1)".into());
         }
         if !(0.0..1.0).contains(&self.min_cos) {
             bad.push(format!("min_cos = {} (in [0, 1))", self.min_cos));
@@ -403,6 +414,9 @@ pub struct RefineParams {
     pub offsets: Vec<f32>,
     /// `[V]` θ the current BVH was built from (resume rebuilds it exactly).
     pub traced: Vec<f32>,
+    /// Gradients summed since the last update (f64), one per grid level, then the residual's
+    /// (saved, so a run resumed between two updates continues exactly).
+    pub pending: Vec<Vec<f64>>,
 }
 
 /// Tensor name of grid level l.
@@ -413,20 +427,33 @@ pub const VERTEX_NAME: &str = "refine.vertex";
 pub const OFFSETS_NAME: &str = "refine.offsets";
 pub const TRACED_NAME: &str = "refine.traced";
 
+/// Tensor name of the pending gradient of tensor `name` (`refine.grid.{l}` or `refine.vertex`).
+pub fn pending_name(name: &str) -> String {
+    format!("refine.pending.{}", name.trim_start_matches("refine."))
+}
+
 impl RefineParams {
     /// Zero offsets for a mesh of `n_vertices`.
     pub fn zeros(cfg: &RefineConfig, n_vertices: usize) -> RefineParams {
+        let grids: Vec<Vec<f32>> = (0..cfg.levels)
+            .map(|l| vec![0.0; (cfg.resolution(l) + 1).pow(3)])
+            .collect();
+        let vertex = if cfg.per_vertex {
+            vec![0.0; n_vertices]
+        } else {
+            Vec::new()
+        };
+        let pending = grids
+            .iter()
+            .chain(std::iter::once(&vertex).filter(|v| !v.is_empty()))
+            .map(|g| vec![0.0; g.len()])
+            .collect();
         RefineParams {
-            grids: (0..cfg.levels)
-                .map(|l| vec![0.0; (cfg.resolution(l) + 1).pow(3)])
-                .collect(),
-            vertex: if cfg.per_vertex {
-                vec![0.0; n_vertices]
-            } else {
-                Vec::new()
-            },
+            grids,
+            vertex,
             offsets: vec![0.0; n_vertices],
             traced: vec![0.0; n_vertices],
+            pending,
         }
     }
 
@@ -487,6 +514,9 @@ impl RefineParams {
         let n = self.offsets.len();
         f.insert(OFFSETS_NAME, Tensor::f32(vec![n], &self.offsets)?);
         f.insert(TRACED_NAME, Tensor::f32(vec![n], &self.traced)?);
+        for ((name, shape), p) in self.specs().iter().zip(&self.pending) {
+            f.insert(pending_name(name), Tensor::f64(shape.clone(), p)?);
+        }
         Ok(())
     }
 
@@ -524,6 +554,14 @@ impl RefineParams {
         }
         p.offsets = read(OFFSETS_NAME, n)?;
         p.traced = read(TRACED_NAME, n)?;
+        for ((name, shape), pend) in p.specs().iter().zip(p.pending.iter_mut()) {
+            let pn = pending_name(name);
+            let v = f.get_checked(&pn, DType::F64, shape)?.to_f64()?;
+            if let Some(k) = v.iter().position(|x| !x.is_finite()) {
+                bail!("{label}: {pn}[{k}] = {} is not finite", v[k]);
+            }
+            *pend = v;
+        }
         Ok(p)
     }
 }

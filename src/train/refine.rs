@@ -2,32 +2,36 @@
 //! and its gradient are in `model/refine.rs`, the figures in docs/geometry.md).
 //!
 //! ## Schedule (steps k of a run of `train.steps` = T)
-//! - `k < start·T`: the mesh is fixed (the features settle first); batches are cast against the
-//!   training mesh exactly as without refinement.
-//! - From `k0 = floor(start·T)`: level j of the offset field (grids coarse to fine, then the
-//!   per-vertex residual; `n = levels + per_vertex` levels) is optimised from step
-//!   `k0 + floor(j·coarse_to_fine·T / n)`. Inactive levels get no gradient (they stay zero).
-//! - Each batch's valid sub-samples are re-intersected with the current plane of the triangle
-//!   their ray hit (`model::refine::intersect`), so positions follow the mesh every step; the BVH
-//!   is rebuilt from the current offsets before drawing batch k whenever `k > k0` and
-//!   `(k − k0) % rebuild_every == 0` (then the triangle each ray hits is chosen again). A pixel
-//!   none of whose rays hits the rebuilt mesh is left out of its batch.
+//! - `k < k0 = floor(start·T)`: the mesh is fixed (the features settle first); batches are cast
+//!   against the training mesh exactly as without refinement (same bits).
+//! - `k0 ≤ k < k1 = floor(stop·T)`: the mesh moves. Level j of the offset field (grids coarse to
+//!   fine, then the per-vertex residual; `n = levels + per_vertex` levels) receives gradient from
+//!   step `k0 + floor(j·coarse_to_fine·T / n)`; inactive levels stay zero. The position gradient
+//!   goes through the hash-grid levels of at most `gradient_cells` cells per unit, from
+//!   `gradient_cells[0]` at k0 to `[1]` at T (geometric): coarse to fine
+//!   (`Grads::position_max_scale`).
+//! - The vertex gradient is summed over `update_every` steps (in `refine.pending.*`); then the
+//!   smoothness energy's gradient (times the steps summed) is added, the active levels take one
+//!   Adam step (tiny-cuda-nn rules, sparse: untouched nodes keep their moments; state
+//!   `adam.*.refine.*`), and the BVH is rebuilt from the moved mesh before the next batch is cast.
+//!   The last update is at k1 − 1.
+//! - `k ≥ k1`: the mesh is fixed again and the features converge on it.
 //!
-//! ## A step while the mesh moves
-//! forward → backward with `grad.batch.positions` → `∂L/∂θ` through the hit points
-//! (`hits_backward`) → plus the smoothness energy's gradient on the residual → into the active
-//! levels (`theta_backward`) → Adam (tiny-cuda-nn rules, sparse: untouched nodes keep their
-//! moments; state `adam.*.refine.*` in the checkpoint) next to the model's groups. The logged loss
-//! is the photometric loss alone.
+//! While the mesh moves, every batch's valid sub-samples are re-intersected with the current
+//! plane of the triangle their ray hit (`model::refine::reintersect_batch`): between updates the
+//! mesh does not change, so this reproduces the cast hit (up to the batch's 2⁻³² fixed point) and
+//! gives the records the vertex gradient needs. A pixel none of whose rays hits the rebuilt mesh
+//! is left out of its batch. The logged loss is the photometric loss alone.
 //!
 //! ## Determinism and resume
 //! Every reduction runs in a fixed order (hits in batch order, vertices in ascending order,
 //! grids node by node); re-intersection is per sub-sample; so results are bit-identical for any
 //! thread count. Batch k is a pure function of (seed, k, the offsets its BVH was built from):
 //! batch k+1 is cast while step k runs only when no rebuild is due before it. The checkpoint holds
-//! the offsets the current BVH was built from (`refine.traced`), so a resumed run rebuilds the
-//! same BVH and continues bit for bit. `refine.offsets` (what eval/render apply) is brought up to
-//! date before every checkpoint, evaluation and the end of the run.
+//! the offsets the current BVH was built from (`refine.traced`) and the pending gradient sums, so
+//! a resumed run rebuilds the same BVH and continues bit for bit. `refine.offsets` (what
+//! eval/render apply) is brought up to date at every update and before every checkpoint,
+//! evaluation and the end of the run.
 
 use crate::model::batch::Batch;
 use crate::model::params::Grads;
@@ -93,11 +97,12 @@ pub struct Refiner {
     eval_every: u64,
     interrupt: Option<&'static AtomicBool>,
     adam: AdamGroup,
+    /// `XSCALE_REFINE_LOG` (a file) and `XSCALE_REFINE_TRUTH` (a mesh with the training mesh's
+    /// vertices, e.g. a synthetic scene's exact surface): diagnostics at every update.
+    diag: Option<Diagnostics>,
     // Scratch, kept between steps.
     theta: Vec<f64>,
     d_theta: Vec<f64>,
-    d_grids: Vec<Vec<f64>>,
-    d_vertex: Vec<f64>,
     g32: Vec<f32>,
 }
 
@@ -161,9 +166,8 @@ impl Refiner {
             },
             theta: vec![0.0; nv],
             d_theta: vec![0.0; nv],
-            d_grids: params.grids.iter().map(|g| vec![0.0; g.len()]).collect(),
-            d_vertex: vec![0.0; params.vertex.len()],
             g32: Vec::new(),
+            diag: Diagnostics::from_env(nv)?,
             cfg,
         };
         if params.traced.iter().any(|&t| t != 0.0) {
@@ -178,10 +182,27 @@ impl Refiner {
         (self.cfg.start * self.steps as f64).floor() as u64
     }
 
+    /// First step at which the mesh is fixed again.
+    pub fn stop_step(&self) -> u64 {
+        ((self.cfg.stop * self.steps as f64).floor() as u64).max(self.start_step())
+    }
+
+    /// Whether the mesh moves at step k.
+    pub fn moving(&self, k: u64) -> bool {
+        (self.start_step()..self.stop_step()).contains(&k)
+    }
+
+    /// Whether the offsets take an Adam step at the end of step k.
+    fn updates_after(&self, k: u64) -> bool {
+        self.moving(k)
+            && ((k + 1 - self.start_step()) % self.cfg.update_every as u64 == 0
+                || k + 1 == self.stop_step())
+    }
+
     /// Active (grid levels, residual) at step k.
     pub fn active(&self, k: u64) -> (usize, bool) {
         let k0 = self.start_step();
-        if k < k0 {
+        if !self.moving(k) {
             return (0, false);
         }
         let n = self.cfg.n_levels() as u64;
@@ -206,9 +227,9 @@ impl Refiner {
         Some((g0 * (g1 / g0).powf(f)) as f32)
     }
 
+    /// Whether the BVH is rebuilt before batch k is drawn (the offsets moved after step k − 1).
     fn needs_rebuild(&self, k: u64) -> bool {
-        let k0 = self.start_step();
-        k > k0 && (k - k0) % self.cfg.rebuild_every as u64 == 0
+        k > 0 && self.updates_after(k - 1)
     }
 
     fn build_tracer(&self, theta: &[f64]) -> Result<Tracer> {
@@ -225,6 +246,9 @@ impl Refiner {
     fn rebuild(&mut self, state: &mut TrainState) -> Result<()> {
         let p = state.ckpt.refine.as_mut().expect("refine params");
         let theta = p.theta_all(&self.cfg, &self.geom);
+        if let Some(d) = &self.diag {
+            d.record(state.step, &self.geom, &theta, &p.traced)?;
+        }
         p.offsets = theta.iter().map(|&t| t as f32).collect();
         p.traced = p.offsets.clone();
         let traced: Vec<f64> = p.traced.iter().map(|&t| t as f64).collect();
@@ -295,8 +319,12 @@ impl Refiner {
     ) -> Result<StepStats> {
         let k = state.step;
         let (levels, residual) = self.active(k);
-        let moving = k >= self.start_step();
+        let moving = self.moving(k);
         let t0 = Instant::now();
+        // Cast against a moved mesh, a pixel of the training mesh's hit map may see nothing.
+        if self.tracer.is_some() {
+            drop_empty_pixels(batch);
+        }
         let hits = if moving {
             self.reintersect(state, batch)?
         } else {
@@ -310,16 +338,20 @@ impl Refiner {
         model.backward(&state.ckpt.params, batch, &fwd, grads);
         let t2 = Instant::now();
         let mse = batch_mse(&fwd, batch);
-        if moving && (levels > 0 || residual) {
-            self.geometry_step(state, &hits, &grads.positions, levels, residual, k);
+        if moving {
+            self.accumulate(state, &hits, &grads.positions, levels, residual);
+            if self.updates_after(k) {
+                self.update(state, levels, residual, k);
+            }
         }
         grads.inputs = false;
+        grads.position_max_scale = None;
         state.apply_adam(grads);
         let st = state.finish_step(grads, fwd.loss, mse, fwd.points.len(), [t0, t1, t2]);
         // `offsets` up to date whenever the loop may save, evaluate or stop after this step.
         let done = state.step;
         let due = |every: u64| every > 0 && done % every == 0;
-        if moving
+        if done > self.start_step()
             && (done >= self.steps
                 || due(self.checkpoint_every)
                 || due(self.eval_every)
@@ -336,10 +368,8 @@ impl Refiner {
         Ok(st)
     }
 
-    /// Re-intersect `batch` with the current mesh (module docs), after leaving out pixels no ray
-    /// of which hit the current BVH.
+    /// Re-intersect `batch` with the current mesh (module docs).
     fn reintersect(&mut self, state: &TrainState, batch: &mut Batch) -> Result<Vec<RayHit>> {
-        drop_empty_pixels(batch);
         ensure!(
             batch.triangle.len() == batch.positions.len(),
             "model.refine: the batch carries no triangle ids"
@@ -376,23 +406,27 @@ impl Refiner {
         ))
     }
 
-    /// `∂L/∂θ` → the active levels → Adam (module docs).
-    fn geometry_step(
+    /// `∂L/∂θ` of a batch into the pending sums of the active levels (module docs).
+    fn accumulate(
         &mut self,
         state: &mut TrainState,
         hits: &[RayHit],
         d_positions: &[f32],
         levels: usize,
         residual: bool,
-        k: u64,
     ) {
         let geom = &*self.geom;
         hits_backward(geom, hits, d_positions, &mut self.d_theta);
         let mut touched: Vec<u32> = hits.iter().flat_map(|h| h.tri).collect();
         touched.sort_unstable();
         touched.dedup();
-        let TrainState { ckpt, adam, .. } = state;
-        let params = ckpt.refine.as_mut().expect("refine params");
+        let params = state.ckpt.refine.as_mut().expect("refine params");
+        let ng = params.grids.len();
+        let (grids, rest) = params.pending.split_at_mut(ng);
+        let d_r: &mut [f64] = match rest.first_mut() {
+            Some(v) => v,
+            None => &mut [],
+        };
         field_backward(
             &self.cfg,
             geom,
@@ -400,30 +434,115 @@ impl Refiner {
             &self.d_theta,
             levels,
             residual,
-            &mut self.d_grids,
-            &mut self.d_vertex,
+            grids,
+            d_r,
         );
         for &i in &touched {
             self.d_theta[i as usize] = 0.0;
         }
-        if residual {
-            smoothness(&self.cfg, geom, &params.vertex, &mut self.d_vertex);
+    }
+
+    /// One Adam step of the active levels on the pending sums (plus the smoothness gradient for
+    /// every step summed), which are then cleared; the BVH is rebuilt before the next batch.
+    fn update(&mut self, state: &mut TrainState, levels: usize, residual: bool, k: u64) {
+        let k0 = self.start_step();
+        let every = self.cfg.update_every as u64;
+        let summed = (k - k0) % every + 1;
+        let TrainState { ckpt, adam, .. } = state;
+        let params = ckpt.refine.as_mut().expect("refine params");
+        let ng = params.grids.len();
+        if residual && !params.vertex.is_empty() {
+            let mut d = vec![0.0f64; params.vertex.len()];
+            smoothness(&self.cfg, &self.geom, &params.vertex, &mut d);
+            for (p, g) in params.pending[ng].iter_mut().zip(&d) {
+                *p += summed as f64 * g;
+            }
         }
-        for l in 0..levels {
-            let name = grid_name(l);
-            let r = adam.range(&name).expect("adam slot of a refine grid");
-            self.g32.clear();
-            self.g32.extend(self.d_grids[l].iter().map(|&g| g as f32));
-            adam.step_dense(r, &mut params.grids[l], &self.g32, &self.adam, k);
-            self.d_grids[l].fill(0.0);
+        for l in 0..ng {
+            if l < levels {
+                let r = adam
+                    .range(&grid_name(l))
+                    .expect("adam slot of a refine grid");
+                self.g32.clear();
+                self.g32.extend(params.pending[l].iter().map(|&g| g as f32));
+                adam.step_dense(r, &mut params.grids[l], &self.g32, &self.adam, k);
+            }
+            params.pending[l].fill(0.0);
         }
-        if residual {
-            let r = adam.range(VERTEX_NAME).expect("adam slot of refine.vertex");
-            self.g32.clear();
-            self.g32.extend(self.d_vertex.iter().map(|&g| g as f32));
-            adam.step_dense(r, &mut params.vertex, &self.g32, &self.adam, k);
-            self.d_vertex.fill(0.0);
+        if !params.vertex.is_empty() {
+            if residual {
+                let r = adam.range(VERTEX_NAME).expect("adam slot of refine.vertex");
+                self.g32.clear();
+                self.g32
+                    .extend(params.pending[ng].iter().map(|&g| g as f32));
+                adam.step_dense(r, &mut params.vertex, &self.g32, &self.adam, k);
+            }
+            params.pending[ng].fill(0.0);
         }
+    }
+}
+
+/// Update-by-update diagnostics (`XSCALE_REFINE_LOG`, `XSCALE_REFINE_TRUTH`): one JSON line per
+/// update with the RMS / largest offset and the RMS change of this update (scene units), and, given
+/// a truth mesh with the same vertices, the RMS distance along the vertex normals to it.
+struct Diagnostics {
+    log: std::path::PathBuf,
+    truth: Option<Vec<DVec3>>,
+}
+
+impl Diagnostics {
+    fn from_env(n_vertices: usize) -> Result<Option<Diagnostics>> {
+        let Some(log) = std::env::var_os("XSCALE_REFINE_LOG") else {
+            return Ok(None);
+        };
+        let truth = match std::env::var_os("XSCALE_REFINE_TRUTH") {
+            Some(p) => {
+                let m = crate::scene::mesh::load_mesh(std::path::Path::new(&p))?.0;
+                ensure!(
+                    m.vertices.len() == n_vertices,
+                    "XSCALE_REFINE_TRUTH: {} vertices, the training mesh has {n_vertices}",
+                    m.vertices.len()
+                );
+                Some(m.vertices)
+            }
+            None => None,
+        };
+        Ok(Some(Diagnostics {
+            log: log.into(),
+            truth,
+        }))
+    }
+
+    fn record(&self, step: u64, geom: &RefineGeom, theta: &[f64], before: &[f32]) -> Result<()> {
+        use std::io::Write;
+        let n = theta.len().max(1) as f64;
+        let s = geom.scale;
+        let rms = (theta.iter().map(|t| t * t).sum::<f64>() / n).sqrt() * s;
+        let max = theta.iter().fold(0.0f64, |m, t| m.max(t.abs())) * s;
+        let change = (theta
+            .iter()
+            .zip(before)
+            .map(|(a, &b)| (a - b as f64).powi(2))
+            .sum::<f64>()
+            / n)
+            .sqrt()
+            * s;
+        let err = self.truth.as_ref().map(|tv| {
+            let mut e2 = 0.0;
+            for i in 0..theta.len() {
+                let v = geom.position(i, theta[i]) + geom.norm.center;
+                e2 += (v - tv[i]).dot(geom.normals[i]).powi(2);
+            }
+            (e2 / n).sqrt()
+        });
+        let line = serde_json::json!({"step": step, "offset_rms": rms, "offset_max": max,
+            "update_rms": change, "normal_error_rms": err});
+        let mut f = std::fs::OpenOptions::new()
+            .create(true)
+            .append(true)
+            .open(&self.log)
+            .with_context(|| format!("{}: cannot append", self.log.display()))?;
+        writeln!(f, "{line}").with_context(|| format!("{}: cannot write", self.log.display()))
     }
 }
 
@@ -509,4 +628,43 @@ pub fn write_refined(state: &TrainState, prepared: &Prepared, run_dir: &Path) ->
         &p.offsets,
     )?;
     crate::scene::mesh::write_ply(&run_dir.join("refined.ply"), &m)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn empty_pixels_are_dropped_with_their_rows() {
+        let mut b = Batch::random(3, 6, 4, 2, 0.0);
+        b.triangle = (0..24).collect();
+        b.bary = vec![[0.25, 0.5]; 24];
+        b.footprint = (0..6).map(|i| i as f32).collect();
+        let orig = b.clone();
+        for j in 0..4 {
+            b.valid[4 + j] = 0; // pixel 1
+            b.valid[16 + j] = 0; // pixel 4
+        }
+        drop_empty_pixels(&mut b);
+        b.validate().unwrap();
+        assert_eq!(b.n_pixels(), 4);
+        let kept = [0usize, 2, 3, 5];
+        for (w, &i) in kept.iter().enumerate() {
+            assert_eq!(b.dirs[w], orig.dirs[i]);
+            assert_eq!(b.target[w], orig.target[i]);
+            assert_eq!(b.view[w], orig.view[i]);
+            assert_eq!(b.footprint[w], orig.footprint[i]);
+            assert_eq!(
+                b.positions[w * 4..w * 4 + 4],
+                orig.positions[i * 4..i * 4 + 4]
+            );
+            assert_eq!(
+                b.triangle[w * 4..w * 4 + 4],
+                orig.triangle[i * 4..i * 4 + 4]
+            );
+        }
+        let before = b.clone();
+        drop_empty_pixels(&mut b);
+        assert_eq!(b, before, "nothing to drop: unchanged");
+    }
 }

@@ -47,12 +47,9 @@ fn main() -> anyhow::Result<()> {
         .map(|s| s.parse())
         .collect::<Result<_, _>>()?;
     let st = TrainState::load(&run.join("checkpoint.safetensors"))?;
-    let scene: std::path::PathBuf = serde_json::from_str::<serde_json::Value>(
-        &std::fs::read_to_string(run.join("scene.json"))?,
-    )?["scene"]
-        .as_str()
-        .unwrap()
-        .into();
+    let scene = xscale::train::run_dir::SceneFingerprint::read(&run)?
+        .ok_or_else(|| anyhow::anyhow!("{}: no scene.json", run.display()))?
+        .scene;
     let mut cfg = st.cfg.clone();
     cfg.model.refine.enabled = true;
     let prepared = prepare(&scene, &cfg, true, &mut |_| {})?;

@@ -27,12 +27,9 @@ fn main() -> anyhow::Result<()> {
     let mut rcfg: RefineConfig = toml::from_str(&std::fs::read_to_string(&a[2])?)?;
     let (steps, moving): (u64, u64) = (a[3].parse()?, a[4].parse()?);
     let mut st = TrainState::load(&run.join("checkpoint.safetensors"))?;
-    let scene: std::path::PathBuf = serde_json::from_str::<serde_json::Value>(
-        &std::fs::read_to_string(run.join("scene.json"))?,
-    )?["scene"]
-        .as_str()
-        .unwrap()
-        .into();
+    let scene = xscale::train::run_dir::SceneFingerprint::read(&run)?
+        .ok_or_else(|| anyhow::anyhow!("{}: no scene.json", run.display()))?
+        .scene;
     let k0 = st.step;
     let total = k0 + steps;
     rcfg.enabled = true;

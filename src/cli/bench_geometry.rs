@@ -3,7 +3,7 @@
 //! refining it wins back (`train/bench_geometry.rs`, docs/geometry.md).
 
 use super::common::RunArgs;
-use crate::synth::{self, Preset};
+use crate::synth::Preset;
 use crate::train::bench_geometry::{bench_geometry, GeometryOptions, ProxySpec, DISTANCE_SAMPLES};
 use anyhow::{bail, Context, Result};
 use std::path::{Path, PathBuf};
@@ -93,18 +93,8 @@ fn synth_scene(preset: Preset, seed: u64, dir: &Path, say: &mut dyn FnMut(String
         preset.name(),
         dir.display()
     ));
-    let s = synth::build(preset, seed);
-    let summary = s.summary();
-    let sh = s.shader();
-    let spp = s.params.spp_side;
-    synth::output::write_with(
-        &s,
-        &mut |i| synth::render::render(&sh, &s.views[i].camera, spp),
-        &summary,
-        dir,
-        true,
-        &mut |_| {},
-    )
+    super::synth::generate(preset, seed, dir, true, &mut |_, _| {})?;
+    Ok(())
 }
 
 pub fn run(a: Args) -> Result<ExitCode> {

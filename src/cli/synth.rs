@@ -22,9 +22,16 @@ pub struct Args {
     pub write_truth: bool,
 }
 
-pub fn run(args: Args) -> anyhow::Result<ExitCode> {
-    let t0 = std::time::Instant::now();
-    let s = synth::build(args.preset, args.seed);
+/// Build, render and write scene (`preset`, `seed`) into `dir` (`truth.ply` too with
+/// `write_truth`); `progress(i, n)` after view i of n is written.
+pub fn generate(
+    preset: Preset,
+    seed: u64,
+    dir: &std::path::Path,
+    write_truth: bool,
+    progress: &mut dyn FnMut(usize, usize),
+) -> anyhow::Result<synth::Summary> {
+    let s = synth::build(preset, seed);
     let summary = s.summary();
     let n = s.views.len();
     let sh = s.shader();
@@ -34,9 +41,21 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         &s,
         &mut |i| synth::render::render(&sh, &s.views[i].camera, spp),
         &summary,
+        dir,
+        write_truth,
+        &mut |i| progress(i, n),
+    )?;
+    Ok(summary)
+}
+
+pub fn run(args: Args) -> anyhow::Result<ExitCode> {
+    let t0 = std::time::Instant::now();
+    let summary = generate(
+        args.preset,
+        args.seed,
         &args.out,
         args.write_truth,
-        &mut |i| {
+        &mut |i, n| {
             if n > 40 && (i + 1) % 10 == 0 {
                 eprintln!("rendered {} of {n} views", i + 1);
             }

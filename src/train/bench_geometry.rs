@@ -292,8 +292,13 @@ pub fn bench_geometry(
                 let mut cfg = base.clone();
                 cfg.model.deform.enabled = deform;
                 cfg.train.mesh = Some(p.path.clone());
+                // Off: the paper's fixed mesh (the default table, so an earlier run of the same
+                // variant is reused whatever `[model.refine]` values the base config carries);
+                // on: the base config's `[model.refine]` values, enabled.
                 if refine {
                     crate::train::refine::enable(&mut cfg)?;
+                } else {
+                    cfg.model.refine = Default::default();
                 }
                 let name = variant_name(&p.name, deform, refine);
                 let dir = runs.join(&name);

@@ -305,6 +305,12 @@ fn pattern(w: u32, h: u32, k: f32) -> Image {
     }
 }
 
+/// `pred` scored against `gt` with every ray hitting (`hit`) or missing, no object mask.
+fn scored(name: &str, pred: &Image, gt: &Image, hit: bool) -> xscale::eval::protocol::ViewScore {
+    let n = (gt.width * gt.height) as usize;
+    score_view(name, pred, gt, &vec![hit; n], None, WHITE).score
+}
+
 /// Views the mesh misses entirely have no masked score: they used to score PSNR ∞ / SSIM 1 and
 /// enter the means. Now their masked scores are n/a, the means are those of the other views, and
 /// the table says which views were left out.
@@ -313,30 +319,14 @@ fn views_the_mesh_misses_are_left_out_of_the_masked_means_with_a_word() {
     let (w, h) = (24, 20);
     let gt = pattern(w, h, 0.0);
     let pred = pattern(w, h, 0.3);
-    let seen = score_view(
-        "seen",
-        &pred,
-        &gt,
-        &vec![true; (w * h) as usize],
-        None,
-        WHITE,
-    )
-    .score;
+    let seen = scored("seen", &pred, &gt, true);
     // Every ray misses: the render is all background.
     let blank = Image {
         width: w,
         height: h,
         data: vec![1.0; (w * h * 3) as usize],
     };
-    let missed = score_view(
-        "missed",
-        &blank,
-        &gt,
-        &vec![false; (w * h) as usize],
-        None,
-        WHITE,
-    )
-    .score;
+    let missed = scored("missed", &blank, &gt, false);
     assert!(
         missed.psnr_masked.is_nan() && missed.ssim_masked.is_nan(),
         "{missed:?}"
@@ -361,28 +351,12 @@ fn ssim_of_images_smaller_than_its_window_is_na_and_says_why() {
     let (w, h) = (10, 40);
     let gt = pattern(w, h, 0.0);
     let pred = pattern(w, h, 0.3);
-    let s = score_view(
-        "narrow",
-        &pred,
-        &gt,
-        &vec![true; (w * h) as usize],
-        None,
-        WHITE,
-    )
-    .score;
+    let s = scored("narrow", &pred, &gt, true);
     assert!(
         s.psnr.is_finite() && s.ssim.is_nan() && s.ssim_masked.is_nan(),
         "{s:?}"
     );
-    let big = score_view(
-        "big",
-        &pattern(12, 12, 0.3),
-        &pattern(12, 12, 0.0),
-        &[true; 144],
-        None,
-        WHITE,
-    )
-    .score;
+    let big = scored("big", &pattern(12, 12, 0.3), &pattern(12, 12, 0.0), true);
     assert!(big.ssim.is_finite());
     assert_eq!(mean_score(&[s.clone(), big.clone()]).ssim, big.ssim);
     let t = table(&[s, big]);

@@ -5,10 +5,10 @@
 
 use std::path::PathBuf;
 use std::process::Command;
-use xscale::eval::protocol::score_view;
+use xscale::eval::protocol::{mean_score, score_view, table};
 use xscale::render::WHITE;
 use xscale::scene::image::load_rgb;
-use xscale::scene::{LoadOptions, MaskSource, Scene};
+use xscale::scene::{Image, LoadOptions, MaskSource, Scene};
 use xscale::train::config::RunConfig;
 use xscale::train::sampler::SampleMode;
 use xscale::train::setup::prepare;
@@ -291,4 +291,78 @@ fn scores_are_grouped_by_footprint() {
     let one = vec![v("a", 0.5, 30.0), v("b", 0.7, 31.0)];
     assert!(scale_summary(&one).near_far.is_none());
     assert!(scale_table(&one).is_empty());
+}
+
+/// A `w × h` image of a smooth pattern (`k` shifts it), values in (0, 1).
+fn pattern(w: u32, h: u32, k: f32) -> Image {
+    let data = (0..w * h * 3)
+        .map(|i| 0.5 + 0.4 * ((i as f32) * 0.37 + k).sin())
+        .collect();
+    Image {
+        width: w,
+        height: h,
+        data,
+    }
+}
+
+/// `pred` scored against `gt` with every ray hitting (`hit`) or missing, no object mask.
+fn scored(name: &str, pred: &Image, gt: &Image, hit: bool) -> xscale::eval::protocol::ViewScore {
+    let n = (gt.width * gt.height) as usize;
+    score_view(name, pred, gt, &vec![hit; n], None, WHITE).score
+}
+
+/// Views the mesh misses entirely have no masked score: they used to score PSNR ∞ / SSIM 1 and
+/// enter the means. Now their masked scores are n/a, the means are those of the other views, and
+/// the table says which views were left out.
+#[test]
+fn views_the_mesh_misses_are_left_out_of_the_masked_means_with_a_word() {
+    let (w, h) = (24, 20);
+    let gt = pattern(w, h, 0.0);
+    let pred = pattern(w, h, 0.3);
+    let seen = scored("seen", &pred, &gt, true);
+    // Every ray misses: the render is all background.
+    let blank = Image {
+        width: w,
+        height: h,
+        data: vec![1.0; (w * h * 3) as usize],
+    };
+    let missed = scored("missed", &blank, &gt, false);
+    assert!(
+        missed.psnr_masked.is_nan() && missed.ssim_masked.is_nan(),
+        "{missed:?}"
+    );
+    // The full-image scores count the misses as the error they are.
+    assert!(missed.psnr.is_finite() && missed.ssim < 1.0, "{missed:?}");
+    let m = mean_score(&[seen.clone(), missed.clone()]);
+    assert_eq!(m.psnr_masked, seen.psnr_masked);
+    assert_eq!(m.ssim_masked, seen.ssim_masked);
+    assert_eq!(m.psnr, (seen.psnr + missed.psnr) / 2.0);
+    let t = table(&[seen, missed]);
+    assert!(
+        t.contains("no pixel of missed sees the mesh: left out of the masked means"),
+        "{t}"
+    );
+}
+
+/// SSIM needs an 11×11 window: a smaller image has none, so its SSIM is n/a (not a number that
+/// means something), it stays out of the mean, and the table says why (it used to print NaN).
+#[test]
+fn ssim_of_images_smaller_than_its_window_is_na_and_says_why() {
+    let (w, h) = (10, 40);
+    let gt = pattern(w, h, 0.0);
+    let pred = pattern(w, h, 0.3);
+    let s = scored("narrow", &pred, &gt, true);
+    assert!(
+        s.psnr.is_finite() && s.ssim.is_nan() && s.ssim_masked.is_nan(),
+        "{s:?}"
+    );
+    let big = scored("big", &pattern(12, 12, 0.3), &pattern(12, 12, 0.0), true);
+    assert!(big.ssim.is_finite());
+    assert_eq!(mean_score(&[s.clone(), big.clone()]).ssim, big.ssim);
+    let t = table(&[s, big]);
+    assert!(t.contains("n/a"), "{t}");
+    assert!(
+        t.contains("SSIM of narrow is n/a") && t.contains("11×11"),
+        "the table does not say why: {t}"
+    );
 }

@@ -135,6 +135,34 @@ fn tiny_preset_geometry() {
     assert_eq!(g.n_params(), 8768 * 2);
 }
 
+/// Scales up to 1e9 are valid, but res³ overflows u64 from res ≈ 2^21.3: the wrapped cube made
+/// the level of scale 2^22 − 1 (res 2^22, res³ = 2^66 ≡ 0) zero entries long, so queries indexed
+/// outside it (found by `cargo fuzz run checkpoint`, a panic with overflow checks). Every huge
+/// level is a full hashed table.
+#[test]
+fn huge_resolutions_do_not_overflow_level_sizes() {
+    let t = 12;
+    let c = cfg(1, 2, t, 16.0, 2.0, Interpolation::Linear);
+    for s in [2_642_245.0f32, 4_194_303.0, 8_388_607.0, 1.0e8, 1.0e9] {
+        let g = HashGrid::with_scales(&c, vec![s]).unwrap();
+        assert_eq!(g.offsets, vec![0, 1 << t], "scale {s}");
+        assert_eq!(g.dense, vec![false], "scale {s}");
+        // A query reads inside the table (the table holds 1.0 everywhere: the output is the sum
+        // of the corner weights, 1).
+        let mut out = [0.0f64; 2];
+        g.forward(
+            &vec![1.0f64; (1 << t) * 2],
+            &[[0.25, 0.5, 0.75]],
+            PositionMode::F64,
+            &mut out,
+        );
+        assert!(
+            out.iter().all(|v| (v - 1.0).abs() < 1e-9),
+            "scale {s}: {out:?}"
+        );
+    }
+}
+
 #[test]
 fn init_table_range_and_determinism() {
     let g = HashGrid::new(&ModelConfig::tiny().grid_h);

@@ -460,3 +460,88 @@ fn a_file_size_limit_gets_a_message_not_a_silent_kill() {
     assert!(leftovers.is_empty(), "temporary files left: {leftovers:?}");
     let _ = std::fs::remove_dir_all(&run);
 }
+
+/// `--batch 100000000` on a small scene used to be OOM-killed with no message; the memory check
+/// refuses it before anything large is allocated, with the estimate and what to change.
+#[test]
+fn a_batch_that_cannot_fit_is_refused_before_allocation() {
+    let run = tmp("hugebatch");
+    let (code, err) = train(&run, &["--preset", "tiny", "--batch", "100000000"]);
+    assert_eq!(code, 2, "{err}");
+    assert!(
+        err.contains("needs about") && err.contains("a smaller batch (--batch 25000000)"),
+        "{err}"
+    );
+    assert!(
+        !run.join("checkpoint.safetensors").exists(),
+        "nothing was trained"
+    );
+    let _ = std::fs::remove_dir_all(&run);
+}
+
+/// A scene that holds no view out trains, and says there is no final evaluation (instead of
+/// skipping it without a word).
+#[test]
+fn a_scene_without_held_out_views_gets_a_word() {
+    let scene = tmp("noholdout-scene");
+    copy_dir(&fixture(), &scene);
+    let toml = std::fs::read_to_string(fixture().join("scene.toml")).unwrap();
+    let toml: String = toml
+        .lines()
+        .filter(|l| !l.starts_with("holdout_every") && !l.starts_with("test_views"))
+        .map(|l| format!("{l}\n"))
+        .collect();
+    std::fs::write(scene.join("scene.toml"), toml + "holdout_every = 0\n").unwrap();
+    let run = tmp("noholdout-run");
+    let (code, err) = xscale(&[
+        "train",
+        "--scene",
+        scene.to_str().unwrap(),
+        "--out",
+        run.to_str().unwrap(),
+        "--preset",
+        "tiny",
+        "--steps",
+        "5",
+    ]);
+    assert_eq!(code, 0, "{err}");
+    assert!(err.contains("no held-out views"), "{err}");
+    assert!(!run.join("eval.json").exists());
+    for d in [&scene, &run] {
+        let _ = std::fs::remove_dir_all(d);
+    }
+}
+
+/// `--frames 0` used to render one frame; it is a value the flag does not take (a usage error,
+/// refused before the model is loaded), like `--batch 0` (it was a run-time error naming the
+/// config field `train.batch_pixels`).
+#[test]
+fn zero_frames_or_batch_is_a_usage_error() {
+    let out = tmp("frames0");
+    let (code, err) = xscale(&[
+        "render",
+        "--checkpoint",
+        "/nonexistent/checkpoint.safetensors",
+        "--scene",
+        fixture().to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--path",
+        "0,1",
+        "--frames",
+        "0",
+    ]);
+    assert_eq!(code, 64, "{err}");
+    assert!(
+        err.contains("--frames") && err.contains("at least 1"),
+        "{err}"
+    );
+    assert!(!out.exists(), "nothing written");
+    let (code, err) = train(&out, &["--preset", "tiny", "--batch", "0"]);
+    assert_eq!(code, 64, "{err}");
+    assert!(
+        err.contains("--batch") && err.contains("at least 1"),
+        "{err}"
+    );
+    assert!(!out.exists(), "nothing written");
+}

@@ -951,6 +951,31 @@ fn scene_load_errors() {
     );
 }
 
+/// "Choose one explicitly" errors say how: the camera format by `format = …` in scene.toml
+/// (`scene_load_errors`), the mesh by `--mesh` (they said "pass one explicitly", and `train`'s
+/// user could not tell how).
+#[test]
+fn mesh_choice_errors_say_how_to_choose() {
+    let d = scratch("mesh_choice");
+    copy_dir(&fixture("colmap"), &d);
+    fs::rename(d.join("mesh.ply"), d.join("one.ply")).unwrap();
+    fs::copy(fixture("mesh/cube.obj"), d.join("two.obj")).unwrap();
+    let e = err(Scene::load(&d, &LoadOptions::default()));
+    assert_contains(&e, &["--mesh", &d.join("one.ply").display().to_string()]);
+    // The suggested choice works.
+    let opts = LoadOptions {
+        mesh: Some(d.join("one.ply")),
+        ..Default::default()
+    };
+    assert_eq!(Scene::load(&d, &opts).unwrap().views.len(), 3);
+    fs::remove_file(d.join("one.ply")).unwrap();
+    fs::remove_file(d.join("two.obj")).unwrap();
+    assert_contains(
+        &err(Scene::load(&d, &LoadOptions::default())),
+        &["no mesh found", "--mesh"],
+    );
+}
+
 #[test]
 fn colmap_images_txt_without_points_lines_still_parses() {
     // Some tools drop the (empty) 2D-points lines; the last image may also lack one.

@@ -22,8 +22,8 @@ pub struct RunArgs {
     /// Number of steps (overrides the config).
     #[arg(long)]
     pub steps: Option<u64>,
-    /// Pixels per batch (overrides the config).
-    #[arg(long)]
+    /// Pixels per batch (overrides the config; at least 1).
+    #[arg(long, value_parser = parse_positive)]
     pub batch: Option<usize>,
     /// Seed (overrides the config).
     #[arg(long)]
@@ -282,6 +282,15 @@ pub fn select_views(scene: &Scene, spec: &str) -> Result<Vec<usize>> {
                 }
             })
             .collect(),
+    }
+}
+
+/// A count that must be at least 1 (`--batch`, `--frames`): 0 is a usage error (exit 64).
+pub fn parse_positive(s: &str) -> std::result::Result<usize, String> {
+    match s.trim().parse::<usize>() {
+        Ok(0) => Err("must be at least 1".into()),
+        Ok(n) => Ok(n),
+        Err(e) => Err(format!("expected a whole number ≥ 1 ({e})")),
     }
 }
 

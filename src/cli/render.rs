@@ -34,8 +34,8 @@ pub struct Args {
     /// Render a camera path from view A to view B instead (names or indices).
     #[arg(long)]
     pub path: Option<String>,
-    /// Frames on the path (both ends included).
-    #[arg(long, default_value_t = 30)]
+    /// Frames on the path (both ends included; at least 1).
+    #[arg(long, default_value_t = 30, value_parser = super::common::parse_positive)]
     pub frames: usize,
     /// What renders: the trained model, or `ulr` (the no-learning baseline: unstructured lumigraph
     /// rendering of the training photos on the mesh, `src/render/ulr.rs`).
@@ -93,9 +93,6 @@ pub fn run(a: Args) -> Result<ExitCode> {
                 bail!("--path takes two views A,B, got {p:?}");
             }
             let (va, vb) = (&s.scene.views[ends[0]], &s.scene.views[ends[1]]);
-            if a.frames == 0 {
-                bail!("--frames 0: a path needs at least one frame");
-            }
             let ta = look_at_point(&s.tracer, &s.scene.mesh, &va.camera);
             let tb = look_at_point(&s.tracer, &s.scene.mesh, &vb.camera);
             (0..a.frames)

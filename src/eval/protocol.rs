@@ -273,6 +273,18 @@ pub fn table(scores: &[ViewScore]) -> String {
             none.join(", ")
         );
     }
+    // A full-image SSIM of n/a with a PSNR: no pixel has SSIM's whole window (see the module doc).
+    let no_ssim: Vec<&str> = scores
+        .iter()
+        .filter(|s| s.ssim.is_nan() && !s.psnr.is_nan())
+        .map(|s| s.view.as_str())
+        .collect();
+    if !no_ssim.is_empty() {
+        out += &format!(
+            "(SSIM of {} is n/a: SSIM averages 11×11 windows, and the image is smaller than 11×11 or its mask lies within 5 pixels of the border; left out of the SSIM means)\n",
+            no_ssim.join(", ")
+        );
+    }
     out
 }
 

@@ -153,7 +153,9 @@ pub fn tcnn_scales(cfg: &GridConfig) -> Vec<f32> {
 
 /// `min(next_multiple_of_8(min(res^3, 2^31-1)), 2^T)` (tcnn's `params_in_level` for a hash grid).
 fn level_size(res: u32, log2_table_size: u32) -> u32 {
-    let cube = (res as u64).pow(3);
+    // Saturating: res^3 overflows u64 from res = 2^21.34 (scales up to 1e9 are valid), and a
+    // wrapped cube made the level 0 entries long (found by cargo fuzz, checkpoint target).
+    let cube = (res as u64).saturating_pow(3);
     let capped = cube.min((u32::MAX / 2) as u64);
     let padded = capped.div_ceil(8) * 8;
     padded.min(1u64 << log2_table_size) as u32
@@ -211,7 +213,8 @@ impl HashGrid {
             let res = s.ceil() as u32 + 1;
             let size = level_size(res, cfg.log2_table_size);
             resolutions.push(res);
-            dense.push(res <= MAX_DENSE_RESOLUTION && (res as u64).pow(3) <= size as u64);
+            dense
+                .push(res <= MAX_DENSE_RESOLUTION && (res as u64).saturating_pow(3) <= size as u64);
             offsets.push(total as u32);
             total += size as u64;
             ensure!(

@@ -13,10 +13,10 @@
 //!   buffer's current value.
 //!   Callers hand in a fresh (zeroed) chunk buffer for `dW` per fixed-size chunk of rows and
 //!   combine chunk buffers in chunk order (SPEC §5), so results never depend on the thread count.
-//! - All three products go through one register-tiled kernel (`gemm_acc`, 4×16 tiles the
-//!   compiler keeps in vector registers); on x86-64 an AVX2 copy of each kernel is chosen at run
-//!   time. Both copies do the same IEEE operations in the
-//!   same order, so they are bit-identical (tested below).
+//! - All three products go through one register-tiled kernel (`gemm_acc`): for f32 on x86-64
+//!   with AVX2 (detected at run time) an intrinsics kernel with 6×16 tiles and masked column
+//!   edges, otherwise a portable one with 4×16 tiles the compiler keeps in registers. Both do
+//!   the same IEEE operations in the same order, so they are bit-identical (tested below).
 
 use crate::model::Real;
 use crate::rng::{self, Purpose};
@@ -293,6 +293,51 @@ fn gemm_acc<R: Real>(
     if m == 0 || n == 0 {
         return;
     }
+    #[cfg(target_arch = "x86_64")]
+    if let (Some(a32), Some(b32), Some(c32)) = (as_f32(a), as_f32(b), as_f32_mut(c)) {
+        if std::is_x86_feature_detected!("avx2") {
+            let (la, lb, lc) = (a32.len(), b32.len(), c32.len());
+            // The kernel reads A, B and writes C at exactly the places the loops below do.
+            assert!(k == 0 || la > (m - 1) * a_rs + (k - 1) * a_cs);
+            assert!(k == 0 || lb >= (k - 1) * ldb + n);
+            assert!(lc >= (m - 1) * ldc + n);
+            // SAFETY: AVX2 is present (checked above); every address the kernel touches is in
+            // bounds (asserted above: rows < m, columns < n, k < k of each operand).
+            unsafe {
+                avx2::gemm_acc_f32(
+                    m,
+                    n,
+                    k,
+                    a32.as_ptr(),
+                    a_rs,
+                    a_cs,
+                    b32.as_ptr(),
+                    ldb,
+                    c32.as_mut_ptr(),
+                    ldc,
+                )
+            };
+            return;
+        }
+    }
+    gemm_acc_generic(m, n, k, a, a_rs, a_cs, b, ldb, c, ldc)
+}
+
+/// The portable [`gemm_acc`] (any `R`; the f64 model and machines without AVX2).
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+fn gemm_acc_generic<R: Real>(
+    m: usize,
+    n: usize,
+    k: usize,
+    a: &[R],
+    a_rs: usize,
+    a_cs: usize,
+    b: &[R],
+    ldb: usize,
+    c: &mut [R],
+    ldc: usize,
+) {
     let m_full = m / MR * MR;
     let n_full = n / NR * NR;
     let scalar = |c: &mut [R], i: usize, j: usize| {
@@ -343,6 +388,167 @@ fn gemm_acc<R: Real>(
         }
         for j in n_full..n {
             scalar(c, i, j);
+        }
+    }
+}
+
+/// `Some` when `R` is `f32` (the same slice, typed).
+fn as_f32<R: Real>(x: &[R]) -> Option<&[f32]> {
+    (std::any::TypeId::of::<R>() == std::any::TypeId::of::<f32>())
+        // SAFETY: R is f32 (same type, same layout).
+        .then(|| unsafe { std::slice::from_raw_parts(x.as_ptr() as *const f32, x.len()) })
+}
+
+fn as_f32_mut<R: Real>(x: &mut [R]) -> Option<&mut [f32]> {
+    (std::any::TypeId::of::<R>() == std::any::TypeId::of::<f32>())
+        // SAFETY: R is f32 (same type, same layout).
+        .then(|| unsafe { std::slice::from_raw_parts_mut(x.as_mut_ptr() as *mut f32, x.len()) })
+}
+
+/// The f32 [`gemm_acc`] with AVX2 intrinsics: 6×16 register tiles (12 accumulators), then an
+/// 8-wide and a masked column edge, every C element summed over k in ascending order with a separately
+/// rounded product and sum, exactly as the generic kernel (tested bit for bit). The generic
+/// kernel, compiled with AVX2, spends half its instructions on bounds checks and reloading row
+/// pointers; this one keeps the tile's row offsets in registers.
+#[cfg(target_arch = "x86_64")]
+#[allow(clippy::needless_range_loop)] // index loops over register tiles read best as they are
+mod avx2 {
+    use std::arch::x86_64::*;
+
+    /// # Safety
+    /// AVX2 must be available; for i < m, kk < k, j < n: `a[i*a_rs + kk*a_cs]`,
+    /// `b[kk*ldb + j]` and `c[i*ldc + j]` must be in bounds.
+    #[target_feature(enable = "avx2")]
+    #[allow(clippy::too_many_arguments)]
+    pub unsafe fn gemm_acc_f32(
+        m: usize,
+        n: usize,
+        k: usize,
+        a: *const f32,
+        a_rs: usize,
+        a_cs: usize,
+        b: *const f32,
+        ldb: usize,
+        c: *mut f32,
+        ldc: usize,
+    ) {
+        let g = Gemm {
+            n,
+            k,
+            a,
+            a_rs,
+            a_cs,
+            b,
+            ldb,
+            c,
+            ldc,
+        };
+        let mut i0 = 0;
+        while i0 + 6 <= m {
+            g.rows::<6>(i0);
+            i0 += 6;
+        }
+        match m - i0 {
+            5 => g.rows::<5>(i0),
+            4 => g.rows::<4>(i0),
+            3 => g.rows::<3>(i0),
+            2 => g.rows::<2>(i0),
+            1 => g.rows::<1>(i0),
+            _ => {}
+        }
+    }
+
+    #[derive(Clone, Copy)]
+    struct Gemm {
+        n: usize,
+        k: usize,
+        a: *const f32,
+        a_rs: usize,
+        a_cs: usize,
+        b: *const f32,
+        ldb: usize,
+        c: *mut f32,
+        ldc: usize,
+    }
+
+    impl Gemm {
+        /// Rows `i0..i0+MR` of C, every column.
+        #[inline(always)]
+        unsafe fn rows<const MR: usize>(self, i0: usize) {
+            let mut j0 = 0;
+            while j0 + 16 <= self.n {
+                self.tile::<MR, 2>(i0, j0);
+                j0 += 16;
+            }
+            if j0 + 8 <= self.n {
+                self.tile::<MR, 1>(i0, j0);
+                j0 += 8;
+            }
+            if j0 < self.n {
+                self.tile_masked::<MR>(i0, j0, self.n - j0);
+            }
+        }
+
+        /// The MR × `cols` (< 8) tile at (i0, j0): the 8-wide tile with masked loads and stores
+        /// (lanes ≥ `cols` are neither read nor written).
+        #[inline(always)]
+        unsafe fn tile_masked<const MR: usize>(self, i0: usize, j0: usize, cols: usize) {
+            let lanes = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
+            let mask = _mm256_cmpgt_epi32(_mm256_set1_epi32(cols as i32), lanes);
+            let mut acc = [_mm256_setzero_ps(); MR];
+            let mut off = [0usize; MR];
+            for r in 0..MR {
+                off[r] = (i0 + r) * self.a_rs;
+                acc[r] = _mm256_maskload_ps(self.c.add((i0 + r) * self.ldc + j0), mask);
+            }
+            let mut ap = self.a;
+            let mut bp = self.b.add(j0);
+            for _ in 0..self.k {
+                let bv = _mm256_maskload_ps(bp, mask);
+                for r in 0..MR {
+                    let av = _mm256_broadcast_ss(&*ap.add(off[r]));
+                    acc[r] = _mm256_add_ps(acc[r], _mm256_mul_ps(av, bv));
+                }
+                ap = ap.add(self.a_cs);
+                bp = bp.add(self.ldb);
+            }
+            for r in 0..MR {
+                _mm256_maskstore_ps(self.c.add((i0 + r) * self.ldc + j0), mask, acc[r]);
+            }
+        }
+
+        /// The MR × 8·NV tile at (i0, j0), accumulated in registers.
+        #[inline(always)]
+        unsafe fn tile<const MR: usize, const NV: usize>(self, i0: usize, j0: usize) {
+            let mut acc = [[_mm256_setzero_ps(); NV]; MR];
+            let mut off = [0usize; MR];
+            for r in 0..MR {
+                off[r] = (i0 + r) * self.a_rs;
+                for v in 0..NV {
+                    acc[r][v] = _mm256_loadu_ps(self.c.add((i0 + r) * self.ldc + j0 + 8 * v));
+                }
+            }
+            let mut ap = self.a;
+            let mut bp = self.b.add(j0);
+            for _ in 0..self.k {
+                let mut bv = [_mm256_setzero_ps(); NV];
+                for v in 0..NV {
+                    bv[v] = _mm256_loadu_ps(bp.add(8 * v));
+                }
+                for r in 0..MR {
+                    let av = _mm256_broadcast_ss(&*ap.add(off[r]));
+                    for v in 0..NV {
+                        acc[r][v] = _mm256_add_ps(acc[r][v], _mm256_mul_ps(av, bv[v]));
+                    }
+                }
+                ap = ap.add(self.a_cs);
+                bp = bp.add(self.ldb);
+            }
+            for r in 0..MR {
+                for v in 0..NV {
+                    _mm256_storeu_ps(self.c.add((i0 + r) * self.ldc + j0 + 8 * v), acc[r][v]);
+                }
+            }
         }
     }
 }
@@ -490,6 +696,39 @@ mod tests {
                 .iter()
                 .zip(b.iter())
                 .all(|(p, q)| p.to_bits() == q.to_bits()));
+        }
+    }
+
+    /// The f32 AVX2 kernel and the portable kernel are bit-identical on every shape the MLPs
+    /// use and on ragged ones (rows and columns not multiples of the tiles, k = 0 and 1), for
+    /// the three operand layouts (x·Wᵀ, dyᵀ·x, dy·W).
+    #[test]
+    fn gemm_kernels_bit_identical() {
+        let shapes = [
+            (128, 64, 64),
+            (512, 44, 32),
+            (512, 32, 32),
+            (128, 3, 64),
+            (64, 64, 128),
+            (44, 32, 512),
+            (7, 23, 5),
+            (13, 9, 1),
+            (5, 17, 0),
+            (1, 1, 3),
+        ];
+        for (si, &(m, n, k)) in shapes.iter().enumerate() {
+            for (a_rs, a_cs) in [(k, 1), (1, m)] {
+                let a = rand_vec((m * a_rs.max(1) + k * a_cs).max(1), 20 + si as u64);
+                let b = rand_vec((k * n).max(1), 40 + si as u64);
+                let c0 = rand_vec(m * n, 60 + si as u64);
+                let (mut c1, mut c2) = (c0.clone(), c0.clone());
+                gemm_acc(m, n, k, &a, a_rs, a_cs, &b, n, &mut c1, n);
+                gemm_acc_generic(m, n, k, &a, a_rs, a_cs, &b, n, &mut c2, n);
+                assert!(
+                    c1.iter().zip(&c2).all(|(x, y)| x.to_bits() == y.to_bits()),
+                    "shape {m}x{n}x{k}, strides ({a_rs}, {a_cs})"
+                );
+            }
         }
     }
 

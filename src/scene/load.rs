@@ -193,17 +193,18 @@ pub fn find_mesh(dir: &Path) -> anyhow::Result<PathBuf> {
     match cands.len() {
         1 => Ok(cands.pop().unwrap()),
         0 => anyhow::bail!(
-            "{}: no mesh found (looked for mesh.ply, mesh.obj, meshed-poisson.ply / meshed-delaunay.ply here or in dense/0/, or a single *.ply/*.obj); pass the mesh explicitly",
+            "{}: no mesh found (looked for mesh.ply, mesh.obj, meshed-poisson.ply / meshed-delaunay.ply here or in dense/0/, or a single *.ply/*.obj); name it with --mesh FILE, or put it in the folder as mesh.ply",
             dir.display()
         ),
         _ => anyhow::bail!(
-            "{}: several mesh candidates, pass one explicitly: {}",
+            "{}: several mesh candidates ({}); choose one with --mesh (e.g. --mesh {}) or rename it mesh.ply",
             dir.display(),
             cands
                 .iter()
                 .map(|p| p.file_name().unwrap().to_string_lossy().to_string())
                 .collect::<Vec<_>>()
-                .join(", ")
+                .join(", "),
+            cands[0].display()
         ),
     }
 }

@@ -288,14 +288,56 @@ fn pow_u64(x: f64, mut n: u64) -> f64 {
     acc
 }
 
-/// Slots of the `lr_t` memo (direct-mapped by `t mod MEMO`).
-const MEMO: usize = 1024;
+/// The bias-correction factors of Adam, `(sqrt(1 - β2^t), 1 - β1^t)` for t = 1, 2, …, cached
+/// across steps: they depend only on (β1, β2, t), and recomputing `β^t` per scalar cost more
+/// than the rest of a sparse update (every entry of a sparse group has its own `t`). Only
+/// caches values: results are the same bits as computing them on the spot.
+#[derive(Clone, Debug, Default)]
+pub struct BiasCache {
+    /// `(β1 bits, β2 bits, [t-1] → factors)` per pair of betas seen.
+    tables: Vec<(u32, u32, Vec<(f64, f64)>)>,
+    /// Scratch for one step's `lr_t` table.
+    lr: Vec<f32>,
+}
 
-/// Per-step constants of a group, with a direct-mapped memo of `lr_t` by step count: in a sparse
-/// group every entry has its own `t`, and recomputing `β^t` per scalar cost more than the rest of
-/// the update. The memo only caches values; results are the same bits as without it.
-#[derive(Clone, Copy)]
-struct StepConsts {
+impl PartialEq for BiasCache {
+    /// A cache is not state: two Adam states are equal whatever they have cached.
+    fn eq(&self, _: &Self) -> bool {
+        true
+    }
+}
+
+impl BiasCache {
+    /// The factors for t = 1..=t_max.
+    fn factors(&mut self, b1: f32, b2: f32, t_max: usize) -> &[(f64, f64)] {
+        let key = (b1.to_bits(), b2.to_bits());
+        let i = match self.tables.iter().position(|e| (e.0, e.1) == key) {
+            Some(i) => i,
+            None => {
+                self.tables.push((key.0, key.1, Vec::new()));
+                self.tables.len() - 1
+            }
+        };
+        let tab = &mut self.tables[i].2;
+        for t in tab.len() + 1..=t_max {
+            tab.push(bias_factors(b1, b2, t as u32));
+        }
+        &tab[..t_max]
+    }
+}
+
+/// `(sqrt(1 - β2^t), 1 - β1^t)` in f64 (β^t by squaring).
+fn bias_factors(b1: f32, b2: f32, t: u32) -> (f64, f64) {
+    let b1t = pow_u64(b1 as f64, t as u64);
+    let b2t = pow_u64(b2 as f64, t as u64);
+    ((1.0 - b2t).sqrt(), 1.0 - b1t)
+}
+
+/// Per-step constants of a group, with `lr_t` tabulated for every step count a parameter can
+/// have reached (t ≤ k + 1 at 0-based step k; a larger t, possible only when a caller repeats a
+/// step index, is computed on the spot with the same expression).
+#[derive(Clone)]
+struct StepConsts<'a> {
     lr_k: f64,
     b1: f32,
     b2: f32,
@@ -304,15 +346,28 @@ struct StepConsts {
     eps: f32,
     l2: f32,
     skip_zero: bool,
-    /// `memo_t[t % MEMO] == t` ⇒ `memo_lr[t % MEMO]` is `lr_t(t)`; 0 = empty (t ≥ 1).
-    memo_t: [u32; MEMO],
-    memo_lr: [f32; MEMO],
+    /// `lr[t]` = `lr_t(t)` for 1 ≤ t < len (`lr[0]` unused).
+    lr: &'a [f32],
 }
 
-impl StepConsts {
-    fn new(cfg: &AdamGroup, k: u64, sparse: bool) -> Self {
+impl StepConsts<'_> {
+    /// The group's constants at 0-based step `k` (the `lr_t` table built in `cache`'s scratch).
+    fn new<'a>(cfg: &AdamGroup, k: u64, sparse: bool, cache: &'a mut BiasCache) -> StepConsts<'a> {
+        let lr_k = cfg.lr_at(k);
+        let t_max = (k as usize).saturating_add(1);
+        let mut table = std::mem::take(&mut cache.lr);
+        table.clear();
+        table.push(0.0);
+        table.extend(
+            cache
+                .factors(cfg.beta1, cfg.beta2, t_max)
+                .iter()
+                .map(|&(s2, d1)| (lr_k * s2 / d1) as f32),
+        );
+        cache.lr = table;
+        let table = &cache.lr;
         StepConsts {
-            lr_k: cfg.lr_at(k),
+            lr_k,
             b1: cfg.beta1,
             b2: cfg.beta2,
             one_minus_b1: 1.0 - cfg.beta1,
@@ -320,27 +375,25 @@ impl StepConsts {
             eps: cfg.epsilon,
             l2: if sparse { 0.0 } else { cfg.l2 },
             skip_zero: sparse,
-            memo_t: [0; MEMO],
-            memo_lr: [0.0; MEMO],
+            lr: table,
         }
     }
 
     /// `lr_k * sqrt(1 - β2^t) / (1 - β1^t)` in f64, rounded to f32.
     #[inline]
-    fn lr_t(&mut self, t: u32) -> f32 {
-        let slot = t as usize % MEMO;
-        if self.memo_t[slot] != t {
-            let b1t = pow_u64(self.b1 as f64, t as u64);
-            let b2t = pow_u64(self.b2 as f64, t as u64);
-            self.memo_lr[slot] = (self.lr_k * (1.0 - b2t).sqrt() / (1.0 - b1t)) as f32;
-            self.memo_t[slot] = t;
+    fn lr_t(&self, t: u32) -> f32 {
+        match self.lr.get(t as usize) {
+            Some(&v) => v,
+            None => {
+                let (s2, d1) = bias_factors(self.b1, self.b2, t);
+                (self.lr_k * s2 / d1) as f32
+            }
         }
-        self.memo_lr[slot]
     }
 
     /// One scalar's Adam update (module doc).
     #[inline]
-    fn update(&mut self, w: &mut f32, g: f32, s: &mut Moments) {
+    fn update(&self, w: &mut f32, g: f32, s: &mut Moments) {
         if self.skip_zero && g == 0.0 {
             return;
         }
@@ -394,6 +447,8 @@ pub struct AdamState {
     /// Per scalar parameter, in the flat buffer's order.
     pub state: Vec<Moments>,
     pub slots: Vec<ParamSlot>,
+    /// Bias-correction factors and the `lr_t` table (values only, not state).
+    pub cache: BiasCache,
 }
 
 impl AdamState {
@@ -413,6 +468,7 @@ impl AdamState {
         AdamState {
             state: crate::memhint::filled(offset, Moments::default()),
             slots,
+            cache: BiasCache::default(),
         }
     }
 
@@ -421,6 +477,7 @@ impl AdamState {
         AdamState {
             state: vec![Moments::default(); n],
             slots: Vec::new(),
+            cache: BiasCache::default(),
         }
     }
 
@@ -485,10 +542,10 @@ impl AdamState {
             range,
             self.len()
         );
-        let consts = StepConsts::new(cfg, global_step, cfg.sparse);
+        let consts = StepConsts::new(cfg, global_step, cfg.sparse, &mut self.cache);
         let st = &mut self.state[range];
         let run = |(ci, (w, st)): DenseChunk| {
-            let mut c = consts;
+            let c = &consts;
             let g = &grads[ci * DENSE_CHUNK..ci * DENSE_CHUNK + w.len()];
             for ((w, &g), s) in w.iter_mut().zip(g).zip(st.iter_mut()) {
                 c.update(w, g, s);
@@ -571,7 +628,7 @@ impl AdamState {
                 "step_sparse: entry {last} out of range (table has {n_entries} entries)"
             );
         }
-        let consts = StepConsts::new(cfg, global_step, true);
+        let consts = StepConsts::new(cfg, global_step, true, &mut self.cache);
         let region = base_offset..base_offset + params.len();
         // Split the table, its gradient and its state into disjoint regions, one per chunk of
         // entries.
@@ -592,7 +649,7 @@ impl AdamState {
             parts.push((chunk, start, w, g, st));
         }
         let run = |(chunk, start, w, g, st): SparseChunk| {
-            let mut c = consts;
+            let c = &consts;
             for (i, &e) in chunk.iter().enumerate() {
                 // The entries are scattered over a table of hundreds of MB: start loading the
                 // lines of an entry a few iterations ahead (no effect on results).

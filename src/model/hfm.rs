@@ -128,6 +128,24 @@ pub struct Forward<R> {
     pub loss: f64,
 }
 
+/// What every chunk of a forward pass shares (see `Hfm::prologue`).
+struct Prologue<R> {
+    start: Vec<usize>,
+    points: Vec<[f64; 3]>,
+    sample_index: Vec<usize>,
+    triangles: Vec<u32>,
+    bary: Vec<[f64; 2]>,
+    code_mean: Vec<R>,
+    wt_shader: Vec<Vec<R>>,
+    wt_deform: Option<Vec<Vec<R>>>,
+}
+
+/// `v` cleared and refilled with `len` zeros, keeping its allocation.
+fn reset<R: Real>(v: &mut Vec<R>, len: usize) {
+    v.clear();
+    v.resize(len, R::ZERO);
+}
+
 /// One chunk's backward partials.
 struct ChunkGrad<R> {
     d_shader: Vec<R>,
@@ -361,6 +379,49 @@ impl Hfm {
 
     /// Forward pass over a batch (parallel over pixel chunks).
     pub fn forward<R: Real>(&self, params: &[R], batch: &Batch) -> Result<Forward<R>> {
+        let pre = self.prologue(params, batch)?;
+        let n = batch.n_pixels();
+        let chunks: Vec<ChunkFwd<R>> = (0..n.div_ceil(PIXEL_CHUNK))
+            .into_par_iter()
+            .map(|c| {
+                let mut f = ChunkFwd::default();
+                self.forward_chunk(&mut f, params, batch, &pre, c);
+                f
+            })
+            .collect();
+        let mut sum = 0.0f64;
+        for ch in &chunks {
+            sum += ch.loss_sum; // chunk order
+        }
+        Ok(Forward {
+            chunks,
+            start: pre.start,
+            points: pre.points,
+            sample_index: pre.sample_index,
+            triangles: pre.triangles,
+            bary: pre.bary,
+            code_mean: pre.code_mean,
+            loss: sum / (3 * n) as f64,
+        })
+    }
+
+    /// The colours only (`[N, 3]` σ(logits), the same bits as [`Hfm::forward`]'s `rgb`), for
+    /// rendering: no activations are kept, and each worker thread reuses one chunk's buffers.
+    pub fn infer<R: Real>(&self, params: &[R], batch: &Batch) -> Result<Vec<R>> {
+        let pre = self.prologue(params, batch)?;
+        let mut rgb = vec![R::ZERO; batch.n_pixels() * 3];
+        rgb.par_chunks_mut(PIXEL_CHUNK * 3)
+            .enumerate()
+            .for_each_init(ChunkFwd::default, |f, (c, out)| {
+                self.forward_chunk(f, params, batch, &pre, c);
+                out.copy_from_slice(&f.rgb);
+            });
+        Ok(rgb)
+    }
+
+    /// What every chunk of a forward pass shares: the batch checked, its valid sub-samples
+    /// compacted (CSR by pixel), the mean appearance code, the MLPs' transposed weights.
+    fn prologue<R: Real>(&self, params: &[R], batch: &Batch) -> Result<Prologue<R>> {
         ensure!(
             params.len() == self.layout.total,
             "parameters: {} values, the layout needs {}",
@@ -370,10 +431,9 @@ impl Hfm {
         self.check_batch(batch)?;
         let n = batch.n_pixels();
         let s = batch.samples_per_pixel();
-        // Compacted list of valid sub-samples (CSR by pixel).
         let mut start = Vec::with_capacity(n + 1);
-        let mut points = Vec::new();
-        let mut sample_index = Vec::new();
+        let mut points = Vec::with_capacity(n * s);
+        let mut sample_index = Vec::with_capacity(n * s);
         let (mut triangles, mut bary) = (Vec::new(), Vec::new());
         let ids = self.vertex.is_some();
         start.push(0);
@@ -391,46 +451,20 @@ impl Hfm {
             }
             start.push(points.len());
         }
-        let code_mean = self.code_mean(params);
-        let wt_shader = self
-            .shader
-            .transpose_weights(&params[self.r_shader.clone()]);
-        let wt_deform = self
-            .deform
-            .as_ref()
-            .map(|m| m.transpose_weights(&params[self.r_deform.clone()]));
-        let n_chunks = n.div_ceil(PIXEL_CHUNK);
-        let chunks: Vec<ChunkFwd<R>> = (0..n_chunks)
-            .into_par_iter()
-            .map(|c| {
-                let p0 = c * PIXEL_CHUNK;
-                let p1 = (p0 + PIXEL_CHUNK).min(n);
-                self.forward_chunk(
-                    params,
-                    batch,
-                    &start,
-                    &points,
-                    (&triangles, &bary),
-                    &code_mean,
-                    &wt_shader,
-                    wt_deform.as_deref(),
-                    p0..p1,
-                )
-            })
-            .collect();
-        let mut sum = 0.0f64;
-        for ch in &chunks {
-            sum += ch.loss_sum; // chunk order
-        }
-        Ok(Forward {
-            chunks,
+        Ok(Prologue {
+            code_mean: self.code_mean(params),
+            wt_shader: self
+                .shader
+                .transpose_weights(&params[self.r_shader.clone()]),
+            wt_deform: self
+                .deform
+                .as_ref()
+                .map(|m| m.transpose_weights(&params[self.r_deform.clone()])),
             start,
             points,
             sample_index,
             triangles,
             bary,
-            code_mean,
-            loss: sum / (3 * n) as f64,
         })
     }
 
@@ -455,32 +489,32 @@ impl Hfm {
         m
     }
 
-    #[allow(clippy::too_many_arguments)]
+    /// Chunk `c` (pixels `c·PIXEL_CHUNK ..`) of a forward pass into `f`, reusing its buffers.
     fn forward_chunk<R: Real>(
         &self,
+        f: &mut ChunkFwd<R>,
         params: &[R],
         batch: &Batch,
-        start: &[usize],
-        points: &[[f64; 3]],
-        ids: (&[u32], &[[f64; 2]]),
-        code_mean: &[R],
-        wt_shader: &[Vec<R>],
-        wt_deform: Option<&[Vec<R>]>,
-        pixels: Range<usize>,
-    ) -> ChunkFwd<R> {
+        pre: &Prologue<R>,
+        c: usize,
+    ) {
+        let p0 = c * PIXEL_CHUNK;
+        let pixels = p0..(p0 + PIXEL_CHUNK).min(batch.n_pixels());
+        let (start, points) = (&pre.start[..], &pre.points[..]);
+        let ids = (&pre.triangles[..], &pre.bary[..]);
+        let code_mean = &pre.code_mean[..];
+        let wt_shader = &pre.wt_shader[..];
+        let wt_deform = pre.wt_deform.as_deref();
         let mode = self.cfg.positions;
         let lf = self.feat_dim();
         let a = self.appearance_dim();
         let samples = start[pixels.start]..start[pixels.end];
         let (n, v) = (pixels.len(), samples.len());
         let pts = &points[samples.clone()];
-        let mut f = ChunkFwd::<R> {
-            pixels: pixels.clone(),
-            samples: samples.clone(),
-            ..Default::default()
-        };
+        f.pixels = pixels.clone();
+        f.samples = samples.clone();
         // Eq. 2: F_H at every valid sub-sample (or Fig. 2b's F_V: vertex featurization).
-        f.grid_h = vec![R::ZERO; v * lf];
+        reset(&mut f.grid_h, v * lf);
         let local_start: Vec<usize> = start[pixels.start..=pixels.end]
             .iter()
             .map(|&x| x - samples.start)
@@ -489,7 +523,7 @@ impl Hfm {
         let mut active = Vec::new();
         if self.cfg.level_weight == LevelWeight::Footprint {
             let nl = self.grid_h.scales.len();
-            f.level_w = vec![R::ZERO; v * nl];
+            reset(&mut f.level_w, v * nl);
             active = vec![0u8; v];
             level_weights(
                 &self.grid_h.scales,
@@ -522,15 +556,15 @@ impl Hfm {
             ),
         }
         // SH(d_n).
-        f.sh = vec![R::ZERO; n * SH_DIM];
+        reset(&mut f.sh, n * SH_DIM);
         sh_forward(&batch.dirs[pixels.clone()], &mut f.sh);
         // Eq. 5: δ_j = ξ([F_D(x_j), SH(d_n)]).
         if let (Some(gd), Some(mlp), Some(wt)) = (&self.grid_d, &self.deform, wt_deform) {
             let ld = gd.out_dim();
-            f.grid_d = vec![R::ZERO; v * ld];
+            reset(&mut f.grid_d, v * ld);
             gd.forward(&params[self.r_grid_d.clone()], pts, mode, &mut f.grid_d);
             let din = ld + SH_DIM;
-            f.deform_in = vec![R::ZERO; v * din];
+            reset(&mut f.deform_in, v * din);
             for i in 0..n {
                 let sh = &f.sh[i * SH_DIM..(i + 1) * SH_DIM];
                 for j in start[pixels.start + i]..start[pixels.start + i + 1] {
@@ -549,12 +583,12 @@ impl Hfm {
             );
         }
         // Eq. 4: pooled_n = (Σ_j F'_j) / count_n, F'_j = F_H(x_j) + δ_j.
-        f.pooled = vec![R::ZERO; n * lf];
+        reset(&mut f.pooled, n * lf);
         let delta = self.deform.as_ref().map(|_| &f.deform.out[..]);
         pool_forward(&local_start, &f.grid_h, delta, lf, &mut f.pooled);
         // Shader input [pooled, SH(d), code(view)].
         let din = lf + SH_DIM + a;
-        f.shader_in = vec![R::ZERO; n * din];
+        reset(&mut f.shader_in, n * din);
         let codes = &params[self.r_codes.clone()];
         for i in 0..n {
             let row = &mut f.shader_in[i * din..(i + 1) * din];
@@ -578,7 +612,7 @@ impl Hfm {
             n,
             &mut f.shader,
         );
-        f.rgb = vec![R::ZERO; n * 3];
+        reset(&mut f.rgb, n * 3);
         sigmoid_forward(&f.shader.out, &mut f.rgb);
         f.loss_sum = loss_forward(
             self.cfg.loss,
@@ -586,7 +620,6 @@ impl Hfm {
             &f.rgb,
             &batch.target[pixels],
         );
-        f
     }
 
     /// Backward pass: ACCUMULATES ∂L/∂params, ∂L/∂positions `[N*S*3]` and ∂L/∂dirs `[N*3]` into
@@ -1002,6 +1035,47 @@ mod tests {
         let mut bad = cfg.clone();
         bad.grid_h.features = 3;
         assert!(Hfm::new(&bad).is_err());
+    }
+
+    /// `infer` (rendering's path: buffers reused per thread, no backward state) gives the same
+    /// bits as `forward`'s colours, in f32 and f64, over several chunks, with invalid
+    /// sub-samples, view codes and ξ on (fails if a reused buffer keeps a previous chunk's data).
+    #[test]
+    fn infer_is_forward_rgb_bit_for_bit() {
+        let mut cfg = ModelConfig::cpu();
+        cfg.appearance_views = 4;
+        let m = Hfm::new(&cfg).unwrap();
+        let p32 = m.init_params(7);
+        let p64: Vec<f64> = p32.iter().map(|&v| v as f64).collect();
+        let n = 3 * PIXEL_CHUNK + 57;
+        let mut b = Batch::random(5, n, 4, 4, 0.3);
+        assert!(b.valid.contains(&0));
+        // Footprints from finer than the finest cell to coarser than level 0's (level weighting).
+        b.footprint = (0..n)
+            .map(|i| 10f32.powf(-4.0 + 3.0 * ((i * 37) % 101) as f32 / 100.0))
+            .collect();
+        let rgb = |f: Forward<f32>| -> Vec<f32> {
+            f.chunks
+                .iter()
+                .flat_map(|c| c.rgb.iter().copied())
+                .collect()
+        };
+        let want = rgb(m.forward(&p32, &b).unwrap());
+        let got = m.infer(&p32, &b).unwrap();
+        assert_eq!(got.len(), 3 * n);
+        let diff = want
+            .iter()
+            .zip(&got)
+            .filter(|(a, b)| a.to_bits() != b.to_bits());
+        assert_eq!(diff.count(), 0, "f32 infer differs from forward");
+        let want: Vec<f64> = m
+            .forward(&p64, &b)
+            .unwrap()
+            .chunks
+            .iter()
+            .flat_map(|c| c.rgb.iter().copied())
+            .collect();
+        assert_eq!(m.infer(&p64, &b).unwrap(), want, "f64 infer differs");
     }
 
     /// Switching parts off removes their tensors and changes the shader input width.

@@ -385,6 +385,27 @@ pub fn cast_rows(
     y0: u32,
     rows: u32,
 ) -> Result<ViewCast> {
+    let mut out = ViewCast {
+        width: 0,
+        height: 0,
+        gamma,
+        subs: Vec::new(),
+        pixels: Vec::new(),
+    };
+    cast_rows_into(tracer, camera, gamma, y0, rows, &mut out)?;
+    Ok(out)
+}
+
+/// [`cast_rows`] into `out`, reusing its buffers (a frame cast band by band touches fresh
+/// memory only once).
+pub fn cast_rows_into(
+    tracer: &Tracer,
+    camera: &Camera,
+    gamma: u32,
+    y0: u32,
+    rows: u32,
+    out: &mut ViewCast,
+) -> Result<()> {
     check_gamma(gamma)?;
     if y0.checked_add(rows).is_none_or(|e| e > camera.height) {
         bail!(
@@ -397,11 +418,17 @@ pub fn cast_rows(
     let (w, h) = (camera.width as usize, rows as usize);
     let g2 = (gamma * gamma) as usize;
     // Filled in parallel on huge pages: at 1024×768, γ=2 this is 277 MB, and 4 KiB page faults
-    // serialise the threads.
-    let mut subs = Vec::with_capacity(w * h * g2);
-    super::advise_huge_pages(&mut subs);
+    // serialise the threads. Every element is written by `cast_strip`.
+    let subs = &mut out.subs;
+    if subs.capacity() < w * h * g2 {
+        *subs = Vec::with_capacity(w * h * g2);
+        super::advise_huge_pages(subs);
+    }
+    subs.clear();
     subs.par_extend(rayon::iter::repeat_n(SubSample::default(), w * h * g2));
-    let mut pixels = vec![PixelSummary::default(); w * h];
+    let pixels = &mut out.pixels;
+    pixels.clear();
+    pixels.resize(w * h, PixelSummary::default());
     let strip = STRIP_ROWS as usize;
     subs.par_chunks_mut(strip * w * g2)
         .zip(pixels.par_chunks_mut(strip * w))
@@ -414,11 +441,8 @@ pub fn cast_rows(
                 cast_strip(tracer, &ctx, gamma, y, r, sc, s, p)
             },
         );
-    Ok(ViewCast {
-        width: camera.width,
-        height: rows,
-        gamma,
-        subs,
-        pixels,
-    })
+    out.width = camera.width;
+    out.height = rows;
+    out.gamma = gamma;
+    Ok(())
 }

@@ -20,7 +20,9 @@ pub mod triangle;
 
 pub use bvh::{BuildPreset, Packet, Scratch, Tracer, MAX_LANES};
 pub use cache::{CacheEvent, CachedView, SampleCache};
-pub use cast::{cast_rows, cast_view, sub_offset, PixelSummary, SubSample, ViewCast};
+pub use cast::{
+    cast_rows, cast_rows_into, cast_view, sub_offset, PixelSummary, SubSample, ViewCast,
+};
 pub use footprint::FootprintHist;
 pub use stream::{HitMap, RayStream, StreamView, Targets};
 

@@ -7,7 +7,7 @@ pub mod ulr;
 
 use crate::model::batch::Batch;
 use crate::model::hfm::Hfm;
-use crate::raycast::{cast_rows, Tracer};
+use crate::raycast::{cast_rows, cast_rows_into, Tracer};
 use crate::scene::{Camera, Image};
 use anyhow::Result;
 use glam::{DMat3, DQuat, DVec3};
@@ -58,9 +58,10 @@ pub fn render_camera(
     let mut hit = vec![false; w * h];
     let mut footprint = vec![0.0f32; w * h];
     let band = band_rows(camera.width, gamma);
+    let mut cast = cast_rows(tracer, camera, gamma, 0, 0)?;
     for y0 in (0..camera.height).step_by(band as usize) {
         let rows = band.min(camera.height - y0);
-        let cast = cast_rows(tracer, camera, gamma, y0, rows)?;
+        cast_rows_into(tracer, camera, gamma, y0, rows, &mut cast)?;
         let off = y0 as usize * w;
         for (i, p) in cast.pixels.iter().enumerate() {
             hit[off + i] = p.valid != 0;
@@ -70,33 +71,9 @@ pub fn render_camera(
             .filter(|&i| cast.pixels[i].valid != 0)
             .collect();
         for chunk in hits.chunks(RENDER_CHUNK) {
-            let mut b = Batch {
-                positions: Vec::with_capacity(chunk.len() * s),
-                valid: Vec::with_capacity(chunk.len() * s),
-                dirs: Vec::with_capacity(chunk.len()),
-                view: vec![view_row; chunk.len()],
-                target: vec![[0.0; 3]; chunk.len()],
-                footprint: Vec::with_capacity(chunk.len()),
-                ..Batch::default()
-            };
-            let ids = model.vertex.is_some();
-            for &i in chunk {
-                let px = &cast.pixels[i];
-                for sub in &cast.subs[i * s..(i + 1) * s] {
-                    b.positions.push(sub.position.to_array());
-                    b.valid.push(sub.hit() as u8);
-                    if ids {
-                        b.triangle.push(sub.triangle);
-                        b.bary
-                            .push(if sub.hit() { [sub.u, sub.v] } else { [0.0; 2] });
-                    }
-                }
-                b.dirs.push(px.dir.as_vec3().to_array());
-                b.footprint.push(px.footprint as f32);
-            }
-            let fwd = model.forward(params, &b)?;
-            let rgb = fwd.chunks.iter().flat_map(|c| c.rgb.iter().copied());
-            for (&i, c) in chunk.iter().zip(rgb.collect::<Vec<f32>>().chunks_exact(3)) {
+            let b = render_batch(model, &cast, chunk, s, view_row);
+            let rgb = model.infer(params, &b)?;
+            for (&i, c) in chunk.iter().zip(rgb.chunks_exact(3)) {
                 data[(off + i) * 3..(off + i) * 3 + 3].copy_from_slice(c);
             }
         }
@@ -110,6 +87,55 @@ pub fn render_camera(
         hit,
         footprint,
     })
+}
+
+/// The model's batch for the cast pixels `chunk` (indices into `cast.pixels`), built in
+/// parallel.
+fn render_batch(
+    model: &Hfm,
+    cast: &crate::raycast::ViewCast,
+    chunk: &[usize],
+    s: usize,
+    view_row: i32,
+) -> Batch {
+    use rayon::prelude::*;
+    let subs = |i: usize| &cast.subs[i * s..(i + 1) * s];
+    let mut b = Batch {
+        positions: chunk
+            .par_iter()
+            .flat_map_iter(|&i| subs(i).iter().map(|x| x.position.to_array()))
+            .collect(),
+        valid: chunk
+            .par_iter()
+            .flat_map_iter(|&i| subs(i).iter().map(|x| x.hit() as u8))
+            .collect(),
+        dirs: chunk
+            .par_iter()
+            .map(|&i| cast.pixels[i].dir.as_vec3().to_array())
+            .collect(),
+        view: vec![view_row; chunk.len()],
+        target: vec![[0.0; 3]; chunk.len()],
+        footprint: chunk
+            .par_iter()
+            .map(|&i| cast.pixels[i].footprint as f32)
+            .collect(),
+        ..Batch::default()
+    };
+    if model.vertex.is_some() {
+        b.triangle = chunk
+            .iter()
+            .flat_map(|&i| subs(i).iter().map(|x| x.triangle))
+            .collect();
+        b.bary = chunk
+            .iter()
+            .flat_map(|&i| {
+                subs(i)
+                    .iter()
+                    .map(|x| if x.hit() { [x.u, x.v] } else { [0.0; 2] })
+            })
+            .collect();
+    }
+    b
 }
 
 /// Camera `i` of `n` on the straight path from `a` to `b` (both ends included): rotation by

@@ -294,11 +294,14 @@ fn pow_u64(x: f64, mut n: u64) -> f64 {
 /// caches values: results are the same bits as computing them on the spot.
 #[derive(Clone, Debug, Default)]
 pub struct BiasCache {
-    /// `(β1 bits, β2 bits, [t-1] → factors)` per pair of betas seen.
-    tables: Vec<(u32, u32, Vec<(f64, f64)>)>,
+    /// One table per pair of betas seen.
+    tables: Vec<BiasTable>,
     /// Scratch for one step's `lr_t` table.
     lr: Vec<f32>,
 }
+
+/// `(β1 bits, β2 bits, [t-1] → (sqrt(1 - β2^t), 1 - β1^t))`.
+type BiasTable = (u32, u32, Vec<(f64, f64)>);
 
 impl PartialEq for BiasCache {
     /// A cache is not state: two Adam states are equal whatever they have cached.

@@ -34,6 +34,8 @@ fn cfg() -> RunConfig {
     r.per_vertex = true;
     r.laplacian = 1e-3;
     r.lr = 1e-3;
+    // A decaying rate: the resume must land on the same rate schedule.
+    r.lr_end = 2e-4;
     c.validate().unwrap();
     c
 }
@@ -131,6 +133,7 @@ fn configurations_refinement_cannot_run_are_errors() {
     );
     check("[model.refine]\nenabled = true\nstart = 1.5\n", "start");
     check("[model.refine]\nupdate_every = 0\n", "update_every");
+    check("[model.refine]\nlr_end = -1e-3\n", "lr_end");
     check("[model.refine]\nstart = 0.5\nstop = 0.4\n", "stop");
     check(
         "[model.refine]\ngradient_cells = [0, 64]\n",

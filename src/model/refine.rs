@@ -96,6 +96,10 @@ pub struct RefineConfig {
     pub min_cos: f64,
     /// Adam on the offset parameters (sparse: untouched nodes keep their moments).
     pub lr: f32,
+    /// Learning rate of the last update before `stop` (geometric from `lr` at the first update;
+    /// 0 = `lr` throughout). Adam's steps are about `lr` whatever the gradient's size, so once the
+    /// coarse error is gone a constant rate random-walks the mesh on the noise (docs/geometry.md).
+    pub lr_end: f32,
     pub beta1: f32,
     pub beta2: f32,
     pub epsilon: f32,
@@ -117,6 +121,7 @@ impl Default for RefineConfig {
             update_every: 20,
             min_cos: 0.1,
             lr: 1e-4,
+            lr_end: 0.0,
             beta1: 0.9,
             beta2: 0.99,
             epsilon: 1e-15,
@@ -192,6 +197,9 @@ impl RefineConfig {
         }
         if !(self.lr.is_finite() && self.lr >= 0.0) {
             bad.push(format!("lr = {} (a finite value ≥ 0)", self.lr));
+        }
+        if !(self.lr_end.is_finite() && self.lr_end >= 0.0) {
+            bad.push(format!("lr_end = {} (a finite value ≥ 0)", self.lr_end));
         }
         if !(0.0..1.0).contains(&self.beta1) || !(0.0..1.0).contains(&self.beta2) {
             bad.push(format!(

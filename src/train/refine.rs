@@ -227,6 +227,19 @@ impl Refiner {
         Some((g0 * (g1 / g0).powf(f)) as f32)
     }
 
+    /// Adam's rate for the update after step k: `lr`, or geometric from `lr` at the first moving
+    /// step to `lr_end` at the last (`lr_end` = 0: constant).
+    fn lr_at(&self, k: u64) -> f32 {
+        let (lr, end) = (self.cfg.lr as f64, self.cfg.lr_end as f64);
+        if end <= 0.0 || lr <= 0.0 {
+            return self.cfg.lr;
+        }
+        let k0 = self.start_step();
+        let span = self.stop_step().saturating_sub(k0 + 1).max(1) as f64;
+        let f = (k.saturating_sub(k0) as f64 / span).min(1.0);
+        (lr * (end / lr).powf(f)) as f32
+    }
+
     /// Whether the BVH is rebuilt before batch k is drawn (the offsets moved after step k − 1).
     fn needs_rebuild(&self, k: u64) -> bool {
         k > 0 && self.updates_after(k - 1)
@@ -448,6 +461,7 @@ impl Refiner {
         let k0 = self.start_step();
         let every = self.cfg.update_every as u64;
         let summed = (k - k0) % every + 1;
+        self.adam.lr = self.lr_at(k);
         let TrainState { ckpt, adam, .. } = state;
         let params = ckpt.refine.as_mut().expect("refine params");
         let ng = params.grids.len();

@@ -104,6 +104,9 @@ pub struct Refiner {
     theta: Vec<f64>,
     d_theta: Vec<f64>,
     g32: Vec<f32>,
+    /// Per active grid level at the last update: RMS of the summed gradient over the nodes it
+    /// touched (diagnostics only).
+    last_grad_rms: Vec<f64>,
 }
 
 impl Refiner {
@@ -167,6 +170,7 @@ impl Refiner {
             theta: vec![0.0; nv],
             d_theta: vec![0.0; nv],
             g32: Vec::new(),
+            last_grad_rms: Vec::new(),
             diag: Diagnostics::from_env(nv)?,
             cfg,
         };
@@ -260,7 +264,13 @@ impl Refiner {
         let p = state.ckpt.refine.as_mut().expect("refine params");
         let theta = p.theta_all(&self.cfg, &self.geom);
         if let Some(d) = &self.diag {
-            d.record(state.step, &self.geom, &theta, &p.traced)?;
+            d.record(
+                state.step,
+                &self.geom,
+                &theta,
+                &p.traced,
+                &self.last_grad_rms,
+            )?;
         }
         p.offsets = theta.iter().map(|&t| t as f32).collect();
         p.traced = p.offsets.clone();
@@ -472,8 +482,16 @@ impl Refiner {
                 *p += summed as f64 * g;
             }
         }
+        self.last_grad_rms.clear();
         for l in 0..ng {
             if l < levels {
+                if self.diag.is_some() {
+                    let (s2, n) = params.pending[l]
+                        .iter()
+                        .filter(|g| **g != 0.0)
+                        .fold((0.0, 0usize), |(s, n), g| (s + g * g, n + 1));
+                    self.last_grad_rms.push((s2 / n.max(1) as f64).sqrt());
+                }
                 let r = adam
                     .range(&grid_name(l))
                     .expect("adam slot of a refine grid");
@@ -527,7 +545,14 @@ impl Diagnostics {
         }))
     }
 
-    fn record(&self, step: u64, geom: &RefineGeom, theta: &[f64], before: &[f32]) -> Result<()> {
+    fn record(
+        &self,
+        step: u64,
+        geom: &RefineGeom,
+        theta: &[f64],
+        before: &[f32],
+        grad_rms: &[f64],
+    ) -> Result<()> {
         use std::io::Write;
         let n = theta.len().max(1) as f64;
         let s = geom.scale;
@@ -550,7 +575,7 @@ impl Diagnostics {
             (e2 / n).sqrt()
         });
         let line = serde_json::json!({"step": step, "offset_rms": rms, "offset_max": max,
-            "update_rms": change, "normal_error_rms": err});
+            "update_rms": change, "normal_error_rms": err, "grad_rms": grad_rms});
         let mut f = std::fs::OpenOptions::new()
             .create(true)
             .append(true)

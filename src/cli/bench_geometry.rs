@@ -31,17 +31,17 @@ pub struct Args {
     #[command(flatten)]
     pub run: RunArgs,
     /// RMS displacements of the proxies, in % of the bounding-box diagonal (0 = the exact mesh).
-    #[arg(long, value_delimiter = ',', default_values_t = [0.0, 0.1, 0.3, 1.0])]
+    #[arg(long, value_delimiter = ',', num_args = 1.., default_values_t = [0.0, 0.1, 0.3, 1.0])]
     pub rms: Vec<f64>,
     /// Fraction of faces kept by the decimated proxy (0: no decimated proxy).
     #[arg(long, default_value_t = 0.1)]
     pub decimate: f64,
     /// ξ settings to train each proxy with.
-    #[arg(long, value_delimiter = ',', default_values_t = [Switch::On, Switch::Off])]
+    #[arg(long, value_delimiter = ',', num_args = 1.., default_values_t = [Switch::On, Switch::Off])]
     pub deform: Vec<Switch>,
     /// Mesh refinement settings to train each proxy with (`on` = `[model.refine] enabled`, with
     /// the --config file's `[model.refine]` values, else the defaults).
-    #[arg(long, value_delimiter = ',', default_values_t = [Switch::Off])]
+    #[arg(long, value_delimiter = ',', num_args = 1.., default_values_t = [Switch::Off])]
     pub refine: Vec<Switch>,
     /// Area samples per geometry-error measurement.
     #[arg(long, default_value_t = DISTANCE_SAMPLES)]

@@ -37,7 +37,8 @@ fn xscale(args: &[&str]) -> std::process::Output {
 }
 
 /// The committed case (`fixtures/scores/`): a render with a hole where the mesh misses, against
-/// its untouched photo. xscale's full-image PSNR and SSIM equal scikit-image's.
+/// its untouched photo. xscale's full-image PSNR and SSIM equal scikit-image's (the numbers in
+/// `expected.json` are scikit-image's, written by `reference/scores_case.py`).
 #[test]
 fn full_image_scores_match_scikit_image() {
     let dir = root().join("fixtures/scores");

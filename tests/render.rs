@@ -93,31 +93,19 @@ fn render_scale_writes_the_larger_frame() {
     ]);
     assert_eq!(code, Some(0), "{err}");
     let out = dir.join("frames");
-    let (code, err) = xs(&[
-        "render",
-        "--run",
-        run.to_str().unwrap(),
-        "--out",
-        out.to_str().unwrap(),
-        "--views",
-        "0",
-        "--scale",
-        "3",
-    ]);
+    let (r, o) = (run.to_str().unwrap(), out.to_str().unwrap());
+    let render = |scale: &str| {
+        xs(&[
+            "render", "--run", r, "--out", o, "--views", "0", "--scale", scale,
+        ])
+    };
+    let (code, err) = render("3");
     assert_eq!(code, Some(0), "{err}");
     let img = image::open(out.join("0000.png")).unwrap();
     assert_eq!((img.width(), img.height()), (192, 144));
     // A scale that leaves no pixel, and one that is not a number, are errors, not panics.
     for bad in ["0.001", "-2", "x"] {
-        let (code, err) = xs(&[
-            "render",
-            "--run",
-            run.to_str().unwrap(),
-            "--out",
-            out.to_str().unwrap(),
-            "--scale",
-            bad,
-        ]);
+        let (code, err) = render(bad);
         assert!(
             matches!(code, Some(2) | Some(64)),
             "--scale {bad}: {code:?} {err}"

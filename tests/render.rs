@@ -103,6 +103,12 @@ fn render_scale_writes_the_larger_frame() {
     assert_eq!(code, Some(0), "{err}");
     let img = image::open(out.join("0000.png")).unwrap();
     assert_eq!((img.width(), img.height()), (192, 144));
+    assert!(err.contains("rendered 1 images"), "{err}");
+    // -q, as train takes it: the frame, and nothing on stderr.
+    std::fs::remove_file(out.join("0000.png")).unwrap();
+    let (code, err) = xs(&["render", "--run", r, "--out", o, "--views", "0", "-q"]);
+    assert_eq!((code, err.as_str()), (Some(0), ""));
+    assert!(out.join("0000.png").exists());
     // A scale that leaves no pixel, and one that is not a number, are errors, not panics.
     for bad in ["0.001", "-2", "x"] {
         let (code, err) = render(bad);

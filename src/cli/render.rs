@@ -58,6 +58,9 @@ pub struct Args {
     /// Also write NAME_footprint.png (log pixel footprint on the surface).
     #[arg(long)]
     pub footprint: bool,
+    /// Only errors (no line per frame, no summary).
+    #[arg(long, short)]
+    pub quiet: bool,
     /// Colour of pixels whose rays miss the mesh, `R,G,B` in [0, 1] or `white`/`black`
     /// (default: the scene's `background` in scene.toml, else white).
     #[arg(long, value_parser = super::common::parse_background)]
@@ -166,6 +169,9 @@ pub fn run(a: Args) -> Result<ExitCode> {
                 &footprint_image(&r.footprint, cam.width, cam.height),
             )?;
         }
+        if a.quiet {
+            continue;
+        }
         eprintln!(
             "[{}/{}] {} ({}×{})",
             k + 1,
@@ -174,6 +180,9 @@ pub fn run(a: Args) -> Result<ExitCode> {
             cam.width,
             cam.height
         );
+    }
+    if a.quiet {
+        return Ok(ExitCode::SUCCESS);
     }
     eprintln!(
         "rendered {} images into {} in {:.1} s",

@@ -36,8 +36,40 @@ fn xscale(args: &[&str]) -> std::process::Output {
     out
 }
 
+/// The masked fixture's mesh with the triangles within `r` (a fraction of the mesh's x extent)
+/// of the middle removed, written to `out`.
+fn write_holed_mesh(r: f64, out: &std::path::Path) {
+    let scene = root().join("fixtures/masked");
+    let (mut mesh, _) = xscale::scene::mesh::load_mesh(&scene.join("mesh.ply")).unwrap();
+    let (lo, hi) = mesh.bbox();
+    let c = (lo + hi) * 0.5;
+    let r = r * (hi - lo).x;
+    let v = mesh.vertices.clone();
+    let before = mesh.triangles.len();
+    mesh.triangles.retain(|t| {
+        let m = (v[t[0] as usize] + v[t[1] as usize] + v[t[2] as usize]) / 3.0;
+        (m.x - c.x).hypot(m.y - c.y) > r
+    });
+    assert!(mesh.triangles.len() < before);
+    xscale::scene::mesh::write_ply(out, &mesh).unwrap();
+}
+
+/// The masked fixture without its masks folder (so every pixel counts), copied to `dir`.
+fn copy_without_masks(dir: &std::path::Path) {
+    let scene = root().join("fixtures/masked");
+    std::fs::create_dir_all(dir.join("images")).unwrap();
+    for f in ["transforms.json", "mesh.ply"] {
+        std::fs::copy(scene.join(f), dir.join(f)).unwrap();
+    }
+    for e in std::fs::read_dir(scene.join("images")).unwrap() {
+        let p = e.unwrap().path();
+        std::fs::copy(&p, dir.join("images").join(p.file_name().unwrap())).unwrap();
+    }
+}
+
 /// The committed case (`fixtures/scores/`): a render with a hole where the mesh misses, against
-/// its untouched photo. xscale's full-image PSNR and SSIM equal scikit-image's.
+/// its untouched photo. xscale's full-image PSNR and SSIM equal scikit-image's (the numbers in
+/// `expected.json` are scikit-image's, written by `reference/scores_case.py`).
 #[test]
 fn full_image_scores_match_scikit_image() {
     let dir = root().join("fixtures/scores");
@@ -64,6 +96,14 @@ fn full_image_scores_match_scikit_image() {
         "SSIM {} vs scikit-image {ssim}",
         s.ssim
     );
+    // ꟻLIP against NVIDIA's flip-evaluator (the same C++ behind nv-flip: this checks how xscale
+    // calls it — 8-bit quantisation, 67 pixels per degree, channel order). Measured: < 1e-12 apart.
+    let flip = expected["flip"].as_f64().unwrap();
+    assert!(
+        (s.flip - flip).abs() <= 1e-6,
+        "FLIP {} vs flip-evaluator {flip}",
+        s.flip
+    );
     // The hole shows: the full-image score is far below the hit pixels' score, and below what
     // painting the photo white where the render missed would report.
     let painted = expected["psnr_gt_painted_white"].as_f64().unwrap();
@@ -77,30 +117,12 @@ fn full_image_scores_match_scikit_image() {
 /// 8-bit rounding differs), and renders keep the view names' folders (`render/images/…`).
 #[test]
 fn eval_json_full_psnr_is_the_render_against_the_photo() {
-    let scene = root().join("fixtures/masked");
     // The tiny mesh with the triangles around the middle of the scene removed.
-    let (mut mesh, _) = xscale::scene::mesh::load_mesh(&scene.join("mesh.ply")).unwrap();
-    let (lo, hi) = mesh.bbox();
-    let c = (lo + hi) * 0.5;
-    let r = 0.2 * (hi - lo).x;
-    let v = mesh.vertices.clone();
-    mesh.triangles.retain(|t| {
-        let m = (v[t[0] as usize] + v[t[1] as usize] + v[t[2] as usize]) / 3.0;
-        (m.x - c.x).hypot(m.y - c.y) > r
-    });
     let holed = tmp("holed.ply");
-    xscale::scene::mesh::write_ply(&holed, &mesh).unwrap();
+    write_holed_mesh(0.2, &holed);
     let run = tmp("run");
     let empty = tmp("nomasks");
-    // The fixture without its masks folder (so every pixel counts).
-    std::fs::create_dir_all(empty.join("images")).unwrap();
-    for f in ["transforms.json", "mesh.ply"] {
-        std::fs::copy(scene.join(f), empty.join(f)).unwrap();
-    }
-    for e in std::fs::read_dir(scene.join("images")).unwrap() {
-        let p = e.unwrap().path();
-        std::fs::copy(&p, empty.join("images").join(p.file_name().unwrap())).unwrap();
-    }
+    copy_without_masks(&empty);
     let (e, h, r_) = (
         empty.to_str().unwrap(),
         holed.to_str().unwrap(),
@@ -129,6 +151,28 @@ fn eval_json_full_psnr_is_the_render_against_the_photo() {
             (got - psnr).abs() <= 0.01,
             "{name}: eval.json {got} vs PNG {psnr}"
         );
+        // ꟻLIP in eval.json and as the side-by-side's fourth panel: render | photo | error |
+        // ꟻLIP map of the written render against the untouched photo (to the PNGs' 8 bits).
+        let flip = v["flip"].as_f64().unwrap();
+        assert!(flip > 0.0 && flip < 1.0, "{v}");
+        let side = load_rgb(&run.join("eval").join(name)).unwrap();
+        let (w, hh) = (render.width as usize, render.height as usize);
+        assert_eq!((side.width as usize, side.height as usize), (4 * w, hh));
+        let fmap = xscale::eval::metrics::flip_map(&gt.data, &render.data, w, hh);
+        assert!(
+            (xscale::eval::metrics::masked_mean(&fmap, None) - flip).abs() < 1e-6,
+            "{name}: ꟻLIP {flip} in eval.json"
+        );
+        let want = xscale::render::flip_image(&fmap, w as u32, hh as u32);
+        for y in 0..hh {
+            for x in 0..w {
+                for c in 0..3 {
+                    let a = side.data[(y * 4 * w + 3 * w + x) * 3 + c];
+                    let b = want.data[(y * w + x) * 3 + c];
+                    assert!((a - b).abs() <= 1.0 / 255.0 + 1e-6, "{name} ({x},{y})");
+                }
+            }
+        }
         if v["hit_fraction"].as_f64().unwrap() < 0.99 {
             some_hole = true;
             assert!(got < v["psnr_masked"].as_f64().unwrap(), "{v}");
@@ -291,6 +335,187 @@ fn scores_are_grouped_by_footprint() {
     let one = vec![v("a", 0.5, 30.0), v("b", 0.7, 31.0)];
     assert!(scale_summary(&one).near_far.is_none());
     assert!(scale_table(&one).is_empty());
+}
+
+/// Silhouette coverage counted: the masked fixture evaluated on its mesh with a hole cut in the
+/// middle. Each held-out view's `mask_miss` is the mask pixels whose rays miss the mesh (read
+/// from `render --mask`) over the mask pixels, and the hole shows in it.
+#[test]
+fn mask_miss_is_the_fraction_of_mask_pixels_the_mesh_misses() {
+    let dir = root().join("fixtures/masked");
+    let work = tmp("maskmiss");
+    std::fs::create_dir_all(&work).unwrap();
+    let holed_path = work.join("holed.ply");
+    write_holed_mesh(0.1, &holed_path);
+    let (d, run, h) = (
+        dir.to_str().unwrap(),
+        work.join("run"),
+        holed_path.to_str().unwrap(),
+    );
+    let r = run.to_str().unwrap();
+    xscale(&[
+        "train",
+        "--scene",
+        d,
+        "--out",
+        r,
+        "--preset",
+        "tiny",
+        "--steps",
+        "10",
+        "--no-eval",
+        "-q",
+    ]);
+    let json = work.join("eval.json");
+    let frames = work.join("frames");
+    xscale(&[
+        "eval",
+        "--run",
+        r,
+        "--mesh",
+        h,
+        "--json",
+        json.to_str().unwrap(),
+    ]);
+    xscale(&[
+        "render",
+        "--run",
+        r,
+        "--mesh",
+        h,
+        "--mask",
+        "--out",
+        frames.to_str().unwrap(),
+    ]);
+    let scene = Scene::load(&dir, &LoadOptions::default()).unwrap();
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    let views = json["views"].as_array().unwrap();
+    assert_eq!(views.len(), scene.test.len());
+    let mut largest = 0.0f64;
+    for (v, &i) in views.iter().zip(&scene.test) {
+        assert_eq!(v["view"].as_str(), Some(scene.views[i].name.as_str()));
+        let mask = scene.load_mask(i).unwrap().unwrap();
+        let stem = scene.views[i].name.trim_end_matches(".png");
+        let hit = image::open(frames.join(format!("{stem}_mask.png")))
+            .unwrap()
+            .to_luma8();
+        let inside = mask.iter().filter(|&&m| m).count();
+        let missed = mask
+            .iter()
+            .zip(hit.pixels())
+            .filter(|&(&m, p)| m && p[0] < 128)
+            .count();
+        let want = missed as f64 / inside as f64;
+        let got = v["mask_miss"].as_f64().unwrap();
+        assert!((got - want).abs() < 1e-12, "{}: {got} vs {want}", v["view"]);
+        largest = largest.max(got);
+    }
+    // Measured: 0.197 and 0.055 of the two views' mask pixels fall in the hole.
+    assert!(largest > 0.1, "the hole does not show: mask_miss {largest}");
+    let _ = std::fs::remove_dir_all(&work);
+}
+
+/// The background colour (`scene.toml` `background`, `--background` on eval and render): misses
+/// are painted with it in the renders, and the full-image scores compare that colour with the
+/// photo. A scene saying black, on a mesh with a hole: renders are black exactly where the rays
+/// miss, `eval.json`'s full PSNR is the written render's against the photo, `--background white`
+/// overrides the scene and scores differently; a bad colour is a usage error.
+#[test]
+fn the_background_colour_paints_misses_and_counts_in_full_scores() {
+    let work = tmp("background");
+    let scene = work.join("scene");
+    copy_without_masks(&scene);
+    std::fs::write(scene.join("scene.toml"), "background = [0.0, 0.0, 0.0]\n").unwrap();
+    let holed = work.join("holed.ply");
+    write_holed_mesh(0.2, &holed);
+    let (s, h, run) = (
+        scene.to_str().unwrap(),
+        holed.to_str().unwrap(),
+        work.join("run"),
+    );
+    let r = run.to_str().unwrap();
+    xscale(&[
+        "train",
+        "--scene",
+        s,
+        "--mesh",
+        h,
+        "--out",
+        r,
+        "--preset",
+        "tiny",
+        "--steps",
+        "30",
+        "--no-eval",
+        "-q",
+    ]);
+    let psnrs = |json: &std::path::Path| -> Vec<f64> {
+        let v: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(json).unwrap()).unwrap();
+        v["views"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|v| v["psnr"].as_f64().unwrap())
+            .collect()
+    };
+    let (black_json, white_json) = (work.join("black.json"), work.join("white.json"));
+    xscale(&["eval", "--run", r, "--json", black_json.to_str().unwrap()]);
+    xscale(&[
+        "eval",
+        "--run",
+        r,
+        "--json",
+        white_json.to_str().unwrap(),
+        "--background",
+        "white",
+    ]);
+    let frames = work.join("frames");
+    let f = frames.to_str().unwrap();
+    xscale(&["render", "--run", r, "--out", f, "--mask"]);
+    let loaded = Scene::load(&scene, &LoadOptions::default()).unwrap();
+    assert_eq!(loaded.background, [0.0; 3]);
+    let (black, white) = (psnrs(&black_json), psnrs(&white_json));
+    let mut misses = 0;
+    for (k, &i) in loaded.test.iter().enumerate() {
+        let name = &loaded.views[i].name;
+        let render = load_rgb(&frames.join(name)).unwrap();
+        let hit = image::open(frames.join(name.replace(".png", "_mask.png")))
+            .unwrap()
+            .to_luma8();
+        for (p, m) in render.data.chunks_exact(3).zip(hit.pixels()) {
+            if m[0] < 128 {
+                misses += 1;
+                assert_eq!(p, [0.0; 3], "{name}: a miss is not black");
+            }
+        }
+        let photo = load_rgb(&loaded.views[i].image_path).unwrap();
+        let psnr = xscale::eval::metrics::psnr(&render.data, &photo.data);
+        assert!(
+            (black[k] - psnr).abs() <= 0.01,
+            "{name}: eval.json {} vs the black render {psnr}",
+            black[k]
+        );
+    }
+    assert!(misses > 0, "the hole is seen by no held-out view");
+    assert!(
+        black.iter().zip(&white).any(|(b, w)| (b - w).abs() > 0.1),
+        "--background white scored as the scene's black: {black:?} {white:?}"
+    );
+    for bad in ["2,0,0", "red", "1,1"] {
+        let o = Command::new(env!("CARGO_BIN_EXE_xscale"))
+            .args(["eval", "--run", r, "--background", bad])
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(64), "--background {bad}: {err}");
+        assert!(
+            err.contains("--background") && err.contains("R,G,B"),
+            "{err}"
+        );
+    }
+    let _ = std::fs::remove_dir_all(&work);
 }
 
 /// A `w × h` image of a smooth pattern (`k` shifts it), values in (0, 1).

@@ -121,3 +121,74 @@ fn auto_adds_levels_rather_than_thinning_them() {
     );
     assert_eq!(auto_levels(16.0, 16.0, b, 4), 4);
 }
+
+/// Through the CLI, as a user meets it: a `cpu` run (automatic range, footprint level weighting)
+/// prints its choice, saves it in `config.toml` (levels, per-level scale, finest resolution: what
+/// `eval`, `render` and other backends rebuild the model from), trains the same checkpoint bytes
+/// with 1 and 2 threads, and `eval --run` scores it; `paper` keeps its fixed range unless asked.
+#[test]
+fn a_cpu_run_records_its_range_and_is_thread_independent() {
+    let xs = |args: &[&str]| {
+        let o = std::process::Command::new(env!("CARGO_BIN_EXE_xscale"))
+            .args(args)
+            .output()
+            .unwrap();
+        assert!(
+            o.status.success(),
+            "{args:?}: {}",
+            String::from_utf8_lossy(&o.stderr)
+        );
+        String::from_utf8_lossy(&o.stdout).into_owned() + &String::from_utf8_lossy(&o.stderr)
+    };
+    let scene = fixture();
+    let base = std::env::temp_dir().join(format!("xscale-test-levels-cli-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&base);
+    let mut bytes = Vec::new();
+    for threads in ["1", "2"] {
+        let run = base.join(format!("t{threads}"));
+        let out = xs(&[
+            "train",
+            "--scene",
+            scene.to_str().unwrap(),
+            "--out",
+            run.to_str().unwrap(),
+            "--steps",
+            "4",
+            "--batch",
+            "256",
+            "--no-eval",
+            "--threads",
+            threads,
+        ]);
+        assert!(out.contains("grid H level range (auto)"), "{out}");
+        let saved = RunConfig::from_toml_str(
+            &std::fs::read_to_string(run.join("config.toml")).unwrap(),
+            "cpu",
+            "config.toml",
+        )
+        .unwrap();
+        // What resolve_levels chooses for this scene, independently of the run.
+        let mut want = RunConfig::preset("cpu").unwrap();
+        let p = prepare(&scene, &want, false, &mut |_| {}).unwrap();
+        resolve_levels(&mut want, &p.samples);
+        assert_eq!(saved.model.grid_h, want.model.grid_h);
+        assert!(saved.model.grid_h.finest_resolution.is_some());
+        bytes.push(std::fs::read(run.join("checkpoint.safetensors")).unwrap());
+    }
+    assert!(
+        bytes[0] == bytes[1],
+        "1 and 2 threads trained different bits"
+    );
+    let run = base.join("t1");
+    let out = xs(&["eval", "--run", run.to_str().unwrap()]);
+    assert!(out.contains("PSNR"), "{out}");
+    // paper: fixed, unless the config asks for auto.
+    let paper = RunConfig::preset("paper").unwrap();
+    assert_eq!(paper.train.level_range, LevelRange::Fixed);
+    let f = base.join("auto.toml");
+    std::fs::write(&f, "[train]\nlevel_range = \"auto\"\n").unwrap();
+    let c = RunConfig::resolve("paper", Some(&f)).unwrap();
+    assert_eq!(c.train.level_range, LevelRange::Auto);
+    assert_eq!(c.model.grid_h.log2_table_size, 22, "still the paper's grid");
+    let _ = std::fs::remove_dir_all(&base);
+}

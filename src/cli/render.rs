@@ -58,6 +58,9 @@ pub struct Args {
     /// Also write NAME_footprint.png (log pixel footprint on the surface).
     #[arg(long)]
     pub footprint: bool,
+    /// Only errors (no line per frame, no summary).
+    #[arg(long, short)]
+    pub quiet: bool,
     /// Colour of pixels whose rays miss the mesh, `R,G,B` in [0, 1] or `white`/`black`
     /// (default: the scene's `background` in scene.toml, else white).
     #[arg(long, value_parser = super::common::parse_background)]
@@ -130,6 +133,28 @@ pub fn run(a: Args) -> Result<ExitCode> {
             c.height
         );
     }
+    // A frame holds its colours (f32), hit mask, footprints (f32) and the written copy: at most
+    // 32 bytes per pixel. Refuse a frame that cannot fit before allocating it (an allocation
+    // failure aborts the process with no word about --scale).
+    const FRAME_BYTES_PER_PIXEL: u64 = 32;
+    if let (Some((p, c, _)), Some(avail)) = (
+        jobs.iter()
+            .max_by_key(|(_, c, _)| c.width as u64 * c.height as u64),
+        crate::train::memory::available_bytes(),
+    ) {
+        let need = c.width as u64 * c.height as u64 * FRAME_BYTES_PER_PIXEL;
+        if need > avail {
+            bail!(
+                "--scale {}: {} would be {}×{} pixels, about {:.1} GB in memory, and {:.1} GB are available; use a smaller --scale",
+                a.scale,
+                p.display(),
+                c.width,
+                c.height,
+                need as f64 / 1e9,
+                avail as f64 / 1e9
+            );
+        }
+    }
     let sources: Vec<Source> = if a.method == Method::Ulr {
         training_sources(&s.scene)?
     } else {
@@ -166,6 +191,9 @@ pub fn run(a: Args) -> Result<ExitCode> {
                 &footprint_image(&r.footprint, cam.width, cam.height),
             )?;
         }
+        if a.quiet {
+            continue;
+        }
         eprintln!(
             "[{}/{}] {} ({}×{})",
             k + 1,
@@ -174,6 +202,9 @@ pub fn run(a: Args) -> Result<ExitCode> {
             cam.width,
             cam.height
         );
+    }
+    if a.quiet {
+        return Ok(ExitCode::SUCCESS);
     }
     eprintln!(
         "rendered {} images into {} in {:.1} s",

@@ -140,8 +140,10 @@ pub fn ssim_masked(a: &[f32], b: &[f32], w: usize, h: usize, mask: &[bool]) -> f
 /// Per-pixel ꟻLIP error (NVIDIA's LDR ꟻLIP, Andersson et al. 2020, via the `nv-flip` crate's
 /// reference C++), `[h*w]` values in [0, 1], of `test` against `reference` (both RGB in [0, 1],
 /// sRGB-encoded, quantised to 8 bits as `round(clamp(v, 0, 1)·255)` as ꟻLIP's LDR mode reads
-/// images), at ꟻLIP's default 67 pixels per degree (a 0.7 m wide monitor of 3840 pixels viewed
-/// from 0.7 m).
+/// images), at nv-flip's `DEFAULT_PIXELS_PER_DEGREE`, 67 (ꟻLIP's viewing conditions, a 0.7 m wide
+/// monitor of 3840 pixels viewed from 0.7 m, give 67.02, NVIDIA's flip-evaluator's own default;
+/// the mean error then differs by ~1e-5: `tests/eval_protocol.rs` holds xscale to flip-evaluator
+/// at 67 within 1e-6).
 pub fn flip_map(reference: &[f32], test: &[f32], w: usize, h: usize) -> Vec<f32> {
     assert_eq!(reference.len(), w * h * 3, "reference is not {w}×{h}×3");
     assert_eq!(test.len(), w * h * 3, "test is not {w}×{h}×3");

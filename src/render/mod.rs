@@ -37,8 +37,13 @@ pub struct Rendered {
 
 /// Rows per band for an image `width` wide at γ (at least one row).
 pub fn band_rows(width: u32, gamma: u32) -> u32 {
+    band_rows_for(width, gamma, RENDER_BAND_SAMPLES)
+}
+
+/// Rows per band holding at most `band_samples` sub-samples (at least one row).
+fn band_rows_for(width: u32, gamma: u32, band_samples: usize) -> u32 {
     let per_row = (width as usize * (gamma * gamma) as usize).max(1);
-    ((RENDER_BAND_SAMPLES / per_row).max(1)) as u32
+    (band_samples / per_row).clamp(1, u32::MAX as usize) as u32
 }
 
 /// Render `camera` with the model; `view_row` is the appearance row (−1: mean code); pixels whose
@@ -52,12 +57,37 @@ pub fn render_camera(
     view_row: i32,
     background: [f32; 3],
 ) -> Result<Rendered> {
+    render_camera_in_bands(
+        model,
+        params,
+        tracer,
+        camera,
+        gamma,
+        view_row,
+        background,
+        RENDER_BAND_SAMPLES,
+    )
+}
+
+/// [`render_camera`] with bands of at most `band_samples` sub-samples (at least one row each;
+/// `usize::MAX`: the whole frame at once). The frame does not depend on it (tests/render.rs).
+#[allow(clippy::too_many_arguments)]
+pub fn render_camera_in_bands(
+    model: &Hfm,
+    params: &[f32],
+    tracer: &Tracer,
+    camera: &Camera,
+    gamma: u32,
+    view_row: i32,
+    background: [f32; 3],
+    band_samples: usize,
+) -> Result<Rendered> {
     let (w, h) = (camera.width as usize, camera.height as usize);
     let s = (gamma * gamma) as usize;
     let mut data: Vec<f32> = background.iter().copied().cycle().take(w * h * 3).collect();
     let mut hit = vec![false; w * h];
     let mut footprint = vec![0.0f32; w * h];
-    let band = band_rows(camera.width, gamma);
+    let band = band_rows_for(camera.width, gamma, band_samples);
     let mut cast = cast_rows(tracer, camera, gamma, 0, 0)?;
     for y0 in (0..camera.height).step_by(band as usize) {
         let rows = band.min(camera.height - y0);

@@ -1,0 +1,129 @@
+//! The memory budget of a training run (`train/memory.rs`): a run whose estimate exceeds
+//! `[train] memory_gb` stops before it loads a photo or casts a ray, with the figures and what to
+//! change; the message names the change that fits the part that is too large; a finished run
+//! reports its peak memory on the terminal and in `metrics.jsonl`.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use xscale::train::config::RunConfig;
+use xscale::train::memory::{check_budget, estimate};
+use xscale::train::sampler::SampleMode;
+
+fn fixture() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/tiny")
+}
+
+fn tmp(name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("xscale-test-memory-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    d
+}
+
+/// `xscale train` on the tiny fixture: (exit code, stdout + stderr).
+fn train(run: &Path, extra: &[&str]) -> (i32, String) {
+    let scene = fixture();
+    let out = Command::new(env!("CARGO_BIN_EXE_xscale"))
+        .args([
+            "train",
+            "--scene",
+            scene.to_str().unwrap(),
+            "--out",
+            run.to_str().unwrap(),
+            "--preset",
+            "tiny",
+            "--no-eval",
+        ])
+        .args(extra)
+        .output()
+        .unwrap();
+    (
+        out.status.code().unwrap_or(-1),
+        String::from_utf8_lossy(&out.stdout).into_owned() + &String::from_utf8_lossy(&out.stderr),
+    )
+}
+
+#[test]
+fn a_run_over_its_budget_stops_before_training_with_the_figures() {
+    let dir = tmp("over");
+    std::fs::create_dir_all(&dir).unwrap();
+    let cfg = dir.join("budget.toml");
+    // The tiny run is estimated at ~0.22 GB (mostly the fixed part): 0.05 GB cannot hold it.
+    std::fs::write(&cfg, "[train]\nmemory_gb = 0.05\n").unwrap();
+    let run = dir.join("run");
+    let (code, out) = train(&run, &["--steps", "5", "--config", cfg.to_str().unwrap()]);
+    assert_eq!(code, 2, "{out}");
+    assert!(
+        out.contains("needs about") && out.contains("train.memory_gb = 0.05"),
+        "{out}"
+    );
+    assert!(out.contains("To fit:"), "{out}");
+    // Stopped before the photos were cast or a step ran: no checkpoint, no metrics.
+    assert!(!run.join("checkpoint.safetensors").exists());
+    assert!(!run.join("metrics.jsonl").exists());
+    // The same run with a budget that holds it trains.
+    std::fs::write(&cfg, "[train]\nmemory_gb = 1\n").unwrap();
+    let (code, out) = train(
+        &run,
+        &[
+            "--steps",
+            "5",
+            "--config",
+            cfg.to_str().unwrap(),
+            "--overwrite",
+        ],
+    );
+    assert_eq!(code, 0, "{out}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// The advice follows the part that does not fit: photos → `--downsample`, fewer views, and the
+/// stream instead of the cache; a batch → `--batch`.
+#[test]
+fn the_message_names_what_to_change() {
+    let mut cfg = RunConfig::preset("cpu").unwrap();
+    // 150 photos of 2 Mpixels, the modest real scene.
+    let sizes = vec![(1920u32, 1080u32); 150];
+    cfg.train.samples = SampleMode::Cache;
+    let e = estimate(&cfg, &sizes, 1).unwrap();
+    // 90 bytes per pixel at γ = 2: 150 · 2.07 M · 90 ≈ 28 GB.
+    assert!(e.samples > 25_000_000_000, "{e:?}");
+    cfg.train.memory_gb = 24.0;
+    let err = check_budget(&cfg, &sizes, 1).unwrap_err().to_string();
+    for want in [
+        "the sample cache",
+        "samples = \"stream\"",
+        "--downsample 2",
+        "test_views / holdout_every",
+    ] {
+        assert!(err.contains(want), "missing {want:?} in: {err}");
+    }
+    assert!(!err.contains("--batch"), "{err}");
+    // Streamed, the same scene fits in 2 GB: 3 bytes per pixel plus a bit.
+    cfg.train.samples = SampleMode::Stream;
+    cfg.train.memory_gb = 2.0;
+    check_budget(&cfg, &sizes, 1).unwrap();
+    // A batch of 2^20 pixels (4 Mi sub-samples at ~1.5 kB: 6.4 GB) does not fit in 4 GB: the
+    // message says --batch, and not --downsample (the photos take under a third of the budget).
+    cfg.train.batch_pixels = 1 << 20;
+    cfg.train.memory_gb = 4.0;
+    let err = check_budget(&cfg, &sizes, 1).unwrap_err().to_string();
+    assert!(err.contains("--batch 262144"), "{err}");
+    assert!(!err.contains("--downsample"), "{err}");
+}
+
+#[test]
+fn a_finished_run_reports_its_peak_memory() {
+    let run = tmp("peak");
+    let (code, out) = train(&run, &["--steps", "5"]);
+    assert_eq!(code, 0, "{out}");
+    assert!(out.contains("peak memory"), "{out}");
+    let metrics = std::fs::read_to_string(run.join("metrics.jsonl")).unwrap();
+    let peak = metrics
+        .lines()
+        .filter_map(|l| serde_json::from_str::<serde_json::Value>(l).ok())
+        .find_map(|v| v["peak_rss_bytes"].as_u64())
+        .expect("no peak_rss_bytes line in metrics.jsonl");
+    // More than the binary's own few MB, less than the machine.
+    assert!(peak > 4 << 20 && peak < 8 << 30, "peak {peak} bytes");
+    let _ = std::fs::remove_dir_all(&run);
+}

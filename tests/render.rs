@@ -1,0 +1,127 @@
+//! Rendering at size (`src/render/mod.rs`): a frame is cast and shaded in bands of rows, so a
+//! 12-megapixel frame never holds its whole cast. The bands must not show: a frame rendered in
+//! one-row bands, in uneven bands and whole is the same bits (and the same with 1 and 2 threads);
+//! `xscale render --scale` writes the larger frame.
+
+use std::path::Path;
+use xscale::model::{Hfm, ModelConfig};
+use xscale::raycast::Tracer;
+use xscale::render::{render_camera, render_camera_in_bands, Rendered, WHITE};
+use xscale::scene::{LoadOptions, Scene};
+
+fn in_pool<T: Send>(threads: usize, f: impl FnOnce() -> T + Send) -> T {
+    rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .unwrap()
+        .install(f)
+}
+
+fn bits(r: &Rendered) -> (Vec<u32>, Vec<bool>, Vec<u32>) {
+    (
+        r.image.data.iter().map(|v| v.to_bits()).collect(),
+        r.hit.clone(),
+        r.footprint.iter().map(|v| v.to_bits()).collect(),
+    )
+}
+
+#[test]
+fn bands_do_not_show_in_the_frame() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/tiny");
+    let scene = Scene::load(&root, &LoadOptions::default()).unwrap();
+    let tracer = Tracer::new(&scene.mesh, &scene.normalization).unwrap();
+    let mut cfg = ModelConfig::tiny();
+    cfg.appearance_views = 6;
+    let model = Hfm::new(&cfg).unwrap();
+    let params = model.init_params(7);
+    // A held-out view at 2.5× its size (160×120).
+    let cam = scene.views[scene.test[0]].camera.scaled(2.5);
+    let g = cfg.gamma;
+    let per_row = (cam.width * g * g) as usize;
+    let whole =
+        render_camera_in_bands(&model, &params, &tracer, &cam, g, -1, WHITE, usize::MAX).unwrap();
+    assert_eq!(whole.image.width, 160);
+    assert!(whole.hit.iter().filter(|&&h| h).count() > 1000);
+    let reference = bits(&whole);
+    // One row per band; 7 rows (120 = 17·7 + 1: a short last band); the default.
+    for samples in [1, 7 * per_row, 7 * per_row + 3] {
+        let r =
+            render_camera_in_bands(&model, &params, &tracer, &cam, g, -1, WHITE, samples).unwrap();
+        assert!(
+            bits(&r) == reference,
+            "bands of {samples} sub-samples change the frame"
+        );
+    }
+    let dflt = in_pool(1, || {
+        render_camera(&model, &params, &tracer, &cam, g, -1, WHITE).unwrap()
+    });
+    assert!(bits(&dflt) == reference);
+    let two = in_pool(2, || {
+        render_camera_in_bands(&model, &params, &tracer, &cam, g, -1, WHITE, per_row).unwrap()
+    });
+    assert!(bits(&two) == reference, "thread count changes the frame");
+}
+
+#[test]
+fn render_scale_writes_the_larger_frame() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/tiny");
+    let dir = std::env::temp_dir().join(format!("xscale-test-render-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let run = dir.join("run");
+    let xs = |args: &[&str]| {
+        let o = std::process::Command::new(env!("CARGO_BIN_EXE_xscale"))
+            .args(args)
+            .output()
+            .unwrap();
+        (
+            o.status.code(),
+            String::from_utf8_lossy(&o.stderr).into_owned(),
+        )
+    };
+    let (code, err) = xs(&[
+        "train",
+        "--scene",
+        root.to_str().unwrap(),
+        "--out",
+        run.to_str().unwrap(),
+        "--preset",
+        "tiny",
+        "--steps",
+        "5",
+        "--no-eval",
+        "-q",
+    ]);
+    assert_eq!(code, Some(0), "{err}");
+    let out = dir.join("frames");
+    let (r, o) = (run.to_str().unwrap(), out.to_str().unwrap());
+    let render = |scale: &str| {
+        xs(&[
+            "render", "--run", r, "--out", o, "--views", "0", "--scale", scale,
+        ])
+    };
+    let (code, err) = render("3");
+    assert_eq!(code, Some(0), "{err}");
+    let img = image::open(out.join("0000.png")).unwrap();
+    assert_eq!((img.width(), img.height()), (192, 144));
+    assert!(err.contains("rendered 1 images"), "{err}");
+    // -q, as train takes it: the frame, and nothing on stderr.
+    std::fs::remove_file(out.join("0000.png")).unwrap();
+    let (code, err) = xs(&["render", "--run", r, "--out", o, "--views", "0", "-q"]);
+    assert_eq!((code, err.as_str()), (Some(0), ""));
+    assert!(out.join("0000.png").exists());
+    // A scale that leaves no pixel, one that is not a number, and (where the system reports its
+    // available memory) a frame of 6.4M×4.8M pixels are errors, not panics or an abort.
+    let mut bads = vec!["0.001", "-2", "x"];
+    if cfg!(target_os = "linux") {
+        bads.push("100000");
+    }
+    for bad in bads {
+        let (code, err) = render(bad);
+        assert!(
+            matches!(code, Some(2) | Some(64)),
+            "--scale {bad}: {code:?} {err}"
+        );
+        assert!(err.contains("--scale") || err.contains("scale"), "{err}");
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}

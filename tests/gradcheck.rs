@@ -988,8 +988,8 @@ fn vertex_pipeline_gradients_match_fd() {
 
 use glam::DVec3;
 use xscale::model::refine::{
-    field_backward, field_theta, hits_backward, reintersect_batch, smoothness, RayHit,
-    RefineConfig, RefineGeom,
+    field_backward, field_theta, hits_backward, hits_backward_anchored, reintersect_batch,
+    reintersect_batch_anchored, smoothness, RayHit, RefineConfig, RefineGeom,
 };
 use xscale::scene::{Mesh, Normalization, NormalizeMode};
 
@@ -1068,6 +1068,7 @@ fn refine_batch(
     theta: &[f64],
     case: &Case,
     seed: u64,
+    anchored: bool,
 ) -> (Batch, Vec<DVec3>) {
     let s = (case.cfg.gamma * case.cfg.gamma) as usize;
     let mut grids: Vec<&HashGrid> = vec![&model.grid_h];
@@ -1119,21 +1120,30 @@ fn refine_batch(
                     let p = x / extent + DVec3::splat(0.5);
                     let d = (x - o).normalize();
                     let n = (v[1] - v[0]).cross(v[2] - v[0]).normalize();
-                    if !safe(p) || n.dot(d).abs() < 0.3 {
+                    // Anchored: the model is queried at the training mesh's point.
+                    let q = if anchored {
+                        let b0 = geom.triangles[ti].map(|q| geom.base[q as usize]);
+                        (b0[0] * beta[0] + b0[1] * beta[1] + b0[2] * beta[2]) / extent
+                            + DVec3::splat(0.5)
+                    } else {
+                        p
+                    };
+                    if !safe(q) || n.dot(d).abs() < 0.3 {
                         continue;
                     }
                     if brute_hit(geom, theta, o, d).map(|h| h.0) != Some(ti) {
                         continue;
                     }
-                    placed = Some((ti, p, d));
+                    placed = Some((ti, q, d, [bu, bv]));
                     break;
                 }
             }
             match placed {
-                Some((ti, p, d)) => {
+                Some((ti, p, d, uv)) => {
                     b.positions.push(p.to_array());
                     b.valid.push(1);
                     b.triangle.push(ti as u32);
+                    b.bary.push(uv);
                     dsum += d;
                     any = true;
                 }
@@ -1141,9 +1151,9 @@ fn refine_batch(
                     b.positions.push([0.0; 3]);
                     b.valid.push(0);
                     b.triangle.push(u32::MAX);
+                    b.bary.push([0.0; 2]);
                 }
             }
-            b.bary.push([0.0; 2]);
         }
         assert!(any, "pixel {i}: no ray placed");
         let dir = dsum.normalize();
@@ -1182,17 +1192,38 @@ struct RefineCheck {
     batch: Batch,
     origins: Vec<DVec3>,
     base_sig: Vec<bool>,
+    /// `[model.refine] anchored`: the offsets the rays were cast at (the unperturbed ones).
+    traced: Option<Vec<f64>>,
 }
 
 impl RefineCheck {
     fn new(case: &Case, seed: u64) -> RefineCheck {
+        RefineCheck::build(case, seed, false)
+    }
+
+    fn new_anchored(case: &Case, seed: u64) -> RefineCheck {
+        RefineCheck::build(case, seed, true)
+    }
+
+    fn reintersect(&self, theta: &[f64], b: &mut Batch) -> Vec<RayHit> {
+        let origin = |p: usize| self.origins[p];
+        match &self.traced {
+            None => reintersect_batch(&self.geom, theta, b, &origin, self.cfg.min_cos),
+            Some(tr) => {
+                reintersect_batch_anchored(&self.geom, theta, tr, b, &origin, self.cfg.min_cos)
+            }
+        }
+    }
+
+    fn build(case: &Case, seed: u64, anchored: bool) -> RefineCheck {
         let (mesh, norm, cfg) = refine_scene();
         let geom = RefineGeom::new(&mesh, &norm);
         let model = Hfm::new(&case.cfg).unwrap();
         let mparams = random_params(&model, seed);
         let (grids, r) = refine_params(&cfg, geom.n_vertices(), seed);
         let theta = RefineCheck::theta_of(&cfg, &geom, &grids, &r);
-        let (batch, origins) = refine_batch(&model, &geom, &theta, case, seed);
+        let (batch, origins) = refine_batch(&model, &geom, &theta, case, seed, anchored);
+        let traced = anchored.then(|| theta.clone());
         let mut c = RefineCheck {
             model,
             mparams,
@@ -1203,6 +1234,7 @@ impl RefineCheck {
             batch,
             origins,
             base_sig: Vec::new(),
+            traced,
         };
         let (_, sig, _) = c.eval(&c.grids.clone(), &c.r.clone());
         c.base_sig = sig;
@@ -1219,8 +1251,7 @@ impl RefineCheck {
     fn eval(&self, grids: &[Vec<f64>], r: &[f64]) -> (f64, Vec<bool>, Vec<RayHit>) {
         let theta = RefineCheck::theta_of(&self.cfg, &self.geom, grids, r);
         let mut b = self.batch.clone();
-        let origin = |p: usize| self.origins[p];
-        let hits = reintersect_batch(&self.geom, &theta, &mut b, &origin, self.cfg.min_cos);
+        let hits = self.reintersect(&theta, &mut b);
         let n_valid = self.batch.valid.iter().filter(|&&v| v != 0).count();
         assert_eq!(hits.len(), n_valid, "a sub-sample left its triangle");
         let f = self.model.forward(&self.mparams, &b).unwrap();
@@ -1234,8 +1265,7 @@ impl RefineCheck {
     fn analytic(&self, backward: &HitsBackward) -> (Vec<Vec<f64>>, Vec<f64>) {
         let theta = RefineCheck::theta_of(&self.cfg, &self.geom, &self.grids, &self.r);
         let mut b = self.batch.clone();
-        let origin = |p: usize| self.origins[p];
-        let hits = reintersect_batch(&self.geom, &theta, &mut b, &origin, self.cfg.min_cos);
+        let hits = self.reintersect(&theta, &mut b);
         let fwd = self.model.forward(&self.mparams, &b).unwrap();
         let mut grads = Grads::<f64>::new(&self.model.layout);
         self.model.backward(&self.mparams, &b, &fwd, &mut grads);
@@ -1371,6 +1401,87 @@ fn broken_mesh_refinement_gradients_fail_the_check() {
         );
         eprintln!(
             "{what}: {} of {} refinement checks fail; the real gradient: 0 of {}",
+            bad.fails.len(),
+            bad.checked,
+            ok.checked
+        );
+    }
+}
+
+/// `[model.refine] anchored`: the grids are queried at the training mesh's point with the moved
+/// hit's barycentrics, so ∂L/∂θ runs through the barycentrics of the re-intersection only
+/// (`hits_backward_anchored`), against central differences of the loss recomputed from scratch.
+#[test]
+fn anchored_mesh_refinement_gradients_match_fd() {
+    let mut rep = Report::default();
+    for (ci, case) in cases().iter().enumerate() {
+        let c = RefineCheck::new_anchored(case, 600 + ci as u64);
+        let an = c.analytic(&|h, dp, dt| hits_backward_anchored(&c.geom, h, dp, dt));
+        assert!(an.1.iter().filter(|&&g| g != 0.0).count() >= 10);
+        c.check(&an, &mut rep, case.name);
+    }
+    rep.finish("anchored mesh refinement", 300);
+}
+
+/// The anchored check can fail: the unanchored gradient (features following the hit), the
+/// anchored one with the per-axis normalisation left out, and with the moved triangle's edges
+/// replaced by the training triangle's (no pull-back to the moved plane) disagree with it.
+#[test]
+fn broken_anchored_mesh_refinement_gradients_fail_the_check() {
+    let case = cases().into_iter().next().unwrap();
+    let c = RefineCheck::new_anchored(&case, 778);
+    let mut iso = c.geom.clone();
+    iso.norm.extent = DVec3::splat(iso.norm.extent.max_element());
+    let broken: [(&str, Box<HitsBackward>); 3] = [
+        (
+            "unanchored gradient",
+            Box::new(|h: &[RayHit], dp: &[f64], dt: &mut [f64]| hits_backward(&c.geom, h, dp, dt)),
+        ),
+        (
+            "normalisation ignored",
+            Box::new(|h: &[RayHit], dp: &[f64], dt: &mut [f64]| {
+                hits_backward_anchored(&iso, h, dp, dt)
+            }),
+        ),
+        (
+            "no pull-back to the moved plane",
+            Box::new(|h: &[RayHit], dp: &[f64], dt: &mut [f64]| {
+                let flat: Vec<RayHit> = h
+                    .iter()
+                    .map(|x| {
+                        let b = x.tri.map(|i| c.geom.base[i as usize]);
+                        RayHit {
+                            e: [b[1] - b[0], b[2] - b[0]],
+                            ..*x
+                        }
+                    })
+                    .collect();
+                hits_backward_anchored(&c.geom, &flat, dp, dt)
+            }),
+        ),
+    ];
+    let mut ok = Report::default();
+    c.check(
+        &c.analytic(&|h, dp, dt| hits_backward_anchored(&c.geom, h, dp, dt)),
+        &mut ok,
+        "real",
+    );
+    assert!(
+        ok.fails.is_empty(),
+        "the real gradient fails: {:?}",
+        &ok.fails[..ok.fails.len().min(5)]
+    );
+    for (what, bw) in &broken {
+        let mut bad = Report::default();
+        c.check(&c.analytic(bw.as_ref()), &mut bad, what);
+        assert!(
+            bad.fails.len() * 3 >= bad.checked,
+            "{what}: only {} of {} checks failed",
+            bad.fails.len(),
+            bad.checked
+        );
+        eprintln!(
+            "{what}: {} of {} anchored checks fail; the real gradient: 0 of {}",
             bad.fails.len(),
             bad.checked,
             ok.checked

@@ -230,12 +230,21 @@ pub fn scene_for_model(
         }
     }
     scene.normalization = ckpt.normalization;
+    let mut anchor = None;
     if let Some(r) = &ckpt.refine {
         // The model refined its training mesh (`[model.refine]`): render on the refined one.
-        scene.mesh =
+        let refined =
             crate::model::refine::refined_mesh(&scene.mesh, &scene.normalization, &r.offsets)?;
+        let base = std::mem::replace(&mut scene.mesh, refined);
+        // `anchored`: the features are queried on the training mesh.
+        if cfg.is_some_and(|c| c.model.refine.anchored) {
+            anchor = Some(base);
+        }
     }
-    let tracer = Tracer::new(&scene.mesh, &scene.normalization).context("building the BVH")?;
+    let mut tracer = Tracer::new(&scene.mesh, &scene.normalization).context("building the BVH")?;
+    if let Some(base) = &anchor {
+        tracer = tracer.anchored(base)?;
+    }
     let train = scene.train();
     let mut rows = vec![-1; scene.views.len()];
     if ckpt.model.appearance_dim() > 0 {

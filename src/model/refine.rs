@@ -103,6 +103,11 @@ pub struct RefineConfig {
     pub beta1: f32,
     pub beta2: f32,
     pub epsilon: f32,
+    /// Query the feature grids (H and D) at the *training* mesh's point with the barycentrics at
+    /// which the ray hits the moved triangle, instead of at the moved hit: the features stay
+    /// attached to the surface as it moves, and the offsets learn only from what the moved
+    /// geometry changes (which surface point each ray sees: parallax). Off by default.
+    pub anchored: bool,
 }
 
 impl Default for RefineConfig {
@@ -125,6 +130,7 @@ impl Default for RefineConfig {
             beta1: 0.9,
             beta2: 0.99,
             epsilon: 1e-15,
+            anchored: false,
         }
     }
 }
@@ -587,6 +593,8 @@ pub struct RayHit {
     pub beta: [f64; 3],
     /// `(b − a) × (c − a)`, unnormalised.
     pub n: DVec3,
+    /// The moved triangle's edges `b − a`, `c − a` (for the anchored gradient).
+    pub e: [DVec3; 2],
 }
 
 /// Möller–Trumbore of the ray `o + t·d` with triangle (a, b, c) (f64, as `raycast/bvh.rs`):
@@ -634,10 +642,38 @@ pub fn reintersect_batch(
     origin: &(dyn Fn(usize) -> DVec3 + Sync),
     min_cos: f64,
 ) -> Vec<RayHit> {
+    reintersect_with(geom, theta, None, batch, origin, min_cos)
+}
+
+/// [`reintersect_batch`] for `[model.refine] anchored = true`: the batch's positions are on the
+/// training mesh (an anchored tracer's), so the ray of a sub-sample runs from `origin(pixel)`
+/// through the point with the batch's barycentrics (`bary`) on the mesh at offsets `traced` (the
+/// mesh the rays were cast against); the position written is the *training* mesh's point with the
+/// barycentrics of the hit on the mesh at `theta`.
+pub fn reintersect_batch_anchored(
+    geom: &RefineGeom,
+    theta: &[f64],
+    traced: &[f64],
+    batch: &mut Batch,
+    origin: &(dyn Fn(usize) -> DVec3 + Sync),
+    min_cos: f64,
+) -> Vec<RayHit> {
+    reintersect_with(geom, theta, Some(traced), batch, origin, min_cos)
+}
+
+fn reintersect_with(
+    geom: &RefineGeom,
+    theta: &[f64],
+    traced: Option<&[f64]>,
+    batch: &mut Batch,
+    origin: &(dyn Fn(usize) -> DVec3 + Sync),
+    min_cos: f64,
+) -> Vec<RayHit> {
     use rayon::prelude::*;
     let s = batch.samples_per_pixel();
     let extent = geom.norm.extent;
     let (valid, triangle, positions) = (&batch.valid, &batch.triangle, &batch.positions);
+    let bary = &batch.bary;
     let out: Vec<Option<(DVec3, RayHit)>> = (0..positions.len())
         .into_par_iter()
         .with_min_len(HIT_CHUNK)
@@ -647,11 +683,28 @@ pub fn reintersect_batch(
             }
             let tri = geom.triangles[triangle[j] as usize];
             let o = origin(j / s);
-            let x = (DVec3::from_array(positions[j]) - DVec3::splat(0.5)) * extent;
+            let x = match traced {
+                None => (DVec3::from_array(positions[j]) - DVec3::splat(0.5)) * extent,
+                Some(tr) => {
+                    let [u, v] = bary[j];
+                    let w = [1.0 - u - v, u, v];
+                    (0..3).fold(DVec3::ZERO, |acc, c| {
+                        let i = tri[c] as usize;
+                        acc + geom.position(i, tr[i]) * w[c]
+                    })
+                }
+            };
             let d = (x - o).normalize_or_zero();
             let v = tri.map(|i| geom.position(i as usize, theta[i as usize]));
             let (t, beta, n) = intersect(o, d, v, min_cos)?;
-            let p = (o + d * t) / extent + DVec3::splat(0.5);
+            let hit = match traced {
+                None => o + d * t,
+                // The training mesh's point with the moved hit's barycentrics.
+                Some(_) => (0..3).fold(DVec3::ZERO, |acc, c| {
+                    acc + geom.position(tri[c] as usize, 0.0) * beta[c]
+                }),
+            };
+            let p = hit / extent + DVec3::splat(0.5);
             Some((
                 p,
                 RayHit {
@@ -662,6 +715,7 @@ pub fn reintersect_batch(
                     t,
                     beta,
                     n,
+                    e: [v[1] - v[0], v[2] - v[0]],
                 },
             ))
         })
@@ -697,6 +751,49 @@ pub fn hits_backward<R: Real>(
         for c in 0..3 {
             let i = h.tri[c] as usize;
             d_theta[i] += along * h.beta[c] * h.n.dot(geom.normals[i]);
+        }
+    }
+}
+
+/// `∂L/∂θ` of anchored hits ([`reintersect_batch_anchored`]; docs/geometry.md §3), accumulated
+/// into `d_theta` in hit order. The query point is `x₀ = Σ β_k v⁰_k` (training mesh), so
+/// `∂L/∂β` restricted to the plane is `c = J₀ᵀ g` (`J₀ = [b⁰−a⁰, c⁰−a⁰]`), pulled back to the
+/// moved plane as `h = J G⁻¹ c` (`J` the moved edges, `G = JᵀJ`). Moving the material point of
+/// the hit by `w = Σ β_k δv_k` moves the hit in the plane by `δt·d − w` with
+/// `δt = n·w / n·d`, so `∂L/∂w = (h·d) n / (n·d) − h` and `∂L/∂θ_k = s β_k m_k · ∂L/∂w`.
+pub fn hits_backward_anchored<R: Real>(
+    geom: &RefineGeom,
+    hits: &[RayHit],
+    d_positions: &[R],
+    d_theta: &mut [f64],
+) {
+    let inv_extent = DVec3::ONE / geom.norm.extent;
+    for h in hits {
+        let k = h.sample * 3;
+        let gn = DVec3::new(
+            d_positions[k].to_f64(),
+            d_positions[k + 1].to_f64(),
+            d_positions[k + 2].to_f64(),
+        );
+        let g = gn * inv_extent;
+        let base = h.tri.map(|i| geom.position(i as usize, 0.0));
+        let c = [g.dot(base[1] - base[0]), g.dot(base[2] - base[0])];
+        let [e1, e2] = h.e;
+        let (g11, g12, g22) = (e1.dot(e1), e1.dot(e2), e2.dot(e2));
+        let det = g11 * g22 - g12 * g12;
+        if !(det > 0.0) {
+            continue;
+        }
+        // G⁻¹ c, then h = J (G⁻¹ c).
+        let y = [
+            (g22 * c[0] - g12 * c[1]) / det,
+            (g11 * c[1] - g12 * c[0]) / det,
+        ];
+        let hv = e1 * y[0] + e2 * y[1];
+        let dw = h.n * (hv.dot(h.d) / h.n.dot(h.d)) - hv;
+        for c in 0..3 {
+            let i = h.tri[c] as usize;
+            d_theta[i] += geom.scale * h.beta[c] * dw.dot(geom.normals[i]);
         }
     }
 }

@@ -164,6 +164,9 @@ pub struct Tracer {
     /// then sit near those of the triangles traced just before (fewer cache misses).
     verts: Vec<DVec3>,
     tri_verts: Vec<[u32; 3]>,
+    /// Optional anchor vertices (indexed like `verts`; empty: none): hit positions are reported
+    /// at the anchor triangle's point with the hit's barycentrics ([`Tracer::anchored`]).
+    anchor: Vec<DVec3>,
     /// Mesh triangle → leaf-order index.
     leaf_of: Vec<u32>,
     normalization: Normalization,
@@ -334,6 +337,7 @@ impl Tracer {
             tri_ids: Vec::new(),
             verts: Vec::new(),
             tri_verts: Vec::new(),
+            anchor: Vec::new(),
             leaf_of: Vec::new(),
             normalization: *normalization,
             preset,
@@ -408,6 +412,43 @@ impl Tracer {
             self.tri_verts.push(t);
         }
         Ok(())
+    }
+
+    /// This tracer reporting every hit at the point of `base` (same triangles, other vertex
+    /// positions, e.g. the training mesh of a refined one: `[model.refine] anchored`) with the
+    /// hit's barycentrics, instead of at the hit itself. Distances, triangles, barycentrics and
+    /// footprints stay those of the traced mesh.
+    /// `base` must have the traced mesh's triangles (in the same order).
+    pub fn anchored(mut self, base: &Mesh) -> Result<Tracer> {
+        let nv = base.vertices.len();
+        if base.triangles.len() != self.tri_ids.len()
+            || base.triangles.iter().flatten().any(|&k| k as usize >= nv)
+            || base.vertices.iter().any(|v| !v.is_finite())
+        {
+            bail!("the anchor mesh must have the traced mesh's triangles and finite vertices");
+        }
+        let triangles = &base.triangles;
+        let mut anchor = vec![DVec3::ZERO; self.verts.len()];
+        for (j, &id) in self.tri_ids.iter().enumerate() {
+            let t = triangles[id as usize];
+            for c in 0..3 {
+                anchor[self.tri_verts[j][c] as usize] =
+                    base.vertices[t[c] as usize] - self.normalization.center;
+            }
+        }
+        self.anchor = anchor;
+        Ok(self)
+    }
+
+    /// The anchor point (local frame) of barycentrics `(u, v)` in leaf-order triangle `j`, if
+    /// the tracer is [`Tracer::anchored`].
+    #[inline]
+    pub fn anchor_point(&self, j: u32, u: f64, v: f64) -> Option<DVec3> {
+        if self.anchor.is_empty() {
+            return None;
+        }
+        let [a, b, c] = self.tri_verts[j as usize].map(|k| self.anchor[k as usize]);
+        Some(a * (1.0 - u - v) + b * u + c * v)
     }
 
     pub fn normalization(&self) -> &Normalization {

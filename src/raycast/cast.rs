@@ -286,7 +286,10 @@ fn trace_block(
             Some((j, t32)) => {
                 let tri = tracer.leaf_triangle(j);
                 let (h, sec_n) = tracer.refine_with_sec_at(ctx.origin, d, verts[l], tri, t32);
-                let local = ctx.origin + h.t * d;
+                // An anchored tracer reports the anchor mesh's point (`Tracer::anchored`).
+                let local = tracer
+                    .anchor_point(j, h.u, h.v)
+                    .unwrap_or(ctx.origin + h.t * d);
                 // Footprint (module docs): r · sqrt(Ω / |cos θ_n|), Ω = cos³θ_c / (fx fy),
                 // |cos θ_n| clamped at 1e-6.
                 let cos_c = d.dot(ctx.axis).abs();

@@ -36,8 +36,8 @@
 use crate::model::batch::Batch;
 use crate::model::params::Grads;
 use crate::model::refine::{
-    field_backward, grid_name, hits_backward, reintersect_batch, smoothness, RayHit, RefineConfig,
-    RefineGeom, VERTEX_NAME,
+    field_backward, grid_name, hits_backward, hits_backward_anchored, reintersect_batch,
+    reintersect_batch_anchored, smoothness, RayHit, RefineConfig, RefineGeom, VERTEX_NAME,
 };
 use crate::raycast::Tracer;
 use crate::train::adam::{AdamGroup, LrSchedule};
@@ -256,7 +256,13 @@ impl Refiner {
             "model.refine: a refined vertex is not finite"
         );
         // In the local frame of the model's normalisation (SPEC §4.1), like the training mesh's.
-        Tracer::new(&mesh, &self.geom.norm).context("rebuilding the BVH of the refined mesh")
+        let t = Tracer::new(&mesh, &self.geom.norm)
+            .context("rebuilding the BVH of the refined mesh")?;
+        if !self.cfg.anchored {
+            return Ok(t);
+        }
+        // Hits reported on the training mesh (`[model.refine] anchored`).
+        t.anchored(&self.geom.mesh_with(&vec![0.0; self.geom.n_vertices()]))
     }
 
     /// Rebuild the BVH from the current offsets (and sync `offsets`, `traced`).
@@ -420,6 +426,18 @@ impl Refiner {
         }
         let (origins, views) = (&self.origins, batch.view.clone());
         let origin = move |p: usize| origins[views[p] as usize];
+        if self.cfg.anchored {
+            // The rays were cast against the mesh at the `traced` offsets.
+            let traced: Vec<f64> = params.traced.iter().map(|&t| t as f64).collect();
+            return Ok(reintersect_batch_anchored(
+                geom,
+                &self.theta,
+                &traced,
+                batch,
+                &origin,
+                self.cfg.min_cos,
+            ));
+        }
         Ok(reintersect_batch(
             geom,
             &self.theta,
@@ -439,7 +457,11 @@ impl Refiner {
         residual: bool,
     ) {
         let geom = &*self.geom;
-        hits_backward(geom, hits, d_positions, &mut self.d_theta);
+        if self.cfg.anchored {
+            hits_backward_anchored(geom, hits, d_positions, &mut self.d_theta);
+        } else {
+            hits_backward(geom, hits, d_positions, &mut self.d_theta);
+        }
         let mut touched: Vec<u32> = hits.iter().flat_map(|h| h.tri).collect();
         touched.sort_unstable();
         touched.dedup();
@@ -649,7 +671,11 @@ pub fn eval_tracer(state: &TrainState, prepared: &Prepared) -> Result<Option<Tra
                 &state.ckpt.normalization,
                 &p.offsets,
             )?;
-            Ok(Some(Tracer::new(&m, &state.ckpt.normalization)?))
+            let t = Tracer::new(&m, &state.ckpt.normalization)?;
+            if state.cfg.model.refine.anchored {
+                return Ok(Some(t.anchored(&prepared.scene.mesh)?));
+            }
+            Ok(Some(t))
         }
         None => Ok(None),
     }

@@ -781,7 +781,7 @@ pub fn hits_backward_anchored<R: Real>(
         let [e1, e2] = h.e;
         let (g11, g12, g22) = (e1.dot(e1), e1.dot(e2), e2.dot(e2));
         let det = g11 * g22 - g12 * g12;
-        if !(det > 0.0) {
+        if det.is_nan() || det <= 0.0 {
             continue;
         }
         // G⁻¹ c, then h = J (G⁻¹ c).

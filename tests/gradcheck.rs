@@ -1289,6 +1289,33 @@ impl RefineCheck {
         (d_grids, d_r)
     }
 
+    /// `real` passes the check and each of `broken` fails at least a third of it.
+    fn real_passes_broken_fail(&self, real: &HitsBackward, broken: &[(&str, Box<HitsBackward>)]) {
+        let mut ok = Report::default();
+        self.check(&self.analytic(real), &mut ok, "real");
+        assert!(
+            ok.fails.is_empty(),
+            "the real gradient fails: {:?}",
+            &ok.fails[..ok.fails.len().min(5)]
+        );
+        for (what, bw) in broken {
+            let mut bad = Report::default();
+            self.check(&self.analytic(bw.as_ref()), &mut bad, what);
+            assert!(
+                bad.fails.len() * 3 >= bad.checked,
+                "{what}: only {} of {} checks failed",
+                bad.fails.len(),
+                bad.checked
+            );
+            eprintln!(
+                "{what}: {} of {} refinement checks fail; the real gradient: 0 of {}",
+                bad.fails.len(),
+                bad.checked,
+                ok.checked
+            );
+        }
+    }
+
     /// Finite differences of every residual entry and of the grid nodes with a gradient (plus
     /// a few without) against `an`.
     fn check(&self, an: &(Vec<Vec<f64>>, Vec<f64>), rep: &mut Report, label: &str) {
@@ -1379,33 +1406,7 @@ fn broken_mesh_refinement_gradients_fail_the_check() {
             }),
         ),
     ];
-    let mut ok = Report::default();
-    c.check(
-        &c.analytic(&|h, dp, dt| hits_backward(&c.geom, h, dp, dt)),
-        &mut ok,
-        "real",
-    );
-    assert!(
-        ok.fails.is_empty(),
-        "the real gradient fails: {:?}",
-        &ok.fails[..ok.fails.len().min(5)]
-    );
-    for (what, bw) in &broken {
-        let mut bad = Report::default();
-        c.check(&c.analytic(bw.as_ref()), &mut bad, what);
-        assert!(
-            bad.fails.len() * 3 >= bad.checked,
-            "{what}: only {} of {} checks failed",
-            bad.fails.len(),
-            bad.checked
-        );
-        eprintln!(
-            "{what}: {} of {} refinement checks fail; the real gradient: 0 of {}",
-            bad.fails.len(),
-            bad.checked,
-            ok.checked
-        );
-    }
+    c.real_passes_broken_fail(&|h, dp, dt| hits_backward(&c.geom, h, dp, dt), &broken);
 }
 
 /// `[model.refine] anchored`: the grids are queried at the training mesh's point with the moved
@@ -1460,31 +1461,8 @@ fn broken_anchored_mesh_refinement_gradients_fail_the_check() {
             }),
         ),
     ];
-    let mut ok = Report::default();
-    c.check(
-        &c.analytic(&|h, dp, dt| hits_backward_anchored(&c.geom, h, dp, dt)),
-        &mut ok,
-        "real",
+    c.real_passes_broken_fail(
+        &|h, dp, dt| hits_backward_anchored(&c.geom, h, dp, dt),
+        &broken,
     );
-    assert!(
-        ok.fails.is_empty(),
-        "the real gradient fails: {:?}",
-        &ok.fails[..ok.fails.len().min(5)]
-    );
-    for (what, bw) in &broken {
-        let mut bad = Report::default();
-        c.check(&c.analytic(bw.as_ref()), &mut bad, what);
-        assert!(
-            bad.fails.len() * 3 >= bad.checked,
-            "{what}: only {} of {} checks failed",
-            bad.fails.len(),
-            bad.checked
-        );
-        eprintln!(
-            "{what}: {} of {} anchored checks fail; the real gradient: 0 of {}",
-            bad.fails.len(),
-            bad.checked,
-            ok.checked
-        );
-    }
 }

@@ -728,6 +728,18 @@ fn reintersect_with(
     hits
 }
 
+/// ∂L/∂x in local units of sub-sample `j` from `grad.batch.positions` (x_n = x / extent + 0.5 per
+/// axis).
+#[inline]
+fn local_gradient<R: Real>(d_positions: &[R], j: usize, inv_extent: DVec3) -> DVec3 {
+    let k = j * 3;
+    DVec3::new(
+        d_positions[k].to_f64(),
+        d_positions[k + 1].to_f64(),
+        d_positions[k + 2].to_f64(),
+    ) * inv_extent
+}
+
 /// `∂L/∂θ` of the hits (module docs), accumulated into `d_theta` in hit order. `d_positions` is
 /// `grad.batch.positions` `[N*S*3]`; `inv_extent` the normalisation's `1/extent` per axis.
 pub fn hits_backward<R: Real>(
@@ -738,14 +750,7 @@ pub fn hits_backward<R: Real>(
 ) {
     let inv_extent = DVec3::ONE / geom.norm.extent;
     for h in hits {
-        let k = h.sample * 3;
-        let gn = DVec3::new(
-            d_positions[k].to_f64(),
-            d_positions[k + 1].to_f64(),
-            d_positions[k + 2].to_f64(),
-        );
-        // ∂L/∂x in local units: x_n = x / extent + 0.5 per axis.
-        let g = gn * inv_extent;
+        let g = local_gradient(d_positions, h.sample, inv_extent);
         let nd = h.n.dot(h.d);
         let along = geom.scale * g.dot(h.d) / nd;
         for c in 0..3 {
@@ -769,14 +774,8 @@ pub fn hits_backward_anchored<R: Real>(
 ) {
     let inv_extent = DVec3::ONE / geom.norm.extent;
     for h in hits {
-        let k = h.sample * 3;
-        let gn = DVec3::new(
-            d_positions[k].to_f64(),
-            d_positions[k + 1].to_f64(),
-            d_positions[k + 2].to_f64(),
-        );
-        let g = gn * inv_extent;
-        let base = h.tri.map(|i| geom.position(i as usize, 0.0));
+        let g = local_gradient(d_positions, h.sample, inv_extent);
+        let base = h.tri.map(|i| geom.base[i as usize]);
         let c = [g.dot(base[1] - base[0]), g.dot(base[2] - base[0])];
         let [e1, e2] = h.e;
         let (g11, g12, g22) = (e1.dot(e1), e1.dot(e2), e2.dot(e2));

@@ -228,7 +228,7 @@ pub fn linear_forward<R: Real>(
         unsafe { linear_forward_avx2(wt, b, x, rows, in_dim, out_dim, y) };
         return;
     }
-    linear_forward_body(wt, b, x, rows, in_dim, out_dim, y)
+    linear_forward_body::<R, false>(wt, b, x, rows, in_dim, out_dim, y)
 }
 
 #[cfg(target_arch = "x86_64")]
@@ -242,11 +242,12 @@ unsafe fn linear_forward_avx2<R: Real>(
     out_dim: usize,
     y: &mut [R],
 ) {
-    linear_forward_body(wt, b, x, rows, in_dim, out_dim, y)
+    linear_forward_body::<R, true>(wt, b, x, rows, in_dim, out_dim, y)
 }
 
+/// `AVX2`: the caller has checked that the CPU has AVX2 (see [`gemm_acc`]).
 #[inline(always)]
-fn linear_forward_body<R: Real>(
+fn linear_forward_body<R: Real, const AVX2: bool>(
     wt: &[R],
     b: Option<&[R]>,
     x: &[R],
@@ -263,7 +264,7 @@ fn linear_forward_body<R: Real>(
         }
     }
     // y [rows, out] += x [rows, in] · Wᵀ [in, out]
-    gemm_acc(rows, out_dim, in_dim, x, in_dim, 1, wt, out_dim, y, out_dim);
+    gemm_acc::<R, AVX2>(rows, out_dim, in_dim, x, in_dim, 1, wt, out_dim, y, out_dim);
 }
 
 /// Register tile of [`gemm_acc`]: MR rows × NR columns of C kept in registers.
@@ -276,9 +277,13 @@ const NR: usize = 16;
 /// serves `x·Wᵀ`, `dy·W` and `dyᵀ·x`; B and C are row-major with leading dimensions `ldb`, `ldc`.
 /// Tiles of MR × NR are accumulated in registers; the ragged edges take a scalar loop with the
 /// same order of operations, so the result does not depend on the tiling.
+///
+/// `AVX2 = true` is a promise that the CPU has AVX2: only the run-time dispatch of
+/// [`linear_forward`] / [`linear_backward`] passes it, after `is_x86_feature_detected!`. With it,
+/// f32 products take the intrinsics kernel (`avx2::gemm_acc_f32`).
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
-fn gemm_acc<R: Real>(
+fn gemm_acc<R: Real, const AVX2: bool>(
     m: usize,
     n: usize,
     k: usize,
@@ -294,15 +299,16 @@ fn gemm_acc<R: Real>(
         return;
     }
     #[cfg(target_arch = "x86_64")]
-    if let (Some(a32), Some(b32), Some(c32)) = (as_f32(a), as_f32(b), as_f32_mut(c)) {
-        if std::is_x86_feature_detected!("avx2") {
+    if AVX2 {
+        debug_assert!(std::is_x86_feature_detected!("avx2"));
+        if let (Some(a32), Some(b32), Some(c32)) = (as_f32(a), as_f32(b), as_f32_mut(c)) {
             let (la, lb, lc) = (a32.len(), b32.len(), c32.len());
             // The kernel reads A, B and writes C at exactly the places the loops below do.
             assert!(k == 0 || la > (m - 1) * a_rs + (k - 1) * a_cs);
             assert!(k == 0 || lb >= (k - 1) * ldb + n);
             assert!(lc >= (m - 1) * ldc + n);
-            // SAFETY: AVX2 is present (checked above); every address the kernel touches is in
-            // bounds (asserted above: rows < m, columns < n, k < k of each operand).
+            // SAFETY: AVX2 is present (the caller's promise, `AVX2`); every address the kernel
+            // touches is in bounds (asserted above: rows < m, columns < n, k < k of each operand).
             unsafe {
                 avx2::gemm_acc_f32(
                     m,
@@ -588,7 +594,7 @@ pub fn linear_backward<R: Real>(
         unsafe { linear_backward_avx2(w, x, dy, rows, in_dim, out_dim, dw, db, dx) };
         return;
     }
-    linear_backward_body(w, x, dy, rows, in_dim, out_dim, dw, db, dx)
+    linear_backward_body::<R, false>(w, x, dy, rows, in_dim, out_dim, dw, db, dx)
 }
 
 #[cfg(target_arch = "x86_64")]
@@ -605,12 +611,13 @@ unsafe fn linear_backward_avx2<R: Real>(
     db: Option<&mut [R]>,
     dx: Option<&mut [R]>,
 ) {
-    linear_backward_body(w, x, dy, rows, in_dim, out_dim, dw, db, dx)
+    linear_backward_body::<R, true>(w, x, dy, rows, in_dim, out_dim, dw, db, dx)
 }
 
+/// `AVX2`: the caller has checked that the CPU has AVX2 (see [`gemm_acc`]).
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
-fn linear_backward_body<R: Real>(
+fn linear_backward_body<R: Real, const AVX2: bool>(
     w: &[R],
     x: &[R],
     dy: &[R],
@@ -631,11 +638,11 @@ fn linear_backward_body<R: Real>(
         }
     }
     // dW [out, in] += dyᵀ [out, rows] · x [rows, in]   (rows ascending)
-    gemm_acc(out_dim, in_dim, rows, dy, 1, out_dim, x, in_dim, dw, in_dim);
+    gemm_acc::<R, AVX2>(out_dim, in_dim, rows, dy, 1, out_dim, x, in_dim, dw, in_dim);
     // dx [rows, in] += dy [rows, out] · W [out, in]     (o ascending)
     if let Some(dx) = dx {
         assert!(dx.len() >= rows * in_dim);
-        gemm_acc(rows, in_dim, out_dim, dy, out_dim, 1, w, in_dim, dx, in_dim);
+        gemm_acc::<R, AVX2>(rows, in_dim, out_dim, dy, out_dim, 1, w, in_dim, dx, in_dim);
     }
 }
 
@@ -664,7 +671,7 @@ mod tests {
         let mut y1 = vec![0.0f32; rows * o];
         let mut y2 = y1.clone();
         linear_forward(&wt, Some(&b), &x, rows, i, o, &mut y1);
-        linear_forward_body(&wt, Some(&b), &x, rows, i, o, &mut y2);
+        linear_forward_body::<f32, false>(&wt, Some(&b), &x, rows, i, o, &mut y2);
         assert!(y1.iter().zip(&y2).all(|(a, b)| a.to_bits() == b.to_bits()));
         let (mut dw1, mut dx1, mut db1) =
             (vec![0.0f32; i * o], vec![0.0f32; rows * i], vec![0.0f32; o]);
@@ -680,7 +687,7 @@ mod tests {
             Some(&mut db1),
             Some(&mut dx1),
         );
-        linear_backward_body(
+        linear_backward_body::<f32, false>(
             &w,
             &x,
             &dy,
@@ -722,7 +729,11 @@ mod tests {
                 let b = rand_vec((k * n).max(1), 40 + si as u64);
                 let c0 = rand_vec(m * n, 60 + si as u64);
                 let (mut c1, mut c2) = (c0.clone(), c0.clone());
-                gemm_acc(m, n, k, &a, a_rs, a_cs, &b, n, &mut c1, n);
+                if std::is_x86_feature_detected!("avx2") {
+                    gemm_acc::<f32, true>(m, n, k, &a, a_rs, a_cs, &b, n, &mut c1, n);
+                } else {
+                    gemm_acc::<f32, false>(m, n, k, &a, a_rs, a_cs, &b, n, &mut c1, n);
+                }
                 gemm_acc_generic(m, n, k, &a, a_rs, a_cs, &b, n, &mut c2, n);
                 assert!(
                     c1.iter().zip(&c2).all(|(x, y)| x.to_bits() == y.to_bits()),

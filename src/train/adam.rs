@@ -311,8 +311,9 @@ impl PartialEq for BiasCache {
 }
 
 impl BiasCache {
-    /// The factors for t = 1..=t_max.
-    fn factors(&mut self, b1: f32, b2: f32, t_max: usize) -> &[(f64, f64)] {
+    /// `lr[t] = lr_k · sqrt(1 − β2^t) / (1 − β1^t)` (f64, rounded to f32) for 1 ≤ t ≤ t_max
+    /// (`lr[0]` unused), built in the cache's scratch from the cached factors.
+    fn lr_table(&mut self, lr_k: f64, b1: f32, b2: f32, t_max: usize) -> &[f32] {
         let key = (b1.to_bits(), b2.to_bits());
         let i = match self.tables.iter().position(|e| (e.0, e.1) == key) {
             Some(i) => i,
@@ -325,7 +326,11 @@ impl BiasCache {
         for t in tab.len() + 1..=t_max {
             tab.push(bias_factors(b1, b2, t as u32));
         }
-        &tab[..t_max]
+        self.lr.clear();
+        self.lr.push(0.0);
+        self.lr
+            .extend(tab[..t_max].iter().map(|&(s2, d1)| (lr_k * s2 / d1) as f32));
+        &self.lr
     }
 }
 
@@ -358,17 +363,7 @@ impl StepConsts<'_> {
     fn new<'a>(cfg: &AdamGroup, k: u64, sparse: bool, cache: &'a mut BiasCache) -> StepConsts<'a> {
         let lr_k = cfg.lr_at(k);
         let t_max = (k as usize).saturating_add(1);
-        let mut table = std::mem::take(&mut cache.lr);
-        table.clear();
-        table.push(0.0);
-        table.extend(
-            cache
-                .factors(cfg.beta1, cfg.beta2, t_max)
-                .iter()
-                .map(|&(s2, d1)| (lr_k * s2 / d1) as f32),
-        );
-        cache.lr = table;
-        let table = &cache.lr;
+        let table = cache.lr_table(lr_k, cfg.beta1, cfg.beta2, t_max);
         StepConsts {
             lr_k,
             b1: cfg.beta1,

@@ -78,7 +78,7 @@ pub struct PixelSummary {
 }
 
 /// All sub-samples of one view.
-#[derive(Clone, Debug)]
+#[derive(Clone, Debug, Default)]
 pub struct ViewCast {
     pub width: u32,
     pub height: u32,
@@ -388,13 +388,7 @@ pub fn cast_rows(
     y0: u32,
     rows: u32,
 ) -> Result<ViewCast> {
-    let mut out = ViewCast {
-        width: 0,
-        height: 0,
-        gamma,
-        subs: Vec::new(),
-        pixels: Vec::new(),
-    };
+    let mut out = ViewCast::default();
     cast_rows_into(tracer, camera, gamma, y0, rows, &mut out)?;
     Ok(out)
 }

@@ -7,7 +7,7 @@ pub mod ulr;
 
 use crate::model::batch::Batch;
 use crate::model::hfm::Hfm;
-use crate::raycast::{cast_rows, cast_rows_into, Tracer};
+use crate::raycast::{cast_rows_into, Tracer, ViewCast};
 use crate::scene::{Camera, Image};
 use anyhow::Result;
 use glam::{DMat3, DQuat, DVec3};
@@ -88,7 +88,7 @@ pub fn render_camera_in_bands(
     let mut hit = vec![false; w * h];
     let mut footprint = vec![0.0f32; w * h];
     let band = band_rows_for(camera.width, gamma, band_samples);
-    let mut cast = cast_rows(tracer, camera, gamma, 0, 0)?;
+    let mut cast = ViewCast::default();
     for y0 in (0..camera.height).step_by(band as usize) {
         let rows = band.min(camera.height - y0);
         cast_rows_into(tracer, camera, gamma, y0, rows, &mut cast)?;
@@ -121,13 +121,7 @@ pub fn render_camera_in_bands(
 
 /// The model's batch for the cast pixels `chunk` (indices into `cast.pixels`), built in
 /// parallel.
-fn render_batch(
-    model: &Hfm,
-    cast: &crate::raycast::ViewCast,
-    chunk: &[usize],
-    s: usize,
-    view_row: i32,
-) -> Batch {
+fn render_batch(model: &Hfm, cast: &ViewCast, chunk: &[usize], s: usize, view_row: i32) -> Batch {
     use rayon::prelude::*;
     let subs = |i: usize| &cast.subs[i * s..(i + 1) * s];
     let mut b = Batch {

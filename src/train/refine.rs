@@ -225,10 +225,7 @@ impl Refiner {
         if g0 <= 0.0 {
             return None;
         }
-        let k0 = self.start_step();
-        let span = self.steps.saturating_sub(k0 + 1).max(1) as f64;
-        let f = (k.saturating_sub(k0) as f64 / span).min(1.0);
-        Some((g0 * (g1 / g0).powf(f)) as f32)
+        Some(self.geometric(g0, g1, k, self.steps) as f32)
     }
 
     /// Adam's rate for the update after step k: `lr`, or geometric from `lr` at the first moving
@@ -238,10 +235,16 @@ impl Refiner {
         if end <= 0.0 || lr <= 0.0 {
             return self.cfg.lr;
         }
+        self.geometric(lr, end, k, self.stop_step()) as f32
+    }
+
+    /// Geometric from `from` at the first moving step to `to` at step `end − 1` (and after), by
+    /// step k (`gradient_scale`, `lr_at`).
+    fn geometric(&self, from: f64, to: f64, k: u64, end: u64) -> f64 {
         let k0 = self.start_step();
-        let span = self.stop_step().saturating_sub(k0 + 1).max(1) as f64;
+        let span = end.saturating_sub(k0 + 1).max(1) as f64;
         let f = (k.saturating_sub(k0) as f64 / span).min(1.0);
-        (lr * (end / lr).powf(f)) as f32
+        from * (to / from).powf(f)
     }
 
     /// Whether the BVH is rebuilt before batch k is drawn (the offsets moved after step k − 1).

@@ -100,6 +100,8 @@ pub struct Refiner {
     /// `XSCALE_REFINE_LOG` (a file) and `XSCALE_REFINE_TRUTH` (a mesh with the training mesh's
     /// vertices, e.g. a synthetic scene's exact surface): diagnostics at every update.
     diag: Option<Diagnostics>,
+    /// `refine.traced` in f64: the offsets the current BVH was built from (set with it).
+    traced: Vec<f64>,
     // Scratch, kept between steps.
     theta: Vec<f64>,
     d_theta: Vec<f64>,
@@ -167,6 +169,7 @@ impl Refiner {
                 sparse: true,
                 schedule: LrSchedule::default(),
             },
+            traced: params.traced.iter().map(|&t| t as f64).collect(),
             theta: vec![0.0; nv],
             d_theta: vec![0.0; nv],
             g32: Vec::new(),
@@ -174,9 +177,8 @@ impl Refiner {
             diag: Diagnostics::from_env(nv)?,
             cfg,
         };
-        if params.traced.iter().any(|&t| t != 0.0) {
-            let traced: Vec<f64> = params.traced.iter().map(|&t| t as f64).collect();
-            r.tracer = Some(Arc::new(r.build_tracer(&traced)?));
+        if r.traced.iter().any(|&t| t != 0.0) {
+            r.tracer = Some(Arc::new(r.build_tracer(&r.traced)?));
         }
         Ok(Some(r))
     }
@@ -283,8 +285,8 @@ impl Refiner {
         }
         p.offsets = theta.iter().map(|&t| t as f32).collect();
         p.traced = p.offsets.clone();
-        let traced: Vec<f64> = p.traced.iter().map(|&t| t as f64).collect();
-        self.tracer = Some(Arc::new(self.build_tracer(&traced)?));
+        self.traced = p.traced.iter().map(|&t| t as f64).collect();
+        self.tracer = Some(Arc::new(self.build_tracer(&self.traced)?));
         Ok(())
     }
 
@@ -431,11 +433,10 @@ impl Refiner {
         let origin = move |p: usize| origins[views[p] as usize];
         if self.cfg.anchored {
             // The rays were cast against the mesh at the `traced` offsets.
-            let traced: Vec<f64> = params.traced.iter().map(|&t| t as f64).collect();
             return Ok(reintersect_batch_anchored(
                 geom,
                 &self.theta,
-                &traced,
+                &self.traced,
                 batch,
                 &origin,
                 self.cfg.min_cos,

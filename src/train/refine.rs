@@ -8,7 +8,7 @@
 //!   fine, then the per-vertex residual; `n = levels + per_vertex` levels) receives gradient from
 //!   step `k0 + floor(j·coarse_to_fine·T / n)`; inactive levels stay zero. The position gradient
 //!   goes through the hash-grid levels of at most `gradient_cells` cells per unit, from
-//!   `gradient_cells[0]` at k0 to `[1]` at T (geometric): coarse to fine
+//!   `gradient_cells[0]` at k0 to `[1]` at T − 1 (geometric): coarse to fine
 //!   (`Grads::position_max_scale`).
 //! - The vertex gradient is summed over `update_every` steps (in `refine.pending.*`); then the
 //!   smoothness energy's gradient (times the steps summed) is added, the active levels take one

@@ -9,7 +9,6 @@
 //! `REFINE.toml` holds `[model.refine]` keys at top level (`lr = 1e-4` …); `enabled`, `start` and
 //! `stop` are set from STEPS and MOVE.
 
-use xscale::eval::protocol::mean_score;
 use xscale::model::params::Grads;
 use xscale::model::refine::{RefineConfig, RefineParams};
 use xscale::train::adam::AdamState;
@@ -81,26 +80,16 @@ fn main() -> anyhow::Result<()> {
     }
     let scores = evaluate(&st, &prepared, 0, None)?;
     let (all, near, far) = xscale::train::bench_geometry::split_scores(&scores);
-    let m = mean_score(&scores);
     println!(
         "masked PSNR {:.2} (close-up {:.2}, far {:.2}), SSIM {:.4}",
-        m.psnr_masked, near.psnr_masked, far.psnr_masked, all.ssim_masked
+        all.psnr_masked, near.psnr_masked, far.psnr_masked, all.ssim_masked
     );
     if let Some(out) = a.get(5) {
-        xscale::train::refine::write_refined(
-            &st,
-            &prepared,
-            std::path::Path::new(out)
-                .parent()
-                .unwrap_or(std::path::Path::new(".")),
-        )?;
-        std::fs::rename(
-            std::path::Path::new(out)
-                .parent()
-                .unwrap_or(std::path::Path::new("."))
-                .join("refined.ply"),
-            out,
-        )?;
+        let dir = std::path::Path::new(out)
+            .parent()
+            .unwrap_or(std::path::Path::new("."));
+        xscale::train::refine::write_refined(&st, &prepared, dir)?;
+        std::fs::rename(dir.join("refined.ply"), out)?;
     }
     Ok(())
 }

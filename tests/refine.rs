@@ -6,6 +6,10 @@ use std::path::{Path, PathBuf};
 use xscale::train::config::RunConfig;
 use xscale::train::trainer::{train, TrainOptions, TrainState};
 
+#[path = "common/pool.rs"]
+mod pool;
+use pool::in_pool;
+
 fn fixture() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/tiny")
 }
@@ -50,12 +54,33 @@ fn opts(resume: bool, stop_at: Option<u64>) -> TrainOptions {
     }
 }
 
-fn in_pool<T: Send>(threads: usize, f: impl FnOnce() -> T + Send) -> T {
-    rayon::ThreadPoolBuilder::new()
-        .num_threads(threads)
-        .build()
-        .unwrap()
-        .install(f)
+/// The final checkpoint of run `c` stopped at step 100 (2 threads) and resumed.
+fn resumed_at_100(c: &RunConfig, tag: &str) -> Vec<u8> {
+    let split = tmp(tag);
+    let s = in_pool(2, || {
+        train(&fixture(), &split, c.clone(), &opts(false, Some(100)))
+    })
+    .unwrap();
+    assert!(s.interrupted && s.steps == 100);
+    in_pool(2, || {
+        train(&fixture(), &split, c.clone(), &opts(true, None))
+    })
+    .unwrap();
+    let bytes = std::fs::read(split.join("checkpoint.safetensors")).unwrap();
+    let _ = std::fs::remove_dir_all(&split);
+    bytes
+}
+
+/// More than half the vertices of the run's checkpoint have a nonzero offset.
+fn assert_mesh_moved(run: &Path) {
+    let st = TrainState::load(&run.join("checkpoint.safetensors")).unwrap();
+    let r = st.ckpt.refine.as_ref().unwrap();
+    let moved = r.offsets.iter().filter(|&&t| t != 0.0).count();
+    assert!(
+        moved * 2 > r.offsets.len(),
+        "{moved} of {} vertices moved",
+        r.offsets.len()
+    );
 }
 
 #[test]
@@ -70,30 +95,15 @@ fn refinement_is_thread_independent_resumes_exactly_and_moves_the_mesh() {
         finals.push(std::fs::read(run.join("checkpoint.safetensors")).unwrap());
         if threads == 2 {
             // Stopped at 100 (between the rebuilds at 91 and 108) and resumed.
-            let split = tmp("split");
-            let s = in_pool(2, || {
-                train(&fixture(), &split, cfg(), &opts(false, Some(100)))
-            })
-            .unwrap();
-            assert!(s.interrupted && s.steps == 100);
-            in_pool(2, || train(&fixture(), &split, cfg(), &opts(true, None))).unwrap();
-            let resumed = std::fs::read(split.join("checkpoint.safetensors")).unwrap();
+            let resumed = resumed_at_100(&cfg(), "split");
             assert!(
                 resumed == finals[1],
                 "a resumed refinement run differs from the uninterrupted one"
             );
-            let _ = std::fs::remove_dir_all(&split);
         }
         if threads == 4 {
             // The mesh moved, the checkpoint and refined.ply agree, and eval/render load it.
-            let st = TrainState::load(&run.join("checkpoint.safetensors")).unwrap();
-            let r = st.ckpt.refine.as_ref().unwrap();
-            let moved = r.offsets.iter().filter(|&&t| t != 0.0).count();
-            assert!(
-                moved * 2 > r.offsets.len(),
-                "{moved} of {} vertices moved",
-                r.offsets.len()
-            );
+            assert_mesh_moved(&run);
             let refined = xscale::scene::mesh::load_mesh(&run.join("refined.ply"))
                 .unwrap()
                 .0;
@@ -177,14 +187,7 @@ fn anchored_refinement_is_thread_independent_resumes_exactly_and_moves_the_mesh(
         .unwrap();
         finals.push(std::fs::read(run.join("checkpoint.safetensors")).unwrap());
         if threads == 2 {
-            let st = TrainState::load(&run.join("checkpoint.safetensors")).unwrap();
-            let r = st.ckpt.refine.as_ref().unwrap();
-            let moved = r.offsets.iter().filter(|&&t| t != 0.0).count();
-            assert!(
-                moved * 2 > r.offsets.len(),
-                "{moved} of {} moved",
-                r.offsets.len()
-            );
+            assert_mesh_moved(&run);
             // The render's tracer runs on the refined mesh and reports the training mesh's point.
             let (ck, rc) =
                 xscale::cli::common::load_model(&run.join("checkpoint.safetensors")).unwrap();
@@ -203,19 +206,8 @@ fn anchored_refinement_is_thread_independent_resumes_exactly_and_moves_the_mesh(
                 checked += 1;
             }
             assert!(checked > 100, "{checked} hits");
-            let split = tmp("anchored-split");
-            let st = in_pool(2, || {
-                train(&fixture(), &split, c.clone(), &opts(false, Some(100)))
-            })
-            .unwrap();
-            assert!(st.interrupted && st.steps == 100);
-            in_pool(2, || {
-                train(&fixture(), &split, c.clone(), &opts(true, None))
-            })
-            .unwrap();
-            let resumed = std::fs::read(split.join("checkpoint.safetensors")).unwrap();
+            let resumed = resumed_at_100(&c, "anchored-split");
             assert!(resumed == finals[1], "a resumed anchored run differs");
-            let _ = std::fs::remove_dir_all(&split);
         }
         let _ = std::fs::remove_dir_all(&run);
     }

@@ -9,13 +9,9 @@ use xscale::raycast::Tracer;
 use xscale::render::{render_camera, render_camera_in_bands, Rendered, WHITE};
 use xscale::scene::{LoadOptions, Scene};
 
-fn in_pool<T: Send>(threads: usize, f: impl FnOnce() -> T + Send) -> T {
-    rayon::ThreadPoolBuilder::new()
-        .num_threads(threads)
-        .build()
-        .unwrap()
-        .install(f)
-}
+#[path = "common/pool.rs"]
+mod pool;
+use pool::in_pool;
 
 fn bits(r: &Rendered) -> (Vec<u32>, Vec<bool>, Vec<u32>) {
     (

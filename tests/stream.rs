@@ -15,16 +15,12 @@ use xscale::train::config::RunConfig;
 use xscale::train::sampler::{batch_from_pixels, batch_pixels, SampleMode};
 use xscale::train::trainer::{train, TrainOptions};
 
+#[path = "common/pool.rs"]
+mod pool;
+use pool::in_pool;
+
 fn fixture() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/tiny")
-}
-
-fn in_pool<T: Send>(threads: usize, f: impl FnOnce() -> T + Send) -> T {
-    rayon::ThreadPoolBuilder::new()
-        .num_threads(threads)
-        .build()
-        .unwrap()
-        .install(f)
 }
 
 /// Every kept pixel of the tiny scene, for γ = 1..4, hash (positions only) and vertex

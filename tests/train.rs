@@ -5,6 +5,10 @@ use std::path::{Path, PathBuf};
 use xscale::train::config::RunConfig;
 use xscale::train::trainer::{train, TrainOptions, TrainState};
 
+#[path = "common/pool.rs"]
+mod pool;
+use pool::in_pool;
+
 fn fixture() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/tiny")
 }
@@ -32,14 +36,6 @@ fn quiet(resume: bool, stop_at: Option<u64>) -> TrainOptions {
         quiet: true,
         ..Default::default()
     }
-}
-
-fn in_pool<T: Send>(threads: usize, f: impl FnOnce() -> T + Send) -> T {
-    rayon::ThreadPoolBuilder::new()
-        .num_threads(threads)
-        .build()
-        .unwrap()
-        .install(f)
 }
 
 fn checkpoint_bytes(run: &Path) -> Vec<u8> {

@@ -8,13 +8,9 @@ use xscale::raycast::Tracer;
 use xscale::render::ulr::{render_ulr, Source};
 use xscale::scene::{LoadOptions, Scene};
 
-fn in_pool<T: Send>(threads: usize, f: impl FnOnce() -> T + Send) -> T {
-    rayon::ThreadPoolBuilder::new()
-        .num_threads(threads)
-        .build()
-        .unwrap()
-        .install(f)
-}
+#[path = "common/pool.rs"]
+mod pool;
+use pool::in_pool;
 
 #[test]
 fn ulr_reproduces_training_photos_and_scores_held_out_views() {

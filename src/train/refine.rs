@@ -8,7 +8,7 @@
 //!   fine, then the per-vertex residual; `n = levels + per_vertex` levels) receives gradient from
 //!   step `k0 + floor(j·coarse_to_fine·T / n)`; inactive levels stay zero. The position gradient
 //!   goes through the hash-grid levels of at most `gradient_cells` cells per unit, from
-//!   `gradient_cells[0]` at k0 to `[1]` at T (geometric): coarse to fine
+//!   `gradient_cells[0]` at k0 to `[1]` at T − 1 (geometric): coarse to fine
 //!   (`Grads::position_max_scale`).
 //! - The vertex gradient is summed over `update_every` steps (in `refine.pending.*`); then the
 //!   smoothness energy's gradient (times the steps summed) is added, the active levels take one
@@ -100,6 +100,8 @@ pub struct Refiner {
     /// `XSCALE_REFINE_LOG` (a file) and `XSCALE_REFINE_TRUTH` (a mesh with the training mesh's
     /// vertices, e.g. a synthetic scene's exact surface): diagnostics at every update.
     diag: Option<Diagnostics>,
+    /// `refine.traced` in f64: the offsets the current BVH was built from (set with it).
+    traced: Vec<f64>,
     // Scratch, kept between steps.
     theta: Vec<f64>,
     d_theta: Vec<f64>,
@@ -167,6 +169,7 @@ impl Refiner {
                 sparse: true,
                 schedule: LrSchedule::default(),
             },
+            traced: params.traced.iter().map(|&t| t as f64).collect(),
             theta: vec![0.0; nv],
             d_theta: vec![0.0; nv],
             g32: Vec::new(),
@@ -174,9 +177,8 @@ impl Refiner {
             diag: Diagnostics::from_env(nv)?,
             cfg,
         };
-        if params.traced.iter().any(|&t| t != 0.0) {
-            let traced: Vec<f64> = params.traced.iter().map(|&t| t as f64).collect();
-            r.tracer = Some(Arc::new(r.build_tracer(&traced)?));
+        if r.traced.iter().any(|&t| t != 0.0) {
+            r.tracer = Some(Arc::new(r.build_tracer(&r.traced)?));
         }
         Ok(Some(r))
     }
@@ -225,10 +227,7 @@ impl Refiner {
         if g0 <= 0.0 {
             return None;
         }
-        let k0 = self.start_step();
-        let span = self.steps.saturating_sub(k0 + 1).max(1) as f64;
-        let f = (k.saturating_sub(k0) as f64 / span).min(1.0);
-        Some((g0 * (g1 / g0).powf(f)) as f32)
+        Some(self.geometric(g0, g1, k, self.steps) as f32)
     }
 
     /// Adam's rate for the update after step k: `lr`, or geometric from `lr` at the first moving
@@ -238,10 +237,16 @@ impl Refiner {
         if end <= 0.0 || lr <= 0.0 {
             return self.cfg.lr;
         }
+        self.geometric(lr, end, k, self.stop_step()) as f32
+    }
+
+    /// Geometric from `from` at the first moving step to `to` at step `end − 1` (and after), by
+    /// step k (`gradient_scale`, `lr_at`).
+    fn geometric(&self, from: f64, to: f64, k: u64, end: u64) -> f64 {
         let k0 = self.start_step();
-        let span = self.stop_step().saturating_sub(k0 + 1).max(1) as f64;
+        let span = end.saturating_sub(k0 + 1).max(1) as f64;
         let f = (k.saturating_sub(k0) as f64 / span).min(1.0);
-        (lr * (end / lr).powf(f)) as f32
+        from * (to / from).powf(f)
     }
 
     /// Whether the BVH is rebuilt before batch k is drawn (the offsets moved after step k − 1).
@@ -280,8 +285,8 @@ impl Refiner {
         }
         p.offsets = theta.iter().map(|&t| t as f32).collect();
         p.traced = p.offsets.clone();
-        let traced: Vec<f64> = p.traced.iter().map(|&t| t as f64).collect();
-        self.tracer = Some(Arc::new(self.build_tracer(&traced)?));
+        self.traced = p.traced.iter().map(|&t| t as f64).collect();
+        self.tracer = Some(Arc::new(self.build_tracer(&self.traced)?));
         Ok(())
     }
 
@@ -428,11 +433,10 @@ impl Refiner {
         let origin = move |p: usize| origins[views[p] as usize];
         if self.cfg.anchored {
             // The rays were cast against the mesh at the `traced` offsets.
-            let traced: Vec<f64> = params.traced.iter().map(|&t| t as f64).collect();
             return Ok(reintersect_batch_anchored(
                 geom,
                 &self.theta,
-                &traced,
+                &self.traced,
                 batch,
                 &origin,
                 self.cfg.min_cos,

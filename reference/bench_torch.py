@@ -8,7 +8,11 @@ the loss) in float32, written as well as PyTorch allows on a CPU:
   levels selected per level with `torch.where`, and ONE `index_select` over the flat table for all L*8 corners;
 - no Python loop over levels, corners or pixels; autograd for the backward;
 - Adam (`torch.optim.Adam`, fused on the CPU where available, else foreach) over every parameter, tables included
-  (dense updates: measured faster here than SparseAdam with sparse gradients).
+  (dense updates: measured faster here than SparseAdam with sparse gradients);
+- the loss (forward, and through AOTAutograd its backward) compiled with `torch.compile` (Inductor's C++ backend:
+  the index arithmetic, gathers and weighted sums fused into loops): 2.5x faster than eager on this machine
+  (16 grid-H levels, 16,384 pixels, 2 threads: 426 vs 1,072 ms per step). `--eager` times the uncompiled model.
+  Compilation happens in the warm-up steps, which are not timed.
 
 It first checks that its loss at the checkpoint equals the one xscale reports (`--expect-loss`, relative 1e-5), so
 a fast wrong model is never timed. Prints one JSON line: {"loss0", "ms_per_step", "steps", "threads", ...}.
@@ -161,6 +165,7 @@ def main() -> int:
     ap.add_argument("--warmup", type=int, default=2)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--expect-loss", type=float, default=None)
+    ap.add_argument("--eager", action="store_true", help="do not compile the loss (torch.compile)")
     a = ap.parse_args()
     torch.set_num_threads(a.threads)
     peer = Peer(a.checkpoint, a.batch)
@@ -177,21 +182,28 @@ def main() -> int:
         opt = torch.optim.Adam(params, lr=1e-2, betas=(0.9, 0.99), eps=1e-15, foreach=True)
         kind = "foreach"
 
+    loss_fn = peer.loss if a.eager else torch.compile(peer.loss)
+
     def step() -> float:
         opt.zero_grad(set_to_none=True)
-        loss = peer.loss()
+        loss = loss_fn()
         loss.backward()
         opt.step()
         return float(loss.detach())
 
-    for _ in range(a.warmup):
+    # Warm-up (and compilation). The first step's loss is the checkpoint's: the compiled model must give it too.
+    first = step()
+    if not math.isclose(first, loss0, rel_tol=1e-5):
+        print(f"error: the compiled loss {first!r} differs from the eager {loss0!r}", file=sys.stderr)
+        return 1
+    for _ in range(a.warmup - 1):
         step()
     t0 = time.perf_counter()
     for _ in range(a.steps):
         last = step()
     ms = (time.perf_counter() - t0) / a.steps * 1e3
     print(json.dumps({"loss0": loss0, "ms_per_step": ms, "steps": a.steps, "threads": torch.get_num_threads(),
-                      "pixels": peer.n, "samples": int(peer.x.shape[0]), "adam": kind, "last_loss": last,
+                      "pixels": peer.n, "samples": int(peer.x.shape[0]), "adam": kind, "compiled": not a.eager, "last_loss": last,
                       "torch": torch.__version__}))
     return 0
 

@@ -101,8 +101,7 @@ pub fn run(a: Args) -> Result<ExitCode> {
             "checkpoint": ck_path, "views": scores, "mean": mean_score(&scores),
             "by_scale": scale_summary(&scores)
         });
-        std::fs::write(j, serde_json::to_string_pretty(&json)?)
-            .with_context(|| format!("{}: cannot write", j.display()))?;
+        crate::io::atomic::write_bytes(j, serde_json::to_string_pretty(&json)?)?;
     }
     Ok(ExitCode::SUCCESS)
 }

@@ -1,8 +1,10 @@
 //! Tensor exchange (SPEC §6): safetensors checkpoints, batches and dumps, and `compare`.
 //!
 //! - [`tensors`]: owned tensors and deterministic, atomic safetensors files.
+//! - [`atomic`]: whole-or-absent file writes (temp file, rename) for checkpoints, dumps and images.
 //! - [`compare`]: tensor-by-tensor comparison of two files with tolerance rules (`xscale compare`).
 
+pub mod atomic;
 pub mod compare;
 pub mod tensors;
 

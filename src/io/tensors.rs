@@ -450,56 +450,19 @@ impl TensorFile {
         Ok(v)
     }
 
-    /// Write atomically: temp file in the same directory, fsync, rename over `path`, fsync the
-    /// directory. On error the temp file is removed and `path` is untouched.
+    /// Write atomically ([`crate::io::atomic::write_atomic`], durable): temp file in the same
+    /// directory, fsync, rename over `path`, fsync the directory. On error the temp file is removed
+    /// and `path` is untouched.
     pub fn write_atomic(&self, path: impl AsRef<Path>) -> Result<()> {
-        let path = path.as_ref();
-        let dir = match path.parent() {
-            Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
-            _ => PathBuf::from("."),
-        };
-        let fname = path
-            .file_name()
-            .ok_or_else(|| anyhow!("{}: not a file path", path.display()))?;
-        // Unique per process and per call, so concurrent writers never share a temp file.
-        static COUNTER: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
-        let tmp = dir.join(format!(
-            ".{}.tmp.{}.{}",
-            fname.to_string_lossy(),
-            std::process::id(),
-            COUNTER.fetch_add(1, std::sync::atomic::Ordering::Relaxed)
-        ));
-        let result = (|| -> Result<()> {
-            let file = std::fs::File::create(&tmp)
+        crate::io::atomic::write_atomic(path.as_ref(), true, |tmp| {
+            let file = std::fs::File::create(tmp)
                 .with_context(|| format!("{}: cannot create", tmp.display()))?;
             let mut w = std::io::BufWriter::with_capacity(1 << 20, file);
             self.write_to(&mut w)
                 .with_context(|| format!("{}: write failed", tmp.display()))?;
-            let file = w
-                .into_inner()
-                .map_err(|e| anyhow!("{}: write failed: {}", tmp.display(), e.error()))?;
-            file.sync_all()
-                .with_context(|| format!("{}: fsync failed", tmp.display()))?;
-            drop(file);
-            std::fs::rename(&tmp, path).with_context(|| {
-                format!(
-                    "{}: cannot rename {} over it",
-                    path.display(),
-                    tmp.display()
-                )
-            })?;
-            Ok(())
-        })();
-        if result.is_err() {
-            let _ = std::fs::remove_file(&tmp);
-            return result;
-        }
-        // Persist the rename itself (best effort: not every platform can fsync a directory).
-        #[cfg(unix)]
-        if let Ok(d) = std::fs::File::open(&dir) {
-            let _ = d.sync_all();
-        }
-        Ok(())
+            w.flush()
+                .with_context(|| format!("{}: write failed", tmp.display()))
+        })
     }
 }
 

@@ -234,19 +234,28 @@ fn quantize(v: f32, max: f32) -> f32 {
     (v * max).round()
 }
 
-/// Write an 8-bit RGB PNG (values are written as they are: sRGB-encoded, no conversion).
+/// Write an 8-bit RGB PNG (values are written as they are: sRGB-encoded, no conversion), whole or
+/// not at all.
 pub fn write_png8(path: &Path, img: &Image) -> Result<()> {
     check(img, path)?;
     let buf: Vec<u8> = img.data.iter().map(|&v| quantize(v, 255.0) as u8).collect();
-    ::image::save_buffer_with_format(
-        path,
-        &buf,
-        img.width,
-        img.height,
-        ::image::ExtendedColorType::Rgb8,
-        ::image::ImageFormat::Png,
-    )
-    .map_err(|e| anyhow!("{}: cannot write PNG: {e}", path.display()))
+    save_png(path, img, &buf, ::image::ExtendedColorType::Rgb8)
+}
+
+/// Encode `buf` as a PNG at `path`, whole or not at all (a killed render leaves no truncated
+/// file: [`crate::io::atomic::write_atomic`]).
+fn save_png(path: &Path, img: &Image, buf: &[u8], color: ::image::ExtendedColorType) -> Result<()> {
+    crate::io::atomic::write_atomic(path, false, |tmp| {
+        ::image::save_buffer_with_format(
+            tmp,
+            buf,
+            img.width,
+            img.height,
+            color,
+            ::image::ImageFormat::Png,
+        )
+        .map_err(|e| anyhow!("{}: cannot write PNG: {e}", path.display()))
+    })
 }
 
 /// Write a 16-bit RGB PNG.
@@ -257,24 +266,18 @@ pub fn write_png16(path: &Path, img: &Image) -> Result<()> {
         .iter()
         .flat_map(|&v| (quantize(v, 65535.0) as u16).to_ne_bytes())
         .collect();
-    ::image::save_buffer_with_format(
-        path,
-        &buf,
-        img.width,
-        img.height,
-        ::image::ExtendedColorType::Rgb16,
-        ::image::ImageFormat::Png,
-    )
-    .map_err(|e| anyhow!("{}: cannot write PNG: {e}", path.display()))
+    save_png(path, img, &buf, ::image::ExtendedColorType::Rgb16)
 }
 
 /// Write a 32-bit float RGB EXR (values exactly as stored).
 pub fn write_exr(path: &Path, img: &Image) -> Result<()> {
     check(img, path)?;
     let w = img.width as usize;
-    exr::prelude::write_rgb_file(path, w, img.height as usize, |x, y| {
-        let i = 3 * (y * w + x);
-        (img.data[i], img.data[i + 1], img.data[i + 2])
+    crate::io::atomic::write_atomic(path, false, |tmp| {
+        exr::prelude::write_rgb_file(tmp, w, img.height as usize, |x, y| {
+            let i = 3 * (y * w + x);
+            (img.data[i], img.data[i + 1], img.data[i + 2])
+        })
+        .map_err(|e| anyhow!("{}: cannot write EXR: {e}", path.display()))
     })
-    .map_err(|e| anyhow!("{}: cannot write EXR: {e}", path.display()))
 }

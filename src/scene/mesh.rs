@@ -234,7 +234,12 @@ fn obj_diagnose(path: &Path) -> Result<()> {
 /// Write an OBJ: `v x y z` with Rust's `{}` for f64 (shortest string that parses back to the
 /// same value) and 1-based `f a b c`.
 pub fn write_obj(path: &Path, mesh: &Mesh) -> Result<()> {
-    let f = fs::File::create(path).with_context(|| format!("{}: cannot create", path.display()))?;
+    crate::io::atomic::write_atomic(path, false, |tmp| write_obj_to(tmp, path, mesh))
+}
+
+/// [`write_obj`]'s body: writes `tmp`, names `path` in errors.
+fn write_obj_to(tmp: &Path, path: &Path, mesh: &Mesh) -> Result<()> {
+    let f = fs::File::create(tmp).with_context(|| format!("{}: cannot create", path.display()))?;
     let mut w = BufWriter::new(f);
     let err = |e: std::io::Error| anyhow!("{}: write failed: {e}", path.display());
     writeln!(w, "# written by xscale").map_err(err)?;
@@ -255,7 +260,12 @@ pub fn write_obj(path: &Path, mesh: &Mesh) -> Result<()> {
 /// Write a binary little-endian PLY: `double x,y,z` vertices and `uchar`-counted `uint`
 /// `vertex_indices` triangles. Lossless for f64 coordinates.
 pub fn write_ply(path: &Path, mesh: &Mesh) -> Result<()> {
-    let f = fs::File::create(path).with_context(|| format!("{}: cannot create", path.display()))?;
+    crate::io::atomic::write_atomic(path, false, |tmp| write_ply_to(tmp, path, mesh))
+}
+
+/// [`write_ply`]'s body: writes `tmp`, names `path` in errors.
+fn write_ply_to(tmp: &Path, path: &Path, mesh: &Mesh) -> Result<()> {
+    let f = fs::File::create(tmp).with_context(|| format!("{}: cannot create", path.display()))?;
     let mut w = BufWriter::new(f);
     let err = |e: std::io::Error| anyhow!("{}: write failed: {e}", path.display());
     write!(

@@ -192,11 +192,10 @@ impl Reporter {
         let json = serde_json::json!({
             "views": scores, "mean": m, "by_scale": scale_summary(scores), "step": step
         });
-        std::fs::write(
-            run_dir.join("eval.json"),
+        crate::io::atomic::write_bytes(
+            &run_dir.join("eval.json"),
             serde_json::to_string_pretty(&json)?,
-        )
-        .with_context(|| format!("{}: cannot write eval.json", run_dir.display()))?;
+        )?;
         self.say(format!(
             "renders in {}, side-by-sides in {}",
             run_dir.join("render").display(),

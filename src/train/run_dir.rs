@@ -106,7 +106,7 @@ pub fn prepare_run_dir(run_dir: &Path, resume: bool, overwrite: bool) -> Result<
         .flatten()
     {
         let name = e.file_name().to_string_lossy().to_string();
-        if name.starts_with('.') && name.contains(".tmp.") {
+        if crate::io::atomic::is_temp_name(&name) {
             leftovers += e.metadata().map(|m| m.len()).unwrap_or(0);
             let _ = std::fs::remove_file(e.path());
         }
@@ -245,8 +245,7 @@ impl SceneFingerprint {
 
     pub fn write(&self, run_dir: &Path) -> Result<()> {
         let p = SceneFingerprint::path(run_dir);
-        std::fs::write(&p, serde_json::to_string_pretty(self)?)
-            .with_context(|| format!("{}: cannot write", p.display()))
+        crate::io::atomic::write_bytes(&p, serde_json::to_string_pretty(self)?)
     }
 
     /// An error naming what differs when `now` is not the scene this run was trained on.

@@ -298,7 +298,8 @@ fn truncate_metrics(path: &Path, step: u64) -> Result<()> {
         })
         .map(|l| format!("{l}\n"))
         .collect();
-    std::fs::write(path, kept).with_context(|| format!("{}: cannot rewrite", path.display()))
+    // Whole or not at all: a kill during the rewrite must not cost the run its history.
+    crate::io::atomic::write_bytes(path, kept)
 }
 
 /// Render and score held-out views (`max` = 0: all). Writes renders and side-by-sides under
@@ -462,8 +463,7 @@ fn open_run(
             TrainState::init(cfg, &prepared)?
         }
     };
-    std::fs::write(run_dir.join("config.toml"), state.cfg.to_toml())
-        .with_context(|| format!("{}: cannot write config.toml", run_dir.display()))?;
+    crate::io::atomic::write_bytes(&run_dir.join("config.toml"), state.cfg.to_toml())?;
     Ok((state, prepared))
 }
 

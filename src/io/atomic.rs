@@ -1,0 +1,102 @@
+//! Files that are whole or absent: written to a temp file next to the target, then renamed over it,
+//! so a crash, a kill or a full disk mid-write never leaves a truncated checkpoint, render or dump.
+
+use anyhow::{anyhow, Context, Result};
+use std::path::{Path, PathBuf};
+
+/// Write `path` through `write`, which must write the whole file at the temp path it is given:
+/// on success the temp file (`.NAME.tmp.PID.N` in the same directory, so the rename stays on one
+/// file system) is renamed over `path`; on error it is removed and `path` is untouched. `durable`
+/// also fsyncs the file before the rename and the directory after it (checkpoints); without it
+/// the file is still whole or absent, but may be lost by a power cut (images, which a rerun
+/// recreates).
+pub fn write_atomic(
+    path: &Path,
+    durable: bool,
+    write: impl FnOnce(&Path) -> Result<()>,
+) -> Result<()> {
+    let dir = match path.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
+        _ => PathBuf::from("."),
+    };
+    let fname = path
+        .file_name()
+        .ok_or_else(|| anyhow!("{}: not a file path", path.display()))?;
+    // Unique per process and per call, so concurrent writers never share a temp file.
+    static COUNTER: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+    let tmp = dir.join(format!(
+        ".{}.tmp.{}.{}",
+        fname.to_string_lossy(),
+        std::process::id(),
+        COUNTER.fetch_add(1, std::sync::atomic::Ordering::Relaxed)
+    ));
+    let result = (|| -> Result<()> {
+        write(&tmp)?;
+        if durable {
+            std::fs::File::open(&tmp)
+                .and_then(|f| f.sync_all())
+                .with_context(|| format!("{}: fsync failed", tmp.display()))?;
+        }
+        std::fs::rename(&tmp, path).with_context(|| {
+            format!(
+                "{}: cannot rename {} over it",
+                path.display(),
+                tmp.display()
+            )
+        })
+    })();
+    if result.is_err() {
+        let _ = std::fs::remove_file(&tmp);
+        return result;
+    }
+    // Persist the rename itself (best effort: not every platform can fsync a directory).
+    #[cfg(unix)]
+    if durable {
+        if let Ok(d) = std::fs::File::open(&dir) {
+            let _ = d.sync_all();
+        }
+    }
+    Ok(())
+}
+
+/// Write `data` to `path`, whole or not at all (not durable: see [`write_atomic`]).
+pub fn write_bytes(path: &Path, data: impl AsRef<[u8]>) -> Result<()> {
+    write_atomic(path, false, |tmp| {
+        std::fs::write(tmp, data.as_ref())
+            .with_context(|| format!("{}: cannot write", path.display()))
+    })
+}
+
+/// Whether `name` is a temp file [`write_atomic`] leaves behind when its process is killed.
+pub fn is_temp_name(name: &str) -> bool {
+    name.starts_with('.') && name.contains(".tmp.")
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_failed_write_leaves_the_old_file_and_no_temp() {
+        let dir = std::env::temp_dir().join(format!("xscale-atomic-img-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let p = dir.join("0000.png");
+        std::fs::write(&p, b"old").unwrap();
+        let err = write_atomic(&p, false, |tmp| {
+            std::fs::write(tmp, b"half")?;
+            anyhow::bail!("disk full")
+        })
+        .unwrap_err();
+        assert!(format!("{err:#}").contains("disk full"));
+        assert_eq!(std::fs::read(&p).unwrap(), b"old");
+        write_atomic(&p, false, |tmp| Ok(std::fs::write(tmp, b"new")?)).unwrap();
+        assert_eq!(std::fs::read(&p).unwrap(), b"new");
+        let names: Vec<String> = std::fs::read_dir(&dir)
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .collect();
+        assert_eq!(names, vec!["0000.png".to_string()]);
+        assert!(is_temp_name(".0000.png.tmp.12.0") && !is_temp_name("0000.png"));
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+}

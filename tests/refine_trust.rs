@@ -133,6 +133,22 @@ fn trust_region_is_thread_independent_resumes_exactly_and_rejects_by_holding_sti
         "a resumed trust-region run differs from the uninterrupted one"
     );
     assert_eq!(&log_split, log);
+    // Stopped after 74 steps, the last of which made an update (no rebuild yet), and resumed.
+    let cut = tmp("cut");
+    let (_, log_cut) = logged(&tmp("log-cut"), || {
+        in_pool(2, || {
+            train(&fixture(), &cut, c.clone(), &opts(false, Some(74))).unwrap();
+            train(&fixture(), &cut, c.clone(), &opts(true, None)).unwrap();
+        })
+    });
+    assert!(
+        std::fs::read(cut.join("checkpoint.safetensors")).unwrap() == finals[1],
+        "a run resumed right after an update differs from the uninterrupted one"
+    );
+    assert_eq!(
+        log_cut.iter().map(|d| d.1).collect::<Vec<_>>(),
+        log.iter().map(|d| d.1).collect::<Vec<_>>()
+    );
     let moved = offsets(&split);
     assert!(
         moved.iter().any(|&t| t != 0.0),

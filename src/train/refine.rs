@@ -118,7 +118,7 @@ pub struct Refiner {
 impl Refiner {
     /// The refiner of a run, `None` unless `[model.refine] enabled`.
     pub fn for_run(
-        state: &TrainState,
+        state: &mut TrainState,
         prepared: &Prepared,
         interrupt: Option<&'static AtomicBool>,
     ) -> Result<Option<Refiner>> {
@@ -189,6 +189,15 @@ impl Refiner {
             diag: Diagnostics::from_env(nv)?,
             cfg,
         };
+        if r.needs_rebuild(state.step) {
+            // Stopped right after an update, before its rebuild (the loop rebuilds only when it
+            // draws a next batch): the offsets and BVH become those of the current parameters,
+            // as the uninterrupted run made them.
+            let p = state.ckpt.refine.as_mut().expect("refine params");
+            p.sync_offsets(&r.cfg, &r.geom);
+            p.traced = p.offsets.clone();
+            r.traced = p.traced.iter().map(|&t| t as f64).collect();
+        }
         if r.traced.iter().any(|&t| t != 0.0) {
             r.tracer = Some(Arc::new(r.build_tracer(&r.traced)?));
         }

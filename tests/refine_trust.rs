@@ -4,41 +4,24 @@
 //! variant runs. Its own test binary: it sets `XSCALE_REFINE_LOG` (process-wide) to read each
 //! update's decision.
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use xscale::train::config::RunConfig;
-use xscale::train::trainer::{train, TrainOptions, TrainState};
+use xscale::train::trainer::{train, TrainState};
 
 #[path = "common/pool.rs"]
 mod pool;
 use pool::in_pool;
+#[path = "common/refine_run.rs"]
+mod refine_run;
+use refine_run::{cfg, fixture, opts, tmp};
 
-fn fixture() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/tiny")
-}
-
-fn tmp(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("xscale-test-trust-{}-{name}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    d
-}
-
-/// The tiny preset with anchored refinement from step 40 to 144 of 160, updates every 17 steps
-/// (the resume point, 100, falls between two, with gradient pending), each tested on two
-/// acceptance batches, with a margin that the tiny scene's updates meet only sometimes.
-fn cfg(margin: f64, holdout: u32) -> RunConfig {
-    let mut c = RunConfig::preset("tiny").unwrap();
-    c.train.steps = 160;
-    c.train.batch_pixels = 512;
-    c.train.eval_every = 0;
-    c.train.checkpoint_every = 30;
+/// The shared refinement run (`common/refine_run.rs`: steps 40 to 144 of 160, updates every 17
+/// steps, so the resume point 100 falls between two) with the features anchored, each update
+/// tested on two acceptance batches; `margin` decides how many are kept.
+fn trust_cfg(margin: f64, holdout: u32) -> RunConfig {
+    let mut c = cfg();
     let r = &mut c.model.refine;
-    r.enabled = true;
     r.anchored = true;
-    r.start = 0.25;
-    r.coarse_to_fine = 0.3;
-    r.update_every = 17;
-    r.stop = 0.9;
-    r.lr = 1e-3;
     r.trust_batches = 2;
     r.trust_halvings = 1;
     r.trust_margin = margin;
@@ -46,16 +29,6 @@ fn cfg(margin: f64, holdout: u32) -> RunConfig {
     r.prior = 1e-3;
     c.validate().unwrap();
     c
-}
-
-fn opts(resume: bool, stop_at: Option<u64>) -> TrainOptions {
-    TrainOptions {
-        resume,
-        stop_at,
-        no_final_eval: true,
-        quiet: true,
-        ..Default::default()
-    }
 }
 
 /// Run `f` with the refinement log at `log` (removed first); return the log's trust decisions
@@ -92,7 +65,7 @@ fn offsets(run: &Path) -> Vec<f32> {
 #[test]
 fn trust_region_is_thread_independent_resumes_exactly_and_rejects_by_holding_still() {
     let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
-    let c = cfg(0.0, 0);
+    let c = trust_cfg(0.0, 0);
     let mut finals = Vec::new();
     let mut logs = Vec::new();
     for threads in [1, 2, 4] {
@@ -160,7 +133,7 @@ fn trust_region_is_thread_independent_resumes_exactly_and_rejects_by_holding_sti
     let still = tmp("still");
     let (r, log) = logged(&tmp("log-still"), || {
         in_pool(2, || {
-            train(&fixture(), &still, cfg(0.9, 0), &opts(false, None))
+            train(&fixture(), &still, trust_cfg(0.9, 0), &opts(false, None))
         })
     });
     r.unwrap();
@@ -173,7 +146,7 @@ fn trust_region_is_thread_independent_resumes_exactly_and_rejects_by_holding_sti
 fn validation_views_variant_is_thread_independent_and_configs_are_checked() {
     let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
     // The tiny fixture's training views: every second one is a validation view.
-    let c = cfg(0.0, 2);
+    let c = trust_cfg(0.0, 2);
     let mut finals = Vec::new();
     for threads in [1, 2] {
         let run = tmp(&format!("holdout{threads}"));

@@ -49,7 +49,7 @@ fn main() -> anyhow::Result<()> {
     adam.state[..st.adam.len()].copy_from_slice(&st.adam.state);
     st.adam = adam;
     st.ckpt.refine = Some(params);
-    let mut refiner = Refiner::for_run(&st, &prepared, None)?.expect("refinement is on");
+    let mut refiner = Refiner::for_run(&mut st, &prepared, None)?.expect("refinement is on");
     let mut grads = Grads::new(&st.ckpt.model.layout);
     grads.inputs = false;
     let t0 = std::time::Instant::now();

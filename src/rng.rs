@@ -29,6 +29,8 @@ pub enum Purpose {
     Synth = 4,
     /// Ray jitter / sampling inside a pixel; `a` = pixel id, `b` = sample.
     PixelSample = 5,
+    /// Acceptance batches of the mesh refinement's trust region; `a` = step, `b` = slot.
+    RefineTrust = 6,
     /// Anything a test needs.
     Test = 99,
 }

@@ -2,57 +2,16 @@
 //! and 4 threads, exact resume across a BVH rebuild, the refined mesh in the checkpoint, in
 //! `refined.ply` and in what eval/render load, and clear errors for configurations it cannot run.
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use xscale::train::config::RunConfig;
-use xscale::train::trainer::{train, TrainOptions, TrainState};
+use xscale::train::trainer::{train, TrainState};
 
 #[path = "common/pool.rs"]
 mod pool;
 use pool::in_pool;
-
-fn fixture() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/tiny")
-}
-
-fn tmp(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("xscale-test-refine-{}-{name}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    d
-}
-
-/// The tiny preset with refinement from step 40 to 144 of 160, updates (and BVH rebuilds) every
-/// 17 steps (so the resume point, 100, falls between two, with gradient pending), every level on
-/// by step 88, the per-vertex residual with its smoothness terms.
-fn cfg() -> RunConfig {
-    let mut c = RunConfig::preset("tiny").unwrap();
-    c.train.steps = 160;
-    c.train.batch_pixels = 512;
-    c.train.eval_every = 0;
-    c.train.checkpoint_every = 30;
-    let r = &mut c.model.refine;
-    r.enabled = true;
-    r.start = 0.25;
-    r.coarse_to_fine = 0.3;
-    r.update_every = 17;
-    r.stop = 0.9;
-    r.per_vertex = true;
-    r.laplacian = 1e-3;
-    r.lr = 1e-3;
-    // A decaying rate: the resume must land on the same rate schedule.
-    r.lr_end = 2e-4;
-    c.validate().unwrap();
-    c
-}
-
-fn opts(resume: bool, stop_at: Option<u64>) -> TrainOptions {
-    TrainOptions {
-        resume,
-        stop_at,
-        no_final_eval: true,
-        quiet: true,
-        ..Default::default()
-    }
-}
+#[path = "common/refine_run.rs"]
+mod refine_run;
+use refine_run::{cfg, fixture, opts, tmp};
 
 /// The final checkpoint of run `c` stopped at step 100 (2 threads) and resumed.
 fn resumed_at_100(c: &RunConfig, tag: &str) -> Vec<u8> {

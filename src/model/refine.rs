@@ -108,6 +108,40 @@ pub struct RefineConfig {
     /// attached to the surface as it moves, and the offsets learn only from what the moved
     /// geometry changes (which surface point each ray sees: parallax). Off by default.
     pub anchored: bool,
+    /// Acceptance test of every update (a trust region; 0 = off, docs/geometry.md §3): the
+    /// photometric MSE of this many fixed batches (`train.batch_pixels` pixels each, a pure
+    /// function of the seed and the update's step, `train/trust.rs`) is measured with the rays
+    /// cast against the mesh before and after the proposed update; the update is kept only if
+    /// the MSE falls by more than `trust_margin` (relative), else its step is halved and tried
+    /// again, at most `trust_halvings` times, then dropped (the mesh stays where it was).
+    #[serde(skip_serializing_if = "is_zero_u32")]
+    pub trust_batches: u32,
+    /// Relative fall of the acceptance MSE an update must achieve (0: any fall).
+    #[serde(skip_serializing_if = "is_zero_f64")]
+    pub trust_margin: f64,
+    /// Halvings of a rejected update's step before it is dropped.
+    #[serde(skip_serializing_if = "is_two")]
+    pub trust_halvings: u32,
+    /// Validation views for the acceptance test (0 = off): the training views whose appearance
+    /// row r has `r % trust_holdout == trust_holdout − 1` give no offset gradient (the features
+    /// still train on them), and the acceptance batches are drawn from them only, so the test
+    /// sees geometry that fits the other views but not these.
+    #[serde(skip_serializing_if = "is_zero_u32")]
+    pub trust_holdout: u32,
+    /// Weight of an L2 prior `prior · Σ_l Σ_nodes G_l² (+ Σ_i r_i²)` pulling the offset field
+    /// towards zero (added to the summed gradient at each update, times the steps summed).
+    #[serde(skip_serializing_if = "is_zero_f64")]
+    pub prior: f64,
+}
+
+fn is_zero_u32(v: &u32) -> bool {
+    *v == 0
+}
+fn is_zero_f64(v: &f64) -> bool {
+    *v == 0.0
+}
+fn is_two(v: &u32) -> bool {
+    *v == 2
 }
 
 impl Default for RefineConfig {
@@ -131,6 +165,11 @@ impl Default for RefineConfig {
             beta2: 0.99,
             epsilon: 1e-15,
             anchored: false,
+            trust_batches: 0,
+            trust_margin: 0.0,
+            trust_halvings: 2,
+            trust_holdout: 0,
+            prior: 0.0,
         }
     }
 }
@@ -215,6 +254,33 @@ impl RefineConfig {
         }
         if !(self.epsilon.is_finite() && self.epsilon >= 0.0) {
             bad.push(format!("epsilon = {} (a finite value ≥ 0)", self.epsilon));
+        }
+        if !(self.trust_margin.is_finite() && (0.0..1.0).contains(&self.trust_margin)) {
+            bad.push(format!("trust_margin = {} (in [0, 1))", self.trust_margin));
+        }
+        if self.trust_halvings > 16 {
+            bad.push(format!(
+                "trust_halvings = {} (at most 16)",
+                self.trust_halvings
+            ));
+        }
+        if self.trust_batches > 64 {
+            bad.push(format!(
+                "trust_batches = {} (at most 64)",
+                self.trust_batches
+            ));
+        }
+        if self.trust_holdout == 1 {
+            bad.push("trust_holdout = 1 (every view would be held out: 0 = off, or ≥ 2)".into());
+        }
+        if self.trust_holdout > 0 && self.trust_batches == 0 {
+            bad.push(format!(
+                "trust_holdout = {} needs trust_batches > 0 (the held-out views serve the acceptance test)",
+                self.trust_holdout
+            ));
+        }
+        if !(self.prior.is_finite() && self.prior >= 0.0) {
+            bad.push(format!("prior = {} (a finite value ≥ 0)", self.prior));
         }
         if !bad.is_empty() {
             bail!("{}", bad.join("; "));

@@ -28,5 +28,6 @@ pub mod run_dir;
 pub mod sampler;
 pub mod setup;
 pub mod trainer;
+pub mod trust;
 
 pub use config::{RunConfig, TrainConfig};

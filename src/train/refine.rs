@@ -109,12 +109,16 @@ pub struct Refiner {
     /// Per active grid level at the last update: RMS of the summed gradient over the nodes it
     /// touched (diagnostics only).
     last_grad_rms: Vec<f64>,
+    /// Acceptance batches' pool (`trust_batches` > 0; `train/trust.rs`).
+    trust_pool: Option<crate::train::trust::TrustPool>,
+    /// The field's parameters (grids, residual) before the update awaiting its acceptance test.
+    trust_before: Option<(Vec<Vec<f32>>, Vec<f32>)>,
 }
 
 impl Refiner {
     /// The refiner of a run, `None` unless `[model.refine] enabled`.
     pub fn for_run(
-        state: &TrainState,
+        state: &mut TrainState,
         prepared: &Prepared,
         interrupt: Option<&'static AtomicBool>,
     ) -> Result<Option<Refiner>> {
@@ -174,9 +178,26 @@ impl Refiner {
             d_theta: vec![0.0; nv],
             g32: Vec::new(),
             last_grad_rms: Vec::new(),
+            trust_pool: match cfg.trust_batches {
+                0 => None,
+                _ => Some(crate::train::trust::TrustPool::new(
+                    &prepared.samples,
+                    cfg.trust_holdout,
+                )?),
+            },
+            trust_before: None,
             diag: Diagnostics::from_env(nv)?,
             cfg,
         };
+        if r.needs_rebuild(state.step) {
+            // Stopped right after an update, before its rebuild (the loop rebuilds only when it
+            // draws a next batch): the offsets and BVH become those of the current parameters,
+            // as the uninterrupted run made them.
+            let p = state.ckpt.refine.as_mut().expect("refine params");
+            p.sync_offsets(&r.cfg, &r.geom);
+            p.traced = p.offsets.clone();
+            r.traced = p.traced.iter().map(|&t| t as f64).collect();
+        }
         if r.traced.iter().any(|&t| t != 0.0) {
             r.tracer = Some(Arc::new(r.build_tracer(&r.traced)?));
         }
@@ -272,6 +293,25 @@ impl Refiner {
 
     /// Rebuild the BVH from the current offsets (and sync `offsets`, `traced`).
     fn rebuild(&mut self, state: &mut TrainState) -> Result<()> {
+        self.install(state, None)
+    }
+
+    /// θ of the current parameters rounded to f32 (as `refine.traced` stores it), and the BVH
+    /// of the mesh at those offsets.
+    fn candidate(&self, state: &TrainState) -> Result<(Vec<f64>, Tracer)> {
+        let p = state.ckpt.refine.as_ref().expect("refine params");
+        let theta: Vec<f64> = p
+            .theta_all(&self.cfg, &self.geom)
+            .into_iter()
+            .map(|t| t as f32 as f64)
+            .collect();
+        let t = self.build_tracer(&theta)?;
+        Ok((theta, t))
+    }
+
+    /// Make the current offsets the traced ones with their BVH (`built`: already built by the
+    /// acceptance test from the current parameters; else built here).
+    fn install(&mut self, state: &mut TrainState, built: Option<Tracer>) -> Result<()> {
         let p = state.ckpt.refine.as_mut().expect("refine params");
         let theta = p.theta_all(&self.cfg, &self.geom);
         if let Some(d) = &self.diag {
@@ -286,8 +326,102 @@ impl Refiner {
         p.offsets = theta.iter().map(|&t| t as f32).collect();
         p.traced = p.offsets.clone();
         self.traced = p.traced.iter().map(|&t| t as f64).collect();
-        self.tracer = Some(Arc::new(self.build_tracer(&self.traced)?));
+        let t = match built {
+            Some(t) => t,
+            None => self.build_tracer(&self.traced)?,
+        };
+        self.tracer = Some(Arc::new(t));
         Ok(())
+    }
+
+    /// The acceptance test of the update just made (`trust_batches` > 0; module docs of
+    /// `train/trust.rs`): `Ok(Some(bvh))` if the proposed step, or one of its halvings, lowers the
+    /// acceptance MSE (the parameters are left at the accepted point), `Ok(None)` if none does
+    /// (the parameters are restored and the mesh does not move). `k` = the step just done.
+    fn trust(
+        &mut self,
+        state: &mut TrainState,
+        prepared: &Prepared,
+        k: u64,
+    ) -> Result<Option<Tracer>> {
+        use crate::train::trust::{paired_mse, row_errors};
+        let (g0, v0) = self
+            .trust_before
+            .take()
+            .expect("an update awaiting its test");
+        let pool = self.trust_pool.as_ref().expect("trust pool");
+        let (g1, v1) = {
+            let p = state.ckpt.refine.as_ref().expect("refine params");
+            (p.grids.clone(), p.vertex.clone())
+        };
+        let sets: Vec<Vec<usize>> = (0..self.cfg.trust_batches as u64)
+            .map(|j| pool.pixels(self.seed, k, j, self.batch_pixels))
+            .collect();
+        let errors = |tracer: &Tracer, state: &TrainState| -> Result<Vec<Vec<Option<f64>>>> {
+            sets.iter()
+                .map(|px| {
+                    row_errors(
+                        &state.ckpt.model,
+                        &state.ckpt.params,
+                        prepared.samples.batch(tracer, px),
+                    )
+                })
+                .collect()
+        };
+        let before = errors(self.tracer.as_deref().unwrap_or(&prepared.tracer), state)?;
+        let mut tried = Vec::new();
+        for h in 0..=self.cfg.trust_halvings {
+            let p = state.ckpt.refine.as_mut().expect("refine params");
+            // The step scaled by 2^−h (h = 0: the proposed parameters themselves).
+            let f = 0.5f64.powi(h as i32);
+            let scale = |a: &[f32], b: &[f32]| -> Vec<f32> {
+                if h == 0 {
+                    return b.to_vec();
+                }
+                a.iter()
+                    .zip(b)
+                    .map(|(&a, &b)| (a as f64 + f * (b as f64 - a as f64)) as f32)
+                    .collect()
+            };
+            p.grids = g0.iter().zip(&g1).map(|(a, b)| scale(a, b)).collect();
+            p.vertex = scale(&v0, &v1);
+            let (_, tracer) = self.candidate(state)?;
+            let after = errors(&tracer, state)?;
+            let (mb, ma) = paired_mse(&before, &after);
+            tried.push((f, mb, ma));
+            if ma < mb * (1.0 - self.cfg.trust_margin) {
+                self.log_trust(k, &tried, true)?;
+                return Ok(Some(tracer));
+            }
+        }
+        self.log_trust(k, &tried, false)?;
+        let p = state.ckpt.refine.as_mut().expect("refine params");
+        p.grids = g0;
+        p.vertex = v0;
+        p.offsets = p.traced.clone();
+        Ok(None)
+    }
+
+    fn log_trust(&self, k: u64, tried: &[(f64, f64, f64)], accepted: bool) -> Result<()> {
+        match &self.diag {
+            Some(d) => d.line(serde_json::json!({"step": k + 1, "trust": {
+                "accepted": accepted,
+                "tried": tried.iter().map(|(f, b, a)| serde_json::json!({"scale": f, "mse_before": b, "mse_after": a})).collect::<Vec<_>>(),
+            }})),
+            None => Ok(()),
+        }
+    }
+
+    /// After step k: the acceptance test of an update made at it (if any), then the BVH rebuild
+    /// (accepted) or nothing (rejected: the mesh stays).
+    fn after_update(&mut self, state: &mut TrainState, prepared: &Prepared, k: u64) -> Result<()> {
+        if self.trust_before.is_none() {
+            return self.rebuild(state);
+        }
+        match self.trust(state, prepared, k)? {
+            Some(t) => self.install(state, Some(t)),
+            None => Ok(()),
+        }
     }
 
     /// Batch k: cast against the current BVH, with triangle ids.
@@ -334,13 +468,28 @@ impl Refiner {
                 if st.is_err() {
                     return (st, None);
                 }
-                if let Err(e) = self.rebuild(state) {
+                if let Err(e) = self.after_update(state, prepared, k1 - 1) {
                     return (Err(e), None);
                 }
                 let nb = self.draw(prepared, k1);
                 (st, Some(nb))
             }
-            None => (self.step(state, batch, grads), None),
+            None => {
+                let k = state.step;
+                let st = self.step(state, batch, grads);
+                if st.is_ok() && self.trust_before.is_some() {
+                    // The run's last step made an update (stop = 1): test it; the offsets
+                    // eval/render apply follow.
+                    let tested = self.trust(state, prepared, k).map(|_| {
+                        let p = state.ckpt.refine.as_mut().expect("refine params");
+                        p.sync_offsets(&self.cfg, &self.geom);
+                    });
+                    if let Err(e) = tested {
+                        return (Err(e), None);
+                    }
+                }
+                (st, None)
+            }
         }
     }
 
@@ -359,11 +508,19 @@ impl Refiner {
         if self.tracer.is_some() {
             drop_empty_pixels(batch);
         }
-        let hits = if moving {
+        let mut hits = if moving {
             self.reintersect(state, batch)?
         } else {
             Vec::new()
         };
+        let holdout = self.cfg.trust_holdout;
+        if holdout > 0 {
+            // The validation views give no offset gradient (`train/trust.rs`).
+            let s = batch.samples_per_pixel();
+            hits.retain(|h| {
+                !crate::train::trust::is_validation_row(batch.view[h.sample / s], holdout)
+            });
+        }
         grads.inputs = moving;
         grads.position_max_scale = self.gradient_scale(k);
         let model = &state.ckpt.model;
@@ -501,6 +658,23 @@ impl Refiner {
         let TrainState { ckpt, adam, .. } = state;
         let params = ckpt.refine.as_mut().expect("refine params");
         let ng = params.grids.len();
+        if self.cfg.trust_batches > 0 {
+            self.trust_before = Some((params.grids.clone(), params.vertex.clone()));
+        }
+        if self.cfg.prior > 0.0 {
+            // ∂/∂G of prior·Σ G² for every step summed (active levels only).
+            let w = 2.0 * self.cfg.prior * summed as f64;
+            for l in 0..levels.min(ng) {
+                for (g, &x) in params.pending[l].iter_mut().zip(&params.grids[l]) {
+                    *g += w * x as f64;
+                }
+            }
+            if residual && !params.vertex.is_empty() {
+                for (g, &x) in params.pending[ng].iter_mut().zip(&params.vertex) {
+                    *g += w * x as f64;
+                }
+            }
+        }
         if residual && !params.vertex.is_empty() {
             let mut d = vec![0.0f64; params.vertex.len()];
             smoothness(&self.cfg, &self.geom, &params.vertex, &mut d);
@@ -579,7 +753,6 @@ impl Diagnostics {
         before: &[f32],
         grad_rms: &[f64],
     ) -> Result<()> {
-        use std::io::Write;
         let n = theta.len().max(1) as f64;
         let s = geom.scale;
         let rms = (theta.iter().map(|t| t * t).sum::<f64>() / n).sqrt() * s;
@@ -602,6 +775,11 @@ impl Diagnostics {
         });
         let line = serde_json::json!({"step": step, "offset_rms": rms, "offset_max": max,
             "update_rms": change, "normal_error_rms": err, "grad_rms": grad_rms});
+        self.line(line)
+    }
+
+    fn line(&self, line: serde_json::Value) -> Result<()> {
+        use std::io::Write;
         let mut f = std::fs::OpenOptions::new()
             .create(true)
             .append(true)

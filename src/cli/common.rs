@@ -166,7 +166,8 @@ pub fn checkpoint_path(run: &Option<PathBuf>, checkpoint: &Option<PathBuf>) -> R
 
 /// A model checkpoint and, when it has one, the run configuration it was trained with.
 pub fn load_model(path: &Path) -> Result<(Checkpoint, Option<RunConfig>)> {
-    let f = TensorFile::read(path)?;
+    // The model only: a training checkpoint's Adam state (`adam.*`) is not read into memory.
+    let f = TensorFile::read_only(path, |name| !name.starts_with("adam."))?;
     let ckpt = Checkpoint::from_tensor_file(&f)?;
     let cfg = match f.metadata.get("run_config") {
         Some(text) => Some(RunConfig::from_toml_str(

@@ -252,16 +252,32 @@ impl TensorFile {
 
     /// Read and validate a safetensors file. Errors name the file (and the tensor).
     pub fn read(path: impl AsRef<Path>) -> Result<TensorFile> {
+        Self::read_only(path, |_| true)
+    }
+
+    /// [`TensorFile::read`] keeping only the tensors whose name `keep` accepts: the others are
+    /// validated like every tensor but never copied out of the file's bytes (a model loaded to
+    /// render or score skips the Adam state, three quarters of a training checkpoint).
+    pub fn read_only(path: impl AsRef<Path>, keep: impl Fn(&str) -> bool) -> Result<TensorFile> {
         let path = path.as_ref();
         let bytes =
             std::fs::read(path).with_context(|| format!("{}: cannot read", path.display()))?;
-        let mut f = Self::from_bytes(&bytes, &path.display().to_string())?;
+        let mut f = Self::from_bytes_only(&bytes, &path.display().to_string(), keep)?;
         f.source = Some(path.to_path_buf());
         Ok(f)
     }
 
     /// Parse a safetensors byte buffer; `label` names it in error messages.
     pub fn from_bytes(bytes: &[u8], label: &str) -> Result<TensorFile> {
+        Self::from_bytes_only(bytes, label, |_| true)
+    }
+
+    /// [`TensorFile::from_bytes`] keeping only the tensors `keep` accepts.
+    fn from_bytes_only(
+        bytes: &[u8],
+        label: &str,
+        keep: impl Fn(&str) -> bool,
+    ) -> Result<TensorFile> {
         let (_, meta) = safetensors::SafeTensors::read_metadata(bytes)
             .map_err(|e| anyhow!("{label}: not a valid safetensors file: {e:?}"))?;
         let st = safetensors::SafeTensors::deserialize(bytes)
@@ -279,6 +295,9 @@ impl TensorFile {
                     view.dtype()
                 )
             })?;
+            if !keep(name) {
+                continue;
+            }
             let t = Tensor::from_bytes(dtype, view.shape().to_vec(), view.data().to_vec())
                 .with_context(|| format!("{label}: tensor {name}"))?;
             tensors.insert(name.to_string(), t);
@@ -578,6 +597,35 @@ mod tests {
         let f = TensorFile::from_bytes(&bytes, "mem").unwrap();
         assert_eq!(f.get_f32("w").unwrap(), vals);
         assert_eq!(f.meta("format").unwrap(), "x");
+    }
+
+    #[test]
+    fn read_only_keeps_the_accepted_tensors_and_still_checks_the_file() {
+        let dir = std::env::temp_dir().join(format!("xscale-tensors-only-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let p = dir.join("ck.safetensors");
+        sample().write_atomic(&p).unwrap();
+        let all = TensorFile::read(&p).unwrap();
+        let some = TensorFile::read_only(&p, |n| n != "c.f64" && n != "b.u8").unwrap();
+        let names: Vec<&String> = some.tensors.keys().collect();
+        let expected: Vec<&String> = all
+            .tensors
+            .keys()
+            .filter(|n| *n != "c.f64" && *n != "b.u8")
+            .collect();
+        assert!(expected.len() + 2 == all.tensors.len() && names == expected);
+        for n in names {
+            assert_eq!(some.tensors[n], all.tensors[n], "{n}");
+        }
+        assert_eq!(some.metadata, all.metadata);
+        assert!(format!("{:#}", some.get("c.f64").unwrap_err()).contains("missing tensor c.f64"));
+        // A truncated file is refused whatever is kept.
+        let bytes = std::fs::read(&p).unwrap();
+        let q = dir.join("trunc.safetensors");
+        std::fs::write(&q, &bytes[..bytes.len() - 3]).unwrap();
+        let e = format!("{:#}", TensorFile::read_only(&q, |_| false).unwrap_err());
+        assert!(e.contains("trunc.safetensors"), "{e}");
+        std::fs::remove_dir_all(&dir).unwrap();
     }
 
     #[test]

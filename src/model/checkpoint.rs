@@ -281,8 +281,12 @@ impl Checkpoint {
         self.to_tensor_file()?.write_atomic(path)
     }
 
+    /// The model of a checkpoint file; a training checkpoint's Adam state (`adam.*`) is skipped,
+    /// not read into memory.
     pub fn load(path: impl AsRef<Path>) -> Result<Checkpoint> {
-        Checkpoint::from_tensor_file(&TensorFile::read(path)?)
+        Checkpoint::from_tensor_file(&TensorFile::read_only(path, |name| {
+            !name.starts_with("adam.")
+        })?)
     }
 }
 

@@ -14,7 +14,8 @@
 //! `XSCALE_BENCH_FIXED_LEVELS=1` uses the preset's fixed 16-level range instead of the automatic one
 //! (22 levels on `small`): the configuration the 0.5–0.6 s PyTorch figure was quoted at, to
 //! check the peer is as fast as that before its ratio at 22 levels is quoted. The peer compiles its loss with
-//! `torch.compile` (untimed warm-up); `XSCALE_BENCH_PEER_EAGER=1` times it uncompiled.
+//! `torch.compile` (untimed warm-up; Inductor needs a C++ compiler, `g++`); `XSCALE_BENCH_PEER_EAGER=1`
+//! times it uncompiled.
 
 mod common;
 use common::{env, small_scene};

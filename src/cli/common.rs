@@ -1,6 +1,5 @@
 //! Pieces shared by several subcommands: choosing a checkpoint, loading a scene for a model.
 
-use crate::io::tensors::TensorFile;
 use crate::model::checkpoint::Checkpoint;
 use crate::raycast::Tracer;
 use crate::scene::{LoadOptions, Scene};
@@ -166,8 +165,7 @@ pub fn checkpoint_path(run: &Option<PathBuf>, checkpoint: &Option<PathBuf>) -> R
 
 /// A model checkpoint and, when it has one, the run configuration it was trained with.
 pub fn load_model(path: &Path) -> Result<(Checkpoint, Option<RunConfig>)> {
-    // The model only: a training checkpoint's Adam state (`adam.*`) is not read into memory.
-    let f = TensorFile::read_only(path, |name| !name.starts_with("adam."))?;
+    let f = Checkpoint::read_model_tensors(path)?;
     let ckpt = Checkpoint::from_tensor_file(&f)?;
     let cfg = match f.metadata.get("run_config") {
         Some(text) => Some(RunConfig::from_toml_str(

@@ -281,12 +281,15 @@ impl Checkpoint {
         self.to_tensor_file()?.write_atomic(path)
     }
 
-    /// The model of a checkpoint file; a training checkpoint's Adam state (`adam.*`) is skipped,
-    /// not read into memory.
+    /// The model of a checkpoint file ([`Checkpoint::read_model_tensors`]).
     pub fn load(path: impl AsRef<Path>) -> Result<Checkpoint> {
-        Checkpoint::from_tensor_file(&TensorFile::read_only(path, |name| {
-            !name.starts_with("adam.")
-        })?)
+        Checkpoint::from_tensor_file(&Checkpoint::read_model_tensors(path)?)
+    }
+
+    /// A checkpoint file's tensors and metadata without a training checkpoint's Adam state
+    /// (`adam.*`, `AdamState::save`: three quarters of the file), which a model does not need.
+    pub fn read_model_tensors(path: impl AsRef<Path>) -> Result<TensorFile> {
+        TensorFile::read_only(path, |name| !name.starts_with("adam."))
     }
 }
 

@@ -296,17 +296,16 @@ impl Refiner {
         self.install(state, None)
     }
 
-    /// θ of the current parameters rounded to f32 (as `refine.traced` stores it), and the BVH
-    /// of the mesh at those offsets.
-    fn candidate(&self, state: &TrainState) -> Result<(Vec<f64>, Tracer)> {
+    /// The BVH of the mesh at the current parameters' offsets, rounded to f32 as `refine.traced`
+    /// stores them (what [`Refiner::install`] would build from them).
+    fn candidate(&self, state: &TrainState) -> Result<Tracer> {
         let p = state.ckpt.refine.as_ref().expect("refine params");
         let theta: Vec<f64> = p
             .theta_all(&self.cfg, &self.geom)
             .into_iter()
             .map(|t| t as f32 as f64)
             .collect();
-        let t = self.build_tracer(&theta)?;
-        Ok((theta, t))
+        self.build_tracer(&theta)
     }
 
     /// Make the current offsets the traced ones with their BVH (`built`: already built by the
@@ -385,7 +384,7 @@ impl Refiner {
             };
             p.grids = g0.iter().zip(&g1).map(|(a, b)| scale(a, b)).collect();
             p.vertex = scale(&v0, &v1);
-            let (_, tracer) = self.candidate(state)?;
+            let tracer = self.candidate(state)?;
             let after = errors(&tracer, state)?;
             let (mb, ma) = paired_mse(&before, &after);
             tried.push((f, mb, ma));

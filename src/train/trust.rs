@@ -58,15 +58,6 @@ impl TrustPool {
         Ok(TrustPool { ranges, total })
     }
 
-    /// Kept pixels in the pool.
-    pub fn len(&self) -> usize {
-        self.total
-    }
-
-    pub fn is_empty(&self) -> bool {
-        self.total == 0
-    }
-
     /// The kept-pixel indices of acceptance batch `j` of the update after step `k`.
     pub fn pixels(&self, seed: u64, k: u64, j: u64, size: usize) -> Vec<usize> {
         (0..size as u64)

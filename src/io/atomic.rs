@@ -1,7 +1,7 @@
 //! Files that are whole or absent: written to a temp file next to the target, then renamed over it,
 //! so a crash, a kill or a full disk mid-write never leaves a truncated checkpoint, render or dump.
 
-use anyhow::{anyhow, Context, Result};
+use anyhow::{anyhow, bail, Context, Result};
 use std::path::{Path, PathBuf};
 
 /// Write `path` through `write`, which must write the whole file at the temp path it is given:
@@ -22,6 +22,14 @@ pub fn write_atomic(
     let fname = path
         .file_name()
         .ok_or_else(|| anyhow!("{}: not a file path", path.display()))?;
+    // Said here, naming the user's path: the temp file's "cannot create" would name only itself.
+    if !dir.is_dir() {
+        bail!(
+            "{}: cannot write: the folder {} does not exist",
+            path.display(),
+            dir.display()
+        );
+    }
     // Unique per process and per call, so concurrent writers never share a temp file.
     static COUNTER: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
     let tmp = dir.join(format!(
@@ -97,6 +105,13 @@ mod tests {
             .collect();
         assert_eq!(names, vec!["0000.png".to_string()]);
         assert!(is_temp_name(".0000.png.tmp.12.0") && !is_temp_name("0000.png"));
+        let absent = dir.join("no-such-folder").join("dump.safetensors");
+        let err = format!("{:#}", write_bytes(&absent, b"x").unwrap_err());
+        assert!(
+            err.contains("dump.safetensors: cannot write: the folder")
+                && err.contains("does not exist"),
+            "{err}"
+        );
         std::fs::remove_dir_all(&dir).unwrap();
     }
 }

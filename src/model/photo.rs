@@ -139,7 +139,7 @@ impl PhotoCamera {
     #[inline]
     pub fn project(&self, p: DVec3) -> Option<([f64; 2], [DVec3; 2])> {
         let c = self.rot * (p - self.origin);
-        if !(c.z > 1e-9 * c.length()) {
+        if c.z.partial_cmp(&(1e-9 * c.length())) != Some(std::cmp::Ordering::Greater) {
             return None;
         }
         let iz = 1.0 / c.z;
@@ -249,7 +249,7 @@ pub struct PatchEval {
 
 /// ρ(a, b) and `∂ρ/∂b` (written into `d_b`), and the curvature factor of the measure (module docs)
 /// given `jb` = ∂b/∂θ_c.
-fn measure(
+pub fn measure(
     m: PhotoMeasure,
     a: &[[f64; 3]],
     b: &[[f64; 3]],
@@ -296,11 +296,12 @@ fn measure(
                     d_b[q][c] = -(x / den - ncc * y / sb);
                 }
             }
-            // |∂b̂/∂θ_c|² with b̂ = b'/sqrt(sb): (|j'|² − (b'·j')²/sb) / sb.
+            // |∂b̂/∂θ_c|² with b̂ = b'/sqrt(sb), j' = ∂b'/∂θ_c:
+            // |j'|²/sb − (b'·j')² (2 sb − b'·b') / sb³.
             let mut jj = 0.0;
-            for q in 0..k {
+            for row in jb {
                 for c in 0..3 {
-                    let j = jb[q][c] - mj[c];
+                    let j = row[c] - mj[c];
                     jj += j * j;
                 }
             }
@@ -383,9 +384,9 @@ pub fn patch_eval(
         let (tri, beta, n, dpi, s) = &geo[q];
         // ∂E/∂x_q = w Σ_c ∂ρ/∂b_qc (∂I_c/∂π_x ∂π_x/∂x + ∂I_c/∂π_y ∂π_y/∂x).
         let (mut gx, mut gy) = (0.0, 0.0);
-        for c in 0..3 {
-            gx += d_b[q][c] * s.dx[c];
-            gy += d_b[q][c] * s.dy[c];
+        for (c, &db) in d_b[q].iter().enumerate() {
+            gx += db * s.dx[c];
+            gy += db * s.dy[c];
         }
         let g = (dpi[0] * gx + dpi[1] * gy) * weight;
         grad.extend(plane_hit_chain(geom, *tri, *beta, *n, p.d, g));

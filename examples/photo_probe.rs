@@ -1,5 +1,5 @@
 //! Does the photo-consistency gradient point at the true surface, and how large is it on the exact
-//! mesh? (docs/geometry.md §5)
+//! mesh? (docs/geometry.md §4)
 //!
 //! Sums the photo term's ∂E/∂θ (`train/photo.rs`) over `STEPS` steps with the mesh unmoved, at one
 //! image level, on a displaced proxy of a synthetic scene whose true error is known vertex by

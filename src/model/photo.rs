@@ -1,6 +1,6 @@
 //! Multi-view photo-consistency of the input photos: a source of vertex gradient for the mesh
 //! refinement that does not depend on the learned features (`[model.refine] photo`; beyond the
-//! paper; SPEC §4.11, docs/geometry.md §5). The sampling (which pixels, which neighbour view,
+//! paper; SPEC §4.11, docs/geometry.md §4). The sampling (which pixels, which neighbour view,
 //! visibility, image levels) is in `train/photo.rs`; this file is the energy of one patch and its
 //! exact derivative with respect to the vertex offsets, in f64.
 //!

@@ -397,9 +397,9 @@ impl RefineConfig {
                     .into(),
             );
         }
-        if !(1..=1 << 20).contains(&self.photo_pixels) {
+        if !(1..=1 << 16).contains(&self.photo_pixels) {
             bad.push(format!(
-                "photo_pixels = {} (1..=1048576 patches per step)",
+                "photo_pixels = {} (1..=65536 patches per step)",
                 self.photo_pixels
             ));
         }

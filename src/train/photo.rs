@@ -1,5 +1,5 @@
 //! The photo-consistency term of the mesh refinement (`[model.refine] photo` > 0; the energy of a
-//! patch and its derivative are in `model/photo.rs`; SPEC §4.11, docs/geometry.md §5): which
+//! patch and its derivative are in `model/photo.rs`; SPEC §4.11, docs/geometry.md §4): which
 //! pixels, which neighbour view, at which image level, and visibility.
 //!
 //! ## Setup (once per run, from the training mesh)

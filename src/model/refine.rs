@@ -196,7 +196,7 @@ fn is_default_damping(v: &f64) -> bool {
 
 const PHOTO_PIXELS: u32 = 1024;
 const PHOTO_PATCH: u32 = 5;
-const PHOTO_LEVELS: [u32; 2] = [3, 0];
+const PHOTO_LEVELS: [u32; 2] = [2, 0];
 const PHOTO_NEIGHBOURS: u32 = 4;
 const PHOTO_ANGLE: [f64; 2] = [5.0, 45.0];
 const PHOTO_SCALE: f64 = 2.0;

@@ -17,6 +17,12 @@
 //!   The last update is at k1 − 1.
 //! - `k ≥ k1`: the mesh is fixed again and the features converge on it.
 //!
+//! With `photo` > 0 the photo-consistency term of the training photos (`train/photo.rs`) adds its
+//! vertex gradient at every moving step after the loss's (which is scaled by `features`, and not
+//! computed at all when that is 0), into the same pending sums; with `optimizer = "gauss-newton"`
+//! its curvature is gathered alongside (`refine.pending_h.*`) and an update divides the one by the
+//! other instead of taking an Adam step (SPEC §4.11).
+//!
 //! While the mesh moves, every batch's valid sub-samples are re-intersected with the current
 //! plane of the triangle their ray hit (`model::refine::reintersect_batch`): between updates the
 //! mesh does not change, so this reproduces the cast hit (up to the batch's 2⁻³² fixed point) and

@@ -32,7 +32,7 @@
 
 use crate::model::photo::{patch_eval, PatchEval, PatchPoint, PhotoCamera, PhotoImage};
 use crate::model::refine::{RefineConfig, RefineGeom};
-use crate::raycast::{Packet, RayStream, Scratch, Tracer, MAX_LANES};
+use crate::raycast::{Packet, RayStream, Scratch, Tracer};
 use crate::rng::{below, Purpose};
 use crate::scene::Image;
 use anyhow::{ensure, Result};
@@ -46,6 +46,11 @@ pub const PHOTO_CHUNK: usize = 16;
 pub const VISIBILITY_TOLERANCE: f64 = 0.01;
 /// Pixel-centre rays per view used to choose its neighbours (columns, rows).
 pub const PROBE_GRID: [u32; 2] = [16, 12];
+/// Rays traced together by the photo term: one. Its rays are not coherent enough for a packet
+/// (a coarse level's patch spreads over many photo pixels, visibility rays go to scattered
+/// points): a group traversal visits the union of its rays' nodes, 5–50× slower here than one
+/// ray at a time. A ray's result does not depend on the packet it is traced in.
+const LANES: usize = 1;
 /// Fewest probe hits a neighbour must share with its view.
 pub const MIN_SHARED: usize = 8;
 
@@ -107,7 +112,7 @@ fn trace_from(
 ) -> Vec<Option<(u32, f64)>> {
     let o32 = o.as_vec3().to_array();
     let mut out = Vec::with_capacity(dirs.len());
-    for chunk in dirs.chunks(MAX_LANES) {
+    for chunk in dirs.chunks(LANES) {
         let mut p = Packet::default();
         for (l, d) in chunk.iter().enumerate() {
             p.set(l, o32, d.as_vec3().to_array());
@@ -400,13 +405,8 @@ fn choose_neighbours(
     }
     let cam = &vi.cams[0];
     let [gw, gh] = PROBE_GRID;
-    // In 4 × 4 tiles of the grid, so the rays traced together are neighbours (faster).
-    let dirs: Vec<DVec3> = (0..gh.div_ceil(4) * gw.div_ceil(4))
-        .flat_map(|tile| {
-            let (tx, ty) = (tile % gw.div_ceil(4), tile / gw.div_ceil(4));
-            (0..16).map(move |i| (4 * tx + i % 4, 4 * ty + i / 4))
-        })
-        .filter(|&(a, b)| a < gw && b < gh)
+    let dirs: Vec<DVec3> = (0..gh)
+        .flat_map(|b| (0..gw).map(move |a| (a, b)))
         .map(|(a, b)| {
             cam.ray(
                 (a as f64 + 0.5) * cam.width as f64 / gw as f64,

@@ -31,6 +31,9 @@ pub enum Purpose {
     PixelSample = 5,
     /// Acceptance batches of the mesh refinement's trust region; `a` = step, `b` = slot.
     RefineTrust = 6,
+    /// Patches and neighbour views of the refinement's photo-consistency term; `a` = step,
+    /// `b` = 2·slot (pixel) or 2·slot + 1 (neighbour).
+    RefinePhoto = 7,
     /// Anything a test needs.
     Test = 99,
 }

@@ -988,8 +988,8 @@ fn vertex_pipeline_gradients_match_fd() {
 
 use glam::DVec3;
 use xscale::model::refine::{
-    field_backward, field_theta, hits_backward, hits_backward_anchored, reintersect_batch,
-    reintersect_batch_anchored, smoothness, RayHit, RefineConfig, RefineGeom,
+    field_backward, field_theta, hits_backward, hits_backward_anchored, intersect,
+    reintersect_batch, reintersect_batch_anchored, smoothness, RayHit, RefineConfig, RefineGeom,
 };
 use xscale::scene::{Mesh, Normalization, NormalizeMode};
 
@@ -1465,4 +1465,367 @@ fn broken_anchored_mesh_refinement_gradients_fail_the_check() {
         &|h, dp, dt| hits_backward_anchored(&c.geom, h, dp, dt),
         &broken,
     );
+}
+
+// ---------------------------------------------------------------------------------------------
+// The refinement's photo-consistency term (model/photo.rs)
+// ---------------------------------------------------------------------------------------------
+
+use xscale::model::photo::{
+    measure, patch_eval, plane_hit_chain, PatchPoint, PhotoCamera, PhotoImage, PhotoMeasure,
+};
+
+/// A smooth RGB texture rasterised at integer pixels (values in ~[0.15, 0.85]).
+fn photo_image(w: u32, h: u32, seed: u64) -> PhotoImage {
+    let mut data = Vec::with_capacity((3 * w * h) as usize);
+    for y in 0..h {
+        for x in 0..w {
+            for c in 0..3u64 {
+                let (fx, fy) = (x as f64, y as f64);
+                let p = 6.0 * u(seed, 900 + c, 0);
+                let q = 6.0 * u(seed, 900 + c, 1);
+                let v = 0.5
+                    + 0.2 * (0.31 * fx + 0.23 * fy + p).sin()
+                    + 0.15 * (0.17 * fx - 0.41 * fy + q).cos()
+                    + 0.03 * sym(seed, 910 + c, (y * w + x) as u64);
+                data.push(v as f32);
+            }
+        }
+    }
+    PhotoImage {
+        width: w,
+        height: h,
+        data,
+    }
+}
+
+/// Everything one photo-consistency gradient check needs: the sheet of the refinement checks,
+/// offset parameters, a reference camera centre, patches of rays onto the sheet and the
+/// neighbour view that sees them.
+struct PhotoCheck {
+    cfg: RefineConfig,
+    geom: RefineGeom,
+    grids: Vec<Vec<f64>>,
+    r: Vec<f64>,
+    origin: DVec3,
+    patches: Vec<Vec<PatchPoint>>,
+    cam: PhotoCamera,
+    img: PhotoImage,
+    measure: PhotoMeasure,
+    weight: f64,
+    base_cells: Vec<Vec<[i32; 2]>>,
+}
+
+impl PhotoCheck {
+    fn new(m: PhotoMeasure, seed: u64) -> PhotoCheck {
+        use xscale::scene::{Camera, Distortion};
+        let (mesh, norm, cfg) = refine_scene();
+        let geom = RefineGeom::new(&mesh, &norm);
+        let (grids, r) = refine_params(&cfg, geom.n_vertices(), seed);
+        let theta = RefineCheck::theta_of(&cfg, &geom, &grids, &r);
+        // The sheet spans x 3…5, y −1…0.5 at z ≈ 10 (world); the reference camera looks down from
+        // above and to the side, the neighbour from the other side.
+        let target = DVec3::new(4.0, -0.25, 10.0);
+        let eye_i = DVec3::new(3.2, -1.6, 13.5);
+        let eye_j = DVec3::new(5.1, 0.9, 13.2);
+        let (w, h) = (64u32, 48u32);
+        let (rot, tr) = xscale::synth::cameras::look_at(eye_j, target, DVec3::Z);
+        let cam = Camera {
+            width: w,
+            height: h,
+            fx: 30.0,
+            fy: 31.0,
+            cx: 31.5,
+            cy: 24.5,
+            distortion: Distortion::None,
+            rotation: rot,
+            translation: tr,
+        };
+        let cam = PhotoCamera::new(&cam, norm.center, "check").unwrap();
+        let img = photo_image(w, h, seed);
+        let origin = eye_i - norm.center;
+        let mut patches = Vec::new();
+        for p in 0..6u64 {
+            let k = if m == PhotoMeasure::Huber && p % 2 == 0 {
+                1
+            } else {
+                9
+            };
+            let mut pts = Vec::new();
+            for q in 0..k as u64 {
+                let tri = (u(seed, 920 + p, q) * geom.triangles.len() as f64) as usize;
+                let [b1, b2] = random_bary(seed + 17 * p, q);
+                let beta = [1.0 - b1 - b2, b1, b2];
+                let x = (0..3).fold(DVec3::ZERO, |acc, c| {
+                    let i = geom.triangles[tri][c] as usize;
+                    acc + geom.position(i, theta[i]) * beta[c]
+                });
+                let d = (x - origin).normalize();
+                let reference = std::array::from_fn(|c| {
+                    (0.5 + 0.25 * sym(seed, 930 + p, 3 * q + c as u64)) as f32
+                });
+                pts.push(PatchPoint {
+                    tri: tri as u32,
+                    d,
+                    reference,
+                });
+            }
+            patches.push(pts);
+        }
+        let mut c = PhotoCheck {
+            cfg,
+            geom,
+            grids,
+            r,
+            origin,
+            patches,
+            cam,
+            img,
+            measure: m,
+            weight: 0.37,
+            base_cells: Vec::new(),
+        };
+        let (_, cells) = c.eval(&c.grids.clone(), &c.r.clone());
+        c.base_cells = cells;
+        c
+    }
+
+    /// Energy (photo + smoothness) and every sample's bilinear cell, from scratch.
+    fn eval(&self, grids: &[Vec<f64>], r: &[f64]) -> (f64, Vec<Vec<[i32; 2]>>) {
+        let theta = RefineCheck::theta_of(&self.cfg, &self.geom, grids, r);
+        let mut e = 0.0;
+        let mut cells = Vec::new();
+        for pts in &self.patches {
+            let ev = patch_eval(
+                &self.geom,
+                &theta,
+                self.origin,
+                pts,
+                &self.cam,
+                &self.img,
+                self.measure,
+                self.cfg.min_cos,
+                self.weight,
+            )
+            .expect("every patch is seen by the neighbour");
+            e += ev.energy;
+            cells.push(ev.cells);
+        }
+        let mut scratch = vec![0.0; r.len()];
+        e += smoothness(&self.cfg, &self.geom, r, &mut scratch);
+        (e, cells)
+    }
+
+    /// ∂E/∂θ assembled from the public pieces (intersection, projection, bilinear sample,
+    /// measure, hit-point chain), with one of them optionally broken.
+    fn pieces(&self, theta: &[f64], broken: PhotoBroken) -> Vec<f64> {
+        let mut d_theta = vec![0.0; theta.len()];
+        for pts in &self.patches {
+            let mut a = Vec::new();
+            let mut b = Vec::new();
+            let mut geo = Vec::new();
+            for p in pts {
+                let tri = self.geom.triangles[p.tri as usize];
+                let v = tri.map(|i| self.geom.position(i as usize, theta[i as usize]));
+                let (t, beta, n) = intersect(self.origin, p.d, v, self.cfg.min_cos).unwrap();
+                let x = self.origin + p.d * t;
+                let (pi, mut dpi) = self.cam.project(x).unwrap();
+                if broken == PhotoBroken::NoPerspective {
+                    dpi = [
+                        self.cam.rot.row(0)
+                            * (self.cam.fx / (self.cam.rot * (x - self.cam.origin)).z),
+                        self.cam.rot.row(1)
+                            * (self.cam.fy / (self.cam.rot * (x - self.cam.origin)).z),
+                    ];
+                }
+                let s = self.img.sample(pi[0], pi[1]).unwrap();
+                a.push(p.reference.map(|v| v as f64));
+                b.push(s.rgb);
+                geo.push((tri, beta, n, dpi, s));
+            }
+            let jb = vec![[0.0; 3]; pts.len()];
+            let mut d_b = vec![[0.0; 3]; pts.len()];
+            measure(self.measure, &a, &b, &jb, &mut d_b);
+            for (q, p) in pts.iter().enumerate() {
+                let (tri, beta, n, dpi, s) = &geo[q];
+                let (mut gx, mut gy) = (0.0, 0.0);
+                for (c, &db) in d_b[q].iter().enumerate() {
+                    let (dx, dy) = if broken == PhotoBroken::SwappedImageGradient {
+                        (s.dy[c], s.dx[c])
+                    } else {
+                        (s.dx[c], s.dy[c])
+                    };
+                    gx += db * dx;
+                    gy += db * dy;
+                }
+                let g = (dpi[0] * gx + dpi[1] * gy) * self.weight;
+                let d = if broken == PhotoBroken::AlongNormal {
+                    let nn = n.normalize();
+                    if nn.dot(p.d) < 0.0 {
+                        -nn
+                    } else {
+                        nn
+                    }
+                } else {
+                    p.d
+                };
+                for (i, v) in plane_hit_chain(&self.geom, *tri, *beta, *n, d, g) {
+                    d_theta[i as usize] += v;
+                }
+            }
+        }
+        d_theta
+    }
+
+    /// Analytic gradients of the grids and the residual from `d_theta` (plus smoothness).
+    fn to_params(&self, d_theta: &[f64]) -> (Vec<Vec<f64>>, Vec<f64>) {
+        let nv = self.geom.n_vertices();
+        let all: Vec<u32> = (0..nv as u32).collect();
+        let mut d_grids: Vec<Vec<f64>> = self.grids.iter().map(|g| vec![0.0; g.len()]).collect();
+        let mut d_r = vec![0.0; nv];
+        field_backward(
+            &self.cfg,
+            &self.geom,
+            &all,
+            d_theta,
+            self.grids.len(),
+            true,
+            &mut d_grids,
+            &mut d_r,
+        );
+        smoothness(&self.cfg, &self.geom, &self.r, &mut d_r);
+        (d_grids, d_r)
+    }
+
+    /// ∂E/∂θ from `patch_eval` itself.
+    fn analytic(&self) -> Vec<f64> {
+        let theta = RefineCheck::theta_of(&self.cfg, &self.geom, &self.grids, &self.r);
+        let mut d_theta = vec![0.0; theta.len()];
+        for pts in &self.patches {
+            let ev = patch_eval(
+                &self.geom,
+                &theta,
+                self.origin,
+                pts,
+                &self.cam,
+                &self.img,
+                self.measure,
+                self.cfg.min_cos,
+                self.weight,
+            )
+            .unwrap();
+            for (i, g) in ev.grad {
+                d_theta[i as usize] += g;
+            }
+        }
+        d_theta
+    }
+
+    fn check(&self, an: &(Vec<Vec<f64>>, Vec<f64>), rep: &mut Report, label: &str) {
+        let mut fd = |lab: String, an: f64, perturb: &dyn Fn(f64) -> (Vec<Vec<f64>>, Vec<f64>)| {
+            let (gp, rp) = perturb(H);
+            let (gm, rm) = perturb(-H);
+            let (fp, cp) = self.eval(&gp, &rp);
+            let (fm, cm) = self.eval(&gm, &rm);
+            if cp != self.base_cells || cm != self.base_cells {
+                rep.skipped += 1;
+                return;
+            }
+            rep.check(&lab, (fp - fm) / (2.0 * H), an);
+        };
+        for i in 0..self.r.len() {
+            fd(format!("{label}: refine.vertex[{i}]"), an.1[i], &|h| {
+                let mut r = self.r.clone();
+                r[i] += h;
+                (self.grids.clone(), r)
+            });
+        }
+        for (l, g) in an.0.iter().enumerate() {
+            let mut idx: Vec<usize> = (0..g.len()).filter(|&e| g[e] != 0.0).collect();
+            idx.extend([0, g.len() - 1]);
+            for e in idx {
+                fd(format!("{label}: refine.grid.{l}[{e}]"), g[e], &|h| {
+                    let mut gr = self.grids.clone();
+                    gr[l][e] += h;
+                    (gr, self.r.clone())
+                });
+            }
+        }
+    }
+}
+
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum PhotoBroken {
+    None,
+    NoPerspective,
+    SwappedImageGradient,
+    AlongNormal,
+}
+
+/// ∂E/∂(offset field) of the photo-consistency energy (zncc on 3×3 patches; huber on single
+/// pixels and 3×3 patches) through the bilinear sample, the neighbour's projection, the
+/// re-intersected hit points, the field's trilinear levels and the smoothness energy, against
+/// central differences of the energy recomputed from scratch.
+#[test]
+fn photo_consistency_gradients_match_fd() {
+    let mut rep = Report::default();
+    for (mi, m) in [PhotoMeasure::Zncc, PhotoMeasure::Huber]
+        .into_iter()
+        .enumerate()
+    {
+        for s in 0..2u64 {
+            let c = PhotoCheck::new(m, 700 + 10 * mi as u64 + s);
+            let d = c.analytic();
+            // The gradient assembled from the pieces is the same as patch_eval's.
+            let theta = RefineCheck::theta_of(&c.cfg, &c.geom, &c.grids, &c.r);
+            let p = c.pieces(&theta, PhotoBroken::None);
+            for (x, y) in d.iter().zip(&p) {
+                assert!((x - y).abs() <= 1e-12 * (1.0 + x.abs()), "{x} vs {y}");
+            }
+            let an = c.to_params(&d);
+            assert!(an.1.iter().filter(|&&g| g != 0.0).count() >= 10);
+            c.check(&an, &mut rep, m.name());
+        }
+    }
+    rep.finish("photo consistency", 300);
+}
+
+/// The photo check can fail: the projection's derivative without its perspective term, the image
+/// gradient's x and y swapped, and the hit moved along the triangle's normal instead of its ray
+/// each disagree with the finite differences, while the real gradient passes.
+#[test]
+fn broken_photo_consistency_gradients_fail_the_check() {
+    let c = PhotoCheck::new(PhotoMeasure::Zncc, 790);
+    let theta = RefineCheck::theta_of(&c.cfg, &c.geom, &c.grids, &c.r);
+    let mut ok = Report::default();
+    c.check(
+        &c.to_params(&c.pieces(&theta, PhotoBroken::None)),
+        &mut ok,
+        "real",
+    );
+    assert!(
+        ok.fails.is_empty(),
+        "the real gradient fails: {:?}",
+        &ok.fails[..ok.fails.len().min(5)]
+    );
+    for b in [
+        PhotoBroken::NoPerspective,
+        PhotoBroken::SwappedImageGradient,
+        PhotoBroken::AlongNormal,
+    ] {
+        let mut bad = Report::default();
+        c.check(&c.to_params(&c.pieces(&theta, b)), &mut bad, "broken");
+        assert!(
+            bad.fails.len() * 3 >= bad.checked,
+            "{b:?}: only {} of {} checks failed",
+            bad.fails.len(),
+            bad.checked
+        );
+        eprintln!(
+            "{b:?}: {} of {} photo checks fail; the real gradient: 0 of {}",
+            bad.fails.len(),
+            bad.checked,
+            ok.checked
+        );
+    }
 }

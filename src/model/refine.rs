@@ -52,6 +52,7 @@
 //! (f64, sums in vertex / edge order, so deterministic).
 
 use crate::model::batch::Batch;
+use crate::model::photo::PhotoMeasure;
 use crate::model::Real;
 use crate::scene::{Mesh, Normalization};
 use anyhow::{bail, ensure, Result};
@@ -132,6 +133,97 @@ pub struct RefineConfig {
     /// towards zero (added to the summed gradient at each update, times the steps summed).
     #[serde(skip_serializing_if = "is_zero_f64")]
     pub prior: f64,
+    /// Weight of the loss's gradient through the hit point (the learned features' signal);
+    /// 0 = the mesh is moved by the photo-consistency term (and smoothness, prior) only.
+    #[serde(skip_serializing_if = "is_one_f64")]
+    pub features: f64,
+    /// Weight of the multi-view photo-consistency energy of the training photos (0 = off;
+    /// `model/photo.rs`, `train/photo.rs`).
+    #[serde(skip_serializing_if = "is_zero_f64")]
+    pub photo: f64,
+    /// Reference patches drawn per training step.
+    #[serde(skip_serializing_if = "is_default_photo_pixels")]
+    pub photo_pixels: u32,
+    /// Side of a patch in pixels (odd; 1 = single pixels, huber only).
+    #[serde(skip_serializing_if = "is_default_photo_patch")]
+    pub photo_patch: u32,
+    /// `zncc` or `huber` (model/photo.rs).
+    #[serde(skip_serializing_if = "is_default_measure")]
+    pub photo_measure: PhotoMeasure,
+    /// Image levels (photos box-downsampled by 2^l), from `[0]` when the mesh starts moving to
+    /// `[1]` at its last update, in equal spans of steps (coarse to fine).
+    #[serde(skip_serializing_if = "is_default_photo_levels")]
+    pub photo_levels: [u32; 2],
+    /// Neighbour views kept per training view (the best by shared, visible, well-triangulated
+    /// surface; `train/photo.rs`).
+    #[serde(skip_serializing_if = "is_default_photo_neighbours")]
+    pub photo_neighbours: u32,
+    /// Range of the angle (degrees) between the two views' rays at the surface for a pair.
+    #[serde(skip_serializing_if = "is_default_photo_angle")]
+    pub photo_angle: [f64; 2],
+    /// Largest ratio of the two views' pixel footprints at the surface for a pair.
+    #[serde(skip_serializing_if = "is_default_photo_scale")]
+    pub photo_scale: f64,
+    /// How the offset field steps at an update: `adam` (tiny-cuda-nn rules) or `gauss-newton`
+    /// (the summed gradient over the photo term's summed curvature: `train/refine.rs`).
+    #[serde(skip_serializing_if = "is_default_optimizer")]
+    pub optimizer: RefineOptimizer,
+    /// Levenberg damping of the Gauss–Newton step, relative to the mean curvature of the level's
+    /// nodes that have one.
+    #[serde(skip_serializing_if = "is_default_damping")]
+    pub damping: f64,
+}
+
+/// The offset field's step rule (`[model.refine] optimizer`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "kebab-case")]
+pub enum RefineOptimizer {
+    #[default]
+    Adam,
+    /// `Δ = −lr · G / (n · H + λ)` per node (G the summed gradient, H the photo term's summed
+    /// curvature spread over the nodes, n the active field levels, λ = damping · mean H).
+    GaussNewton,
+}
+
+const DAMPING: f64 = 0.1;
+
+fn is_default_optimizer(v: &RefineOptimizer) -> bool {
+    *v == RefineOptimizer::default()
+}
+fn is_default_damping(v: &f64) -> bool {
+    *v == DAMPING
+}
+
+const PHOTO_PIXELS: u32 = 1024;
+const PHOTO_PATCH: u32 = 5;
+const PHOTO_LEVELS: [u32; 2] = [2, 0];
+const PHOTO_NEIGHBOURS: u32 = 4;
+const PHOTO_ANGLE: [f64; 2] = [5.0, 45.0];
+const PHOTO_SCALE: f64 = 2.0;
+
+fn is_one_f64(v: &f64) -> bool {
+    *v == 1.0
+}
+fn is_default_photo_pixels(v: &u32) -> bool {
+    *v == PHOTO_PIXELS
+}
+fn is_default_photo_patch(v: &u32) -> bool {
+    *v == PHOTO_PATCH
+}
+fn is_default_measure(v: &PhotoMeasure) -> bool {
+    *v == PhotoMeasure::default()
+}
+fn is_default_photo_levels(v: &[u32; 2]) -> bool {
+    *v == PHOTO_LEVELS
+}
+fn is_default_photo_neighbours(v: &u32) -> bool {
+    *v == PHOTO_NEIGHBOURS
+}
+fn is_default_photo_angle(v: &[f64; 2]) -> bool {
+    *v == PHOTO_ANGLE
+}
+fn is_default_photo_scale(v: &f64) -> bool {
+    *v == PHOTO_SCALE
 }
 
 fn is_zero_u32(v: &u32) -> bool {
@@ -170,6 +262,17 @@ impl Default for RefineConfig {
             trust_halvings: 2,
             trust_holdout: 0,
             prior: 0.0,
+            features: 1.0,
+            photo: 0.0,
+            photo_pixels: PHOTO_PIXELS,
+            photo_patch: PHOTO_PATCH,
+            photo_measure: PhotoMeasure::default(),
+            photo_levels: PHOTO_LEVELS,
+            photo_neighbours: PHOTO_NEIGHBOURS,
+            photo_angle: PHOTO_ANGLE,
+            photo_scale: PHOTO_SCALE,
+            optimizer: RefineOptimizer::default(),
+            damping: DAMPING,
         }
     }
 }
@@ -281,6 +384,66 @@ impl RefineConfig {
         }
         if !(self.prior.is_finite() && self.prior >= 0.0) {
             bad.push(format!("prior = {} (a finite value ≥ 0)", self.prior));
+        }
+        if !(self.features.is_finite() && self.features >= 0.0) {
+            bad.push(format!("features = {} (a finite value ≥ 0)", self.features));
+        }
+        if !(self.photo.is_finite() && self.photo >= 0.0) {
+            bad.push(format!("photo = {} (a finite value ≥ 0)", self.photo));
+        }
+        if self.enabled && self.features == 0.0 && self.photo == 0.0 {
+            bad.push(
+                "features = 0 and photo = 0: nothing would move the mesh (set photo > 0, or features > 0)"
+                    .into(),
+            );
+        }
+        if !(1..=1 << 16).contains(&self.photo_pixels) {
+            bad.push(format!(
+                "photo_pixels = {} (1..=65536 patches per step)",
+                self.photo_pixels
+            ));
+        }
+        if self.photo_patch % 2 == 0 || !(1..=15).contains(&self.photo_patch) {
+            bad.push(format!(
+                "photo_patch = {} (an odd side in 1..=15 pixels)",
+                self.photo_patch
+            ));
+        }
+        if self.photo_measure == PhotoMeasure::Zncc && self.photo_patch < 3 {
+            bad.push(format!(
+                "photo_patch = {} with photo_measure = \"zncc\" (a correlation needs a patch of at least 3×3; use \"huber\" for single pixels)",
+                self.photo_patch
+            ));
+        }
+        let [l0, l1] = self.photo_levels;
+        if l0 > 8 || l1 > l0 {
+            bad.push(format!(
+                "photo_levels = [{l0}, {l1}] (coarse to fine: [0] ≥ [1], at most 8)"
+            ));
+        }
+        if !(1..=64).contains(&self.photo_neighbours) {
+            bad.push(format!(
+                "photo_neighbours = {} (1..=64)",
+                self.photo_neighbours
+            ));
+        }
+        let [a0, a1] = self.photo_angle;
+        if !(a0.is_finite() && a1.is_finite() && 0.0 <= a0 && a0 < a1 && a1 <= 90.0) {
+            bad.push(format!(
+                "photo_angle = [{a0}, {a1}] (degrees, 0 ≤ [0] < [1] ≤ 90)"
+            ));
+        }
+        if !(self.photo_scale.is_finite() && self.photo_scale >= 1.0) {
+            bad.push(format!("photo_scale = {} (≥ 1)", self.photo_scale));
+        }
+        if !(self.damping.is_finite() && self.damping >= 0.0) {
+            bad.push(format!("damping = {} (a finite value ≥ 0)", self.damping));
+        }
+        if self.enabled && self.optimizer == RefineOptimizer::GaussNewton && self.photo == 0.0 {
+            bad.push(
+                "optimizer = \"gauss-newton\" needs the photo term's curvature: set photo > 0"
+                    .into(),
+            );
         }
         if !bad.is_empty() {
             bail!("{}", bad.join("; "));
@@ -497,6 +660,9 @@ pub struct RefineParams {
     /// Gradients summed since the last update (f64), one per grid level, then the residual's
     /// (saved, so a run resumed between two updates continues exactly).
     pub pending: Vec<Vec<f64>>,
+    /// The photo term's curvature summed since the last update, shaped as `pending`
+    /// (`optimizer = "gauss-newton"` only; else empty).
+    pub pending_h: Vec<Vec<f64>>,
 }
 
 /// Tensor name of grid level l.
@@ -512,6 +678,11 @@ pub fn pending_name(name: &str) -> String {
     format!("refine.pending.{}", name.trim_start_matches("refine."))
 }
 
+/// Tensor name of the pending curvature of tensor `name` (`optimizer = "gauss-newton"`).
+pub fn pending_h_name(name: &str) -> String {
+    format!("refine.pending_h.{}", name.trim_start_matches("refine."))
+}
+
 impl RefineParams {
     /// Zero offsets for a mesh of `n_vertices`.
     pub fn zeros(cfg: &RefineConfig, n_vertices: usize) -> RefineParams {
@@ -523,17 +694,22 @@ impl RefineParams {
         } else {
             Vec::new()
         };
-        let pending = grids
+        let pending: Vec<Vec<f64>> = grids
             .iter()
             .chain(std::iter::once(&vertex).filter(|v| !v.is_empty()))
             .map(|g| vec![0.0; g.len()])
             .collect();
+        let pending_h = match cfg.optimizer {
+            RefineOptimizer::GaussNewton => pending.clone(),
+            RefineOptimizer::Adam => Vec::new(),
+        };
         RefineParams {
             grids,
             vertex,
             offsets: vec![0.0; n_vertices],
             traced: vec![0.0; n_vertices],
             pending,
+            pending_h,
         }
     }
 
@@ -597,6 +773,9 @@ impl RefineParams {
         for ((name, shape), p) in self.specs().iter().zip(&self.pending) {
             f.insert(pending_name(name), Tensor::f64(shape.clone(), p)?);
         }
+        for ((name, shape), p) in self.specs().iter().zip(&self.pending_h) {
+            f.insert(pending_h_name(name), Tensor::f64(shape.clone(), p)?);
+        }
         Ok(())
     }
 
@@ -634,13 +813,19 @@ impl RefineParams {
         }
         p.offsets = read(OFFSETS_NAME, n)?;
         p.traced = read(TRACED_NAME, n)?;
-        for ((name, shape), pend) in p.specs().iter().zip(p.pending.iter_mut()) {
-            let pn = pending_name(name);
+        let specs = p.specs();
+        let read64 = |pn: String, shape: &[usize]| -> Result<Vec<f64>> {
             let v = f.get_checked(&pn, DType::F64, shape)?.to_f64()?;
             if let Some(k) = v.iter().position(|x| !x.is_finite()) {
                 bail!("{label}: {pn}[{k}] = {} is not finite", v[k]);
             }
-            *pend = v;
+            Ok(v)
+        };
+        for ((name, shape), pend) in specs.iter().zip(p.pending.iter_mut()) {
+            *pend = read64(pending_name(name), shape)?;
+        }
+        for ((name, shape), pend) in specs.iter().zip(p.pending_h.iter_mut()) {
+            *pend = read64(pending_h_name(name), shape)?;
         }
         Ok(p)
     }
@@ -817,11 +1002,8 @@ pub fn hits_backward<R: Real>(
     let inv_extent = DVec3::ONE / geom.norm.extent;
     for h in hits {
         let g = local_gradient(d_positions, h.sample, inv_extent);
-        let nd = h.n.dot(h.d);
-        let along = geom.scale * g.dot(h.d) / nd;
-        for c in 0..3 {
-            let i = h.tri[c] as usize;
-            d_theta[i] += along * h.beta[c] * h.n.dot(geom.normals[i]);
+        for (i, v) in crate::model::photo::plane_hit_chain(geom, h.tri, h.beta, h.n, h.d, g) {
+            d_theta[i as usize] += v;
         }
     }
 }

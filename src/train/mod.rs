@@ -21,6 +21,7 @@ pub mod bench_quality;
 pub mod config;
 pub mod divergence;
 pub mod memory;
+pub mod photo;
 pub mod precision;
 pub mod refine;
 pub mod report;

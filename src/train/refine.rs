@@ -17,6 +17,12 @@
 //!   The last update is at k1 − 1.
 //! - `k ≥ k1`: the mesh is fixed again and the features converge on it.
 //!
+//! With `photo` > 0 the photo-consistency term of the training photos (`train/photo.rs`) adds its
+//! vertex gradient at every moving step after the loss's (which is scaled by `features`, and not
+//! computed at all when that is 0), into the same pending sums; with `optimizer = "gauss-newton"`
+//! its curvature is gathered alongside (`refine.pending_h.*`) and an update divides the one by the
+//! other instead of taking an Adam step (SPEC §4.11).
+//!
 //! While the mesh moves, every batch's valid sub-samples are re-intersected with the current
 //! plane of the triangle their ray hit (`model::refine::reintersect_batch`): between updates the
 //! mesh does not change, so this reproduces the cast hit (up to the batch's 2⁻³² fixed point) and
@@ -37,7 +43,8 @@ use crate::model::batch::Batch;
 use crate::model::params::Grads;
 use crate::model::refine::{
     field_backward, grid_name, hits_backward, hits_backward_anchored, reintersect_batch,
-    reintersect_batch_anchored, smoothness, RayHit, RefineConfig, RefineGeom, VERTEX_NAME,
+    reintersect_batch_anchored, smoothness, RayHit, RefineConfig, RefineGeom, RefineOptimizer,
+    VERTEX_NAME,
 };
 use crate::raycast::Tracer;
 use crate::train::adam::{AdamGroup, LrSchedule};
@@ -105,6 +112,8 @@ pub struct Refiner {
     // Scratch, kept between steps.
     theta: Vec<f64>,
     d_theta: Vec<f64>,
+    /// The photo term's curvature per vertex (`optimizer = "gauss-newton"`; else empty).
+    d_curv: Vec<f64>,
     g32: Vec<f32>,
     /// Per active grid level at the last update: RMS of the summed gradient over the nodes it
     /// touched (diagnostics only).
@@ -113,6 +122,10 @@ pub struct Refiner {
     trust_pool: Option<crate::train::trust::TrustPool>,
     /// The field's parameters (grids, residual) before the update awaiting its acceptance test.
     trust_before: Option<(Vec<Vec<f32>>, Vec<f32>)>,
+    /// The photo-consistency term (`photo` > 0; `train/photo.rs`).
+    photo: Option<crate::train::photo::PhotoTerm>,
+    /// Its sums since the last update (diagnostics only).
+    photo_stats: crate::train::photo::PhotoStats,
 }
 
 impl Refiner {
@@ -176,6 +189,10 @@ impl Refiner {
             traced: params.traced.iter().map(|&t| t as f64).collect(),
             theta: vec![0.0; nv],
             d_theta: vec![0.0; nv],
+            d_curv: match cfg.optimizer {
+                RefineOptimizer::GaussNewton => vec![0.0; nv],
+                RefineOptimizer::Adam => Vec::new(),
+            },
             g32: Vec::new(),
             last_grad_rms: Vec::new(),
             trust_pool: match cfg.trust_batches {
@@ -186,9 +203,35 @@ impl Refiner {
                 )?),
             },
             trust_before: None,
+            photo: None,
+            photo_stats: Default::default(),
             diag: Diagnostics::from_env(nv)?,
             cfg,
         };
+        if r.cfg.photo > 0.0 {
+            let crate::train::sampler::Samples::Stream(stream) = &prepared.samples else {
+                anyhow::bail!("model.refine: the photo-consistency term needs streamed samples");
+            };
+            let term =
+                crate::train::photo::PhotoTerm::new(stream, &prepared.tracer, norm.center, &r.cfg)?;
+            if let Some(d) = &r.diag {
+                let pairs: Vec<serde_json::Value> = term
+                    .views
+                    .iter()
+                    .map(|v| {
+                        serde_json::json!([
+                            v.row,
+                            v.neighbours
+                                .iter()
+                                .map(|&j| term.views[j].row)
+                                .collect::<Vec<_>>()
+                        ])
+                    })
+                    .collect();
+                d.line(serde_json::json!({ "photo_pairs": pairs }))?;
+            }
+            r.photo = Some(term);
+        }
         if r.needs_rebuild(state.step) {
             // Stopped right after an update, before its rebuild (the loop rebuilds only when it
             // draws a next batch): the offsets and BVH become those of the current parameters,
@@ -249,6 +292,17 @@ impl Refiner {
             return None;
         }
         Some(self.geometric(g0, g1, k, self.steps) as f32)
+    }
+
+    /// Image level of the photo term at step k (`photo_levels`, equal spans of the moving steps,
+    /// coarse to fine; `train/photo.rs`).
+    pub fn photo_level(&self, k: u64) -> u32 {
+        let [l0, l1] = self.cfg.photo_levels;
+        let (k0, k1) = (self.start_step(), self.stop_step());
+        let n = (l0 - l1 + 1) as u64;
+        let span = k1.saturating_sub(k0).max(1);
+        let i = (k.saturating_sub(k0) * n / span).min(n - 1);
+        l0 - i as u32
     }
 
     /// Adam's rate for the update after step k: `lr`, or geometric from `lr` at the first moving
@@ -320,8 +374,10 @@ impl Refiner {
                 &theta,
                 &p.traced,
                 &self.last_grad_rms,
+                self.photo.as_ref().map(|_| self.photo_stats),
             )?;
         }
+        self.photo_stats = Default::default();
         p.offsets = theta.iter().map(|&t| t as f32).collect();
         p.traced = p.offsets.clone();
         self.traced = p.traced.iter().map(|&t| t as f64).collect();
@@ -449,7 +505,7 @@ impl Refiner {
                 let tracer = self.tracer.clone();
                 let (seed, n) = (self.seed, self.batch_pixels);
                 let (st, nb) = rayon::join(
-                    || self.step(state, batch, grads),
+                    || self.step(state, prepared, batch, grads),
                     || {
                         draw_with(
                             &prepared.samples,
@@ -463,7 +519,7 @@ impl Refiner {
                 (st, Some(nb))
             }
             Some(k1) => {
-                let st = self.step(state, batch, grads);
+                let st = self.step(state, prepared, batch, grads);
                 if st.is_err() {
                     return (st, None);
                 }
@@ -475,7 +531,7 @@ impl Refiner {
             }
             None => {
                 let k = state.step;
-                let st = self.step(state, batch, grads);
+                let st = self.step(state, prepared, batch, grads);
                 if st.is_ok() && self.trust_before.is_some() {
                     // The run's last step made an update (stop = 1): test it; the offsets
                     // eval/render apply follow.
@@ -496,6 +552,7 @@ impl Refiner {
     pub fn step(
         &mut self,
         state: &mut TrainState,
+        prepared: &Prepared,
         batch: &mut Batch,
         grads: &mut Grads<f32>,
     ) -> Result<StepStats> {
@@ -520,7 +577,8 @@ impl Refiner {
                 !crate::train::trust::is_validation_row(batch.view[h.sample / s], holdout)
             });
         }
-        grads.inputs = moving;
+        // The loss's gradient through the hit point is needed only if it moves the mesh.
+        grads.inputs = moving && self.cfg.features > 0.0;
         grads.position_max_scale = self.gradient_scale(k);
         let model = &state.ckpt.model;
         let fwd = model.forward(&state.ckpt.params, batch)?;
@@ -529,7 +587,7 @@ impl Refiner {
         let t2 = Instant::now();
         let mse = batch_mse(&fwd, batch);
         if moving {
-            self.accumulate(state, &hits, &grads.positions, levels, residual);
+            self.accumulate(state, prepared, &hits, &grads.positions, levels, residual);
             if self.updates_after(k) {
                 self.update(state, levels, residual, k);
             }
@@ -607,24 +665,67 @@ impl Refiner {
         ))
     }
 
-    /// `∂L/∂θ` of a batch into the pending sums of the active levels (module docs).
+    /// `∂L/∂θ` of a batch (times `features`), then the photo term's (`photo` > 0), into the
+    /// pending sums of the active levels (module docs).
     fn accumulate(
         &mut self,
         state: &mut TrainState,
+        prepared: &Prepared,
         hits: &[RayHit],
         d_positions: &[f32],
         levels: usize,
         residual: bool,
     ) {
         let geom = &*self.geom;
-        if self.cfg.anchored {
-            hits_backward_anchored(geom, hits, d_positions, &mut self.d_theta);
-        } else {
-            hits_backward(geom, hits, d_positions, &mut self.d_theta);
+        let w = self.cfg.features;
+        let mut touched: Vec<u32> = Vec::new();
+        if w > 0.0 {
+            if self.cfg.anchored {
+                hits_backward_anchored(geom, hits, d_positions, &mut self.d_theta);
+            } else {
+                hits_backward(geom, hits, d_positions, &mut self.d_theta);
+            }
+            touched.extend(hits.iter().flat_map(|h| h.tri));
+            touched.sort_unstable();
+            touched.dedup();
+            if w != 1.0 {
+                for &i in &touched {
+                    self.d_theta[i as usize] *= w;
+                }
+            }
         }
-        let mut touched: Vec<u32> = hits.iter().flat_map(|h| h.tri).collect();
-        touched.sort_unstable();
-        touched.dedup();
+        if let Some(photo) = &self.photo {
+            let crate::train::sampler::Samples::Stream(stream) = &prepared.samples else {
+                unreachable!("checked when the refiner was built");
+            };
+            let k = state.step;
+            let tracer = self.tracer.as_deref().unwrap_or(&prepared.tracer);
+            let patches = photo.draw(stream, tracer, self.seed, k, self.photo_level(k));
+            let used = crate::train::photo::patch_vertices(geom, &patches);
+            let params = state.ckpt.refine.as_ref().expect("refine params");
+            let cfg = &self.cfg;
+            let th: Vec<f64> = used
+                .par_iter()
+                .with_min_len(1024)
+                .map(|&i| params.theta(cfg, geom, i as usize))
+                .collect();
+            for (&i, &t) in used.iter().zip(&th) {
+                self.theta[i as usize] = t;
+            }
+            let evals = photo.evaluate(geom, &self.theta, &patches);
+            let curv = (!self.d_curv.is_empty()).then_some(&mut self.d_curv[..]);
+            let st = crate::train::photo::accumulate(&evals, &mut self.d_theta, curv);
+            self.photo_stats.add(&st);
+            if let Some(d) = self.diag.as_mut() {
+                d.seen.resize(geom.n_vertices(), false);
+                for &i in &used {
+                    d.seen[i as usize] = true;
+                }
+            }
+            touched.extend(used);
+            touched.sort_unstable();
+            touched.dedup();
+        }
         let params = state.ckpt.refine.as_mut().expect("refine params");
         let ng = params.grids.len();
         let (grids, rest) = params.pending.split_at_mut(ng);
@@ -644,6 +745,26 @@ impl Refiner {
         );
         for &i in &touched {
             self.d_theta[i as usize] = 0.0;
+        }
+        if !self.d_curv.is_empty() {
+            let (grids, rest) = params.pending_h.split_at_mut(ng);
+            let d_r: &mut [f64] = match rest.first_mut() {
+                Some(v) => v,
+                None => &mut [],
+            };
+            field_backward(
+                &self.cfg,
+                geom,
+                &touched,
+                &self.d_curv,
+                levels,
+                residual,
+                grids,
+                d_r,
+            );
+            for &i in &touched {
+                self.d_curv[i as usize] = 0.0;
+            }
         }
     }
 
@@ -682,6 +803,39 @@ impl Refiner {
             }
         }
         self.last_grad_rms.clear();
+        if self.cfg.optimizer == RefineOptimizer::GaussNewton {
+            let n = (levels + residual as usize) as f64;
+            let lr = self.adam.lr as f64;
+            for l in 0..ng {
+                if l < levels {
+                    gauss_newton_step(
+                        &mut params.grids[l],
+                        &params.pending[l],
+                        &params.pending_h[l],
+                        lr,
+                        n,
+                        self.cfg.damping,
+                    );
+                }
+                params.pending[l].fill(0.0);
+                params.pending_h[l].fill(0.0);
+            }
+            if !params.vertex.is_empty() {
+                if residual {
+                    gauss_newton_step(
+                        &mut params.vertex,
+                        &params.pending[ng],
+                        &params.pending_h[ng],
+                        lr,
+                        n,
+                        self.cfg.damping,
+                    );
+                }
+                params.pending[ng].fill(0.0);
+                params.pending_h[ng].fill(0.0);
+            }
+            return;
+        }
         for l in 0..ng {
             if l < levels {
                 if self.diag.is_some() {
@@ -713,12 +867,35 @@ impl Refiner {
     }
 }
 
+/// One Gauss–Newton step of a field level (`optimizer = "gauss-newton"`, SPEC §4.11):
+/// `x_i −= lr · g_i / (n · h_i + λ)` with `λ = damping · mean(h_i > 0)`, in index order; entries
+/// with `g_i = 0` are not touched, and a level with no curvature at all does not move.
+fn gauss_newton_step(x: &mut [f32], g: &[f64], h: &[f64], lr: f64, n: f64, damping: f64) {
+    let (sum, count) = h
+        .iter()
+        .filter(|&&v| v > 0.0)
+        .fold((0.0f64, 0usize), |(s, c), &v| (s + v, c + 1));
+    if count == 0 {
+        return;
+    }
+    let lambda = damping * sum / count as f64;
+    for ((x, &g), &h) in x.iter_mut().zip(g).zip(h) {
+        let den = n * h + lambda;
+        if g == 0.0 || den <= 0.0 {
+            continue;
+        }
+        *x = (*x as f64 - lr * g / den) as f32;
+    }
+}
+
 /// Update-by-update diagnostics (`XSCALE_REFINE_LOG`, `XSCALE_REFINE_TRUTH`): one JSON line per
 /// update with the RMS / largest offset and the RMS change of this update (scene units), and, given
 /// a truth mesh with the same vertices, the RMS distance along the vertex normals to it.
 struct Diagnostics {
     log: std::path::PathBuf,
     truth: Option<Vec<DVec3>>,
+    /// Vertices the photo term has used so far (its error is also logged over them).
+    seen: Vec<bool>,
 }
 
 impl Diagnostics {
@@ -741,6 +918,7 @@ impl Diagnostics {
         Ok(Some(Diagnostics {
             log: log.into(),
             truth,
+            seen: Vec::new(),
         }))
     }
 
@@ -751,6 +929,7 @@ impl Diagnostics {
         theta: &[f64],
         before: &[f32],
         grad_rms: &[f64],
+        photo: Option<crate::train::photo::PhotoStats>,
     ) -> Result<()> {
         let n = theta.len().max(1) as f64;
         let s = geom.scale;
@@ -765,15 +944,28 @@ impl Diagnostics {
             .sqrt()
             * s;
         let err = self.truth.as_ref().map(|tv| {
-            let mut e2 = 0.0;
+            let (mut e2, mut s2, mut ns) = (0.0, 0.0, 0usize);
             for i in 0..theta.len() {
                 let v = geom.position(i, theta[i]) + geom.norm.center;
-                e2 += (v - tv[i]).dot(geom.normals[i]).powi(2);
+                let e = (v - tv[i]).dot(geom.normals[i]).powi(2);
+                e2 += e;
+                if self.seen.get(i) == Some(&true) {
+                    s2 += e;
+                    ns += 1;
+                }
             }
-            (e2 / n).sqrt()
+            ((e2 / n).sqrt(), (s2 / ns.max(1) as f64).sqrt(), ns)
         });
-        let line = serde_json::json!({"step": step, "offset_rms": rms, "offset_max": max,
-            "update_rms": change, "normal_error_rms": err, "grad_rms": grad_rms});
+        let mut line = serde_json::json!({"step": step, "offset_rms": rms, "offset_max": max,
+            "update_rms": change, "normal_error_rms": err.map(|e| e.0), "grad_rms": grad_rms});
+        if let (Some(e), false) = (err, self.seen.is_empty()) {
+            line["normal_error_rms_seen"] = serde_json::json!(e.1);
+            line["seen"] = serde_json::json!(e.2);
+        }
+        if let Some(p) = photo {
+            line["photo"] = serde_json::json!({"drawn": p.drawn, "valid": p.valid,
+                "energy_mean": p.energy / p.valid.max(1) as f64});
+        }
         self.line(line)
     }
 

@@ -728,43 +728,12 @@ impl Refiner {
         }
         let params = state.ckpt.refine.as_mut().expect("refine params");
         let ng = params.grids.len();
-        let (grids, rest) = params.pending.split_at_mut(ng);
-        let d_r: &mut [f64] = match rest.first_mut() {
-            Some(v) => v,
-            None => &mut [],
+        let gather = |d: &mut [f64], pending: &mut [Vec<f64>]| {
+            gather_and_clear(&self.cfg, geom, &touched, d, levels, residual, ng, pending)
         };
-        field_backward(
-            &self.cfg,
-            geom,
-            &touched,
-            &self.d_theta,
-            levels,
-            residual,
-            grids,
-            d_r,
-        );
-        for &i in &touched {
-            self.d_theta[i as usize] = 0.0;
-        }
+        gather(&mut self.d_theta, &mut params.pending);
         if !self.d_curv.is_empty() {
-            let (grids, rest) = params.pending_h.split_at_mut(ng);
-            let d_r: &mut [f64] = match rest.first_mut() {
-                Some(v) => v,
-                None => &mut [],
-            };
-            field_backward(
-                &self.cfg,
-                geom,
-                &touched,
-                &self.d_curv,
-                levels,
-                residual,
-                grids,
-                d_r,
-            );
-            for &i in &touched {
-                self.d_curv[i as usize] = 0.0;
-            }
+            gather(&mut self.d_curv, &mut params.pending_h);
         }
     }
 
@@ -1066,6 +1035,30 @@ pub fn write_refined(state: &TrainState, prepared: &Prepared, run_dir: &Path) ->
         &p.offsets,
     )?;
     crate::scene::mesh::write_ply(&run_dir.join("refined.ply"), &m)
+}
+
+/// Gather the per-vertex sums `d` of the `touched` vertices onto the offset field's pending sums
+/// (`pending`: the `ng` grids, then the per-vertex residual when there is one) and clear them.
+#[allow(clippy::too_many_arguments)]
+fn gather_and_clear(
+    cfg: &RefineConfig,
+    geom: &RefineGeom,
+    touched: &[u32],
+    d: &mut [f64],
+    levels: usize,
+    residual: bool,
+    ng: usize,
+    pending: &mut [Vec<f64>],
+) {
+    let (grids, rest) = pending.split_at_mut(ng);
+    let d_r: &mut [f64] = match rest.first_mut() {
+        Some(v) => v,
+        None => &mut [],
+    };
+    field_backward(cfg, geom, touched, d, levels, residual, grids, d_r);
+    for &i in touched {
+        d[i as usize] = 0.0;
+    }
 }
 
 #[cfg(test)]

@@ -111,6 +111,32 @@ fn the_message_names_what_to_change() {
     assert!(!err.contains("--downsample"), "{err}");
 }
 
+/// Mesh refinement's photo-consistency term keeps f32 copies of every training photo at its image
+/// levels: counted, and named with its remedy when it is what does not fit.
+#[test]
+fn the_photo_term_is_counted_and_named() {
+    let mut cfg = RunConfig::preset("cpu").unwrap();
+    let sizes = vec![(1920u32, 1080u32); 150];
+    assert_eq!(estimate(&cfg, &sizes, 1).unwrap().photo, 0);
+    cfg.model.refine.enabled = true;
+    cfg.model.refine.photo = 1.0;
+    cfg.model.refine.photo_levels = [2, 0];
+    let e = estimate(&cfg, &sizes, 1).unwrap();
+    // 12 bytes per pixel at levels 0, 1, 2: 150 · 12 · (1920·1080 + 960·540 + 480·270) = 4.90 GB.
+    assert_eq!(e.photo, 150 * 12 * (1920 * 1080 + 960 * 540 + 480 * 270));
+    cfg.train.memory_gb = 4.0;
+    let err = check_budget(&cfg, &sizes, 1).unwrap_err().to_string();
+    for want in [
+        "the photo-consistency term's image levels 4.90 GB",
+        "photo_levels = [2, 1]",
+    ] {
+        assert!(err.contains(want), "missing {want:?} in: {err}");
+    }
+    // Without its full-resolution level it fits in the same budget.
+    cfg.model.refine.photo_levels = [2, 1];
+    check_budget(&cfg, &sizes, 1).unwrap();
+}
+
 #[test]
 fn a_finished_run_reports_its_peak_memory() {
     let run = tmp("peak");

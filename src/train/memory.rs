@@ -9,6 +9,9 @@
 //!   cache — `w·h·(12γ²+42)`, every pixel assumed to see the mesh (an upper bound), plus one f32
 //!   photo (`12·w·h`) while it is cast;
 //! - **model**: 20 bytes per parameter (f32 value, gradient, Adam m, v, step count);
+//! - **photo**: with mesh refinement's photo-consistency term (`[model.refine] photo` > 0), every
+//!   training view's f32 RGB copies at the image levels `photo_levels[1] ..= photo_levels[0]`
+//!   (`12·⌈w/2^l⌉·⌈h/2^l⌉` bytes at level l; `train/photo.rs`);
 //! - **step**: [`STEP_BYTES_PER_SAMPLE`] per sub-sample of a batch (forward activations kept for
 //!   the backward pass, gradients of the inputs, touched-entry lists), measured on the `cpu`
 //!   preset (see the constant);
@@ -34,13 +37,14 @@ pub const BASE_BYTES: u64 = 200 << 20;
 pub struct Estimate {
     pub samples: u64,
     pub model: u64,
+    pub photo: u64,
     pub step: u64,
     pub base: u64,
 }
 
 impl Estimate {
     pub fn total(&self) -> u64 {
-        self.samples + self.model + self.step + self.base
+        self.samples + self.model + self.photo + self.step + self.base
     }
 }
 
@@ -71,9 +75,25 @@ pub fn estimate(cfg: &RunConfig, sizes: &[(u32, u32)], downsample: u32) -> Resul
     } else {
         0 // the vertex table depends on the mesh; counted by the caller's base
     };
+    let r = &cfg.model.refine;
+    let photo = if r.enabled && r.photo > 0.0 {
+        let [hi, lo] = r.photo_levels;
+        sizes
+            .iter()
+            .flat_map(|&(w, h)| {
+                (lo..=hi).map(move |l| {
+                    let f = 1u64 << l.min(31);
+                    12 * (w as u64).div_ceil(f) * (h as u64).div_ceil(f)
+                })
+            })
+            .sum()
+    } else {
+        0
+    };
     Ok(Estimate {
         samples,
         model: 20 * params,
+        photo,
         step: cfg.train.batch_pixels as u64 * g2 * STEP_BYTES_PER_SAMPLE,
         base: BASE_BYTES,
     })
@@ -140,8 +160,16 @@ pub fn check_budget(cfg: &RunConfig, sizes: &[(u32, u32)], downsample: u32) -> R
     if e.model > budget / 3 {
         hints.push("a smaller hash table ([model.grid_h] log2_table_size)".into());
     }
+    if e.photo > budget / 3 {
+        let [hi, lo] = cfg.model.refine.photo_levels;
+        hints.push(format!(
+            "the photo-consistency term without full-resolution photos ([model.refine] photo_levels = [{}, {}])",
+            hi.max(1),
+            lo.max(1)
+        ));
+    }
     bail!(
-        "this run needs about {:.2} GB but {what} is {:.2} GB: {} training views ({:.1} Mpixels) take {:.2} GB as {}, the model and Adam {:.2} GB, a step of {} pixels × γ²={} {:.2} GB, fixed {:.2} GB. To fit: {}",
+        "this run needs about {:.2} GB but {what} is {:.2} GB: {} training views ({:.1} Mpixels) take {:.2} GB as {}, the model and Adam {:.2} GB,{} a step of {} pixels × γ²={} {:.2} GB, fixed {:.2} GB. To fit: {}",
         gb(e.total()),
         gb(budget),
         sizes.len(),
@@ -152,6 +180,11 @@ pub fn check_budget(cfg: &RunConfig, sizes: &[(u32, u32)], downsample: u32) -> R
             SampleMode::Cache => "the sample cache",
         },
         gb(e.model),
+        if e.photo > 0 {
+            format!(" the photo-consistency term's image levels {:.2} GB,", gb(e.photo))
+        } else {
+            String::new()
+        },
         cfg.train.batch_pixels,
         cfg.model.gamma * cfg.model.gamma,
         gb(e.step),

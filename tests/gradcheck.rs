@@ -1181,6 +1181,9 @@ fn refine_batch(
 /// ∂L/∂positions of the hits → ∂L/∂θ (the real one is [`hits_backward`]; the tests break it).
 type HitsBackward<'a> = dyn Fn(&[RayHit], &[f64], &mut [f64]) + 'a;
 
+/// An energy of the offset field's (grids, residual); `None` where a step crossed one of its kinks.
+type FieldEnergy<'a> = dyn Fn(&[Vec<f64>], &[f64]) -> Option<f64> + 'a;
+
 /// Central differences of `energy` (`None`: the step crossed a kink of the energy and is skipped)
 /// for every per-vertex residual entry and every grid node with a gradient (plus each grid's first
 /// and last node), against the analytic `an` = (grids, residual).
@@ -1190,7 +1193,7 @@ fn check_field(
     an: &(Vec<Vec<f64>>, Vec<f64>),
     rep: &mut Report,
     label: &str,
-    energy: &dyn Fn(&[Vec<f64>], &[f64]) -> Option<f64>,
+    energy: &FieldEnergy,
 ) {
     let mut fd = |lab: String, an: f64, perturb: &dyn Fn(f64) -> (Vec<Vec<f64>>, Vec<f64>)| {
         let (gp, rp) = perturb(H);

@@ -62,7 +62,13 @@ fn main() -> anyhow::Result<()> {
     anyhow::ensure!(exact.vertices.len() == mesh.vertices.len());
     let geom = RefineGeom::new(mesh, &norm);
     let t0 = std::time::Instant::now();
-    let term = PhotoTerm::new(stream, &prepared.tracer, norm.center, &rcfg)?;
+    let term = PhotoTerm::new(
+        stream,
+        &prepared.tracer,
+        norm.center,
+        &rcfg,
+        &prepared.train_names(),
+    )?;
     eprintln!("photo term set up in {:.2} s", t0.elapsed().as_secs_f64());
     for v in &term.views {
         let nb: Vec<usize> = v.neighbours.iter().map(|&j| term.views[j].row).collect();

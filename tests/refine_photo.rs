@@ -236,6 +236,56 @@ fn bad_photo_settings_are_named() {
         panic!("a photo level coarser than the views ran");
     };
     let e = format!("{e:#}");
-    assert!(e.contains("photo_levels[0] = 5"), "{e}");
+    assert!(
+        e.contains("photo_levels[0] = 5") && e.contains("view 0001.png"),
+        "{e}"
+    );
     let _ = std::fs::remove_dir_all(&run);
+}
+
+/// A camera with a lens distortion is refused by the photo term, naming the view (its file).
+#[test]
+fn a_distorted_camera_is_refused_by_name() {
+    let scene = tmp("distorted-scene");
+    std::fs::create_dir_all(scene.join("sparse/0")).unwrap();
+    for f in ["scene.toml", "mesh.ply"] {
+        std::fs::copy(fixture().join(f), scene.join(f)).unwrap();
+    }
+    for f in ["images.txt", "points3D.txt"] {
+        std::fs::copy(
+            fixture().join("sparse/0").join(f),
+            scene.join("sparse/0").join(f),
+        )
+        .unwrap();
+    }
+    std::fs::create_dir_all(scene.join("images")).unwrap();
+    for e in std::fs::read_dir(fixture().join("images")).unwrap() {
+        let e = e.unwrap();
+        std::fs::copy(e.path(), scene.join("images").join(e.file_name())).unwrap();
+    }
+    // PINHOLE fx fy cx cy -> OPENCV fx fy cx cy k1 k2 p1 p2.
+    let cams = std::fs::read_to_string(fixture().join("sparse/0/cameras.txt")).unwrap();
+    let cams: String = cams
+        .lines()
+        .map(|l| match l.split_whitespace().collect::<Vec<_>>()[..] {
+            [id, "PINHOLE", ref rest @ ..] => {
+                format!("{id} OPENCV {} 0.01 0 0 0\n", rest.join(" "))
+            }
+            _ => format!("{l}\n"),
+        })
+        .collect();
+    assert!(cams.contains("OPENCV"), "{cams}");
+    std::fs::write(scene.join("sparse/0/cameras.txt"), cams).unwrap();
+    let run = tmp("distorted-run");
+    let c = photo_cfg(RefineOptimizer::GaussNewton, PhotoMeasure::Zncc);
+    let Err(e) = train(&scene, &run, c, &opts(false, None)) else {
+        panic!("the photo term ran on a distorted camera");
+    };
+    let e = format!("{e:#}");
+    assert!(
+        e.contains("view 0001.png has a lens distortion") && e.contains("undistort"),
+        "{e}"
+    );
+    let _ = std::fs::remove_dir_all(&run);
+    let _ = std::fs::remove_dir_all(&scene);
 }

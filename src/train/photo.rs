@@ -166,23 +166,27 @@ fn stream_image(v: &crate::raycast::StreamView) -> Image {
 
 impl PhotoTerm {
     /// Set up from the training views (`stream`) and the training mesh's BVH (module docs).
-    /// `center` is the normalisation centre.
+    /// `center` is the normalisation centre; `names[r]` names the view of appearance row r in
+    /// errors.
     pub fn new(
         stream: &RayStream,
         tracer: &Tracer,
         center: DVec3,
         cfg: &RefineConfig,
+        names: &[String],
     ) -> Result<PhotoTerm> {
         let [l0, l1] = cfg.photo_levels;
         let mut views = Vec::with_capacity(stream.views.len());
         for v in &stream.views {
-            let cam = PhotoCamera::new(&v.camera, center, &format!("{}", v.view))?;
+            let name = names
+                .get(v.view)
+                .map_or_else(|| v.view.to_string(), |n| n.clone());
+            let cam = PhotoCamera::new(&v.camera, center, &name)?;
             let cams: Vec<PhotoCamera> = (0..=l0).map(|l| cam.level(l)).collect();
             ensure!(
                 cams[l0 as usize].width as usize >= cfg.photo_patch as usize
                     && cams[l0 as usize].height as usize >= cfg.photo_patch as usize,
-                "model.refine: photo_levels[0] = {l0} leaves view {} at {}×{} pixels, smaller than a photo_patch of {} (lower photo_levels)",
-                v.view,
+                "model.refine: photo_levels[0] = {l0} leaves view {name} at {}×{} pixels, smaller than a photo_patch of {} (lower photo_levels)",
                 cams[l0 as usize].width,
                 cams[l0 as usize].height,
                 cfg.photo_patch

@@ -212,8 +212,13 @@ impl Refiner {
             let crate::train::sampler::Samples::Stream(stream) = &prepared.samples else {
                 anyhow::bail!("model.refine: the photo-consistency term needs streamed samples");
             };
-            let term =
-                crate::train::photo::PhotoTerm::new(stream, &prepared.tracer, norm.center, &r.cfg)?;
+            let term = crate::train::photo::PhotoTerm::new(
+                stream,
+                &prepared.tracer,
+                norm.center,
+                &r.cfg,
+                &prepared.train_names(),
+            )?;
             if let Some(d) = &r.diag {
                 let pairs: Vec<serde_json::Value> = term
                     .views

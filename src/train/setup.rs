@@ -25,6 +25,14 @@ pub struct Prepared {
 }
 
 impl Prepared {
+    /// The training views' names, by appearance row.
+    pub fn train_names(&self) -> Vec<String> {
+        self.train_views
+            .iter()
+            .map(|&v| self.scene.views[v].name.clone())
+            .collect()
+    }
+
     /// Appearance row of a scene view, or -1 (held-out / unknown view: mean code).
     pub fn appearance_row(&self, scene_view: usize) -> i32 {
         self.train_views

@@ -780,10 +780,15 @@ impl Refiner {
         if self.cfg.optimizer == RefineOptimizer::GaussNewton {
             let n = (levels + residual as usize) as f64;
             let lr = self.adam.lr as f64;
-            for l in 0..ng {
-                if l < levels {
+            // The grids, then the per-vertex residual when there is one; each steps when active.
+            let targets = params
+                .grids
+                .iter_mut()
+                .chain((!params.vertex.is_empty()).then_some(&mut params.vertex));
+            for (l, w) in targets.enumerate() {
+                if (l < ng && l < levels) || (l == ng && residual) {
                     gauss_newton_step(
-                        &mut params.grids[l],
+                        w,
                         &params.pending[l],
                         &params.pending_h[l],
                         lr,
@@ -793,20 +798,6 @@ impl Refiner {
                 }
                 params.pending[l].fill(0.0);
                 params.pending_h[l].fill(0.0);
-            }
-            if !params.vertex.is_empty() {
-                if residual {
-                    gauss_newton_step(
-                        &mut params.vertex,
-                        &params.pending[ng],
-                        &params.pending_h[ng],
-                        lr,
-                        n,
-                        self.cfg.damping,
-                    );
-                }
-                params.pending[ng].fill(0.0);
-                params.pending_h[ng].fill(0.0);
             }
             return;
         }

@@ -1489,7 +1489,8 @@ fn broken_anchored_mesh_refinement_gradients_fail_the_check() {
 // ---------------------------------------------------------------------------------------------
 
 use xscale::model::photo::{
-    measure, patch_eval, plane_hit_chain, PatchPoint, PhotoCamera, PhotoImage, PhotoMeasure,
+    measure, patch_eval, plane_hit_chain, PatchEval, PatchPoint, PhotoCamera, PhotoImage,
+    PhotoMeasure,
 };
 
 /// A smooth RGB texture rasterised at integer pixels (values in ~[0.15, 0.85]).
@@ -1607,24 +1608,29 @@ impl PhotoCheck {
         c
     }
 
+    /// One patch's energy, gradient and cells at offsets `theta`.
+    fn patch(&self, theta: &[f64], pts: &[PatchPoint]) -> PatchEval {
+        patch_eval(
+            &self.geom,
+            theta,
+            self.origin,
+            pts,
+            &self.cam,
+            &self.img,
+            self.measure,
+            self.cfg.min_cos,
+            self.weight,
+        )
+        .expect("every patch is seen by the neighbour")
+    }
+
     /// Energy (photo + smoothness) and every sample's bilinear cell, from scratch.
     fn eval(&self, grids: &[Vec<f64>], r: &[f64]) -> (f64, Vec<Vec<[i32; 2]>>) {
         let theta = RefineCheck::theta_of(&self.cfg, &self.geom, grids, r);
         let mut e = 0.0;
         let mut cells = Vec::new();
         for pts in &self.patches {
-            let ev = patch_eval(
-                &self.geom,
-                &theta,
-                self.origin,
-                pts,
-                &self.cam,
-                &self.img,
-                self.measure,
-                self.cfg.min_cos,
-                self.weight,
-            )
-            .expect("every patch is seen by the neighbour");
+            let ev = self.patch(&theta, pts);
             e += ev.energy;
             cells.push(ev.cells);
         }
@@ -1719,18 +1725,7 @@ impl PhotoCheck {
         let theta = RefineCheck::theta_of(&self.cfg, &self.geom, &self.grids, &self.r);
         let mut d_theta = vec![0.0; theta.len()];
         for pts in &self.patches {
-            let ev = patch_eval(
-                &self.geom,
-                &theta,
-                self.origin,
-                pts,
-                &self.cam,
-                &self.img,
-                self.measure,
-                self.cfg.min_cos,
-                self.weight,
-            )
-            .unwrap();
+            let ev = self.patch(&theta, pts);
             for (i, g) in ev.grad {
                 d_theta[i as usize] += g;
             }

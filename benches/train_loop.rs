@@ -10,7 +10,8 @@
 //! finite and falls over the warm-up (a broken loop is not timed).
 //!
 //! Run: `cargo bench --bench train_loop` (`XSCALE_BENCH_BATCH=16384` for larger batches,
-//! `XSCALE_BENCH_STEPS`, `XSCALE_BENCH_ROUNDS`).
+//! `XSCALE_BENCH_STEPS`, `XSCALE_BENCH_ROUNDS`, `XSCALE_BENCH_SAMPLES=stream|cache` instead of the
+//! default `auto`, which takes the sample cache on `small`).
 
 mod common;
 use common::{env, small_scene as scene};
@@ -39,6 +40,14 @@ fn main() {
     let dir = scene();
     let mut cfg = RunConfig::preset("cpu").unwrap();
     cfg.train.batch_pixels = batch;
+    // `train.samples` as a run has it (`auto`: the cache on `small`), or as the variable says.
+    use xscale::train::sampler::SampleMode;
+    match std::env::var("XSCALE_BENCH_SAMPLES").as_deref() {
+        Ok("stream") => cfg.train.samples = SampleMode::Stream,
+        Ok("cache") => cfg.train.samples = SampleMode::Cache,
+        Ok(v) => panic!("XSCALE_BENCH_SAMPLES={v}: expected stream or cache"),
+        Err(_) => {}
+    }
     let prepared = prepare(&dir, &cfg, true, &mut |m| eprintln!("{m}")).unwrap();
     for m in resolve_levels(&mut cfg, &prepared.samples) {
         eprintln!("{m}");

@@ -74,6 +74,44 @@ fn auto_follows_the_footprints_in_both_sample_modes() {
     assert_eq!(cfg.model.grid_h, before);
 }
 
+/// `level_range = "auto"` with a `per_level_scale` keeps the automatic range and adds levels at
+/// that spacing: fewer, wider-spaced levels up to the same finest level.
+#[test]
+fn auto_with_a_spacing_adds_levels_at_that_spacing() {
+    let mut cfg = config(
+        "[train]\nlevel_range = \"auto\"\ndrop_fine_levels = false\n[model.grid_h]\nlevels = 1\nper_level_scale = 2.0\n",
+    )
+    .unwrap();
+    assert_eq!(cfg.train.level_range, LevelRange::Auto);
+    assert_eq!(cfg.model.grid_h.per_level_scale, 2.0);
+    let p = prepare(&fixture(), &cfg, false, &mut |_| {}).unwrap();
+    let fp = p.samples.footprint_quantile_min(LEVEL_QUANTILE).unwrap();
+    resolve_levels(&mut cfg, &p.samples);
+    let finest = (1.0 / fp).max(32.0);
+    let g = &cfg.model.grid_h;
+    assert_eq!(g.levels, auto_levels(16.0, finest, 2.0, 1));
+    assert_eq!(
+        g.per_level_scale,
+        per_level_scale_for(16.0, finest, g.levels)
+    );
+    assert!(
+        g.per_level_scale <= 2.0 * (1.0 + 1e-12) && g.per_level_scale > 2f64.sqrt(),
+        "about 2 apart: {}",
+        g.per_level_scale
+    );
+    assert_eq!(g.finest_resolution, Some(finest));
+    // The preset's spacing on the same views needs more levels.
+    let mut preset = RunConfig::preset("cpu").unwrap();
+    preset.train.drop_fine_levels = false;
+    resolve_levels(&mut preset, &p.samples);
+    assert!(
+        preset.model.grid_h.levels > g.levels,
+        "{} levels at the preset's spacing, {} at 2",
+        preset.model.grid_h.levels,
+        g.levels
+    );
+}
+
 #[test]
 fn config_files_fix_the_range() {
     let c = config("[model.grid_h]\nper_level_scale = 1.5\n").unwrap();
@@ -92,10 +130,13 @@ fn config_files_fix_the_range() {
     assert!(e.contains("not both"), "{e}");
     let e = format!(
         "{:#}",
-        config("[train]\nlevel_range = \"auto\"\n[model.grid_h]\nper_level_scale = 1.5\n")
+        config("[train]\nlevel_range = \"auto\"\n[model.grid_h]\nfinest_resolution = 4096.0\n")
             .unwrap_err()
     );
-    assert!(e.contains("level_range"), "{e}");
+    assert!(
+        e.contains("level_range") && e.contains("finest_resolution"),
+        "{e}"
+    );
     // A file that says nothing about the range keeps the preset's rule.
     assert_eq!(
         config("[train]\nsteps = 5\n").unwrap().train.level_range,

@@ -5,9 +5,8 @@
 //! summary: the front, and the best configuration for each time budget.
 //!
 //! Configurations ([`CONFIGS`]): the presets, and the `cpu` preset with one change each (table
-//! size, batch size, γ, deformation), plus `ulr`, the no-learning baseline (its time is the time
-//! it takes to render the held-out views; nothing is trained). f32 against f64 arithmetic is not
-//! a configuration yet: the training step exists in f32 only.
+//! size, level spacing, batch size, γ, deformation, f64 arithmetic), plus `ulr`, the no-learning
+//! baseline (its time is the time it takes to render the held-out views; nothing is trained).
 
 use crate::eval::plot::{pareto_front, pareto_png, Curve};
 use crate::eval::protocol::{mean_score, scale_summary, score_rendered};
@@ -22,7 +21,7 @@ use std::path::Path;
 use std::time::Instant;
 
 /// Every configuration: name and what it is.
-pub const CONFIGS: [(&str, &str); 10] = [
+pub const CONFIGS: [(&str, &str); 12] = [
     (
         "tiny",
         "the tiny preset (4 levels, 2^12 table): a smoke test",
@@ -36,6 +35,14 @@ pub const CONFIGS: [(&str, &str); 10] = [
     (
         "cpu-table21",
         "cpu with log2_table_size = 21 (4x the table)",
+    ),
+    (
+        "cpu-spacing1.6",
+        "cpu with grid H levels added about 1.6x apart (16 levels on small instead of 22)",
+    ),
+    (
+        "cpu-spacing2",
+        "cpu with grid H levels added about 2x apart (11 levels on small instead of 22)",
     ),
     ("cpu-batch1k", "cpu with 1,024-pixel batches"),
     ("cpu-batch16k", "cpu with 16,384-pixel batches"),
@@ -56,6 +63,13 @@ pub fn config(name: &str) -> Result<Option<RunConfig>> {
         "cpu-table17" | "cpu-table21" => {
             let mut c = cpu()?;
             c.model.grid_h.log2_table_size = if name == "cpu-table17" { 17 } else { 21 };
+            c
+        }
+        "cpu-spacing1.6" | "cpu-spacing2" => {
+            // The automatic level range with a wider spacing: as many levels as it takes.
+            let mut c = cpu()?;
+            c.model.grid_h.per_level_scale = if name == "cpu-spacing2" { 2.0 } else { 1.6 };
+            c.model.grid_h.levels = 1;
             c
         }
         "cpu-batch1k" | "cpu-batch16k" => {

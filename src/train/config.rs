@@ -69,9 +69,10 @@ pub struct TrainConfig {
     /// normalisation is that of the mesh used (SPEC §4.1).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub mesh: Option<std::path::PathBuf>,
-    /// Where batches come from: `stream` (default; rays cast as batches are drawn, ~3 bytes
+    /// Where batches come from: `auto` (default: the cache when it is small, else the stream;
+    /// `train/memory.rs` `resolve_samples`), `stream` (rays cast as batches are drawn, ~3 bytes
     /// per pixel) or `cache` (every ray cast once and stored, `12γ²+42` bytes per pixel). Same
-    /// batches bit for bit (`train/sampler.rs`); absent from older configs (= stream).
+    /// batches bit for bit (`train/sampler.rs`); absent from older configs (= auto).
     #[serde(default)]
     pub samples: SampleMode,
     /// Memory budget in GB checked before allocating (`train/memory.rs`); 0 = the memory
@@ -119,7 +120,7 @@ impl TrainConfig {
             },
             adam,
             mesh: None,
-            samples: SampleMode::Stream,
+            samples: SampleMode::Auto,
             memory_gb: 0.0,
             arithmetic: Arithmetic::F32,
         };
@@ -200,8 +201,10 @@ impl RunConfig {
 
     /// Preset `preset`, overridden by the file `path` if given. A user config that sets grid H's
     /// `per_level_scale` or `finest_resolution` fixes the level range (`finest_resolution`
-    /// gives `per_level_scale = (finest / N0)^(1/(L-1))`; giving both, or either with
-    /// `[train] level_range = "auto"`, is an error).
+    /// gives `per_level_scale = (finest / N0)^(1/(L-1))`; giving both, or `finest_resolution` with
+    /// `[train] level_range = "auto"`, is an error). `per_level_scale` together with
+    /// `level_range = "auto"` keeps the automatic range and sets the spacing its levels are
+    /// added at (SPEC §8).
     pub fn resolve(preset: &str, path: Option<&Path>) -> Result<RunConfig> {
         match path {
             None => RunConfig::preset(preset),
@@ -223,13 +226,14 @@ impl RunConfig {
                 if scale && finest {
                     bail!("{origin}: give [model.grid_h] per_level_scale or finest_resolution, not both");
                 }
-                if (scale || finest) && auto_asked {
+                if finest && auto_asked {
                     bail!(
-                        "{origin}: [train] level_range = \"auto\" chooses grid H's level range itself; remove [model.grid_h] {} or the level_range line",
-                        if scale { "per_level_scale" } else { "finest_resolution" }
+                        "{origin}: [train] level_range = \"auto\" chooses grid H's finest level itself; remove [model.grid_h] finest_resolution or the level_range line"
                     );
                 }
-                if scale || finest {
+                // With `level_range = "auto"`, a configured per_level_scale is the spacing the
+                // automatic range adds levels at (`auto_levels`), not a fixed range.
+                if (scale || finest) && !auto_asked {
                     cfg.train.level_range = LevelRange::Fixed;
                 }
                 if let Some(f) = cfg.model.grid_h.finest_resolution.filter(|_| finest) {

@@ -78,7 +78,7 @@ pub fn validate(cfg: &RunConfig) -> Result<()> {
         "model.refine: the mesh refinement needs featurization = \"hash\""
     );
     ensure!(
-        cfg.train.samples == SampleMode::Stream,
+        cfg.train.samples != SampleMode::Cache,
         "model.refine: the mesh moves, so rays must be cast as batches are drawn: set [train] samples = \"stream\""
     );
     ensure!(

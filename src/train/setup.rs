@@ -106,8 +106,11 @@ pub fn prepare(
     // The vertex featurization needs each sub-sample's triangle and barycentrics, the mesh
     // refinement its triangle (`train/refine.rs`).
     let keep_triangles = !cfg.model.featurization.is_hash() || cfg.model.refine.enabled;
-    let mut samples = match cfg.train.samples {
-        SampleMode::Stream => Samples::Stream(RayStream::new(gamma, keep_triangles)?),
+    let (mode, why) = memory::resolve_samples(cfg, &sizes, scene.downsample);
+    let mut samples = match mode {
+        SampleMode::Stream | SampleMode::Auto => {
+            Samples::Stream(RayStream::new(gamma, keep_triangles)?)
+        }
         SampleMode::Cache => Samples::Cache(Box::new(if keep_triangles {
             SampleCache::build_with_triangles(&tracer, &[], gamma, &mut |_| {})?
         } else {
@@ -147,13 +150,13 @@ pub fn prepare(
         );
     }
     log(format!(
-        "cast {} training views with γ={gamma} in {:.2} s: {} pixels see the mesh; {} {:.1} MB",
+        "cast {} training views with γ={gamma} in {:.2} s: {} pixels see the mesh; {} {:.1} MB ({why})",
         train_views.len(),
         t0.elapsed().as_secs_f64(),
         samples.len(),
         match samples.mode() {
-            SampleMode::Stream => "hit maps + photos (rays cast per batch):",
             SampleMode::Cache => "sample cache:",
+            _ => "hit maps + photos (rays cast per batch):",
         },
         samples.bytes() as f64 / 1e6
     ));

@@ -6,7 +6,7 @@
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use xscale::train::config::RunConfig;
-use xscale::train::memory::{check_budget, estimate};
+use xscale::train::memory::{check_budget, estimate, resolve_samples, AUTO_CACHE_MAX_BYTES};
 use xscale::train::sampler::SampleMode;
 
 fn fixture() -> PathBuf {
@@ -152,4 +152,64 @@ fn a_finished_run_reports_its_peak_memory() {
     // More than the binary's own few MB, less than the machine.
     assert!(peak > 4 << 20 && peak < 8 << 30, "peak {peak} bytes");
     let _ = std::fs::remove_dir_all(&run);
+}
+
+/// `samples = "auto"` (the default) caches the rays of a small scene, streams those of a large one
+/// or of a run whose budget the cache would crowd, and streams whenever the mesh refinement moves
+/// the mesh; the estimate follows the choice.
+#[test]
+fn auto_samples_cache_what_fits_and_stream_the_rest() {
+    let mut cfg = RunConfig::preset("cpu").unwrap();
+    assert_eq!(cfg.train.samples, SampleMode::Auto);
+    cfg.train.memory_gb = 16.0;
+    // 40 views of 200x150 (synth small): 1.2 M pixels, ~0.1 GB cached.
+    let small = vec![(200u32, 150u32); 40];
+    let (m, why) = resolve_samples(&cfg, &small, 1);
+    assert_eq!(m, SampleMode::Cache, "{why}");
+    assert!(why.contains("auto") && why.contains("fits"), "{why}");
+    let mut c = cfg.clone();
+    c.train.samples = SampleMode::Cache;
+    assert_eq!(
+        estimate(&cfg, &small, 1).unwrap(),
+        estimate(&c, &small, 1).unwrap()
+    );
+    // 150 photos of 2 Mpixels: ~28 GB cached, far over the cap.
+    let large = vec![(1920u32, 1080u32); 150];
+    let (m, why) = resolve_samples(&cfg, &large, 1);
+    assert_eq!(m, SampleMode::Stream, "{why}");
+    assert!(why.contains("more than"), "{why}");
+    c.train.samples = SampleMode::Stream;
+    assert_eq!(
+        estimate(&cfg, &large, 1).unwrap(),
+        estimate(&c, &large, 1).unwrap()
+    );
+    // A small cache that would take more than a quarter of a tight budget is not taken.
+    let mid = vec![(640u32, 480u32); 40]; // 12.3 M pixels, ~1.1 GB cached
+    assert!(
+        estimate(
+            &{
+                let mut c = cfg.clone();
+                c.train.samples = SampleMode::Cache;
+                c
+            },
+            &mid,
+            1
+        )
+        .unwrap()
+        .samples
+            < AUTO_CACHE_MAX_BYTES
+    );
+    assert_eq!(resolve_samples(&cfg, &mid, 1).0, SampleMode::Cache);
+    cfg.train.memory_gb = 4.0;
+    assert_eq!(resolve_samples(&cfg, &mid, 1).0, SampleMode::Stream);
+    // The mesh refinement moves the mesh: always the stream under auto.
+    cfg.train.memory_gb = 16.0;
+    cfg.model.refine.enabled = true;
+    let (m, why) = resolve_samples(&cfg, &small, 1);
+    assert_eq!(m, SampleMode::Stream, "{why}");
+    assert!(why.contains("refinement"), "{why}");
+    // Given modes are kept.
+    cfg.model.refine.enabled = false;
+    cfg.train.samples = SampleMode::Stream;
+    assert_eq!(resolve_samples(&cfg, &small, 1).0, SampleMode::Stream);
 }

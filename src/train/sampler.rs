@@ -7,8 +7,8 @@
 //! training ray cast once at setup and stored, `12γ²+42` bytes per kept pixel). Both number the
 //! kept pixels the same way and give bit-identical batches (tested), so `train.samples` changes
 //! speed and memory, never results. The default, `auto`, takes the cache when it is small (a
-//! batch from the cache skips the per-batch ray casting: 0.8 against 4.6 ms of a 4,096-pixel
-//! step on `small`) and the stream otherwise (`train/memory.rs` `resolve_samples`).
+//! batch from the cache skips the per-batch ray casting: 0.45 against 4.3 ms of a 4,096-pixel
+//! step on `small`, 2 threads) and the stream otherwise (`train/memory.rs` `resolve_samples`).
 
 use crate::model::batch::Batch;
 use crate::raycast::{RayStream, SampleCache, Tracer};

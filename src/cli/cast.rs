@@ -49,7 +49,7 @@ pub struct Args {
     /// Camera format (default: auto-detect): colmap, mvsnet, transforms.
     #[arg(long)]
     pub format: Option<String>,
-    /// Normalisation of the bounding box to [0,1]^3.
+    /// Normalisation of the bounding box to `[0,1]^3`.
     #[arg(long, value_enum, default_value_t = Normalize::PerAxis)]
     pub normalize: Normalize,
     /// Which views to cast.

@@ -1,4 +1,4 @@
-//! Image metrics (SPEC §7): PSNR on RGB in [0,1]; SSIM as Wang et al. 2004 with an 11×11
+//! Image metrics (SPEC §7): PSNR on RGB in `[0,1]`; SSIM as Wang et al. 2004 with an 11×11
 //! Gaussian window (σ = 1.5), K1 = 0.01, K2 = 0.03, data range 1, per channel then averaged.
 //!
 //! SSIM follows scikit-image's `structural_similarity(gaussian_weights=True, sigma=1.5,
@@ -32,7 +32,7 @@ fn mse(a: &[f32], b: &[f32], mask: Option<&[bool]>) -> f64 {
     }
 }
 
-/// PSNR in dB for values in [0,1]: `-10 log10(MSE)` (∞ for identical images).
+/// PSNR in dB for values in `[0,1]`: `-10 log10(MSE)` (∞ for identical images).
 pub fn psnr(a: &[f32], b: &[f32]) -> f64 {
     -10.0 * mse(a, b, None).log10()
 }

@@ -1,15 +1,15 @@
 //! Model ↔ tensors (SPEC §6): checkpoints, batches and dumps as safetensors files.
 //!
 //! - Checkpoint: every parameter tensor of the layout (f32, names and shapes as
-//!   [`ParamLayout`]), `grid_h.scales` [L] f32 and `grid_h.offsets` [L+1] u32 (same for
+//!   [`ParamLayout`]), `grid_h.scales` `[L]` f32 and `grid_h.offsets` `[L+1]` u32 (same for
 //!   `grid_d`), header metadata `format` = [`FORMAT`], `config` (the [`ModelConfig`] as TOML) and
 //!   `normalization` (JSON `{"center":[..],"extent":[..]}`, f64). Loading uses the SAVED scale
 //!   table (`HashGrid::with_scales`) and checks the saved offsets against it. Other tensors in the
 //!   file (e.g. the trainer's `adam.*`) are ignored by [`Checkpoint::from_tensor_file`].
 //!   A vertex-featurization model (the Fig. 2b baseline) has `vertex.features` [V, Z] instead
 //!   of `grid_h.*`, plus `vertex.faces` [T, 3] u32 (the mesh's triangles, see `model/vertex.rs`).
-//! - Batch: `batch.positions` [N,S,3] f64, `batch.valid` [N,S] u8, `batch.dirs` [N,3] f32,
-//!   `batch.view` [N] i32, `batch.target` [N,3] f32.
+//! - Batch: `batch.positions` `[N,S,3]` f64, `batch.valid` `[N,S]` u8, `batch.dirs` `[N,3]` f32,
+//!   `batch.view` `[N]` i32, `batch.target` `[N,3]` f32.
 //! - Dump ([`dump`]): the checkpoint and batch tensors copied in, every intermediate `fwd.*`,
 //!   `loss` [] and every gradient `grad.*`, in the dtype of the instantiation (f64 or f32). Rows
 //!   of invalid sub-samples are zero (they are never evaluated).

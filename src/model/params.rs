@@ -4,7 +4,7 @@
 //! Layout order (each group contiguous, so an optimiser can take one slice per group):
 //! `grid_h.table` [entries, F] (or, with the vertex featurization, `vertex.features` [V, Z]) ·
 //! `grid_d.table` [entries, F] · `deform.layers.{i}.weight`
-//! [out, in] (+ `.bias` [out]) · `shader.layers.{i}.weight` (+ `.bias`) · `appearance.codes`
+//! `[out, in]` (+ `.bias` `[out]`) · `shader.layers.{i}.weight` (+ `.bias`) · `appearance.codes`
 //! [views, A]. Parts that are switched off have no tensors.
 //!
 //! Gradients ([`Grads`]) hold ∂L/∂params in the same layout plus ∂L/∂batch.positions and

@@ -1,6 +1,6 @@
 //! The vertex-feature featurization: the 3D-surface-based baseline the paper argues against
 //! (Fig. 2b; "learnable Z-dimensional feature descriptors are assigned to each surface
-//! primitive … mesh vertex [45]", Sec. 3.1). One learnable vector of Z features per mesh vertex;
+//! primitive … mesh vertex \[45\]", Sec. 3.1). One learnable vector of Z features per mesh vertex;
 //! a sub-sample that hit triangle `(i0, i1, i2)` with barycentrics `(u, v)` of vertices 1 and 2
 //! gets
 //! ```text

@@ -10,7 +10,7 @@
 //! ## Position encoding: 32-bit fixed point
 //! A normalised position `x_n ∈ [0,1]³` is stored per axis as `q = round(x_n · 2³²)` in a u32
 //! (clamped to `0 ..= 2³²-1`; hits lie inside the bounding box, which maps strictly inside
-//! [0,1] because the extent carries +1e-6). Decoding `q · 2⁻³²` is exact in f64. The error is
+//! `[0,1]` because the extent carries +1e-6). Decoding `q · 2⁻³²` is exact in f64. The error is
 //! ≤ 2⁻³³ ≈ 1.2e-10 of the extent everywhere — uniform over the scene, so a 10 km scene keeps
 //! ~1.2 mm absolute at any level, well inside the ≤1e-9 relative budget (a level-2048 cell is
 //! 4.9e-4). Invalid sub-samples hold 0.

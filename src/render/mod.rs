@@ -27,7 +27,7 @@ pub const WHITE: [f32; 3] = [1.0; 3];
 /// A rendered view.
 #[derive(Clone, Debug)]
 pub struct Rendered {
-    /// RGB in [0,1]; pixels whose rays all miss have the background colour.
+    /// RGB in `[0,1]`; pixels whose rays all miss have the background colour.
     pub image: Image,
     /// `[h*w]` at least one sub-sample hit the mesh.
     pub hit: Vec<bool>,

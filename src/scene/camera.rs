@@ -276,7 +276,7 @@ pub struct Camera {
     /// Image size in pixels.
     pub width: u32,
     pub height: u32,
-    /// K = [[fx,0,cx],[0,fy,cy],[0,0,1]] in pixels (pixel centres at +0.5).
+    /// K = `[[fx,0,cx],[0,fy,cy],[0,0,1]]` in pixels (pixel centres at +0.5).
     pub fx: f64,
     pub fy: f64,
     pub cx: f64,

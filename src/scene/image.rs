@@ -8,7 +8,7 @@
 use anyhow::{anyhow, bail, Context, Result};
 use std::path::Path;
 
-/// An RGB image with f32 values (sRGB-encoded values in [0,1] for PNG/JPEG; EXR as stored).
+/// An RGB image with f32 values (sRGB-encoded values in `[0,1]` for PNG/JPEG; EXR as stored).
 #[derive(Clone, Debug, PartialEq)]
 pub struct Image {
     pub width: u32,

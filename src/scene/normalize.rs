@@ -1,9 +1,9 @@
-//! The f64 normalisation of SPEC §4.1: the mesh's bounding box mapped to [0,1]^3.
+//! The f64 normalisation of SPEC §4.1: the mesh's bounding box mapped to `[0,1]^3`.
 
 use super::Mesh;
 use glam::DVec3;
 
-/// How the bounding box maps to [0,1]^3 (SPEC §4.1).
+/// How the bounding box maps to `[0,1]^3` (SPEC §4.1).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum NormalizeMode {

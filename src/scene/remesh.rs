@@ -1,5 +1,5 @@
 //! Mesh resolution changes for the paper's ablations: quadric-error decimation (Table 5, "mesh
-//! decimation [11]", Garland & Heckbert) through the maintained `meshopt` crate
+//! decimation \[11\]", Garland & Heckbert) through the maintained `meshopt` crate
 //! (meshoptimizer's `meshopt_simplify`), and 1→4 midpoint subdivision (used to give the
 //! vertex-feature baseline of Fig. 2b a parameter budget comparable to the hash grid's).
 //!

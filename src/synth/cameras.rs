@@ -154,7 +154,7 @@ fn is_one(n: &usize) -> bool {
 
 /// Place every camera. `close[i]` says whether view i is a close-up (interleaved by the caller).
 /// Close-up `c` belongs to cluster `c / close_cluster`: the first of a cluster picks a target,
-/// the others look at the same target from nearby eyes ([`place_near`]).
+/// the others look at the same target from nearby eyes (`place_near`).
 /// `paved(x, y)` says whether the terrain at (x, y) is pavement (used with `close_by_material`).
 pub fn place(
     seed: u64,

@@ -251,7 +251,7 @@ fn terrain(seed: u64, p: &TerrainParams) -> Heightfield {
     Heightfield::new(origin, cell, n, heights)
 }
 
-/// Lowest and highest terrain under the rectangle [x0,x1]×[y0,y1] (sampled at half the cell
+/// Lowest and highest terrain under the rectangle `[x0,x1]×[y0,y1]` (sampled at half the cell
 /// size, plus corners).
 pub fn terrain_range(hf: &Heightfield, x0: f64, x1: f64, y0: f64, y1: f64) -> (f64, f64) {
     let step = 0.5 * hf.cell;

@@ -72,7 +72,7 @@ pub fn write(
     )
 }
 
-/// [`write`] with each view rendered by `image(i)` just before it is written (one image in
+/// [`write()`] with each view rendered by `image(i)` just before it is written (one image in
 /// memory at a time); `progress(i)` after view i is written. The `large` preset writes no MVSNet
 /// copy of its images.
 pub fn write_with(

@@ -2,7 +2,7 @@
 //!
 //! Each pixel (u, v) covers [u, u+1)×[v, v+1) (SPEC §2); it is the box-filtered mean of
 //! `spp_side²` rays at the stratified sub-pixel offsets ((a+0.5)/s, (b+0.5)/s), summed in the
-//! fixed order b-major, a-minor (deterministic). Rays that miss see [`shade::sky`].
+//! fixed order b-major, a-minor (deterministic). Rays that miss see [`super::shade::sky`].
 //! Parallelism: rayon over fixed tiles of [`TILE_ROWS`] rows; every pixel is a pure function of
 //! the scene, so the result does not depend on the thread count.
 //!

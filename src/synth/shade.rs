@@ -19,7 +19,7 @@
 //!
 //! Shading: `albedo·(ambient + sun·max(n·l,0)·vis) + ks·sun·vis·max(n·h,0)^shininess`
 //! (Blinn–Phong, per-material `ks` and shininess; `vis` = 0 in the shadow of a building), then
-//! clamped to [0,1]. The values are written as they are, read as sRGB-encoded: no tone
+//! clamped to `[0,1]`. The values are written as they are, read as sRGB-encoded: no tone
 //! mapping, no gamma (documented choice: the training target is "whatever the camera stored").
 
 use super::noise::{self, stream};

@@ -167,7 +167,7 @@ impl Heightfield {
 pub struct Building {
     pub lo: [f64; 3],
     pub hi: [f64; 3],
-    /// Base colour (linear-ish RGB in [0,1]) of walls and roof.
+    /// Base colour (linear-ish RGB in `[0,1]`) of walls and roof.
     pub wall_colour: [f64; 3],
     pub roof_colour: [f64; 3],
 }

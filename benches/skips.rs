@@ -9,7 +9,9 @@
 //! - `no deformation`, `γ = 1`: the model without ξ, without multisampling;
 //! - `invalid sub-samples evaluated`: not a switch of the model (invalid sub-samples are compacted
 //!   away before the grids run); measured as the cost of evaluating that many more sub-samples,
-//!   i.e. the same batch with every sub-sample marked valid at its pixel's first valid position.
+//!   i.e. the same batch with every sub-sample marked valid at its pixel's first valid position;
+//! - `rays cast per batch`: `samples = "stream"` instead of the sample cache `auto` takes on
+//!   `small` (the batch's γ² rays per pixel cast when it is drawn; same batches).
 //!
 //! Steps are timed in alternating rounds (each configuration once per round, best of rounds) after
 //! a warm-up that must lower the loss (a broken configuration is not timed).
@@ -60,7 +62,7 @@ fn main() {
     const WARMUP: u64 = 15;
     let dir = scene();
     type Edit = fn(&mut RunConfig);
-    let edits: [(&str, Edit, bool); 7] = [
+    let edits: [(&str, Edit, bool); 8] = [
         ("cpu (default)", |_| {}, false),
         (
             "no level dropping",
@@ -80,6 +82,11 @@ fn main() {
         ("no deformation", |c| c.model.deform.enabled = false, false),
         ("gamma = 1", |c| c.model.gamma = 1, false),
         ("invalid sub-samples evaluated", |_| {}, true),
+        (
+            "rays cast per batch",
+            |c| c.train.samples = xscale::train::sampler::SampleMode::Stream,
+            false,
+        ),
     ];
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(2)

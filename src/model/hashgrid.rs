@@ -428,20 +428,50 @@ impl HashGrid {
         }
         drop(work);
 
-        // Extract sorted unique entries, zeroing the bitmap as it is read.
-        touched.entries.clear();
-        for l in 0..nl {
-            let base = self.offsets[l];
-            for (wi, w) in bits[word_off[l]..word_off[l + 1]].iter_mut().enumerate() {
-                let mut m = *w;
-                *w = 0;
-                while m != 0 {
-                    let b = m.trailing_zeros();
-                    touched.entries.push(base + (wi as u32) * 64 + b);
-                    m &= m - 1;
-                }
+        // Extract sorted unique entries, zeroing the bitmap as it is read: each level's bits are
+        // counted, then every level writes its own slice of the list in parallel (the list is
+        // the same as a serial walk over the levels in order).
+        let mut level_bits: Vec<&mut [u64]> = Vec::with_capacity(nl);
+        {
+            let mut rest = &mut bits[..nw];
+            for l in 0..nl {
+                let (b, r) = rest.split_at_mut(word_off[l + 1] - word_off[l]);
+                rest = r;
+                level_bits.push(b);
             }
         }
+        let counts: Vec<usize> = level_bits
+            .par_iter()
+            .map(|b| b.iter().map(|w| w.count_ones() as usize).sum())
+            .collect();
+        touched.entries.clear();
+        touched.entries.resize(counts.iter().sum(), 0);
+        let mut level_out: Vec<&mut [u32]> = Vec::with_capacity(nl);
+        {
+            let mut rest = &mut touched.entries[..];
+            for &c in &counts {
+                let (o, r) = rest.split_at_mut(c);
+                rest = r;
+                level_out.push(o);
+            }
+        }
+        level_bits
+            .into_par_iter()
+            .zip(level_out)
+            .enumerate()
+            .for_each(|(l, (b, out))| {
+                let base = self.offsets[l];
+                let mut k = 0;
+                for (wi, w) in b.iter_mut().enumerate() {
+                    let mut m = *w;
+                    *w = 0;
+                    while m != 0 {
+                        out[k] = base + (wi as u32) * 64 + m.trailing_zeros();
+                        k += 1;
+                        m &= m - 1;
+                    }
+                }
+            });
         BITMAP.with(|b| *b.borrow_mut() = bits);
     }
 

@@ -18,7 +18,7 @@ use common::{env, small_scene as scene};
 use std::time::Instant;
 use xscale::model::params::Grads;
 use xscale::train::config::RunConfig;
-use xscale::train::sampler::sample_batch;
+use xscale::train::sampler::{sample_batch, SampleMode};
 use xscale::train::setup::{prepare, resolve_levels};
 use xscale::train::trainer::TrainState;
 
@@ -41,7 +41,6 @@ fn main() {
     let mut cfg = RunConfig::preset("cpu").unwrap();
     cfg.train.batch_pixels = batch;
     // `train.samples` as a run has it (`auto`: the cache on `small`), or as the variable says.
-    use xscale::train::sampler::SampleMode;
     match std::env::var("XSCALE_BENCH_SAMPLES").as_deref() {
         Ok("stream") => cfg.train.samples = SampleMode::Stream,
         Ok("cache") => cfg.train.samples = SampleMode::Cache,

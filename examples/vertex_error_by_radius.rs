@@ -12,6 +12,15 @@
 
 use xscale::scene::mesh::load_mesh;
 
+const RING: f64 = 20.0;
+const RINGS: usize = 6;
+
+/// The ring of a (true) vertex: its horizontal distance from the origin in `RING`s, the last ring
+/// open-ended.
+fn ring(t: glam::DVec3) -> usize {
+    (((t.x * t.x + t.y * t.y).sqrt() / RING) as usize).min(RINGS - 1)
+}
+
 fn main() -> anyhow::Result<()> {
     let a: Vec<String> = std::env::args().collect();
     anyhow::ensure!(
@@ -19,8 +28,6 @@ fn main() -> anyhow::Result<()> {
         "usage: vertex_error_by_radius TRUTH.ply MESH.ply [MESH.ply ...]"
     );
     let truth = load_mesh(std::path::Path::new(&a[1]))?.0;
-    const RING: f64 = 20.0;
-    const RINGS: usize = 6;
     print!("{:<48}", "mesh");
     for i in 0..RINGS {
         let label = if i + 1 < RINGS {
@@ -41,8 +48,7 @@ fn main() -> anyhow::Result<()> {
         );
         let mut bins = [(0.0f64, 0usize); RINGS];
         for (v, t) in m.vertices.iter().zip(&truth.vertices) {
-            let r = (t.x * t.x + t.y * t.y).sqrt();
-            let b = ((r / RING) as usize).min(RINGS - 1);
+            let b = ring(*t);
             bins[b].0 += (*v - *t).length_squared();
             bins[b].1 += 1;
         }
@@ -55,7 +61,7 @@ fn main() -> anyhow::Result<()> {
     print!("{:<48}", "vertices");
     let mut counts = [0usize; RINGS];
     for t in &truth.vertices {
-        counts[(((t.x * t.x + t.y * t.y).sqrt() / RING) as usize).min(RINGS - 1)] += 1;
+        counts[ring(*t)] += 1;
     }
     for n in counts {
         print!(" {n:>11}");

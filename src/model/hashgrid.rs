@@ -426,20 +426,11 @@ impl HashGrid {
                 kernels::backward_table_level(fast, self.cfg.features, &g, p, dout, lf, *l, dt, bm);
             });
         }
-        drop(work);
 
         // Extract sorted unique entries, zeroing the bitmap as it is read: each level's bits are
         // counted, then every level writes its own slice of the list in parallel (the list is
         // the same as a serial walk over the levels in order).
-        let mut level_bits: Vec<&mut [u64]> = Vec::with_capacity(nl);
-        {
-            let mut rest = &mut bits[..nw];
-            for l in 0..nl {
-                let (b, r) = rest.split_at_mut(word_off[l + 1] - word_off[l]);
-                rest = r;
-                level_bits.push(b);
-            }
-        }
+        let level_bits: Vec<&mut [u64]> = work.into_iter().map(|(_, _, bm)| bm).collect();
         let counts: Vec<usize> = level_bits
             .par_iter()
             .map(|b| b.iter().map(|w| w.count_ones() as usize).sum())

@@ -715,7 +715,12 @@ impl Hfm {
         // Grid tables: one scatter over all valid sub-samples in batch order (H and D write
         // disjoint buffers, so they run concurrently).
         let mode = self.cfg.positions;
-        let d_feat = concat(cg.iter().map(|c| &c.d_feat[..]));
+        // The chunks' rows in chunk order (`concat` allocates once).
+        let d_feat = cg
+            .iter()
+            .map(|c| &c.d_feat[..])
+            .collect::<Vec<_>>()
+            .concat();
         let (before_d, from_d) = grads.params.split_at_mut(
             self.r_grid_d
                 .start
@@ -745,7 +750,11 @@ impl Hfm {
             },
             || {
                 if let Some(gd) = &self.grid_d {
-                    let d_gd = concat(cg.iter().map(|c| &c.d_grid_d[..]));
+                    let d_gd = cg
+                        .iter()
+                        .map(|c| &c.d_grid_d[..])
+                        .collect::<Vec<_>>()
+                        .concat();
                     let len = self.r_grid_d.len();
                     gd.backward_table(points, mode, &d_gd, &mut from_d[..len], touched_d);
                 }
@@ -990,15 +999,6 @@ pub fn pool_backward<R: Real>(
 
 /// `dst += src` element-wise.
 #[inline]
-/// The chunks' rows in chunk order, in one buffer allocated once (a copy per chunk).
-fn concat<'a, R: Real + 'a>(parts: impl Iterator<Item = &'a [R]> + Clone) -> Vec<R> {
-    let mut out = Vec::with_capacity(parts.clone().map(|p| p.len()).sum());
-    for p in parts {
-        out.extend_from_slice(p);
-    }
-    out
-}
-
 fn add_into<R: Real>(dst: &mut [R], src: &[R]) {
     for (d, &s) in dst.iter_mut().zip(src) {
         *d += s;

@@ -53,15 +53,10 @@ pub const AUTO_CACHE_MAX_BYTES: u64 = 2_000_000_000;
 /// … and at most this share of the memory budget (`train.memory_gb`, or what is available).
 pub const AUTO_CACHE_BUDGET_SHARE: f64 = 0.25;
 
-/// Bytes of the training samples in `mode` (`Stream` or `Cache`; `Auto` as it resolves).
-fn sample_bytes(cfg: &RunConfig, sizes: &[(u32, u32)], downsample: u32) -> u64 {
+/// Bytes of the training samples, cached (`cache`) or streamed.
+fn sample_bytes(cfg: &RunConfig, cache: bool, sizes: &[(u32, u32)], downsample: u32) -> u64 {
     let g2 = (cfg.model.gamma * cfg.model.gamma) as u64;
     let photo_bytes = if downsample > 1 { 12 } else { 3 };
-    let cache = match cfg.train.samples {
-        SampleMode::Cache => true,
-        SampleMode::Stream => false,
-        SampleMode::Auto => resolve_samples(cfg, sizes, downsample).0 == SampleMode::Cache,
-    };
     let per_view: u64 = sizes
         .iter()
         .map(|&(w, h)| {
@@ -109,6 +104,16 @@ pub fn resolve_samples(
     sizes: &[(u32, u32)],
     downsample: u32,
 ) -> (SampleMode, String) {
+    resolve_within(cfg, sizes, downsample, budget(cfg).map(|(b, _)| b))
+}
+
+/// [`resolve_samples`] against a budget already read (`None`: the system does not say).
+fn resolve_within(
+    cfg: &RunConfig,
+    sizes: &[(u32, u32)],
+    downsample: u32,
+    budget: Option<u64>,
+) -> (SampleMode, String) {
     match cfg.train.samples {
         SampleMode::Auto => {}
         m => return (m, "as configured".into()),
@@ -119,11 +124,9 @@ pub fn resolve_samples(
             "auto: the mesh refinement moves the mesh".into(),
         );
     }
-    let mut c = cfg.clone();
-    c.train.samples = SampleMode::Cache;
-    let bytes = sample_bytes(&c, sizes, downsample);
-    let cap = match budget(cfg) {
-        Some((b, _)) => AUTO_CACHE_MAX_BYTES.min((b as f64 * AUTO_CACHE_BUDGET_SHARE) as u64),
+    let bytes = sample_bytes(cfg, true, sizes, downsample);
+    let cap = match budget {
+        Some(b) => AUTO_CACHE_MAX_BYTES.min((b as f64 * AUTO_CACHE_BUDGET_SHARE) as u64),
         None => AUTO_CACHE_MAX_BYTES,
     };
     if bytes <= cap {
@@ -147,10 +150,22 @@ pub fn resolve_samples(
     }
 }
 
-/// The estimate for a run over training views of sizes `sizes` (after downsampling).
+/// The estimate for a run over training views of sizes `sizes` (after downsampling), with its
+/// samples as [`resolve_samples`] chooses them.
 pub fn estimate(cfg: &RunConfig, sizes: &[(u32, u32)], downsample: u32) -> Result<Estimate> {
+    let mode = resolve_samples(cfg, sizes, downsample).0;
+    estimate_for(cfg, mode, sizes, downsample)
+}
+
+/// [`estimate`] with the samples resolved to `mode`.
+fn estimate_for(
+    cfg: &RunConfig,
+    mode: SampleMode,
+    sizes: &[(u32, u32)],
+    downsample: u32,
+) -> Result<Estimate> {
     let g2 = (cfg.model.gamma * cfg.model.gamma) as u64;
-    let samples = sample_bytes(cfg, sizes, downsample);
+    let samples = sample_bytes(cfg, mode == SampleMode::Cache, sizes, downsample);
     let params = if cfg.model.featurization.is_hash() {
         Hfm::new(&cfg.model)?.layout.total as u64
     } else {
@@ -211,14 +226,21 @@ fn size(b: u64) -> String {
 
 /// Fail, before anything large is allocated, when the estimate exceeds the budget:
 /// `train.memory_gb` when > 0, else the available memory (when the system reports it).
-pub fn check_budget(cfg: &RunConfig, sizes: &[(u32, u32)], downsample: u32) -> Result<()> {
-    let e = estimate(cfg, sizes, downsample)?;
-    let Some((budget, what)) = budget(cfg) else {
-        return Ok(());
+/// Returns the sample source the run is to use and why ([`resolve_samples`], decided against
+/// the same budget reading as the check).
+pub fn check_budget(
+    cfg: &RunConfig,
+    sizes: &[(u32, u32)],
+    downsample: u32,
+) -> Result<(SampleMode, String)> {
+    let budget = budget(cfg);
+    let (mode, why) = resolve_within(cfg, sizes, downsample, budget.as_ref().map(|(b, _)| *b));
+    let e = estimate_for(cfg, mode, sizes, downsample)?;
+    let Some((budget, what)) = budget else {
+        return Ok((mode, why));
     };
-    let mode = resolve_samples(cfg, sizes, downsample).0;
     if e.total() <= budget {
-        return Ok(());
+        return Ok((mode, why));
     }
     let pixels: u64 = sizes.iter().map(|&(w, h)| w as u64 * h as u64).sum();
     let mut hints = Vec::new();

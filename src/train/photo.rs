@@ -46,11 +46,6 @@ pub const PHOTO_CHUNK: usize = 16;
 pub const VISIBILITY_TOLERANCE: f64 = 0.01;
 /// Pixel-centre rays per view used to choose its neighbours (columns, rows).
 pub const PROBE_GRID: [u32; 2] = [16, 12];
-/// Rays traced together by the photo term: one. Its rays are not coherent enough for a packet
-/// (a coarse level's patch spreads over many photo pixels, visibility rays go to scattered
-/// points): a group traversal visits the union of its rays' nodes, 5–50× slower here than one
-/// ray at a time. A ray's result does not depend on the packet it is traced in.
-const LANES: usize = 1;
 /// Fewest probe hits a neighbour must share with its view.
 pub const MIN_SHARED: usize = 8;
 
@@ -104,6 +99,11 @@ impl PhotoStats {
 }
 
 /// Closest hits (mesh triangle, f64 distance) of rays from `o` (local frame) along unit `dirs`.
+///
+/// One ray per packet: the photo term's rays are not coherent enough to trace together (a
+/// coarse level's patch spreads over many photo pixels, visibility rays go to scattered points),
+/// and a group traversal visits the union of its rays' nodes, 5–50× slower here than one ray at
+/// a time. A ray's result does not depend on the packet it is traced in.
 fn trace_from(
     tracer: &Tracer,
     scratch: &mut Scratch,
@@ -111,18 +111,13 @@ fn trace_from(
     dirs: &[DVec3],
 ) -> Vec<Option<(u32, f64)>> {
     let o32 = o.as_vec3().to_array();
-    let mut out = Vec::with_capacity(dirs.len());
-    for chunk in dirs.chunks(LANES) {
-        let mut p = Packet::default();
-        for (l, d) in chunk.iter().enumerate() {
-            p.set(l, o32, d.as_vec3().to_array());
-        }
-        let hits = tracer.trace(&p, scratch);
-        for (l, d) in chunk.iter().enumerate() {
-            out.push(hits[l].map(|(tri, t32)| (tri, tracer.refine(o, *d, tri, t32).t)));
-        }
-    }
-    out
+    let mut p = Packet::default();
+    dirs.iter()
+        .map(|d| {
+            p.set(0, o32, d.as_vec3().to_array());
+            tracer.trace(&p, scratch)[0].map(|(tri, t32)| (tri, tracer.refine(o, *d, tri, t32).t))
+        })
+        .collect()
 }
 
 /// Whether local point `x` on triangle `tri` is seen from `o` (module docs), for many points.

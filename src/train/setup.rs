@@ -100,13 +100,12 @@ pub fn prepare(
         .iter()
         .map(|&i| (scene.views[i].camera.width, scene.views[i].camera.height))
         .collect();
-    memory::check_budget(cfg, &sizes, scene.downsample)?;
+    let (mode, why) = memory::check_budget(cfg, &sizes, scene.downsample)?;
     let t0 = std::time::Instant::now();
     let gamma = cfg.model.gamma;
     // The vertex featurization needs each sub-sample's triangle and barycentrics, the mesh
     // refinement its triangle (`train/refine.rs`).
     let keep_triangles = !cfg.model.featurization.is_hash() || cfg.model.refine.enabled;
-    let (mode, why) = memory::resolve_samples(cfg, &sizes, scene.downsample);
     let mut samples = match mode {
         SampleMode::Stream | SampleMode::Auto => {
             Samples::Stream(RayStream::new(gamma, keep_triangles)?)

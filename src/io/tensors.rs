@@ -158,6 +158,24 @@ impl Tensor {
     }
 
     typed_constructor_and_accessor!(f32, to_f32, f32, F32);
+
+    /// [`Tensor::to_f32`] written into `out` (no intermediate vector); error unless the dtype is
+    /// F32 and `out` has one slot per element.
+    pub fn copy_f32_into(&self, out: &mut [f32]) -> Result<()> {
+        self.expect_dtype(DType::F32)?;
+        if out.len() * 4 != self.data.len() {
+            bail!(
+                "tensor of shape {:?} has {} elements, expected {}",
+                self.shape,
+                self.data.len() / 4,
+                out.len()
+            );
+        }
+        for (o, c) in out.iter_mut().zip(self.data.chunks_exact(4)) {
+            *o = f32::from_le_bytes(c.try_into().unwrap());
+        }
+        Ok(())
+    }
     typed_constructor_and_accessor!(u32, to_u32, u32, U32);
     typed_constructor_and_accessor!(i32, to_i32, i32, I32);
     typed_constructor_and_accessor!(u8, to_u8, u8, U8);
@@ -256,13 +274,30 @@ impl TensorFile {
     }
 
     /// [`TensorFile::read`] keeping only the tensors whose name `keep` accepts: the others are
-    /// validated like every tensor but never copied out of the file's bytes (a model loaded to
-    /// render or score skips the Adam state, three quarters of a training checkpoint).
+    /// validated like every tensor (their offsets against the file's length) but never read
+    /// from disk or copied: the file is memory-mapped, so only the kept tensors' pages are read
+    /// (a model loaded to render or score skips the Adam state, three quarters of a training
+    /// checkpoint).
     pub fn read_only(path: impl AsRef<Path>, keep: impl Fn(&str) -> bool) -> Result<TensorFile> {
         let path = path.as_ref();
-        let bytes =
-            std::fs::read(path).with_context(|| format!("{}: cannot read", path.display()))?;
-        let mut f = Self::from_bytes_only(&bytes, &path.display().to_string(), keep)?;
+        let file = std::fs::File::open(path)
+            .with_context(|| format!("{}: cannot read", path.display()))?;
+        // SAFETY: the map is read while this function runs and dropped before it returns; every
+        // kept tensor is copied out of it. Mapping is undefined behaviour only if another process
+        // changes the file in place meanwhile: xscale never does (files are written to a temporary
+        // name and renamed over, `io/atomic.rs`, which leaves a mapped file's bytes as they were).
+        // A file that cannot be mapped (an empty file, a pipe) is read instead.
+        let map = unsafe { memmap2::Mmap::map(&file) };
+        let read;
+        let bytes: &[u8] = match &map {
+            Ok(m) => m,
+            Err(_) => {
+                read = std::fs::read(path)
+                    .with_context(|| format!("{}: cannot read", path.display()))?;
+                &read
+            }
+        };
+        let mut f = Self::from_bytes_only(bytes, &path.display().to_string(), keep)?;
         f.source = Some(path.to_path_buf());
         Ok(f)
     }

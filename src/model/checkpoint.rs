@@ -112,17 +112,18 @@ pub fn layout_to_tensors<R: Real>(
     Ok(())
 }
 
-/// Read every tensor of a layout (f32, exact shapes) into a flat buffer.
+/// Read every tensor of a layout (f32, exact shapes) into a flat buffer (on huge pages, as the
+/// training loop wants its parameters).
 pub fn layout_from_tensors(
     file: &TensorFile,
     layout: &ParamLayout,
     prefix: &str,
 ) -> Result<Vec<f32>> {
-    let mut out = vec![0.0f32; layout.total];
+    let mut out = crate::memhint::filled(layout.total, 0.0f32);
     for t in &layout.tensors {
         let name = format!("{prefix}{}", t.name);
-        let v = file.get_checked(&name, DType::F32, &t.shape)?.to_f32()?;
-        out[t.range()].copy_from_slice(&v);
+        file.get_checked(&name, DType::F32, &t.shape)?
+            .copy_f32_into(&mut out[t.range()])?;
     }
     Ok(out)
 }
@@ -246,7 +247,7 @@ impl Checkpoint {
                 .collect();
             Hfm::with_vertex(&cfg, faces.into()).with_context(|| label.clone())?
         };
-        let params = crate::memhint::copied(&layout_from_tensors(file, &model.layout, "")?);
+        let params = layout_from_tensors(file, &model.layout, "")?;
         if let Some(i) = params.iter().position(|v| !v.is_finite()) {
             let t = model
                 .layout

@@ -94,19 +94,27 @@ fn shape_numel(shape: &[usize]) -> Option<usize> {
     shape.iter().try_fold(1usize, |acc, &d| acc.checked_mul(d))
 }
 
+/// The little-endian bytes of a slice of plain numbers: one copy on a little-endian machine (each
+/// element's bytes then reversed on a big-endian one).
+pub fn le_bytes<T: bytemuck::Pod>(values: &[T]) -> Vec<u8> {
+    let mut b = bytemuck::cast_slice::<T, u8>(values).to_vec();
+    if cfg!(target_endian = "big") {
+        for c in b.chunks_exact_mut(std::mem::size_of::<T>()) {
+            c.reverse();
+        }
+    }
+    b
+}
+
 macro_rules! typed_constructor_and_accessor {
     ($ctor:ident, $acc:ident, $t:ty, $variant:ident) => {
         #[doc = concat!("A ", stringify!($variant), " tensor; error if `values.len()` is not the product of `shape`.")]
         pub fn $ctor(shape: Vec<usize>, values: &[$t]) -> Result<Tensor> {
             Self::check_len(&shape, values.len(), DType::$variant)?;
-            let mut data = Vec::with_capacity(values.len() * std::mem::size_of::<$t>());
-            for v in values {
-                data.extend_from_slice(&v.to_le_bytes());
-            }
             Ok(Tensor {
                 dtype: DType::$variant,
                 shape,
-                data,
+                data: le_bytes(values),
             })
         }
 
@@ -183,14 +191,10 @@ impl Tensor {
     /// An F64 tensor; error if `values.len()` is not the product of `shape`.
     pub fn f64(shape: Vec<usize>, values: &[f64]) -> Result<Tensor> {
         Self::check_len(&shape, values.len(), DType::F64)?;
-        let mut data = Vec::with_capacity(values.len() * 8);
-        for v in values {
-            data.extend_from_slice(&v.to_le_bytes());
-        }
         Ok(Tensor {
             dtype: DType::F64,
             shape,
-            data,
+            data: le_bytes(values),
         })
     }
 

@@ -130,13 +130,12 @@ pub fn layout_from_tensors(
 
 /// A tensor in the dtype of `R` (F64 or F32).
 pub fn tensor_of<R: Real>(shape: Vec<usize>, data: &[R]) -> Result<Tensor> {
-    if R::DTYPE == "F64" {
-        let v: Vec<f64> = data.iter().map(|x| x.to_f64()).collect();
-        Tensor::f64(shape, &v)
+    let dtype = if R::DTYPE == "F64" {
+        DType::F64
     } else {
-        let v: Vec<f32> = data.iter().map(|x| x.to_f64() as f32).collect();
-        Tensor::f32(shape, &v)
-    }
+        DType::F32
+    };
+    Tensor::from_bytes(dtype, shape, crate::io::tensors::le_bytes(data))
 }
 
 fn grid_tensors(file: &mut TensorFile, name: &str, g: &HashGrid) -> Result<()> {

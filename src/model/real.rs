@@ -6,6 +6,7 @@ use std::ops::{Add, AddAssign, Div, Mul, MulAssign, Neg, Sub, SubAssign};
 
 pub trait Real:
     Copy
+    + bytemuck::Pod
     + Debug
     + Default
     + PartialOrd

@@ -6,7 +6,7 @@
 #![allow(clippy::needless_range_loop)]
 
 use xscale::io::TensorFile;
-use xscale::train::adam::{AdamGroup, AdamState, LrSchedule, DENSE_CHUNK, SPARSE_CHUNK};
+use xscale::train::adam::{AdamGroup, AdamState, LrSchedule, Moments, DENSE_CHUNK, SPARSE_CHUNK};
 
 /// β1, β2 as the optimizer holds them (f32), widened exactly.
 const B1: f64 = 0.9f32 as f64;
@@ -366,4 +366,27 @@ fn save_and_load_state() {
         AdamState::load(&g, &[("appearance.codes", vec![2, 4])]).unwrap_err()
     );
     assert!(e.contains("missing tensor adam.m.appearance.codes"), "{e}");
+}
+
+#[test]
+fn save_and_load_a_state_spanning_many_chunks() {
+    // Saving and loading work on chunks of the state in parallel: every scalar must come back
+    // in its place, across chunk borders and in a last partial chunk.
+    let params = [("grid_h.table", vec![100_003, 2]), ("shader.w", vec![3])];
+    let mut st = AdamState::new(&params);
+    for (i, s) in st.state.iter_mut().enumerate() {
+        *s = Moments {
+            m: i as f32 * 0.25 - 7.0,
+            v: i as f32 + 0.5,
+            t: (i * 3) as u32,
+        };
+    }
+    let mut f = TensorFile::new();
+    st.save(&mut f).unwrap();
+    let r = st.range("grid_h.table").unwrap();
+    assert_eq!(f.get_f32("adam.m.grid_h.table").unwrap(), st.m(r.clone()));
+    assert_eq!(f.get_f32("adam.v.grid_h.table").unwrap(), st.v(r.clone()));
+    assert_eq!(f.get_u32("adam.t.grid_h.table").unwrap(), st.t(r));
+    let g = TensorFile::from_bytes(&f.to_bytes().unwrap(), "ck").unwrap();
+    assert_eq!(AdamState::load(&g, &params).unwrap().state, st.state);
 }

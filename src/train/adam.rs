@@ -718,21 +718,33 @@ impl AdamState {
     /// file written by [`AdamState::save`]. Errors name the file, the tensor and the expected
     /// dtype/shape.
     pub fn load<S: AsRef<str>>(f: &TensorFile, params: &[(S, Vec<usize>)]) -> Result<AdamState> {
+        const CHUNK: usize = 1 << 16;
         let mut st = AdamState::new(params);
         for s in st.slots.clone() {
-            let r = s.range();
-            let m = f
-                .get_checked(&format!("adam.m.{}", s.name), DType::F32, &s.shape)?
-                .to_f32()?;
-            let v = f
-                .get_checked(&format!("adam.v.{}", s.name), DType::F32, &s.shape)?
-                .to_f32()?;
-            let t = f
-                .get_checked(&format!("adam.t.{}", s.name), DType::U32, &s.shape)?
-                .to_u32()?;
-            for (((s, m), v), t) in st.state[r].iter_mut().zip(m).zip(v).zip(t) {
-                *s = Moments { m, v, t };
-            }
+            let get = |kind: &str, dtype| {
+                f.get_checked(&format!("adam.{kind}.{}", s.name), dtype, &s.shape)
+                    .map(|t| &t.data[..])
+            };
+            let (m, v, t) = (
+                get("m", DType::F32)?,
+                get("v", DType::F32)?,
+                get("t", DType::U32)?,
+            );
+            // Decoded straight from the file's bytes into the state, in parallel chunks.
+            let word = |b: &[u8], i: usize| -> [u8; 4] { b[i * 4..i * 4 + 4].try_into().unwrap() };
+            st.state[s.range()]
+                .par_chunks_mut(CHUNK)
+                .enumerate()
+                .for_each(|(c, out)| {
+                    let [m, v, t] = [m, v, t].map(|b| &b[c * CHUNK * 4..]);
+                    for (i, o) in out.iter_mut().enumerate() {
+                        *o = Moments {
+                            m: f32::from_le_bytes(word(m, i)),
+                            v: f32::from_le_bytes(word(v, i)),
+                            t: u32::from_le_bytes(word(t, i)),
+                        };
+                    }
+                });
         }
         Ok(st)
     }

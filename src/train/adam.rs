@@ -71,6 +71,8 @@ const PREFETCH_AHEAD: usize = 8;
 pub const DENSE_CHUNK: usize = 1 << 14;
 /// Entries per parallel chunk in [`AdamState::step_sparse`].
 pub const SPARSE_CHUNK: usize = 1 << 11;
+/// Scalars per parallel chunk when the state is saved or loaded (no effect on the bytes).
+const IO_CHUNK: usize = 1 << 16;
 
 /// Learning-rate schedule of one group (see the module doc for the formula).
 #[derive(Clone, Copy, Debug, Serialize, Deserialize, PartialEq)]
@@ -695,14 +697,13 @@ impl AdamState {
     /// The little-endian bytes of `m`, `v` and `t` over `range`, written in one pass over the
     /// state in parallel chunks (a checkpoint holds hundreds of MB of it).
     fn state_bytes(&self, range: Range<usize>) -> [Vec<u8>; 3] {
-        const CHUNK: usize = 1 << 16;
         let st = &self.state[range];
         let mut out = [0; 3].map(|_| vec![0u8; st.len() * 4]);
         let [m, v, t] = &mut out;
-        m.par_chunks_mut(CHUNK * 4)
-            .zip(v.par_chunks_mut(CHUNK * 4))
-            .zip(t.par_chunks_mut(CHUNK * 4))
-            .zip(st.par_chunks(CHUNK))
+        m.par_chunks_mut(IO_CHUNK * 4)
+            .zip(v.par_chunks_mut(IO_CHUNK * 4))
+            .zip(t.par_chunks_mut(IO_CHUNK * 4))
+            .zip(st.par_chunks(IO_CHUNK))
             .for_each(|(((m, v), t), st)| {
                 for (i, s) in st.iter().enumerate() {
                     let b = i * 4..i * 4 + 4;
@@ -718,7 +719,6 @@ impl AdamState {
     /// file written by [`AdamState::save`]. Errors name the file, the tensor and the expected
     /// dtype/shape.
     pub fn load<S: AsRef<str>>(f: &TensorFile, params: &[(S, Vec<usize>)]) -> Result<AdamState> {
-        const CHUNK: usize = 1 << 16;
         let mut st = AdamState::new(params);
         for s in st.slots.clone() {
             let get = |kind: &str, dtype| {
@@ -733,10 +733,10 @@ impl AdamState {
             // Decoded straight from the file's bytes into the state, in parallel chunks.
             let word = |b: &[u8], i: usize| -> [u8; 4] { b[i * 4..i * 4 + 4].try_into().unwrap() };
             st.state[s.range()]
-                .par_chunks_mut(CHUNK)
+                .par_chunks_mut(IO_CHUNK)
                 .enumerate()
                 .for_each(|(c, out)| {
-                    let [m, v, t] = [m, v, t].map(|b| &b[c * CHUNK * 4..]);
+                    let [m, v, t] = [m, v, t].map(|b| &b[c * IO_CHUNK * 4..]);
                     for (i, o) in out.iter_mut().enumerate() {
                         *o = Moments {
                             m: f32::from_le_bytes(word(m, i)),

@@ -107,7 +107,7 @@ pub fn le_bytes<T: bytemuck::Pod>(values: &[T]) -> Vec<u8> {
 }
 
 macro_rules! typed_constructor_and_accessor {
-    ($ctor:ident, $acc:ident, $t:ty, $variant:ident) => {
+    ($ctor:ident, $acc:ident, $into:ident, $t:ty, $variant:ident) => {
         #[doc = concat!("A ", stringify!($variant), " tensor; error if `values.len()` is not the product of `shape`.")]
         pub fn $ctor(shape: Vec<usize>, values: &[$t]) -> Result<Tensor> {
             Self::check_len(&shape, values.len(), DType::$variant)?;
@@ -120,12 +120,27 @@ macro_rules! typed_constructor_and_accessor {
 
         #[doc = concat!("The elements as `", stringify!($t), "`; error unless the dtype is ", stringify!($variant), ".")]
         pub fn $acc(&self) -> Result<Vec<$t>> {
+            let mut out = vec![<$t>::default(); self.data.len() / std::mem::size_of::<$t>()];
+            self.$into(&mut out)?;
+            Ok(out)
+        }
+
+        #[doc = concat!("[`Tensor::", stringify!($acc), "`] written into `out` (no intermediate vector); error unless the dtype is ", stringify!($variant), " and `out` has one slot per element.")]
+        pub fn $into(&self, out: &mut [$t]) -> Result<()> {
             self.expect_dtype(DType::$variant)?;
-            Ok(self
-                .data
-                .chunks_exact(std::mem::size_of::<$t>())
-                .map(|c| <$t>::from_le_bytes(c.try_into().unwrap()))
-                .collect())
+            const SIZE: usize = std::mem::size_of::<$t>();
+            if out.len() * SIZE != self.data.len() {
+                bail!(
+                    "tensor of shape {:?} has {} elements, expected {}",
+                    self.shape,
+                    self.data.len() / SIZE,
+                    out.len()
+                );
+            }
+            for (o, c) in out.iter_mut().zip(self.data.chunks_exact(SIZE)) {
+                *o = <$t>::from_le_bytes(c.try_into().unwrap());
+            }
+            Ok(())
         }
     };
 }
@@ -165,28 +180,10 @@ impl Tensor {
         Ok(())
     }
 
-    typed_constructor_and_accessor!(f32, to_f32, f32, F32);
-
-    /// [`Tensor::to_f32`] written into `out` (no intermediate vector); error unless the dtype is
-    /// F32 and `out` has one slot per element.
-    pub fn copy_f32_into(&self, out: &mut [f32]) -> Result<()> {
-        self.expect_dtype(DType::F32)?;
-        if out.len() * 4 != self.data.len() {
-            bail!(
-                "tensor of shape {:?} has {} elements, expected {}",
-                self.shape,
-                self.data.len() / 4,
-                out.len()
-            );
-        }
-        for (o, c) in out.iter_mut().zip(self.data.chunks_exact(4)) {
-            *o = f32::from_le_bytes(c.try_into().unwrap());
-        }
-        Ok(())
-    }
-    typed_constructor_and_accessor!(u32, to_u32, u32, U32);
-    typed_constructor_and_accessor!(i32, to_i32, i32, I32);
-    typed_constructor_and_accessor!(u8, to_u8, u8, U8);
+    typed_constructor_and_accessor!(f32, to_f32, copy_f32_into, f32, F32);
+    typed_constructor_and_accessor!(u32, to_u32, copy_u32_into, u32, U32);
+    typed_constructor_and_accessor!(i32, to_i32, copy_i32_into, i32, I32);
+    typed_constructor_and_accessor!(u8, to_u8, copy_u8_into, u8, U8);
 
     /// An F64 tensor; error if `values.len()` is not the product of `shape`.
     pub fn f64(shape: Vec<usize>, values: &[f64]) -> Result<Tensor> {

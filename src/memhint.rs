@@ -4,9 +4,12 @@
 //!   written once in parallel. With 4 KiB pages the first costs a TLB miss per access and the
 //!   second serialises page faults on the address-space lock (a no-op elsewhere or when the kernel
 //!   refuses);
-//! - [`prefetch`]: start loading a cache line that a loop will need a few iterations later
-//!   (scattered table entries whose addresses are known ahead: the grids' corners, Adam's touched
-//!   entries).
+//! - [`prefetch`] / [`prefetch_l2`]: start loading a cache line that a loop will need a few
+//!   iterations later (scattered table entries whose addresses are known ahead: the grids'
+//!   corners, Adam's touched entries). A core has few L1 miss buffers (a `prefetcht0` waits for
+//!   one when they are all busy), and more outstanding misses to L2: prefetching far ahead into
+//!   L2 keeps many more lines in flight, which is what the random table accesses wait on
+//!   (`docs/performance.md`, "Prefetching into L2").
 
 /// Ask the CPU to start loading the cache line at `p` into all cache levels (x86-64
 /// `prefetcht0`; a no-op elsewhere). Never faults, whatever the address.
@@ -16,6 +19,20 @@ pub fn prefetch<T>(p: *const T) {
     // SAFETY: a prefetch never faults, whatever the address.
     unsafe {
         std::arch::x86_64::_mm_prefetch::<{ std::arch::x86_64::_MM_HINT_T0 }>(p as *const i8)
+    };
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = p;
+}
+
+/// Ask the CPU to start loading the cache line at `p` into L2 (x86-64 `prefetcht1`; a no-op
+/// elsewhere): for lines needed many iterations later, without taking an L1 miss buffer while
+/// they arrive. Never faults, whatever the address.
+#[inline(always)]
+pub fn prefetch_l2<T>(p: *const T) {
+    #[cfg(target_arch = "x86_64")]
+    // SAFETY: a prefetch never faults, whatever the address.
+    unsafe {
+        std::arch::x86_64::_mm_prefetch::<{ std::arch::x86_64::_MM_HINT_T1 }>(p as *const i8)
     };
     #[cfg(not(target_arch = "x86_64"))]
     let _ = p;

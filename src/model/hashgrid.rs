@@ -878,19 +878,17 @@ fn corner_weights_block<R: Real>(n: usize, w: &[[R; BLOCK]; 3], w8: &mut [[R; BL
     }
 }
 
-use crate::memhint::prefetch;
+use crate::memhint::prefetch_l2;
 
-/// Prefetch the table rows of point j's corners. The x-neighbours k and k+1 are the same or
-/// adjacent entries (dense) or differ only in their lowest bits (hashed: `c ^ h` vs `(c+1) ^ h`),
-/// so they usually share a cache line: the odd corners are prefetched only when an entry is at
-/// least half a line.
+/// Prefetch the table rows of point j's corners into L2. A block's pass 1 issues these for all
+/// its points before pass 2 gathers them, far more lines than L1's miss buffers hold, so they go
+/// to L2 (`prefetcht1`), which keeps many more misses in flight. All eight corners: the
+/// x-neighbours k and k+1 usually share a line, but not always (a carry out of the low index
+/// bits), and prefetching only the even ones was measured slower (`docs/performance.md`).
 #[inline(always)]
 fn prefetch_corners<R, const F: usize>(tab: &[R], idx: &[[u32; BLOCK]; 8], j: usize) {
-    let both = F * std::mem::size_of::<R>() >= 32;
-    for (k, row) in idx.iter().enumerate() {
-        if k % 2 == 0 || both {
-            prefetch(tab.as_ptr().wrapping_add(row[j] as usize * F));
-        }
+    for row in idx {
+        prefetch_l2(tab.as_ptr().wrapping_add(row[j] as usize * F));
     }
 }
 

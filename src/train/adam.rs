@@ -64,8 +64,11 @@ type SparseChunk<'a> = (
     &'a mut [f32],
     &'a mut [Moments],
 );
-/// How many entries ahead a sparse step prefetches.
-const PREFETCH_AHEAD: usize = 8;
+/// How many entries ahead a sparse step prefetches into L2 (`FAR_AHEAD`), then into L1
+/// (`NEAR_AHEAD`): Adam waits on the lines of scattered entries, and L2 keeps more misses in
+/// flight than L1's miss buffers (`docs/performance.md`, "Prefetching into L2").
+const FAR_AHEAD: usize = 64;
+const NEAR_AHEAD: usize = 16;
 
 /// Scalars per parallel chunk in [`AdamState::step_dense`].
 pub const DENSE_CHUNK: usize = 1 << 14;
@@ -407,6 +410,20 @@ impl StepConsts<'_> {
     }
 }
 
+/// The lines to prefetch for the entry at local scalar offset `a` (`len` scalars): its first
+/// parameter and gradient, and the first and last byte of its state record (which may lie on two
+/// lines). Pointer arithmetic only (`wrapping_add`), so an address past a slice is harmless.
+#[inline(always)]
+fn entry_lines(w: &[f32], g: &[f32], st: &[Moments], a: usize, len: usize) -> [*const u8; 4] {
+    let s = st.as_ptr().wrapping_add(a) as *const u8;
+    [
+        w.as_ptr().wrapping_add(a) as *const u8,
+        g.as_ptr().wrapping_add(a) as *const u8,
+        s,
+        s.wrapping_add(len * std::mem::size_of::<Moments>() - 1),
+    ]
+}
+
 /// One scalar's Adam state, stored together (12 bytes): a sparse step reads and writes all three
 /// for each touched scalar at random places of a large table, so one cache line serves them.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
@@ -650,14 +667,27 @@ impl AdamState {
         }
         let run = |(chunk, start, w, g, st): SparseChunk| {
             let c = &consts;
+            for &e in chunk.iter().take(FAR_AHEAD) {
+                for p in entry_lines(w, g, st, e as usize * entry_len - start, entry_len) {
+                    crate::memhint::prefetch_l2(p);
+                }
+            }
             for (i, &e) in chunk.iter().enumerate() {
                 // The entries are scattered over a table of hundreds of MB: start loading the
-                // lines of an entry a few iterations ahead (no effect on results).
-                if let Some(&ahead) = chunk.get(i + PREFETCH_AHEAD) {
-                    let a = ahead as usize * entry_len - start;
-                    crate::memhint::prefetch(w.as_ptr().wrapping_add(a));
-                    crate::memhint::prefetch(g.as_ptr().wrapping_add(a));
-                    crate::memhint::prefetch(st.as_ptr().wrapping_add(a));
+                // lines of an entry well ahead into L2, then a few entries ahead into L1 (no
+                // effect on results). A state record (12 bytes per scalar) can straddle two
+                // lines: its last byte is fetched too.
+                if let Some(&far) = chunk.get(i + FAR_AHEAD) {
+                    let a = far as usize * entry_len - start;
+                    for p in entry_lines(w, g, st, a, entry_len) {
+                        crate::memhint::prefetch_l2(p);
+                    }
+                }
+                if let Some(&near) = chunk.get(i + NEAR_AHEAD) {
+                    let a = near as usize * entry_len - start;
+                    for p in entry_lines(w, g, st, a, entry_len) {
+                        crate::memhint::prefetch(p);
+                    }
                 }
                 let local = e as usize * entry_len - start;
                 let r = local..local + entry_len;

@@ -584,7 +584,8 @@ impl AdamState {
     /// scalars `params[e*entry_len ..][..entry_len]` (e.g. one hash-table entry of F features);
     /// its state lives at `base_offset + e*entry_len` in the flat state. `params` and `grads` are
     /// the table's own buffers. `entries` must be strictly increasing (sorted, no duplicates), as
-    /// the grid backward's touched-entry list is. Cost: O(entries.len() * entry_len).
+    /// the grid backward's touched-entry list is. This form copies `grads` first (O(table size));
+    /// the training loop's [`AdamState::step_sparse_and_zero`] costs O(entries.len() * entry_len).
     ///
     /// # Panics
     /// If `entries` is not strictly increasing, an entry is out of range, or lengths disagree.

@@ -178,7 +178,7 @@ pub struct Grads<R> {
     pub position_max_scale: Option<f32>,
 }
 
-impl<R: Copy + Default> Grads<R> {
+impl<R: Copy + Default + Send + Sync> Grads<R> {
     /// Zero gradients for a layout (input gradients sized on the first backward).
     pub fn new(layout: &ParamLayout) -> Grads<R> {
         Grads {

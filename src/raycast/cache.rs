@@ -449,6 +449,21 @@ impl SampleCache {
     pub fn positions_fixed(&self) -> &[[u32; 3]] {
         &self.positions
     }
+    /// Start loading the lines that the accessors of kept pixel `i` read (no effect on results;
+    /// a batch gathers random pixels, so each of its reads is a cache miss otherwise).
+    #[inline]
+    pub fn prefetch(&self, i: usize) {
+        use crate::memhint::prefetch;
+        let g2 = self.samples_per_pixel();
+        let pos = self.positions.as_ptr().wrapping_add(i * g2);
+        prefetch(pos);
+        prefetch((pos.wrapping_add(g2) as *const u8).wrapping_sub(1));
+        prefetch(self.valid.as_ptr().wrapping_add(i));
+        prefetch(self.dirs.as_ptr().wrapping_add(i));
+        prefetch(self.view.as_ptr().wrapping_add(i));
+        prefetch(self.target.as_ptr().wrapping_add(i));
+        prefetch(self.footprint.as_ptr().wrapping_add(i));
+    }
     #[inline]
     pub fn valid(&self, i: usize) -> u16 {
         self.valid[i]

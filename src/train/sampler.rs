@@ -105,6 +105,8 @@ impl Samples {
 /// Slots per parallel chunk of [`batch_from_pixels`] (each slot is written from its own pixel
 /// only, so the chunking does not change the batch).
 const CACHE_BATCH_CHUNK: usize = 256;
+/// How many pixels ahead [`batch_from_pixels`] prefetches a pixel's cached lines.
+const CACHE_PREFETCH_AHEAD: usize = 16;
 
 /// Fill `batch` with the cached pixels `pixels` (their appearance row = the cache's view index);
 /// with triangle ids and barycentrics when the cache keeps them. Parallel over chunks of slots.
@@ -136,6 +138,9 @@ pub fn batch_from_pixels(cache: &SampleCache, pixels: &[usize]) -> Batch {
         .zip(b.footprint.par_chunks_mut(c))
         .for_each(|((((((px, pos), valid), dirs), view), target), fp)| {
             for (k, &p) in px.iter().enumerate() {
+                if let Some(&ahead) = px.get(k + CACHE_PREFETCH_AHEAD) {
+                    cache.prefetch(ahead);
+                }
                 cache.positions_into(p, &mut pos[k * s..(k + 1) * s]);
                 let mask = cache.valid(p);
                 for j in 0..s {

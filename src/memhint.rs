@@ -17,13 +17,7 @@ use rayon::prelude::*;
 /// `prefetcht0`; a no-op elsewhere). Never faults, whatever the address.
 #[inline(always)]
 pub fn prefetch<T>(p: *const T) {
-    #[cfg(target_arch = "x86_64")]
-    // SAFETY: a prefetch never faults, whatever the address.
-    unsafe {
-        std::arch::x86_64::_mm_prefetch::<{ std::arch::x86_64::_MM_HINT_T0 }>(p as *const i8)
-    };
-    #[cfg(not(target_arch = "x86_64"))]
-    let _ = p;
+    prefetch_into::<false, T>(p)
 }
 
 /// Ask the CPU to start loading the cache line at `p` into L2 (x86-64 `prefetcht1`; a no-op
@@ -31,10 +25,21 @@ pub fn prefetch<T>(p: *const T) {
 /// they arrive. Never faults, whatever the address.
 #[inline(always)]
 pub fn prefetch_l2<T>(p: *const T) {
+    prefetch_into::<true, T>(p)
+}
+
+/// `prefetcht1` (into L2) if `L2`, else `prefetcht0` (into all levels).
+#[inline(always)]
+fn prefetch_into<const L2: bool, T>(p: *const T) {
     #[cfg(target_arch = "x86_64")]
     // SAFETY: a prefetch never faults, whatever the address.
     unsafe {
-        std::arch::x86_64::_mm_prefetch::<{ std::arch::x86_64::_MM_HINT_T1 }>(p as *const i8)
+        use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0, _MM_HINT_T1};
+        if L2 {
+            _mm_prefetch::<_MM_HINT_T1>(p as *const i8)
+        } else {
+            _mm_prefetch::<_MM_HINT_T0>(p as *const i8)
+        }
     };
     #[cfg(not(target_arch = "x86_64"))]
     let _ = p;

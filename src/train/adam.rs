@@ -410,18 +410,22 @@ impl StepConsts<'_> {
     }
 }
 
-/// The lines to prefetch for the entry at local scalar offset `a` (`len` scalars): its first
-/// parameter and gradient, and the first and last byte of its state record (which may lie on two
-/// lines). Pointer arithmetic only (`wrapping_add`), so an address past a slice is harmless.
+/// Prefetch, with `hint` (`memhint::prefetch` or `prefetch_l2`), the lines of the entry at local
+/// scalar offset `a` (`len` scalars): its first parameter and gradient, and the first and last
+/// byte of its state record (which may lie on two lines). Pointer arithmetic only
+/// (`wrapping_add`), so an address past a slice is harmless.
 #[inline(always)]
-fn entry_lines(w: &[f32], g: &[f32], st: &[Moments], a: usize, len: usize) -> [*const u8; 4] {
+fn prefetch_entry(
+    hint: fn(*const u8),
+    (w, g, st): (&[f32], &[f32], &[Moments]),
+    a: usize,
+    len: usize,
+) {
     let s = st.as_ptr().wrapping_add(a) as *const u8;
-    [
-        w.as_ptr().wrapping_add(a) as *const u8,
-        g.as_ptr().wrapping_add(a) as *const u8,
-        s,
-        s.wrapping_add(len * std::mem::size_of::<Moments>() - 1),
-    ]
+    hint(w.as_ptr().wrapping_add(a) as *const u8);
+    hint(g.as_ptr().wrapping_add(a) as *const u8);
+    hint(s);
+    hint(s.wrapping_add(len * std::mem::size_of::<Moments>() - 1));
 }
 
 /// One scalar's Adam state, stored together (12 bytes): a sparse step reads and writes all three
@@ -668,27 +672,22 @@ impl AdamState {
         }
         let run = |(chunk, start, w, g, st): SparseChunk| {
             let c = &consts;
+            // The entries are scattered over a table of hundreds of MB: start loading the lines
+            // of an entry well ahead into L2 (the chunk's first ones before the loop), then a few
+            // entries ahead into L1 (no effect on results).
+            let (l2, l1) = (
+                crate::memhint::prefetch_l2::<u8>,
+                crate::memhint::prefetch::<u8>,
+            );
             for &e in chunk.iter().take(FAR_AHEAD) {
-                for p in entry_lines(w, g, st, e as usize * entry_len - start, entry_len) {
-                    crate::memhint::prefetch_l2(p);
-                }
+                prefetch_entry(l2, (w, g, st), e as usize * entry_len - start, entry_len);
             }
             for (i, &e) in chunk.iter().enumerate() {
-                // The entries are scattered over a table of hundreds of MB: start loading the
-                // lines of an entry well ahead into L2, then a few entries ahead into L1 (no
-                // effect on results). A state record (12 bytes per scalar) can straddle two
-                // lines: its last byte is fetched too.
                 if let Some(&far) = chunk.get(i + FAR_AHEAD) {
-                    let a = far as usize * entry_len - start;
-                    for p in entry_lines(w, g, st, a, entry_len) {
-                        crate::memhint::prefetch_l2(p);
-                    }
+                    prefetch_entry(l2, (w, g, st), far as usize * entry_len - start, entry_len);
                 }
                 if let Some(&near) = chunk.get(i + NEAR_AHEAD) {
-                    let a = near as usize * entry_len - start;
-                    for p in entry_lines(w, g, st, a, entry_len) {
-                        crate::memhint::prefetch(p);
-                    }
+                    prefetch_entry(l1, (w, g, st), near as usize * entry_len - start, entry_len);
                 }
                 let local = e as usize * entry_len - start;
                 let r = local..local + entry_len;

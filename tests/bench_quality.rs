@@ -2,7 +2,7 @@
 //! with growing wall time, the ULR row, the plot, and a clear error for an unknown configuration.
 
 use std::path::Path;
-use xscale::train::bench_quality::{bench_quality, replot};
+use xscale::train::bench_quality::{bench_quality, read_rows, replot, Existing};
 
 #[test]
 fn bench_quality_writes_rows_and_the_plot() {
@@ -15,6 +15,7 @@ fn bench_quality_writes_rows_and_the_plot() {
         &out,
         &configs,
         0.01,
+        Existing::Refuse,
         &mut |_| {},
     )
     .unwrap();
@@ -36,6 +37,7 @@ fn bench_quality_writes_rows_and_the_plot() {
         &out,
         &["cpux".into()],
         0.01,
+        Existing::Overwrite,
         &mut |_| {},
     )
     .unwrap_err();
@@ -73,6 +75,75 @@ fn replot_reads_the_csv_back_and_names_a_bad_line() {
     let e = format!("{:#}", replot(&out, "t", &mut |_| {}).unwrap_err());
     assert!(
         e.contains("bench.csv: line 2") && e.contains("\"x\""),
+        "{e}"
+    );
+    let _ = std::fs::remove_dir_all(&out);
+}
+
+/// A second run into a folder holding bench.csv is refused (nothing written) unless it appends
+/// (earlier rows kept, a configuration run again replacing its own) or overwrites.
+#[test]
+fn an_earlier_bench_csv_is_refused_kept_or_replaced() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let scene = root.join("fixtures/tiny");
+    let out = std::env::temp_dir().join(format!("xscale-bq-again-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&out);
+    std::fs::create_dir_all(&out).unwrap();
+    let csv = out.join("bench.csv");
+    let header = "config,setup_s,wall_s,step,psnr_masked,ssim_masked,psnr_near,psnr_far\n";
+    // An earlier run: configuration "a" finished, "ulr" cut short.
+    let earlier = format!(
+        "{header}a,0.5,1.0,10,20.0,0.5,19.0,21.0\na,0.5,2.0,20,22.0,0.6,21.0,23.0\nulr,0.1,1.0,0,9.0,0.1,9.0,9.0\n"
+    );
+    std::fs::write(&csv, &earlier).unwrap();
+    let run = |configs: &[&str], existing| {
+        let configs: Vec<String> = configs.iter().map(|c| c.to_string()).collect();
+        bench_quality(&scene, &out, &configs, 0.01, existing, &mut |_| {})
+    };
+
+    let e = format!("{:#}", run(&["ulr"], Existing::Refuse).unwrap_err());
+    assert!(
+        e.contains("bench.csv") && e.contains("3 rows: a, ulr") && e.contains("--append"),
+        "{e}"
+    );
+    assert_eq!(
+        std::fs::read_to_string(&csv).unwrap(),
+        earlier,
+        "refused, yet written"
+    );
+
+    let e = format!("{:#}", run(&["ulr", "ulr"], Existing::Append).unwrap_err());
+    assert!(e.contains("\"ulr\" is listed twice"), "{e}");
+
+    let rows = run(&["ulr"], Existing::Append).unwrap();
+    let configs: Vec<&str> = rows.iter().map(|r| r.config.as_str()).collect();
+    assert_eq!(configs, ["a", "a", "ulr"]);
+    assert!(
+        rows[2].psnr_masked > 10.0,
+        "the old ulr row (9 dB) was not replaced"
+    );
+    let on_disk = read_rows(&csv).unwrap();
+    assert_eq!(on_disk.len(), 3);
+    assert_eq!(on_disk[2].psnr_masked.to_bits(), {
+        let p = rows[2].psnr_masked;
+        format!("{p:.4}").parse::<f64>().unwrap().to_bits()
+    });
+    assert!(out.join("pareto.png").is_file());
+    assert!(!out.join(".bench.csv.tmp").exists());
+
+    let rows = run(&["ulr"], Existing::Overwrite).unwrap();
+    assert_eq!(rows.len(), 1);
+    assert_eq!(read_rows(&csv).unwrap().len(), 1);
+
+    // A header-only file (a run stopped before its first evaluation) holds nothing to lose.
+    std::fs::write(&csv, header).unwrap();
+    assert_eq!(run(&["ulr"], Existing::Refuse).unwrap().len(), 1);
+
+    // A malformed earlier file is named, line and all, before anything is written.
+    std::fs::write(&csv, format!("{header}a,0.5,x,10,20.0,0.5,19.0,21.0\n")).unwrap();
+    let e = format!("{:#}", run(&["ulr"], Existing::Append).unwrap_err());
+    assert!(
+        e.contains("bench.csv: line 2") && e.contains("--overwrite"),
         "{e}"
     );
     let _ = std::fs::remove_dir_all(&out);

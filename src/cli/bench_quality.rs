@@ -1,7 +1,8 @@
-//! `xscale bench-quality --scene DIR --out DIR [--minutes M] [--configs a,b] [--list]`: run time
+//! `xscale bench-quality --scene DIR --out DIR [--minutes M] [--configs a,b] [--append |
+//! --overwrite] [--list]`: run time
 //! against error (`train/bench_quality.rs`).
 
-use crate::train::bench_quality::{bench_quality, replot, CONFIGS};
+use crate::train::bench_quality::{bench_quality, replot, Existing, CONFIGS};
 use std::path::PathBuf;
 use std::process::ExitCode;
 
@@ -22,6 +23,14 @@ pub struct Args {
     /// List the configurations and exit.
     #[arg(long)]
     pub list: bool,
+    /// Keep the rows of OUT/bench.csv from an earlier run and add this run's (a configuration
+    /// run again replaces its earlier rows); the plot shows them all.
+    #[arg(long, conflicts_with_all = ["overwrite", "replot"])]
+    pub append: bool,
+    /// Replace OUT/bench.csv if an earlier run left one (without --append or --overwrite, such
+    /// a folder is refused).
+    #[arg(long, conflicts_with = "replot")]
+    pub overwrite: bool,
     /// Train nothing: redraw OUT/pareto.png from OUT/bench.csv (e.g. after merging runs).
     #[arg(long, conflicts_with_all = ["configs", "list"])]
     pub replot: bool,
@@ -58,7 +67,14 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
         return Ok(ExitCode::SUCCESS);
     }
     let (scene, out) = (a.scene.unwrap(), a.out.unwrap());
-    bench_quality(&scene, &out, &configs, a.minutes, &mut |m| eprintln!("{m}"))?;
+    let existing = match (a.append, a.overwrite) {
+        (true, _) => Existing::Append,
+        (_, true) => Existing::Overwrite,
+        _ => Existing::Refuse,
+    };
+    bench_quality(&scene, &out, &configs, a.minutes, existing, &mut |m| {
+        eprintln!("{m}")
+    })?;
     eprintln!(
         "wrote {} and {}",
         out.join("bench.csv").display(),

@@ -217,26 +217,94 @@ fn bench_one(scene: &Path, name: &str, budget_s: f64, log: &mut dyn FnMut(Row)) 
     Ok(())
 }
 
-/// Run the benchmark; returns every row (also in `OUT/bench.csv`) and writes `OUT/pareto.png`.
+/// What to do with an `OUT/bench.csv` left by an earlier run.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum Existing {
+    /// Refuse to start (the default: an earlier benchmark is not thrown away unasked).
+    #[default]
+    Refuse,
+    /// Keep its rows, except those of the configurations this run trains (a configuration run
+    /// again replaces its earlier rows, e.g. one cut short by Ctrl-C), and plot them all.
+    Append,
+    /// Start a new file.
+    Overwrite,
+}
+
+/// Run the benchmark; returns every row (also in `OUT/bench.csv`, appended as each evaluation
+/// finishes, so an interrupted run keeps what it measured) and writes `OUT/pareto.png`. An
+/// existing `OUT/bench.csv` is handled as `existing` says.
 pub fn bench_quality(
     scene: &Path,
     out: &Path,
     configs: &[String],
     minutes: f64,
+    existing: Existing,
     say: &mut dyn FnMut(String),
 ) -> Result<Vec<Row>> {
     if !(minutes > 0.0 && minutes.is_finite()) {
         bail!("--minutes {minutes}: expected a positive number");
     }
-    for c in configs {
+    for (i, c) in configs.iter().enumerate() {
         config(c)?;
+        if configs[..i].contains(c) {
+            bail!("configuration {c:?} is listed twice");
+        }
     }
     std::fs::create_dir_all(out).with_context(|| format!("{}: cannot create", out.display()))?;
     let csv_path = out.join("bench.csv");
-    let mut csv = std::fs::File::create(&csv_path)
-        .with_context(|| format!("{}: cannot create", csv_path.display()))?;
-    writeln!(csv, "{HEADER}")?;
+    // Rows kept from an earlier run (read before anything is written, so a bad file stops the
+    // run with the file and line named and loses nothing).
     let mut rows: Vec<Row> = Vec::new();
+    if csv_path.exists() && existing != Existing::Overwrite {
+        let old =
+            read_rows(&csv_path).context("an earlier run's results (--overwrite replaces them)")?;
+        let mut names: Vec<&str> = Vec::new();
+        for r in &old {
+            if !names.contains(&r.config.as_str()) {
+                names.push(&r.config);
+            }
+        }
+        if existing == Existing::Refuse && !old.is_empty() {
+            bail!(
+                "{}: holds an earlier run's results ({} rows: {}); add --append to add this run's configurations to them (a configuration run again replaces its rows), --overwrite to replace them, or choose another --out",
+                csv_path.display(),
+                old.len(),
+                names.join(", ")
+            );
+        }
+        let (again, kept): (Vec<Row>, Vec<Row>) =
+            old.into_iter().partition(|r| configs.contains(&r.config));
+        if !again.is_empty() {
+            say(format!(
+                "--append: {} earlier rows of {} are replaced by this run's",
+                again.len(),
+                configs
+                    .iter()
+                    .filter(|c| again.iter().any(|r| &r.config == *c))
+                    .cloned()
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            ));
+        }
+        rows = kept;
+    }
+    // The kept rows are written to a new file that replaces the old one in one rename.
+    let tmp = out.join(".bench.csv.tmp");
+    {
+        let mut f = std::fs::File::create(&tmp)
+            .with_context(|| format!("{}: cannot create", tmp.display()))?;
+        writeln!(f, "{HEADER}")?;
+        for r in &rows {
+            writeln!(f, "{}", r.csv())?;
+        }
+        f.sync_all()?;
+    }
+    std::fs::rename(&tmp, &csv_path)
+        .with_context(|| format!("{}: cannot write", csv_path.display()))?;
+    let mut csv = std::fs::OpenOptions::new()
+        .append(true)
+        .open(&csv_path)
+        .with_context(|| format!("{}: cannot open", csv_path.display()))?;
     for name in configs {
         say(format!("== {name} ({:.1} min of training)", minutes));
         let mut log = |r: Row| {
@@ -291,11 +359,22 @@ fn plot(out: &Path, scene_name: &str, rows: &[Row], say: &mut dyn FnMut(String))
 /// `OUT/pareto.png`; returns the rows.
 pub fn replot(out: &Path, scene_name: &str, say: &mut dyn FnMut(String)) -> Result<Vec<Row>> {
     let path = out.join("bench.csv");
-    let text = std::fs::read_to_string(&path)
+    let rows = read_rows(&path)?;
+    if rows.is_empty() {
+        bail!("{}: no rows", path.display());
+    }
+    plot(out, scene_name, &rows, say)?;
+    Ok(rows)
+}
+
+/// The rows of a `bench.csv` (header lines, also repeated ones from concatenated runs, and blank
+/// lines skipped); a malformed line is an error naming the file and line.
+pub fn read_rows(path: &Path) -> Result<Vec<Row>> {
+    let text = std::fs::read_to_string(path)
         .with_context(|| format!("{}: cannot read", path.display()))?;
     let mut rows = Vec::new();
     for (i, line) in text.lines().enumerate() {
-        if i == 0 || line.trim().is_empty() || line == HEADER {
+        if line.trim().is_empty() || line == HEADER {
             continue;
         }
         let bad = |what: &str| {
@@ -324,9 +403,5 @@ pub fn replot(out: &Path, scene_name: &str, say: &mut dyn FnMut(String)) -> Resu
             psnr_far: num(7)?,
         });
     }
-    if rows.is_empty() {
-        bail!("{}: no rows", path.display());
-    }
-    plot(out, scene_name, &rows, say)?;
     Ok(rows)
 }

@@ -9,6 +9,8 @@
 //! Run: `cargo bench --bench hashgrid` (env `HASHGRID_BENCH_PIXELS` to change the batch,
 //! `HASHGRID_BENCH_T` to change log2_table_size).
 
+mod common;
+use common::{env_count, env_parse};
 use std::time::Instant;
 use xscale::model::config::PositionMode;
 use xscale::model::hashgrid::{HashGrid, Touched};
@@ -89,16 +91,11 @@ fn best_of<F: FnMut()>(reps: usize, mut f: F) -> (f64, f64) {
 }
 
 fn main() {
-    let pixels: usize = std::env::var("HASHGRID_BENCH_PIXELS")
-        .ok()
-        .and_then(|s| s.parse().ok())
-        .unwrap_or(65_536);
+    let pixels = env_count("HASHGRID_BENCH_PIXELS", 65_536);
     let mut cfg = ModelConfig::cpu().grid_h;
-    if let Some(t) = std::env::var("HASHGRID_BENCH_T")
-        .ok()
-        .and_then(|s| s.parse().ok())
-    {
-        cfg.log2_table_size = t; // e.g. 10: a cache-resident table, to see the compute cost
+    if std::env::var_os("HASHGRID_BENCH_T").is_some() {
+        // e.g. 10: a cache-resident table, to see the compute cost
+        cfg.log2_table_size = env_parse("HASHGRID_BENCH_T", 0, "a log2 table size");
     }
     let g = HashGrid::new(&cfg);
     let mode = PositionMode::F64;

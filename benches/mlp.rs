@@ -6,6 +6,8 @@
 // Index loops mirror the formulas (i over entries, c over channels).
 #![allow(clippy::needless_range_loop)]
 
+mod common;
+use common::env_count;
 use rayon::prelude::*;
 use std::time::Instant;
 use xscale::model::mlp::{Mlp, MlpActs};
@@ -68,10 +70,7 @@ fn time<F: FnMut()>(reps: usize, mut f: F) -> (f64, f64) {
 }
 
 fn main() {
-    let n: usize = std::env::var("XSCALE_BENCH_PIXELS")
-        .ok()
-        .and_then(|s| s.parse().ok())
-        .unwrap_or(16_384);
+    let n = env_count("XSCALE_BENCH_PIXELS", 16_384);
     let cfg = {
         let mut c = ModelConfig::cpu();
         c.appearance_views = 8;

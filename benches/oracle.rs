@@ -22,6 +22,8 @@
 //!
 //! Run: `cargo bench --bench oracle` (`ORACLE_BENCH_PIXELS`, `ORACLE_BENCH_ROUNDS`).
 
+mod common;
+use common::env_count;
 use std::path::PathBuf;
 use std::time::Instant;
 use xscale::io::compare::{compare, compare_tensors, Tolerances};
@@ -88,13 +90,6 @@ fn family_errors(reference: &TensorFile, other: &TensorFile) -> Vec<(f64, f64, u
     out
 }
 
-fn env_usize(name: &str, default: usize) -> usize {
-    std::env::var(name)
-        .ok()
-        .and_then(|s| s.parse().ok())
-        .unwrap_or(default)
-}
-
 /// CPU time of this process so far (all threads), from /proc/self/task/*/schedstat.
 fn cpu_seconds() -> Option<f64> {
     let mut ns = 0u64;
@@ -129,8 +124,8 @@ impl Mode {
 }
 
 fn main() {
-    let pixels = env_usize("ORACLE_BENCH_PIXELS", 4096);
-    let rounds = env_usize("ORACLE_BENCH_ROUNDS", 5).max(1);
+    let pixels = env_count("ORACLE_BENCH_PIXELS", 4096);
+    let rounds = env_count("ORACLE_BENCH_ROUNDS", 5);
     let golden = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("fixtures/golden");
     let ckpt = Checkpoint::load(golden.join("cpu-t10/checkpoint.safetensors")).unwrap();
     let views = ckpt.model.appearance_views();

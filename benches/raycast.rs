@@ -18,6 +18,8 @@
 //! SampleCache::build, for profiling; of the preset XSCALE_BENCH_PRESET, default medium),
 //! XSCALE_BENCH_NO_AVX=1 (the SSE traversal, as on a CPU without AVX).
 
+mod common;
+use common::{env, env_count};
 use glam::{DVec3, Vec3A};
 use rayon::prelude::*;
 use std::time::Instant;
@@ -27,13 +29,6 @@ use xscale::raycast::{
     brute_force_closest_hit, cast_view, BuildPreset, Packet, SampleCache, Tracer, MAX_LANES,
 };
 use xscale::scene::{Camera, Distortion, Normalization, NormalizeMode};
-
-fn env(name: &str, default: usize) -> usize {
-    std::env::var(name)
-        .ok()
-        .and_then(|s| s.parse().ok())
-        .unwrap_or(default)
-}
 
 fn camera() -> Camera {
     // At (0.4, -3.0, 0.9) looking at the origin.
@@ -97,7 +92,7 @@ fn main() {
             .trim()
     );
     let level = env("XSCALE_BENCH_LEVEL", 8) as u32;
-    let reps = env("XSCALE_BENCH_REPS", 5);
+    let reps = env_count("XSCALE_BENCH_REPS", 5);
     let t0 = Instant::now();
     let mesh = displaced_icosphere(level, 0.03);
     let n = Normalization::from_mesh(&mesh, NormalizeMode::PerAxis);

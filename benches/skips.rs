@@ -19,7 +19,7 @@
 //! Run: `cargo bench --bench skips` (`XSCALE_BENCH_STEPS`, `XSCALE_BENCH_ROUNDS`).
 
 mod common;
-use common::{env, small_scene as scene};
+use common::{env_count, small_scene as scene};
 use std::time::Instant;
 use xscale::model::config::LevelWeight;
 use xscale::model::params::Grads;
@@ -57,8 +57,8 @@ fn fill_invalid(b: &mut Batch) {
 }
 
 fn main() {
-    let steps = env("XSCALE_BENCH_STEPS", 40) as u64;
-    let rounds = env("XSCALE_BENCH_ROUNDS", 3);
+    let steps = env_count("XSCALE_BENCH_STEPS", 40) as u64;
+    let rounds = env_count("XSCALE_BENCH_ROUNDS", 3);
     const WARMUP: u64 = 15;
     let dir = scene();
     type Edit = fn(&mut RunConfig);

@@ -18,7 +18,7 @@
 //! times it uncompiled.
 
 mod common;
-use common::{env, small_scene};
+use common::{env, env_count, small_scene};
 use std::process::Command;
 use std::time::Instant;
 use xscale::model::params::Grads;
@@ -35,10 +35,10 @@ fn median(v: &mut [f64]) -> f64 {
 }
 
 fn main() {
-    let batch_px = env("XSCALE_BENCH_BATCH", 16384);
-    let rounds = env("XSCALE_BENCH_ROUNDS", 3);
-    let steps = env("XSCALE_BENCH_STEPS", 10);
-    let threads = env("XSCALE_BENCH_THREADS", 2);
+    let batch_px = env_count("XSCALE_BENCH_BATCH", 16384);
+    let rounds = env_count("XSCALE_BENCH_ROUNDS", 3);
+    let steps = env_count("XSCALE_BENCH_STEPS", 10);
+    let threads = env_count("XSCALE_BENCH_THREADS", 2);
     let fixed_levels = env("XSCALE_BENCH_FIXED_LEVELS", 0) != 0;
     let eager = env("XSCALE_BENCH_PEER_EAGER", 0) != 0;
     let script = concat!(env!("CARGO_MANIFEST_DIR"), "/reference/bench_torch.py");

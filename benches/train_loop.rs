@@ -14,7 +14,7 @@
 //! default `auto`, which takes the sample cache on `small`).
 
 mod common;
-use common::{env, small_scene as scene};
+use common::{env_count, small_scene as scene};
 use std::time::Instant;
 use xscale::model::params::Grads;
 use xscale::train::config::RunConfig;
@@ -33,9 +33,9 @@ struct Phases {
 }
 
 fn main() {
-    let batch = env("XSCALE_BENCH_BATCH", 4096);
-    let steps = env("XSCALE_BENCH_STEPS", 60) as u64;
-    let rounds = env("XSCALE_BENCH_ROUNDS", 3);
+    let batch = env_count("XSCALE_BENCH_BATCH", 4096);
+    let steps = env_count("XSCALE_BENCH_STEPS", 60) as u64;
+    let rounds = env_count("XSCALE_BENCH_ROUNDS", 3);
     const WARMUP: u64 = 20;
     let dir = scene();
     let mut cfg = RunConfig::preset("cpu").unwrap();

@@ -1,13 +1,34 @@
-//! Shared by the benches: environment knobs and the `small` synthetic scene.
+//! Shared by the benches: environment knobs and the `small` synthetic scene (each bench uses
+//! some of them).
+#![allow(dead_code)]
 
 use std::path::PathBuf;
 
-/// `name` from the environment as a number, else `default`.
+/// `name` from the environment as a whole number, else `default` (unset or empty). A value that
+/// is not a whole number stops the bench: a typo must not quietly measure the default.
 pub fn env(name: &str, default: usize) -> usize {
-    std::env::var(name)
-        .ok()
-        .and_then(|s| s.parse().ok())
-        .unwrap_or(default)
+    env_parse(name, default, "a whole number")
+}
+
+/// [`env`] for a count that must be at least 1 (steps, rounds, pixels, threads).
+pub fn env_count(name: &str, default: usize) -> usize {
+    let v = env_parse(name, default, "a whole number of at least 1");
+    if v == 0 {
+        panic!("{name}=0: expected a whole number of at least 1");
+    }
+    v
+}
+
+/// `name` parsed as `T`, else `default`; `what` names the expected form in the panic message.
+pub fn env_parse<T: std::str::FromStr>(name: &str, default: T, what: &str) -> T {
+    match std::env::var(name) {
+        Ok(s) if !s.trim().is_empty() => s
+            .trim()
+            .parse()
+            .unwrap_or_else(|_| panic!("{name}={s:?}: expected {what}")),
+        Ok(_) | Err(std::env::VarError::NotPresent) => default,
+        Err(e) => panic!("{name}: {e}"),
+    }
 }
 
 /// `xscale synth --preset small --seed 1`, generated into `target/bench-scenes/small` on first use.

@@ -150,10 +150,6 @@ fn reset<R: Real>(v: &mut Vec<R>, len: usize) {
 struct ChunkGrad<R> {
     d_shader: Vec<R>,
     d_deform: Vec<R>,
-    /// `[v, L·F]` ∂L/∂F'_j (= ∂L/∂F_H(x_j) = ∂L/∂δ_j).
-    d_feat: Vec<R>,
-    /// `[v, L_D·F_D]`.
-    d_grid_d: Vec<R>,
     /// `[n, A]`.
     d_code: Vec<R>,
     /// `[n, 3]`.
@@ -647,21 +643,44 @@ impl Hfm {
             grads.dirs = vec![R::ZERO; n * 3];
         }
         let scale = R::ONE / R::from_f64((3 * n) as f64);
-        let cg: Vec<ChunkGrad<R>> = fwd
-            .chunks
-            .par_iter()
-            .map(|ch| {
-                self.backward_chunk(
-                    params,
-                    batch,
-                    fwd,
-                    ch,
-                    scale,
-                    inputs,
-                    grads.position_max_scale,
-                )
-            })
-            .collect();
+        // The chunks write their rows of ∂L/∂F_H and ∂L/∂F_D straight into one buffer each, in
+        // batch order (the grids' table backward reads them there; no copy after).
+        let v_all = fwd.points.len();
+        let lf = self.feat_dim();
+        let ld = self.grid_d.as_ref().map_or(0, |g| g.out_dim());
+        let (mut rows_h, mut rows_d) = (
+            std::mem::take(&mut grads.rows_h),
+            std::mem::take(&mut grads.rows_d),
+        );
+        rows_h.resize(v_all * lf, R::ZERO);
+        rows_d.resize(v_all * ld, R::ZERO);
+        let cg: Vec<ChunkGrad<R>> = {
+            let (mut rest_h, mut rest_d) = (&mut rows_h[..v_all * lf], &mut rows_d[..v_all * ld]);
+            let mut parts = Vec::with_capacity(fwd.chunks.len());
+            for ch in &fwd.chunks {
+                let v = ch.samples.len();
+                let (h, rh) = std::mem::take(&mut rest_h).split_at_mut(v * lf);
+                let (d, rd) = std::mem::take(&mut rest_d).split_at_mut(v * ld);
+                (rest_h, rest_d) = (rh, rd);
+                parts.push((ch, h, d));
+            }
+            parts
+                .into_par_iter()
+                .map(|(ch, d_feat, d_grid_d)| {
+                    self.backward_chunk(
+                        params,
+                        batch,
+                        fwd,
+                        ch,
+                        scale,
+                        inputs,
+                        grads.position_max_scale,
+                        d_feat,
+                        d_grid_d,
+                    )
+                })
+                .collect()
+        };
 
         // Combine MLP weight gradients in chunk order.
         for c in &cg {
@@ -715,12 +734,7 @@ impl Hfm {
         // Grid tables: one scatter over all valid sub-samples in batch order (H and D write
         // disjoint buffers, so they run concurrently).
         let mode = self.cfg.positions;
-        // The chunks' rows in chunk order (`concat` allocates once).
-        let d_feat = cg
-            .iter()
-            .map(|c| &c.d_feat[..])
-            .collect::<Vec<_>>()
-            .concat();
+        let (d_feat, d_gd) = (&rows_h[..v_all * lf], &rows_d[..v_all * ld]);
         let (before_d, from_d) = grads.params.split_at_mut(
             self.r_grid_d
                 .start
@@ -733,10 +747,11 @@ impl Hfm {
                 vt,
                 &fwd.triangles,
                 &fwd.bary,
-                &d_feat,
+                d_feat,
                 &mut before_d[self.r_vertex.clone()],
                 &mut grads.touched_v,
             );
+            (grads.rows_h, grads.rows_d) = (rows_h, rows_d);
             return;
         }
         let d_table_h = &mut before_d[self.r_grid_h.clone()];
@@ -746,20 +761,16 @@ impl Hfm {
         rayon::join(
             || {
                 self.grid_h
-                    .backward_table(points, mode, &d_feat, d_table_h, touched_h)
+                    .backward_table(points, mode, d_feat, d_table_h, touched_h)
             },
             || {
                 if let Some(gd) = &self.grid_d {
-                    let d_gd = cg
-                        .iter()
-                        .map(|c| &c.d_grid_d[..])
-                        .collect::<Vec<_>>()
-                        .concat();
                     let len = self.r_grid_d.len();
-                    gd.backward_table(points, mode, &d_gd, &mut from_d[..len], touched_d);
+                    gd.backward_table(points, mode, d_gd, &mut from_d[..len], touched_d);
                 }
             },
         );
+        (grads.rows_h, grads.rows_d) = (rows_h, rows_d);
     }
 
     #[allow(clippy::too_many_arguments)]
@@ -772,6 +783,8 @@ impl Hfm {
         scale: R,
         inputs: bool,
         position_max_scale: Option<f32>,
+        d_feat: &mut [R], // [v, L·F] out: ∂L/∂F'_j (= ∂L/∂F_H(x_j) = ∂L/∂δ_j), then weighted
+        d_grid_d: &mut [R], // [v, L_D·F_D] out (empty without ξ)
     ) -> ChunkGrad<R> {
         let mode = self.cfg.positions;
         let lf = self.feat_dim();
@@ -811,16 +824,15 @@ impl Hfm {
             d_code[i * a..(i + 1) * a].copy_from_slice(&row[lf + SH_DIM..]);
         }
         // Eq. 4 backward: ∂L/∂F'_j = ∂L/∂pooled_n / count_n.
-        let mut d_feat = vec![R::ZERO; v * lf];
+        debug_assert_eq!(d_feat.len(), v * lf);
         let local_start: Vec<usize> = fwd.start[ch.pixels.start..=ch.pixels.end]
             .iter()
             .map(|&x| x - ch.samples.start)
             .collect();
-        pool_backward(&local_start, &d_in, din, lf, &mut d_feat);
+        pool_backward(&local_start, &d_in, din, lf, d_feat);
         let mut d_points = vec![R::ZERO; if inputs { v * 3 } else { 0 }];
         // Eq. 5 backward through ξ and into SH(d) and F_D.
         let mut d_deform = Vec::new();
-        let mut d_grid_d = Vec::new();
         if let (Some(gd), Some(mlp)) = (&self.grid_d, &self.deform) {
             let ld = gd.out_dim();
             let ddin = ld + SH_DIM;
@@ -831,11 +843,11 @@ impl Hfm {
                 &ch.deform_in,
                 v,
                 &ch.deform,
-                d_feat.clone(),
+                d_feat.to_vec(),
                 &mut d_deform,
                 Some(&mut d_din),
             );
-            d_grid_d = vec![R::ZERO; v * ld];
+            debug_assert_eq!(d_grid_d.len(), v * ld);
             for i in 0..n {
                 let p = ch.pixels.start + i;
                 for r in fwd.start[p] - ch.samples.start..fwd.start[p + 1] - ch.samples.start {
@@ -845,26 +857,26 @@ impl Hfm {
                 }
             }
             // SPEC §4.10: from here on d_feat is the gradient of grid H's (weighted) output.
-            self.weight_grad(ch, &mut d_feat);
+            self.weight_grad(ch, d_feat);
             // Position gradient: grid H first (below), then grid D — keep that order.
             if inputs {
                 self.grid_h.backward_points(
                     &params[self.r_grid_h.clone()],
                     pts,
                     mode,
-                    &coarse_levels(&self.grid_h, &d_feat, position_max_scale),
+                    &coarse_levels(&self.grid_h, d_feat, position_max_scale),
                     &mut d_points,
                 );
                 gd.backward_points(
                     &params[self.r_grid_d.clone()],
                     pts,
                     mode,
-                    &coarse_levels(gd, &d_grid_d, position_max_scale),
+                    &coarse_levels(gd, d_grid_d, position_max_scale),
                     &mut d_points,
                 );
             }
         } else if self.vertex.is_none() {
-            self.weight_grad(ch, &mut d_feat);
+            self.weight_grad(ch, d_feat);
         }
         if inputs && self.vertex.is_none() && self.deform.is_none() {
             // (Vertex featurization: positions do not enter the model; their gradient is 0.)
@@ -872,7 +884,7 @@ impl Hfm {
                 &params[self.r_grid_h.clone()],
                 pts,
                 mode,
-                &coarse_levels(&self.grid_h, &d_feat, position_max_scale),
+                &coarse_levels(&self.grid_h, d_feat, position_max_scale),
                 &mut d_points,
             );
         }
@@ -884,8 +896,6 @@ impl Hfm {
         ChunkGrad {
             d_shader,
             d_deform,
-            d_feat,
-            d_grid_d,
             d_code,
             d_dirs,
             d_points,

@@ -176,6 +176,11 @@ pub struct Grads<R> {
     /// gradient). The mesh refinement's coarse-to-fine schedule (`train/refine.rs`); parameter
     /// gradients are unaffected.
     pub position_max_scale: Option<f32>,
+    /// Scratch of the backward pass, kept to be reused: the chunks write their rows of
+    /// ∂L/∂F_H `[v, L·F]` and ∂L/∂F_D `[v, L_D·F_D]` here, in batch order, for the grids'
+    /// table backward (no meaning between calls).
+    pub(crate) rows_h: Vec<R>,
+    pub(crate) rows_d: Vec<R>,
 }
 
 impl<R: Copy + Default + Send + Sync> Grads<R> {
@@ -190,6 +195,8 @@ impl<R: Copy + Default + Send + Sync> Grads<R> {
             touched_d: Touched::default(),
             touched_v: Touched::default(),
             position_max_scale: None,
+            rows_h: Vec::new(),
+            rows_d: Vec::new(),
         }
     }
 

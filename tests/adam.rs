@@ -174,6 +174,43 @@ fn sparse_rejects_unsorted_entries() {
     st.step_sparse(&mut w, &[1.0; 4], &[1, 0], 2, 0, &group(0.1, true), 0);
 }
 
+/// The order is checked chunk by chunk (in parallel), so a repeat where two chunks meet and a
+/// swap deep inside a later chunk must be caught as well as one in a single-chunk list.
+#[test]
+fn sparse_rejects_unsorted_entries_across_and_inside_chunks() {
+    let n = 3 * SPARSE_CHUNK;
+    let sorted: Vec<u32> = (0..n as u32).collect();
+    let mut repeat_at_seam = sorted.clone();
+    repeat_at_seam[SPARSE_CHUNK] = repeat_at_seam[SPARSE_CHUNK - 1];
+    let mut swap_inside = sorted.clone();
+    swap_inside.swap(SPARSE_CHUNK + 100, SPARSE_CHUNK + 101);
+    let mut repeat_inside = sorted.clone();
+    repeat_inside[2 * SPARSE_CHUNK + 7] = repeat_inside[2 * SPARSE_CHUNK + 6];
+    for (what, entries) in [
+        ("a repeat where chunks meet", repeat_at_seam),
+        ("a swap inside a chunk", swap_inside),
+        ("a repeat inside a chunk", repeat_inside),
+    ] {
+        let r = std::panic::catch_unwind(move || {
+            let mut st = AdamState::with_len(n);
+            let mut w = vec![0.0f32; n];
+            st.step_sparse(&mut w, &vec![1.0; n], &entries, 1, 0, &group(0.1, true), 0);
+        });
+        let msg = r.expect_err(what);
+        let msg = msg
+            .downcast_ref::<String>()
+            .cloned()
+            .or_else(|| msg.downcast_ref::<&str>().map(|s| s.to_string()))
+            .unwrap_or_default();
+        assert!(msg.contains("strictly increasing"), "{what}: {msg}");
+    }
+    // And the sorted list steps every entry.
+    let mut st = AdamState::with_len(n);
+    let mut w = vec![0.0f32; n];
+    st.step_sparse(&mut w, &vec![1.0; n], &sorted, 1, 0, &group(0.1, true), 0);
+    assert!(st.t(0..n).iter().all(|&t| t == 1));
+}
+
 #[test]
 fn per_group_learning_rates() {
     let mut st = AdamState::new(&[

@@ -12,6 +12,7 @@
 //!   (`docs/performance.md`, "Prefetching into L2").
 
 use rayon::prelude::*;
+use std::mem::MaybeUninit;
 
 /// Ask the CPU to start loading the cache line at `p` into all cache levels (x86-64
 /// `prefetcht0`; a no-op elsewhere). Never faults, whatever the address.
@@ -79,34 +80,34 @@ const FILL_CHUNK: usize = 1 << 16;
 /// (the 240 MB Adam state of `small`: a 5-step `xscale train` 0.86–0.93× the wall time, medians
 /// of three `farm-bench` calls; the faults of fresh huge pages are slow on virtual machines).
 pub fn filled<T: Copy + Send + Sync>(n: usize, value: T) -> Vec<T> {
-    let mut v = Vec::with_capacity(n);
-    advise(&mut v);
-    v.spare_capacity_mut()[..n]
-        .par_chunks_mut(FILL_CHUNK)
-        .for_each(|c| {
-            for x in c {
-                x.write(value);
-            }
-        });
-    // SAFETY: the first n elements were initialised above.
-    unsafe { v.set_len(n) };
-    v
+    built(n, |_, piece| {
+        for x in piece {
+            x.write(value);
+        }
+    })
 }
 
 /// A copy of `src` on huge pages, written in parallel pieces (as [`filled`]).
 pub fn copied<T: Copy + Send + Sync>(src: &[T]) -> Vec<T> {
-    let mut v = Vec::with_capacity(src.len());
+    built(src.len(), |at, piece| {
+        for (x, &s) in piece.iter_mut().zip(&src[at..]) {
+            x.write(s);
+        }
+    })
+}
+
+/// A vector of `n` elements on huge pages, written in parallel pieces of [`FILL_CHUNK`]:
+/// `fill(at, piece)` must write every element of `piece`, elements `at..at + piece.len()`.
+fn built<T: Send>(n: usize, fill: impl Fn(usize, &mut [MaybeUninit<T>]) + Sync) -> Vec<T> {
+    let mut v = Vec::with_capacity(n);
     advise(&mut v);
-    v.spare_capacity_mut()[..src.len()]
+    v.spare_capacity_mut()[..n]
         .par_chunks_mut(FILL_CHUNK)
-        .zip(src.par_chunks(FILL_CHUNK))
-        .for_each(|(d, s)| {
-            for (d, &s) in d.iter_mut().zip(s) {
-                d.write(s);
-            }
-        });
-    // SAFETY: the first src.len() elements were initialised above.
-    unsafe { v.set_len(src.len()) };
+        .enumerate()
+        .for_each(|(ci, piece)| fill(ci * FILL_CHUNK, piece));
+    // SAFETY: the pieces tile ..n and `fill` writes every element of its piece (both callers
+    // above do: a loop over the whole piece).
+    unsafe { v.set_len(n) };
     v
 }
 

@@ -648,14 +648,12 @@ impl Hfm {
         let v_all = fwd.points.len();
         let lf = self.feat_dim();
         let ld = self.grid_d.as_ref().map_or(0, |g| g.out_dim());
-        let (mut rows_h, mut rows_d) = (
-            std::mem::take(&mut grads.rows_h),
-            std::mem::take(&mut grads.rows_d),
-        );
+        let position_max_scale = grads.position_max_scale;
+        let (rows_h, rows_d) = (&mut grads.rows_h, &mut grads.rows_d);
         rows_h.resize(v_all * lf, R::ZERO);
         rows_d.resize(v_all * ld, R::ZERO);
         let cg: Vec<ChunkGrad<R>> = {
-            let (mut rest_h, mut rest_d) = (&mut rows_h[..v_all * lf], &mut rows_d[..v_all * ld]);
+            let (mut rest_h, mut rest_d) = (&mut rows_h[..], &mut rows_d[..]);
             let mut parts = Vec::with_capacity(fwd.chunks.len());
             for ch in &fwd.chunks {
                 let v = ch.samples.len();
@@ -674,7 +672,7 @@ impl Hfm {
                         ch,
                         scale,
                         inputs,
-                        grads.position_max_scale,
+                        position_max_scale,
                         d_feat,
                         d_grid_d,
                     )
@@ -734,7 +732,7 @@ impl Hfm {
         // Grid tables: one scatter over all valid sub-samples in batch order (H and D write
         // disjoint buffers, so they run concurrently).
         let mode = self.cfg.positions;
-        let (d_feat, d_gd) = (&rows_h[..v_all * lf], &rows_d[..v_all * ld]);
+        let (d_feat, d_gd) = (&rows_h[..], &rows_d[..]);
         let (before_d, from_d) = grads.params.split_at_mut(
             self.r_grid_d
                 .start
@@ -751,7 +749,6 @@ impl Hfm {
                 &mut before_d[self.r_vertex.clone()],
                 &mut grads.touched_v,
             );
-            (grads.rows_h, grads.rows_d) = (rows_h, rows_d);
             return;
         }
         let d_table_h = &mut before_d[self.r_grid_h.clone()];
@@ -770,7 +767,6 @@ impl Hfm {
                 }
             },
         );
-        (grads.rows_h, grads.rows_d) = (rows_h, rows_d);
     }
 
     #[allow(clippy::too_many_arguments)]

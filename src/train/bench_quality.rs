@@ -258,18 +258,12 @@ pub fn bench_quality(
     if csv_path.exists() && existing != Existing::Overwrite {
         let old =
             read_rows(&csv_path).context("an earlier run's results (--overwrite replaces them)")?;
-        let mut names: Vec<&str> = Vec::new();
-        for r in &old {
-            if !names.contains(&r.config.as_str()) {
-                names.push(&r.config);
-            }
-        }
         if existing == Existing::Refuse && !old.is_empty() {
             bail!(
                 "{}: holds an earlier run's results ({} rows: {}); add --append to add this run's configurations to them (a configuration run again replaces its rows), --overwrite to replace them, or choose another --out",
                 csv_path.display(),
                 old.len(),
-                names.join(", ")
+                config_names(&old).join(", ")
             );
         }
         let (again, kept): (Vec<Row>, Vec<Row>) =
@@ -278,29 +272,19 @@ pub fn bench_quality(
             say(format!(
                 "--append: {} earlier rows of {} are replaced by this run's",
                 again.len(),
-                configs
-                    .iter()
-                    .filter(|c| again.iter().any(|r| &r.config == *c))
-                    .cloned()
-                    .collect::<Vec<_>>()
-                    .join(", ")
+                config_names(&again).join(", ")
             ));
         }
         rows = kept;
     }
-    // The kept rows are written to a new file that replaces the old one in one rename.
-    let tmp = out.join(".bench.csv.tmp");
-    {
-        let mut f = std::fs::File::create(&tmp)
-            .with_context(|| format!("{}: cannot create", tmp.display()))?;
-        writeln!(f, "{HEADER}")?;
-        for r in &rows {
-            writeln!(f, "{}", r.csv())?;
-        }
-        f.sync_all()?;
+    // The kept rows replace the old file whole (or not at all), then this run appends to it.
+    let mut kept = format!("{HEADER}\n");
+    for r in &rows {
+        kept += &format!("{}\n", r.csv());
     }
-    std::fs::rename(&tmp, &csv_path)
-        .with_context(|| format!("{}: cannot write", csv_path.display()))?;
+    crate::io::atomic::write_atomic(&csv_path, true, |tmp| {
+        std::fs::write(tmp, &kept).with_context(|| format!("{}: cannot write", tmp.display()))
+    })?;
     let mut csv = std::fs::OpenOptions::new()
         .append(true)
         .open(&csv_path)
@@ -329,12 +313,7 @@ pub fn bench_quality(
 /// Draw `OUT/pareto.png` from `rows` (one curve per configuration, in order of first appearance)
 /// and say the Pareto front.
 fn plot(out: &Path, scene_name: &str, rows: &[Row], say: &mut dyn FnMut(String)) -> Result<()> {
-    let mut configs: Vec<&str> = Vec::new();
-    for r in rows {
-        if !configs.contains(&r.config.as_str()) {
-            configs.push(&r.config);
-        }
-    }
+    let configs = config_names(rows);
     let curves: Vec<Curve> = configs
         .iter()
         .map(|c| Curve {
@@ -353,6 +332,17 @@ fn plot(out: &Path, scene_name: &str, rows: &[Row], say: &mut dyn FnMut(String))
         say(format!("  {t:>8.1} s  {p:6.2} dB  {c}"));
     }
     Ok(())
+}
+
+/// The configurations of `rows`, each once, in order of first appearance.
+fn config_names(rows: &[Row]) -> Vec<&str> {
+    let mut names: Vec<&str> = Vec::new();
+    for r in rows {
+        if !names.contains(&r.config.as_str()) {
+            names.push(&r.config);
+        }
+    }
+    names
 }
 
 /// Read `OUT/bench.csv` back (for instance after concatenating runs made apart) and redraw

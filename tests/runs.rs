@@ -134,6 +134,41 @@ fn resume_keeps_the_run_config_and_steps_is_the_total() {
     let (code, err) = train(&run, &["--resume", "--steps", "70", "--preset", "tiny"]);
     assert_eq!(code, 0, "{err}");
     assert_eq!(step_of(&run), 70);
+    // Without --scene a resume takes the scene the run records (RUN/scene.json)…
+    let out = run.to_str().unwrap();
+    let resume = [
+        "train",
+        "--out",
+        out,
+        "--resume",
+        "--steps",
+        "80",
+        "--no-eval",
+        "-q",
+    ];
+    let (code, err) = xscale(&resume);
+    assert_eq!(code, 0, "{err}");
+    assert_eq!(step_of(&run), 80);
+    // …and says so when that scene is gone or not recorded; a new run still needs --scene.
+    let fp = run.join("scene.json");
+    let text = std::fs::read_to_string(&fp).unwrap();
+    let mut j: serde_json::Value = serde_json::from_str(&text).unwrap();
+    j["scene"] = serde_json::json!(tmp("resume-gone-scene"));
+    std::fs::write(&fp, j.to_string()).unwrap();
+    let (code, err) = xscale(&resume);
+    assert_ne!(code, 0);
+    assert!(
+        err.contains("no longer exists") && err.contains("--scene"),
+        "{err}"
+    );
+    std::fs::remove_file(&fp).unwrap();
+    let (code, err) = xscale(&resume);
+    assert_ne!(code, 0);
+    assert!(err.contains("does not record the run's scene"), "{err}");
+    let (code, err) = xscale(&["train", "--out", out, "--steps", "5", "-q"]);
+    assert_ne!(code, 0);
+    assert!(err.contains("--scene"), "{err}");
+    assert_eq!(step_of(&run), 80);
     let _ = std::fs::remove_dir_all(&run);
 }
 

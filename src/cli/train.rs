@@ -10,9 +10,10 @@ use std::sync::atomic::{AtomicBool, Ordering};
 
 #[derive(clap::Args, Debug)]
 pub struct Args {
-    /// Scene directory (mesh + cameras + images; see README "Formats").
-    #[arg(long)]
-    pub scene: PathBuf,
+    /// Scene directory (mesh + cameras + images; see README "Formats"). With --resume it may be
+    /// left out: the scene the run was trained on (RUN/scene.json) is used.
+    #[arg(long, required_unless_present = "resume")]
+    pub scene: Option<PathBuf>,
     /// Run folder (created): checkpoint, metrics.jsonl, config.toml, renders, eval.
     #[arg(long)]
     pub out: PathBuf,
@@ -51,14 +52,19 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
             a.out.display()
         );
     }
-    let cfg = if a.resume {
-        resume_config(&a)?
+    let (cfg, scene) = if a.resume {
+        let cfg = resume_config(&a)?;
+        (cfg, resume_scene(&a)?)
     } else {
+        let scene = a
+            .scene
+            .clone()
+            .expect("clap requires --scene without --resume");
         let mut cfg = a.run.resolve()?;
         if let Some(m) = &a.mesh {
-            cfg.train.mesh = Some(super::common::absolute_mesh_path(m, &a.scene));
+            cfg.train.mesh = Some(super::common::absolute_mesh_path(m, &scene));
         }
-        cfg
+        (cfg, scene)
     };
     cfg.validate()?;
     // First Ctrl-C: finish the step, write a checkpoint, exit. Second: exit at once.
@@ -76,12 +82,32 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
         no_final_eval: a.no_eval,
         quiet: a.quiet,
     };
-    let s = train(&a.scene, &a.out, cfg, &opts)?;
+    let s = train(&scene, &a.out, cfg, &opts)?;
     Ok(if s.interrupted && INTERRUPTED.load(Ordering::SeqCst) {
         ExitCode::from(130)
     } else {
         ExitCode::SUCCESS
     })
+}
+
+/// For `--resume`: `--scene`, else the scene the run records in `RUN/scene.json` (the
+/// fingerprint check in `train` then confirms it still holds what the run was trained on).
+fn resume_scene(a: &Args) -> anyhow::Result<PathBuf> {
+    if let Some(s) = &a.scene {
+        return Ok(s.clone());
+    }
+    match crate::train::run_dir::SceneFingerprint::read(&a.out)? {
+        Some(f) if f.scene.is_dir() => Ok(f.scene),
+        Some(f) => bail!(
+            "--resume: the run's scene {} (from {}) no longer exists; give --scene DIR",
+            f.scene.display(),
+            crate::train::run_dir::SceneFingerprint::path(&a.out).display()
+        ),
+        None => bail!(
+            "--resume: {} does not record the run's scene (made by an older xscale); give --scene DIR",
+            a.out.display()
+        ),
+    }
 }
 
 /// For `--resume`: the run's stored configuration with the total step count asked for
@@ -120,7 +146,7 @@ fn resume_config(a: &Args) -> anyhow::Result<RunConfig> {
         ));
     }
     if let Some(m) = &a.mesh {
-        let m = super::common::absolute_mesh_path(m, &a.scene);
+        let m = super::common::absolute_mesh_path(m, &resume_scene(a)?);
         if stored.train.mesh.as_ref() != Some(&m) {
             diffs.push(format!(
                 "--mesh {} (the run's mesh is {})",

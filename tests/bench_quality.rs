@@ -129,7 +129,14 @@ fn an_earlier_bench_csv_is_refused_kept_or_replaced() {
         format!("{p:.4}").parse::<f64>().unwrap().to_bits()
     });
     assert!(out.join("pareto.png").is_file());
-    assert!(!out.join(".bench.csv.tmp").exists());
+    // No temporary file is left beside the kept rows (`io::atomic` names them `.bench.csv.tmp.*`).
+    let leftovers: Vec<String> = std::fs::read_dir(&out)
+        .unwrap()
+        .flatten()
+        .map(|e| e.file_name().to_string_lossy().into_owned())
+        .filter(|n| n.contains(".tmp"))
+        .collect();
+    assert!(leftovers.is_empty(), "{leftovers:?}");
 
     let rows = run(&["ulr"], Existing::Overwrite).unwrap();
     assert_eq!(rows.len(), 1);

@@ -103,6 +103,139 @@ fn ablate_writes_the_table_for_every_variant() {
     let _ = std::fs::remove_dir_all(&out);
 }
 
+fn results(out: &Path) -> Vec<String> {
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("ablation.json")).unwrap()).unwrap();
+    json["results"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|r| r["name"].as_str().unwrap().to_string())
+        .collect()
+}
+
+#[test]
+fn an_earlier_ablation_is_refused_kept_or_replaced() {
+    let out = tmp("again");
+    let (scene, o) = (fixture(), out.to_str().unwrap().to_string());
+    let ablate = |extra: &[&str]| {
+        let mut args = vec![
+            "ablate",
+            "--scene",
+            scene.to_str().unwrap(),
+            "--out",
+            &o,
+            "--preset",
+            "tiny",
+            "--steps",
+            "4",
+            "--batch",
+            "256",
+            "-q",
+        ];
+        args.extend_from_slice(extra);
+        xscale(&args)
+    };
+    let (ok, _, err) = ablate(&["--variants", "full,ulr"]);
+    assert!(ok, "{err}");
+    let first = std::fs::read(out.join("ablation.json")).unwrap();
+    // Run again: refused before anything is trained or written.
+    let (ok, _, err) = ablate(&["--variants", "vertex"]);
+    assert!(
+        !ok && err.contains("--append") && err.contains("full, ulr"),
+        "{err}"
+    );
+    assert_eq!(std::fs::read(out.join("ablation.json")).unwrap(), first);
+    assert!(!out.join("vertex").exists());
+    // --append adds a variant to the table, in table order; its parameter budget is matched to
+    // the kept full model's.
+    let (ok, stdout, err) = ablate(&["--variants", "vertex", "--append"]);
+    assert!(ok, "{err}");
+    assert_eq!(results(&out), ["full", "vertex", "ulr"]);
+    assert!(
+        stdout.contains("| full |") && stdout.contains("| vertex |"),
+        "{stdout}"
+    );
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("ablation.json")).unwrap()).unwrap();
+    let ratio = json["results"][1]["params_ratio"].as_f64().unwrap();
+    assert!((0.5..=2.0).contains(&ratio), "{ratio}");
+    // A different base configuration or step budget cannot join the table.
+    let (ok, _, err) = ablate(&["--variants", "ulr", "--append", "--seed", "9"]);
+    assert!(!ok && err.contains("train.seed = 9"), "{err}");
+    let (ok, _, err) = xscale(&[
+        "ablate",
+        "--scene",
+        scene.to_str().unwrap(),
+        "--out",
+        &o,
+        "--preset",
+        "tiny",
+        "--steps",
+        "5",
+        "--batch",
+        "256",
+        "--variants",
+        "ulr",
+        "--append",
+    ]);
+    assert!(!ok && err.contains("ran 4 steps"), "{err}");
+    // A bad option of a later variant stops the ablation before the first variant trains.
+    let (ok, _, err) = ablate(&["--variants", "full,mesh10", "--ratio", "0", "--overwrite"]);
+    assert!(!ok && err.contains("--ratio 0"), "{err}");
+    assert_eq!(results(&out), ["full", "vertex", "ulr"]);
+    // --overwrite starts a new table.
+    let (ok, _, err) = ablate(&["--variants", "ulr", "--overwrite"]);
+    assert!(ok, "{err}");
+    assert_eq!(results(&out), ["ulr"]);
+    let _ = std::fs::remove_dir_all(&out);
+}
+
+#[test]
+fn the_table_is_written_after_every_variant() {
+    // Killed once the first report appears: it holds the variants finished so far, not all.
+    let out = tmp("partial");
+    let scene = fixture();
+    let mut child = Command::new(env!("CARGO_BIN_EXE_xscale"))
+        .args([
+            "ablate",
+            "--scene",
+            scene.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+            "--preset",
+            "tiny",
+            "--steps",
+            "40",
+            "--batch",
+            "256",
+            "-q",
+            "--variants",
+            "full,no_deform,no_multisampling",
+        ])
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    let t0 = std::time::Instant::now();
+    while !out.join("ablation.json").exists() {
+        assert!(child.try_wait().unwrap().is_none() || out.join("ablation.json").exists());
+        assert!(t0.elapsed().as_secs() < 300, "no ablation.json after 300 s");
+        std::thread::sleep(std::time::Duration::from_millis(10));
+    }
+    let _ = child.kill();
+    let _ = child.wait();
+    let names = results(&out);
+    assert!(
+        !names.is_empty() && names.len() < 3 && names[0] == "full",
+        "{names:?}"
+    );
+    assert!(std::fs::read_to_string(out.join("ablation.md"))
+        .unwrap()
+        .contains("| full |"));
+    let _ = std::fs::remove_dir_all(&out);
+}
+
 #[test]
 fn decimate_and_subdivide_commands() {
     let out = tmp("mesh");

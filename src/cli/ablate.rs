@@ -1,5 +1,5 @@
 //! `xscale ablate --scene DIR --out DIR [--preset P] [--config FILE] [--steps N | --minutes M]
-//! [--variants LIST] [--ratio R] [--subdivide K]`: train the paper's ablations (Table 4: without
+//! [--variants LIST] [--ratio R] [--subdivide K] [--append | --overwrite]`: train the paper's ablations (Table 4: without
 //! deformation, without multisampling; Table 5: decimated mesh) and the vertex-feature baseline
 //! (Fig. 2b) on one scene with one step budget, score the held-out views and write
 //! `DIR/ablation.md` (a table like the paper's) and `DIR/ablation.json`. See
@@ -7,6 +7,7 @@
 
 use super::common::RunArgs;
 use crate::train::ablate::{run_ablation, AblateOptions, Variant};
+use crate::train::run_dir::Existing;
 use anyhow::Result;
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -35,6 +36,14 @@ pub struct Args {
     /// Subdivision levels of the vertex_subdiv variant (default: automatic).
     #[arg(long)]
     pub subdivide: Option<u32>,
+    /// Keep the earlier ablation in OUT (its variants not run again stay in the table; a variant
+    /// run again replaces its result). The step count and base configuration must be the same.
+    #[arg(long, conflicts_with = "overwrite")]
+    pub append: bool,
+    /// Replace the earlier ablation in OUT (without --append or --overwrite, a folder holding
+    /// one is refused).
+    #[arg(long)]
+    pub overwrite: bool,
     /// Only errors and the final table.
     #[arg(long, short)]
     pub quiet: bool,
@@ -53,6 +62,12 @@ pub fn run(a: Args) -> Result<ExitCode> {
         ratio: a.ratio,
         subdivide: a.subdivide,
         minutes: a.minutes,
+        steps_given: a.run.steps.is_some(),
+        existing: match (a.append, a.overwrite) {
+            (true, _) => Existing::Append,
+            (_, true) => Existing::Overwrite,
+            _ => Existing::Refuse,
+        },
         quiet: a.quiet,
     };
     let rep = run_ablation(&a.scene, &a.out, &opts)?;

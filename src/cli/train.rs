@@ -182,40 +182,10 @@ fn config_differences(file: &std::path::Path, stored: &RunConfig) -> anyhow::Res
     let given: toml::Value =
         toml::from_str(&text).with_context(|| format!("{}: not valid TOML", file.display()))?;
     let have: toml::Value = toml::from_str(&stored.to_toml()).expect("a RunConfig serialises");
-    let mut out = Vec::new();
-    walk(&given, &have, String::new(), &mut out);
+    let mut out = crate::train::config::toml_differences(&given, &have, "the run");
     out.retain(|d| !d.starts_with("train.steps "));
-    return Ok(out
+    Ok(out
         .into_iter()
         .map(|d| format!("{d} (in {})", file.display()))
-        .collect());
-
-    fn walk(g: &toml::Value, h: &toml::Value, key: String, out: &mut Vec<String>) {
-        match g {
-            toml::Value::Table(t) => {
-                for (k, v) in t {
-                    let sub = if key.is_empty() {
-                        k.clone()
-                    } else {
-                        format!("{key}.{k}")
-                    };
-                    match h.get(k) {
-                        Some(hv) => walk(v, hv, sub, out),
-                        None => out.push(format!("{sub} = {v} (the run has no such setting)")),
-                    }
-                }
-            }
-            _ => {
-                let same = match (g, h) {
-                    // Integers and floats compare by value (1 == 1.0).
-                    (toml::Value::Integer(a), toml::Value::Float(b))
-                    | (toml::Value::Float(b), toml::Value::Integer(a)) => *a as f64 == *b,
-                    _ => g == h,
-                };
-                if !same {
-                    out.push(format!("{key} = {g} (the run has {h})"));
-                }
-            }
-        }
-    }
+        .collect())
 }

@@ -21,10 +21,10 @@ use crate::render::{comparison, render_camera, Rendered};
 use crate::scene::image::write_png8;
 use crate::scene::{Image, Scene};
 use anyhow::{Context, Result};
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
-#[derive(Clone, Debug, Serialize, PartialEq)]
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
 pub struct ViewScore {
     pub view: String,
     /// Full image (inside the object mask, if any): render vs the untouched photo.

@@ -31,9 +31,10 @@ use crate::model::config::Featurization;
 use crate::scene::mesh::{decimate_report, subdivide, write_ply};
 use crate::scene::{LoadOptions, Mesh, Scene};
 use crate::train::config::RunConfig;
+use crate::train::run_dir::Existing;
 use crate::train::trainer::{train, TrainOptions, TrainState};
 use anyhow::{bail, ensure, Context, Result};
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
@@ -107,6 +108,16 @@ impl Serialize for Variant {
     }
 }
 
+impl<'de> Deserialize<'de> for Variant {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> std::result::Result<Self, D::Error> {
+        let s = String::deserialize(d)?;
+        Variant::ALL
+            .into_iter()
+            .find(|v| v.name() == s)
+            .ok_or_else(|| serde::de::Error::custom(format!("unknown ablation variant {s:?}")))
+    }
+}
+
 /// How to run the ablation.
 #[derive(Clone, Debug)]
 pub struct AblateOptions {
@@ -120,11 +131,15 @@ pub struct AblateOptions {
     pub subdivide: Option<u32>,
     /// Set the step count from a timing probe so the full model trains about this long.
     pub minutes: Option<f64>,
+    /// Whether the step count was given (`--steps`) rather than taken from the preset.
+    pub steps_given: bool,
+    /// What to do with an earlier ablation in the output folder (`OUT/ablation.json`).
+    pub existing: Existing,
     pub quiet: bool,
 }
 
 /// One variant's result.
-#[derive(Clone, Debug, Serialize)]
+#[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct VariantResult {
     pub name: Variant,
     pub description: String,
@@ -149,19 +164,23 @@ pub struct VariantResult {
 }
 
 /// The whole ablation.
-#[derive(Clone, Debug, Serialize)]
+#[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct AblationReport {
     pub scene: PathBuf,
     pub preset: String,
     pub steps: u64,
     pub batch_pixels: usize,
     pub seed: u64,
+    /// The base configuration every variant is derived from (TOML, its step count included);
+    /// empty in reports written before it was recorded.
+    #[serde(default)]
+    pub base_config: String,
     pub results: Vec<VariantResult>,
     /// The claims, checked on the measured numbers.
     pub claims: Vec<Claim>,
 }
 
-#[derive(Clone, Debug, Serialize)]
+#[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct Claim {
     pub claim: String,
     /// `None` when a variant it needs did not run.
@@ -203,9 +222,42 @@ pub fn choose_z(
         .unwrap_or(1)
 }
 
-/// Run every requested variant on `scene` into `out`; writes `ablation.md` and `ablation.json`.
+/// Run every requested variant on `scene` into `out`; writes `ablation.md` and `ablation.json`
+/// after every variant (so an interrupted ablation keeps the variants it finished). An earlier
+/// ablation in `out` is handled as `opts.existing` says: refused, kept (`Append`: its variants
+/// not run again stay in the table; the step count and base configuration must be the same) or
+/// replaced.
 pub fn run_ablation(scene: &Path, out: &Path, opts: &AblateOptions) -> Result<AblationReport> {
     ensure!(!opts.variants.is_empty(), "no variants to run");
+    // Options only a later variant uses are checked before the first one trains.
+    if opts.variants.contains(&Variant::Mesh10) {
+        ensure!(
+            opts.ratio.is_finite() && opts.ratio > 0.0 && opts.ratio <= 1.0,
+            "--ratio {}: must be in (0, 1] (the fraction of faces mesh10 keeps)",
+            opts.ratio
+        );
+    }
+    if let (true, Some(k)) = (
+        opts.variants.contains(&Variant::VertexSubdiv),
+        opts.subdivide,
+    ) {
+        ensure!(k <= 6, "--subdivide {k}: at most 6 levels (× 4096 faces)");
+    }
+    let json = out.join("ablation.json");
+    // Read before anything is written or trained: a refusal or a bad file loses nothing.
+    let earlier = match opts.existing {
+        Existing::Overwrite => None,
+        _ if !json.is_file() => None,
+        _ => Some(read_report(&json).context("an earlier ablation (--overwrite replaces it)")?),
+    };
+    if let (Some(old), Existing::Refuse) = (&earlier, opts.existing) {
+        bail!(
+            "{}: holds an earlier ablation ({} steps per variant: {}); add --append to run variants into it (a variant run again replaces its result), --overwrite to replace it, or choose another --out",
+            json.display(),
+            old.steps,
+            variant_names(&old.results)
+        );
+    }
     std::fs::create_dir_all(out).with_context(|| format!("{}: cannot create", out.display()))?;
     let say = |s: String| {
         if !opts.quiet {
@@ -244,50 +296,160 @@ pub fn run_ablation(scene: &Path, out: &Path, opts: &AblateOptions) -> Result<Ab
     };
     std::fs::create_dir_all(&ctx.mesh_dir)
         .with_context(|| format!("{}: cannot create", ctx.mesh_dir.display()))?;
-    if let Some(m) = opts.minutes {
-        base.train.steps = probe_steps(scene, &out.join("probe"), &base, m)?;
-        say(format!(
-            "probe: {} steps for {m} min of the full model",
-            base.train.steps
-        ));
+    match &earlier {
+        // One table, one step budget: an appended ablation keeps the earlier step count.
+        Some(old) => {
+            if opts.minutes.is_some() || (opts.steps_given && base.train.steps != old.steps) {
+                bail!(
+                    "--append: the earlier ablation in {} ran {} steps per variant; the variants of one table share a step count (leave out --steps/--minutes, or give --steps {})",
+                    out.display(),
+                    old.steps,
+                    old.steps
+                );
+            }
+            base.train.steps = old.steps;
+        }
+        None => {
+            if let Some(m) = opts.minutes {
+                base.train.steps = probe_steps(scene, &out.join("probe"), &base, m)?;
+                say(format!(
+                    "probe: {} steps for {m} min of the full model",
+                    base.train.steps
+                ));
+            }
+        }
     }
     // No periodic evaluation or checkpoints inside the runs: the final evaluation is the result.
     base.train.eval_every = 0;
     base.train.checkpoint_every = 0;
-
+    let base_config = base.to_toml();
     let mut results: Vec<VariantResult> = Vec::new();
-    for &v in &opts.variants {
-        let full_params = results
-            .iter()
-            .find(|r| r.name == Variant::Full)
-            .map(|r| r.params);
-        if v == Variant::Ulr {
-            results.push(ulr_variant(&ctx, &say)?);
-            continue;
+    if let Some(old) = earlier {
+        same_ablation(&old, scene, &base, &base_config)?;
+        let (again, kept): (Vec<_>, Vec<_>) = old
+            .results
+            .into_iter()
+            .partition(|r| opts.variants.contains(&r.name));
+        if !kept.is_empty() {
+            say(format!(
+                "--append: keeping {} from the earlier ablation",
+                variant_names(&kept)
+            ));
         }
-        let (cfg, used_mesh) = configure(v, &base, &ctx, full_params, &say)?;
-        let r = run_variant(
-            v,
-            cfg,
-            used_mesh,
-            &ctx,
-            &out.join(v.name()),
-            full_params,
-            &say,
-        )?;
-        results.push(r);
+        if !again.is_empty() {
+            say(format!(
+                "--append: {} run again (their earlier results are replaced)",
+                variant_names(&again)
+            ));
+        }
+        results = kept;
     }
-    let rep = AblationReport {
+    let report_of = |results: &[VariantResult]| AblationReport {
         scene: scene.to_path_buf(),
         preset: base.preset.clone(),
         steps: base.train.steps,
         batch_pixels: base.train.batch_pixels,
         seed: base.train.seed,
-        claims: check_claims(&results),
-        results,
+        base_config: base_config.clone(),
+        claims: check_claims(results),
+        results: results.to_vec(),
     };
-    write_report(out, &rep)?;
-    Ok(rep)
+    for &v in &opts.variants {
+        let full_params = results
+            .iter()
+            .find(|r| r.name == Variant::Full)
+            .map(|r| r.params);
+        let r = if v == Variant::Ulr {
+            ulr_variant(&ctx, &say)?
+        } else {
+            let (cfg, used_mesh) = configure(v, &base, &ctx, full_params, &say)?;
+            run_variant(
+                v,
+                cfg,
+                used_mesh,
+                &ctx,
+                &out.join(v.name()),
+                full_params,
+                &say,
+            )?
+        };
+        results.push(r);
+        results.sort_by_key(|r| Variant::ALL.iter().position(|&v| v == r.name));
+        write_report(out, &report_of(&results))?;
+    }
+    Ok(report_of(&results))
+}
+
+/// `OUT/ablation.json` as written by [`run_ablation`].
+pub fn read_report(path: &Path) -> Result<AblationReport> {
+    let text = std::fs::read_to_string(path)
+        .with_context(|| format!("{}: cannot read", path.display()))?;
+    serde_json::from_str(&text)
+        .with_context(|| format!("{}: not an ablation report (ablation.json)", path.display()))
+}
+
+/// The variants' names, comma-separated.
+fn variant_names(results: &[VariantResult]) -> String {
+    let names: Vec<&str> = results.iter().map(|r| r.name.name()).collect();
+    names.join(", ")
+}
+
+/// An error naming what differs when this ablation's scene or base configuration is not the
+/// earlier one's (the variants of one table must share them).
+fn same_ablation(
+    old: &AblationReport,
+    scene: &Path,
+    base: &RunConfig,
+    base_config: &str,
+) -> Result<()> {
+    let canon = |p: &Path| std::fs::canonicalize(p).unwrap_or_else(|_| p.to_path_buf());
+    let mut diffs = Vec::new();
+    if canon(&old.scene) != canon(scene) {
+        diffs.push(format!(
+            "scene {} (the earlier ablation's is {})",
+            scene.display(),
+            old.scene.display()
+        ));
+    }
+    if old.base_config.is_empty() {
+        // A report from before the configuration was recorded: what it does say.
+        if old.preset != base.preset {
+            diffs.push(format!(
+                "preset {} (the earlier ablation's is {})",
+                base.preset, old.preset
+            ));
+        }
+        if old.batch_pixels != base.train.batch_pixels {
+            diffs.push(format!(
+                "batch {} (the earlier ablation's is {})",
+                base.train.batch_pixels, old.batch_pixels
+            ));
+        }
+        if old.seed != base.train.seed {
+            diffs.push(format!(
+                "seed {} (the earlier ablation's is {})",
+                base.train.seed, old.seed
+            ));
+        }
+    } else {
+        let parse = |t: &str| toml::from_str::<toml::Value>(t);
+        let (now, then) = (
+            parse(base_config).expect("a RunConfig serialises"),
+            parse(&old.base_config).context("the earlier ablation's base_config")?,
+        );
+        diffs.extend(crate::train::config::toml_differences(
+            &now,
+            &then,
+            "the earlier ablation",
+        ));
+    }
+    if !diffs.is_empty() {
+        bail!(
+            "--append: this ablation differs from the earlier one, and the variants of one table must share their scene and base configuration:\n  {}\nrun with the earlier options, or use another --out (or --overwrite)",
+            diffs.join("\n  ")
+        );
+    }
+    Ok(())
 }
 
 /// What every variant shares: the scene, its mesh and where derived meshes go.
@@ -548,15 +710,13 @@ fn ulr_variant(ctx: &Shared, say: &dyn Fn(String)) -> Result<VariantResult> {
     })
 }
 
-/// `OUT/ablation.md` and `OUT/ablation.json`.
+/// `OUT/ablation.md` and `OUT/ablation.json`, each written whole or not at all.
 fn write_report(out: &Path, rep: &AblationReport) -> Result<()> {
-    std::fs::write(out.join("ablation.md"), markdown(rep))
-        .with_context(|| format!("{}: cannot write ablation.md", out.display()))?;
-    std::fs::write(
-        out.join("ablation.json"),
+    crate::io::atomic::write_bytes(&out.join("ablation.md"), markdown(rep))?;
+    crate::io::atomic::write_bytes(
+        &out.join("ablation.json"),
         serde_json::to_string_pretty(rep)?,
     )
-    .with_context(|| format!("{}: cannot write ablation.json", out.display()))
 }
 
 /// The claims on the measured masked PSNR.

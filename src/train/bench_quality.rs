@@ -217,18 +217,7 @@ fn bench_one(scene: &Path, name: &str, budget_s: f64, log: &mut dyn FnMut(Row)) 
     Ok(())
 }
 
-/// What to do with an `OUT/bench.csv` left by an earlier run.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
-pub enum Existing {
-    /// Refuse to start (the default: an earlier benchmark is not thrown away unasked).
-    #[default]
-    Refuse,
-    /// Keep its rows, except those of the configurations this run trains (a configuration run
-    /// again replaces its earlier rows, e.g. one cut short by Ctrl-C), and plot them all.
-    Append,
-    /// Start a new file.
-    Overwrite,
-}
+pub use crate::train::run_dir::Existing;
 
 /// Run the benchmark; returns every row (also in `OUT/bench.csv`, appended as each evaluation
 /// finishes, so an interrupted run keeps what it measured) and writes `OUT/pareto.png`. An

@@ -337,3 +337,40 @@ mod tests {
         assert!(format!("{e:#}").contains("gamma"), "{e:#}");
     }
 }
+
+/// Every key `given` sets whose value differs from `have`'s, as `key.path = value (HAVE has
+/// other)` or `(HAVE has no such setting)`, `HAVE` being `have_name` ("the run"); integers and
+/// floats compare by value (1 == 1.0). Keys of `have` that `given` leaves out are not listed.
+pub fn toml_differences(given: &toml::Value, have: &toml::Value, have_name: &str) -> Vec<String> {
+    let mut out = Vec::new();
+    walk(given, have, String::new(), have_name, &mut out);
+    return out;
+
+    fn walk(g: &toml::Value, h: &toml::Value, key: String, name: &str, out: &mut Vec<String>) {
+        match g {
+            toml::Value::Table(t) => {
+                for (k, v) in t {
+                    let sub = if key.is_empty() {
+                        k.clone()
+                    } else {
+                        format!("{key}.{k}")
+                    };
+                    match h.get(k) {
+                        Some(hv) => walk(v, hv, sub, name, out),
+                        None => out.push(format!("{sub} = {v} ({name} has no such setting)")),
+                    }
+                }
+            }
+            _ => {
+                let same = match (g, h) {
+                    (toml::Value::Integer(a), toml::Value::Float(b))
+                    | (toml::Value::Float(b), toml::Value::Integer(a)) => *a as f64 == *b,
+                    _ => g == h,
+                };
+                if !same {
+                    out.push(format!("{key} = {g} ({name} has {h})"));
+                }
+            }
+        }
+    }
+}

@@ -6,6 +6,8 @@
 //! - [`SceneFingerprint`]: hashes of the cameras (names, sizes, intrinsics, poses), the split and
 //!   the mesh, stored in `RUN/scene.json` with the scene's path, so a resume on another scene is
 //!   an error and `eval`/`render --run` can find the scene.
+//! - [`Existing`]: what a command that fills an output folder (`bench-quality`, `ablate`) does
+//!   with the results an earlier run left there.
 
 use crate::scene::Scene;
 use anyhow::{bail, Context, Result};
@@ -24,6 +26,20 @@ pub const RUN_FILES: [&str; 9] = [
     "eval",
     "refined.ply",
 ];
+
+/// What to do with the results an earlier run left in an output folder (`bench-quality`'s
+/// `bench.csv`, `ablate`'s `ablation.json`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum Existing {
+    /// Refuse to start (the default: earlier results are not thrown away unasked).
+    #[default]
+    Refuse,
+    /// Keep them, except those of what this run does again (a configuration or variant run
+    /// again replaces its earlier results, e.g. one cut short by Ctrl-C), and report them all.
+    Append,
+    /// Start afresh.
+    Overwrite,
+}
 
 /// Holds `RUN/.lock` (our pid) until dropped.
 pub struct RunLock {

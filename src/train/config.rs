@@ -305,39 +305,6 @@ impl RunConfig {
     }
 }
 
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn overrides_and_roundtrip() {
-        let c = RunConfig::from_toml_str(
-            "preset = \"tiny\"\n[model]\ngamma = 1\n[model.deform]\nenabled = false\n[train]\nsteps = 7\n[train.adam.grid_h]\nlr = 0.5\n",
-            "cpu",
-            "test.toml",
-        )
-        .unwrap();
-        assert_eq!(c.preset, "tiny");
-        assert_eq!(c.model.gamma, 1);
-        assert!(!c.model.deform.enabled);
-        assert_eq!(c.model.grid_h.levels, 4, "untouched fields keep the preset");
-        assert_eq!(c.train.steps, 7);
-        assert_eq!(c.train.adam.grid_h.lr, 0.5);
-        assert!(c.train.adam.grid_h.sparse, "roles are not overridable");
-        let back = RunConfig::from_toml_str(&c.to_toml(), "cpu", "roundtrip").unwrap();
-        assert_eq!(back, c);
-    }
-
-    #[test]
-    fn bad_keys_are_named() {
-        let e = RunConfig::from_toml_str("[train]\nstepz = 3\n", "tiny", "x.toml").unwrap_err();
-        let msg = format!("{e:#}");
-        assert!(msg.contains("x.toml") && msg.contains("stepz"), "{msg}");
-        let e = RunConfig::from_toml_str("[model]\ngamma = 9\n", "tiny", "y.toml").unwrap_err();
-        assert!(format!("{e:#}").contains("gamma"), "{e:#}");
-    }
-}
-
 /// Every key `given` sets whose value differs from `have`'s, as `key.path = value (HAVE has
 /// other)` or `(HAVE has no such setting)`, `HAVE` being `have_name` ("the run"); integers and
 /// floats compare by value (1 == 1.0). Keys of `have` that `given` leaves out are not listed.
@@ -372,5 +339,38 @@ pub fn toml_differences(given: &toml::Value, have: &toml::Value, have_name: &str
                 }
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn overrides_and_roundtrip() {
+        let c = RunConfig::from_toml_str(
+            "preset = \"tiny\"\n[model]\ngamma = 1\n[model.deform]\nenabled = false\n[train]\nsteps = 7\n[train.adam.grid_h]\nlr = 0.5\n",
+            "cpu",
+            "test.toml",
+        )
+        .unwrap();
+        assert_eq!(c.preset, "tiny");
+        assert_eq!(c.model.gamma, 1);
+        assert!(!c.model.deform.enabled);
+        assert_eq!(c.model.grid_h.levels, 4, "untouched fields keep the preset");
+        assert_eq!(c.train.steps, 7);
+        assert_eq!(c.train.adam.grid_h.lr, 0.5);
+        assert!(c.train.adam.grid_h.sparse, "roles are not overridable");
+        let back = RunConfig::from_toml_str(&c.to_toml(), "cpu", "roundtrip").unwrap();
+        assert_eq!(back, c);
+    }
+
+    #[test]
+    fn bad_keys_are_named() {
+        let e = RunConfig::from_toml_str("[train]\nstepz = 3\n", "tiny", "x.toml").unwrap_err();
+        let msg = format!("{e:#}");
+        assert!(msg.contains("x.toml") && msg.contains("stepz"), "{msg}");
+        let e = RunConfig::from_toml_str("[model]\ngamma = 9\n", "tiny", "y.toml").unwrap_err();
+        assert!(format!("{e:#}").contains("gamma"), "{e:#}");
     }
 }

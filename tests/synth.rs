@@ -592,3 +592,60 @@ fn cross_preset_holds_out_a_close_up_of_each_material() {
         "held-out close-ups by material: {seen:?}"
     );
 }
+
+/// `xscale synth` into a folder that holds something: the same scene is written again, another
+/// scene or a folder of other files is refused unless --overwrite, which removes what synth
+/// writes (no view of the earlier scene is left) and nothing else.
+#[test]
+fn synth_into_a_used_folder_is_refused_unless_the_same_scene_or_overwrite() {
+    let dir = temp_dir("cli-used");
+    let d = dir.to_str().unwrap();
+    let synth = |extra: &[&str]| {
+        let out = std::process::Command::new(env!("CARGO_BIN_EXE_xscale"))
+            .args(["synth", "--preset", "tiny", "--out", d])
+            .args(extra)
+            .output()
+            .unwrap();
+        (
+            out.status.success(),
+            String::from_utf8_lossy(&out.stderr).into_owned(),
+        )
+    };
+    let seed_of = || {
+        let t: toml::Table = std::fs::read_to_string(dir.join("synth.toml"))
+            .unwrap()
+            .parse()
+            .unwrap();
+        t["seed"].as_integer().unwrap()
+    };
+    let (ok, err) = synth(&["--seed", "1"]);
+    assert!(ok, "{err}");
+    let first = read_tree(&dir);
+    let (ok, err) = synth(&["--seed", "1"]);
+    assert!(ok, "the same command twice: {err}");
+    assert_eq!(read_tree(&dir), first);
+    let (ok, err) = synth(&["--seed", "2"]);
+    assert!(
+        !ok && err.contains("--seed 1") && err.contains("--overwrite"),
+        "{err}"
+    );
+    assert_eq!(seed_of(), 1);
+    // A stale extra view would survive a plain rewrite; --overwrite removes it.
+    std::fs::write(dir.join("images/9999.png"), b"stale").unwrap();
+    let (ok, err) = synth(&["--seed", "2", "--overwrite"]);
+    assert!(ok, "{err}");
+    assert_eq!(seed_of(), 2);
+    assert!(!dir.join("images/9999.png").exists());
+    // A folder of other files (a real scene) is refused; --overwrite keeps what synth does not write.
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(dir.join("images")).unwrap();
+    std::fs::write(dir.join("images/IMG_0001.jpg"), b"photo").unwrap();
+    std::fs::write(dir.join("notes.txt"), b"mine").unwrap();
+    let (ok, err) = synth(&["--seed", "1"]);
+    assert!(!ok && err.contains("no synth.toml"), "{err}");
+    assert!(dir.join("images/IMG_0001.jpg").exists());
+    let (ok, err) = synth(&["--seed", "1", "--overwrite"]);
+    assert!(ok, "{err}");
+    assert!(dir.join("notes.txt").exists() && !dir.join("images/IMG_0001.jpg").exists());
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -2,6 +2,7 @@
 //! (see `src/synth/`).
 
 use crate::synth::{self, Preset};
+use anyhow::{bail, Context};
 use std::path::PathBuf;
 use std::process::ExitCode;
 
@@ -14,9 +15,14 @@ pub struct Args {
     /// Seed of every random choice (terrain, buildings, textures, cameras, proxy error).
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
-    /// Output scene directory (created if needed; existing files are overwritten).
+    /// Output scene directory: new, empty, or holding this same scene (same preset and seed,
+    /// written again). Any other folder is refused unless --overwrite.
     #[arg(long)]
     pub out: PathBuf,
+    /// Write into a folder holding another scene or other files: what synth writes there
+    /// (images/, sparse/, mesh.ply, …, see `SYNTH_FILES`) is removed first; nothing else is.
+    #[arg(long)]
+    pub overwrite: bool,
     /// Also write the fine true surface as `truth.ply` (large).
     #[arg(long)]
     pub write_truth: bool,
@@ -48,7 +54,74 @@ pub fn generate(
     Ok(summary)
 }
 
+/// Every file and folder `xscale synth` writes into its output folder.
+pub const SYNTH_FILES: [&str; 10] = [
+    "synth.toml",
+    "scene.toml",
+    "mesh.ply",
+    "mesh.obj",
+    "truth.ply",
+    "images",
+    "images_1",
+    "cams_1",
+    "sparse",
+    "transforms.json",
+];
+
+/// Whether synth may write into `args.out`: a new or empty folder, or one holding the scene
+/// of the same preset and seed (written again, the same bytes), may; another synthetic scene
+/// (runs trained on it would no longer match it) or a folder of other files (a real scene's
+/// `images/` and `sparse/` would be overwritten) is refused unless `--overwrite`, which
+/// removes what synth writes first (so no view of a larger earlier scene is left behind).
+fn check_out(args: &Args) -> anyhow::Result<()> {
+    let dir = &args.out;
+    let Ok(mut entries) = std::fs::read_dir(dir) else {
+        return Ok(()); // created
+    };
+    if entries.next().is_none() {
+        return Ok(());
+    }
+    let record = dir.join("synth.toml");
+    let earlier = std::fs::read_to_string(&record)
+        .ok()
+        .and_then(|t| t.parse::<toml::Table>().ok())
+        .filter(|t| t.get("generator").and_then(|g| g.as_str()) == Some("xscale synth"));
+    let what = match &earlier {
+        Some(t) => {
+            let preset = t.get("preset").and_then(|p| p.as_str()).unwrap_or("?");
+            let seed = t.get("seed").map_or("?".to_string(), |s| s.to_string());
+            if preset == args.preset.name() && seed == args.seed.to_string() {
+                return Ok(()); // the same scene, written again
+            }
+            format!(
+                "holds the synthetic scene of --preset {preset} --seed {seed} ({}; runs trained on it would no longer match it)",
+                record.display()
+            )
+        }
+        None => "is not empty and holds no `xscale synth` scene (no synth.toml); synth writes images/, sparse/, mesh.ply, … there".to_string(),
+    };
+    if !args.overwrite {
+        bail!(
+            "{}: {what}. Choose a new or empty folder, or add --overwrite to replace what synth writes there",
+            dir.display()
+        );
+    }
+    for name in SYNTH_FILES {
+        let p = dir.join(name);
+        let r = if p.is_dir() {
+            std::fs::remove_dir_all(&p)
+        } else if p.exists() {
+            std::fs::remove_file(&p)
+        } else {
+            Ok(())
+        };
+        r.with_context(|| format!("{}: cannot remove (--overwrite)", p.display()))?;
+    }
+    Ok(())
+}
+
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
+    check_out(&args)?;
     let t0 = std::time::Instant::now();
     let summary = generate(
         args.preset,

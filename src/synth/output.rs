@@ -86,25 +86,8 @@ pub fn write_with(
     fs::create_dir_all(dir.join("images"))
         .with_context(|| format!("{}: cannot create", dir.display()))?;
     let vs = views(s, dir);
-    scene::mesh::write_ply(&dir.join("mesh.ply"), &s.proxy)?;
-    scene::mesh::write_obj(&dir.join("mesh.obj"), &s.proxy)?;
-    if write_truth {
-        scene::mesh::write_ply(&dir.join("truth.ply"), &s.truth.to_mesh())?;
-    }
-    for (i, v) in vs.iter().enumerate() {
-        scene::image::write_png8(&v.image_path, &image(i))?;
-        progress(i);
-    }
-    scene::colmap::write_text(&dir.join("sparse").join("0"), &vs)?;
-    if s.preset != Preset::Large {
-        scene::mvsnet::write(dir, &vs, 1)?;
-        for v in &vs {
-            let dst = dir.join("images_1").join(&v.name);
-            fs::copy(&v.image_path, &dst)
-                .with_context(|| format!("{}: cannot write", dst.display()))?;
-        }
-    }
-    scene::transforms::write(&dir.join("transforms.json"), &vs, "images/")?;
+    // The record first: a folder an interrupted synth left behind is still known as its output
+    // (`xscale synth` writes into such a folder again only with the same preset and seed).
     let record = Record {
         generator: "xscale synth",
         preset: s.preset,
@@ -127,6 +110,25 @@ pub fn write_with(
     let text = toml::to_string(&record).context("synth.toml: cannot serialise")?;
     let path = dir.join("synth.toml");
     fs::write(&path, text).with_context(|| format!("{}: cannot write", path.display()))?;
+    scene::mesh::write_ply(&dir.join("mesh.ply"), &s.proxy)?;
+    scene::mesh::write_obj(&dir.join("mesh.obj"), &s.proxy)?;
+    if write_truth {
+        scene::mesh::write_ply(&dir.join("truth.ply"), &s.truth.to_mesh())?;
+    }
+    for (i, v) in vs.iter().enumerate() {
+        scene::image::write_png8(&v.image_path, &image(i))?;
+        progress(i);
+    }
+    scene::colmap::write_text(&dir.join("sparse").join("0"), &vs)?;
+    if s.preset != Preset::Large {
+        scene::mvsnet::write(dir, &vs, 1)?;
+        for v in &vs {
+            let dst = dir.join("images_1").join(&v.name);
+            fs::copy(&v.image_path, &dst)
+                .with_context(|| format!("{}: cannot write", dst.display()))?;
+        }
+    }
+    scene::transforms::write(&dir.join("transforms.json"), &vs, "images/")?;
     // All three layouts describe the same cameras (tests/synth.rs checks it); a plain
     // `Scene::load` needs to be told which to read.
     let path = dir.join("scene.toml");

@@ -139,3 +139,25 @@ fn exif_orientation_is_applied_when_the_camera_needs_it() {
     );
     let _ = std::fs::remove_dir_all(&s);
 }
+
+/// A folder whose scene sits one level down in dense/0/ in a layout the root search does not
+/// take (here the model one folder deeper, `dense/0/sparse/0/`): the error names the folder to
+/// give instead, and that folder loads.
+#[test]
+fn a_scene_one_level_down_is_named_in_the_error() {
+    let d = tmp("nested");
+    let inner = d.join("dense/0");
+    copy_dir(&fixture("tiny/images"), &inner.join("images"));
+    copy_dir(&fixture("tiny/sparse"), &inner.join("sparse"));
+    std::fs::copy(fixture("tiny/mesh.ply"), inner.join("meshed-poisson.ply")).unwrap();
+    let err = format!(
+        "{:#}",
+        Scene::load(&d, &LoadOptions::default()).unwrap_err()
+    );
+    assert!(
+        err.contains("no cameras found") && err.contains(&format!("--scene {}", inner.display())),
+        "{err}"
+    );
+    assert!(Scene::load(&inner, &LoadOptions::default()).is_ok());
+    let _ = std::fs::remove_dir_all(&d);
+}

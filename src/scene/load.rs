@@ -328,10 +328,27 @@ fn choose_format(
     }
     match detect_formats(dir).as_slice() {
         [f] => Ok(*f),
-        [] => bail!(
-            "{}: no cameras found (looked for transforms.json, a COLMAP model in sparse/0/, sparse/ or the dir itself, and MVSNet cams_<dsp>/*_cam.txt)",
-            dir.display()
-        ),
+        [] => {
+            // A COLMAP project's root keeps its undistorted workspace (cameras, images, mesh)
+            // in dense/N/: name it rather than leave the user to guess.
+            let inner: Vec<PathBuf> = ["dense/0", "dense"]
+                .iter()
+                .map(|d| dir.join(d))
+                .filter(|d| d.is_dir() && !detect_formats(d).is_empty())
+                .collect();
+            let hint = match inner.first() {
+                Some(d) => format!(
+                    "; {} holds a scene (a COLMAP dense workspace?): use --scene {}",
+                    d.display(),
+                    d.display()
+                ),
+                None => String::new(),
+            };
+            bail!(
+                "{}: no cameras found (looked for transforms.json, a COLMAP model in sparse/0/, sparse/ or the dir itself, and MVSNet cams_<dsp>/*_cam.txt){hint}",
+                dir.display()
+            )
+        }
         many => bail!(
             "{}: several camera formats present ({}); choose one by writing `format = \"{}\"` (or another of them) into {}",
             dir.display(),

@@ -206,6 +206,14 @@ impl Checkpoint {
             .map_or("<in-memory checkpoint>".to_string(), |p| {
                 p.display().to_string()
             });
+        if let Some(kind) = file_kind(file).filter(|&k| k != CHECKPOINT) {
+            let swapped = if kind == BATCH {
+                " (--checkpoint and --batch swapped?)"
+            } else {
+                ""
+            };
+            bail!("{label}: not a checkpoint: this file is {kind}{swapped}");
+        }
         let format = file.meta("format")?;
         if format != FORMAT {
             bail!("{label}: format is {format:?}, expected {FORMAT:?}");
@@ -293,6 +301,24 @@ impl Checkpoint {
     }
 }
 
+const CHECKPOINT: &str = "a checkpoint (`xscale init`/`train`)";
+const BATCH: &str = "a batch (`xscale batch`)";
+
+/// Which of xscale's tensor files this is, from its tensor names (`None`: none of them), so a
+/// file given in another's place is named as what it is rather than by a missing key.
+fn file_kind(file: &TensorFile) -> Option<&'static str> {
+    let has = |prefix: &str| file.tensors.keys().any(|k| k.starts_with(prefix));
+    if has("fwd.") || has("grad.") {
+        Some("a dump (`xscale dump`)")
+    } else if has("grid_h.") || has("vertex.") || has("shader.") {
+        Some(CHECKPOINT)
+    } else if has("batch.") {
+        Some(BATCH)
+    } else {
+        None
+    }
+}
+
 /// Insert a batch's tensors.
 pub fn batch_to_tensors(file: &mut TensorFile, batch: &Batch) -> Result<()> {
     let n = batch.n_pixels();
@@ -324,6 +350,11 @@ pub fn batch_from_tensors(file: &TensorFile) -> Result<Batch> {
         .source
         .as_ref()
         .map_or("<in-memory batch>".to_string(), |p| p.display().to_string());
+    if !file.tensors.contains_key("batch.positions") && file_kind(file) == Some(CHECKPOINT) {
+        bail!(
+            "{label}: not a batch: this file is {CHECKPOINT} (--checkpoint and --batch swapped?)"
+        );
+    }
     let pt = file.get("batch.positions")?;
     ensure!(
         pt.shape.len() == 3 && pt.shape[2] == 3 && pt.dtype == DType::F64,
@@ -711,6 +742,28 @@ mod tests {
         batch_to_tensors(&mut f, &bad).unwrap();
         let e = format!("{:#}", batch_from_tensors(&f).unwrap_err());
         assert!(e.contains("pixel 5"), "{e}");
+    }
+
+    /// A batch given as the checkpoint, or the other way round, is named as what it is.
+    #[test]
+    fn a_file_of_another_kind_is_named() {
+        let mut batch = TensorFile::new();
+        batch_to_tensors(&mut batch, &Batch::random(3, 4, 4, 3, 0.3)).unwrap();
+        let e = format!("{:#}", Checkpoint::from_tensor_file(&batch).unwrap_err());
+        assert!(
+            e.contains("not a checkpoint") && e.contains("a batch") && e.contains("swapped"),
+            "{e}"
+        );
+        let ckpt = tiny_ckpt().to_tensor_file().unwrap();
+        let e = format!("{:#}", batch_from_tensors(&ckpt).unwrap_err());
+        assert!(
+            e.contains("not a batch") && e.contains("a checkpoint"),
+            "{e}"
+        );
+        let mut dump = ckpt.clone();
+        dump.insert("grad.grid_h.table", Tensor::f32(vec![1], &[0.0]).unwrap());
+        let e = format!("{:#}", Checkpoint::from_tensor_file(&dump).unwrap_err());
+        assert!(e.contains("a dump") && !e.contains("swapped"), "{e}");
     }
 
     #[test]

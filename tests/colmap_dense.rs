@@ -159,5 +159,11 @@ fn a_scene_one_level_down_is_named_in_the_error() {
         "{err}"
     );
     assert!(Scene::load(&inner, &LoadOptions::default()).is_ok());
+    // The mesh file given for the folder.
+    let e = format!(
+        "{:#}",
+        Scene::load(&inner.join("meshed-poisson.ply"), &LoadOptions::default()).unwrap_err()
+    );
+    assert!(e.contains("is a file") && e.contains("folder"), "{e}");
     let _ = std::fs::remove_dir_all(&d);
 }

@@ -244,6 +244,12 @@ impl Scene {
     /// the number of degenerate triangles dropped) for the CLI to report.
     pub fn load_report(dir: &Path, opts: &LoadOptions) -> Result<(Scene, LoadReport)> {
         if !dir.is_dir() {
+            if dir.exists() {
+                bail!(
+                    "{}: is a file; --scene takes the scene's folder (the one holding the cameras, images and mesh)",
+                    dir.display()
+                );
+            }
             bail!("{}: scene directory not found", dir.display());
         }
         if opts.downsample == 0 {

@@ -27,24 +27,28 @@ fn xscale(args: &[&str]) -> (bool, String, String) {
     )
 }
 
-#[test]
-fn ablate_writes_the_table_for_every_variant() {
-    let out = tmp("run");
-    let scene = fixture();
-    let (ok, stdout, err) = xscale(&[
+/// `xscale ablate` on the `tiny` fixture into `out`, `steps` steps of 256 pixels, quiet.
+fn ablate_args(out: &Path, steps: &str) -> Vec<String> {
+    let (scene, out) = (fixture(), out.to_str().unwrap().to_string());
+    let args = [
         "ablate",
         "--scene",
         scene.to_str().unwrap(),
         "--out",
-        out.to_str().unwrap(),
+        &out,
         "--preset",
         "tiny",
-        "--steps",
-        "4",
-        "--batch",
-        "256",
-        "--quiet",
-    ]);
+    ];
+    let rest = ["--steps", steps, "--batch", "256", "-q"];
+    args.iter().chain(&rest).map(|a| a.to_string()).collect()
+}
+
+#[test]
+fn ablate_writes_the_table_for_every_variant() {
+    let out = tmp("run");
+    let scene = fixture();
+    let args = ablate_args(&out, "4");
+    let (ok, stdout, err) = xscale(&args.iter().map(String::as_str).collect::<Vec<_>>());
     assert!(ok, "{err}");
     let md = std::fs::read_to_string(out.join("ablation.md")).unwrap();
     assert_eq!(stdout, md, "the table is printed too");
@@ -119,21 +123,12 @@ fn an_earlier_ablation_is_refused_kept_or_replaced() {
     let out = tmp("again");
     let (scene, o) = (fixture(), out.to_str().unwrap().to_string());
     let ablate = |extra: &[&str]| {
-        let mut args = vec![
-            "ablate",
-            "--scene",
-            scene.to_str().unwrap(),
-            "--out",
-            &o,
-            "--preset",
-            "tiny",
-            "--steps",
-            "4",
-            "--batch",
-            "256",
-            "-q",
-        ];
-        args.extend_from_slice(extra);
+        let base = ablate_args(&out, "4");
+        let args: Vec<&str> = base
+            .iter()
+            .map(String::as_str)
+            .chain(extra.iter().copied())
+            .collect();
         xscale(&args)
     };
     let (ok, _, err) = ablate(&["--variants", "full,ulr"]);
@@ -192,39 +187,32 @@ fn an_earlier_ablation_is_refused_kept_or_replaced() {
 }
 
 #[test]
-fn the_table_is_written_after_every_variant() {
-    // Killed once the first report appears: it holds the variants finished so far, not all.
+fn the_table_is_written_after_every_variant_and_sigterm_stops_between_steps() {
+    // SIGTERM once the first report appears: the variant in training stops at its next step,
+    // the table holds the variants finished so far (not all three), and the command says how to
+    // finish; that command completes the table.
     let out = tmp("partial");
-    let scene = fixture();
-    let mut child = Command::new(env!("CARGO_BIN_EXE_xscale"))
-        .args([
-            "ablate",
-            "--scene",
-            scene.to_str().unwrap(),
-            "--out",
-            out.to_str().unwrap(),
-            "--preset",
-            "tiny",
-            "--steps",
-            "40",
-            "--batch",
-            "256",
-            "-q",
-            "--variants",
-            "full,no_deform,no_multisampling",
-        ])
+    let base = ablate_args(&out, "200");
+    let child = Command::new(env!("CARGO_BIN_EXE_xscale"))
+        .args(&base)
+        .args(["--variants", "full,no_deform,no_multisampling"])
         .stdout(std::process::Stdio::null())
-        .stderr(std::process::Stdio::null())
+        .stderr(std::process::Stdio::piped())
         .spawn()
         .unwrap();
     let t0 = std::time::Instant::now();
     while !out.join("ablation.json").exists() {
-        assert!(child.try_wait().unwrap().is_none() || out.join("ablation.json").exists());
         assert!(t0.elapsed().as_secs() < 300, "no ablation.json after 300 s");
         std::thread::sleep(std::time::Duration::from_millis(10));
     }
-    let _ = child.kill();
-    let _ = child.wait();
+    let st = Command::new("kill")
+        .args(["-TERM", &child.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(st.success());
+    let done = child.wait_with_output().unwrap();
+    let err = String::from_utf8_lossy(&done.stderr);
+    assert_eq!(done.status.code(), Some(130), "{err}");
     let names = results(&out);
     assert!(
         !names.is_empty() && names.len() < 3 && names[0] == "full",
@@ -233,6 +221,21 @@ fn the_table_is_written_after_every_variant() {
     assert!(std::fs::read_to_string(out.join("ablation.md"))
         .unwrap()
         .contains("| full |"));
+    let rest = err
+        .split("--append --variants ")
+        .nth(1)
+        .unwrap_or_else(|| panic!("{err}"))
+        .trim()
+        .to_string();
+    let finish: Vec<&str> = base
+        .iter()
+        .map(String::as_str)
+        .chain(["--append", "--variants", &rest])
+        .collect();
+    let (ok, stdout, err) = xscale(&finish);
+    assert!(ok, "{err}");
+    assert_eq!(results(&out), ["full", "no_deform", "no_multisampling"]);
+    assert!(stdout.contains("| no_multisampling |"), "{stdout}");
     let _ = std::fs::remove_dir_all(&out);
 }
 

@@ -68,9 +68,35 @@ pub fn run(a: Args) -> Result<ExitCode> {
             (_, true) => Existing::Overwrite,
             _ => Existing::Refuse,
         },
+        interrupt: Some(super::common::on_interrupt(
+            "stopping the variant in training at its next step; the finished ones are kept",
+        )),
         quiet: a.quiet,
     };
     let rep = run_ablation(&a.scene, &a.out, &opts)?;
+    if let Some(first) = rep.stopped.first() {
+        let rest: Vec<&str> = rep.stopped.iter().map(|v| v.name()).collect();
+        let done: Vec<&str> = rep.results.iter().map(|r| r.name.name()).collect();
+        let steps = match a.minutes {
+            Some(_) => format!(" --steps {} (in place of --minutes)", rep.steps),
+            None => String::new(),
+        };
+        let kept = if done.is_empty() {
+            "no variant had finished".to_string()
+        } else {
+            format!(
+                "{} holds {}",
+                a.out.join("ablation.md").display(),
+                done.join(", ")
+            )
+        };
+        eprintln!(
+            "interrupted during {}: {kept}; finish with the same options and --append --variants {}{steps}",
+            first.name(),
+            rest.join(",")
+        );
+        return Ok(ExitCode::from(130));
+    }
     print!("{}", crate::train::ablate::markdown(&rep));
     eprintln!(
         "wrote {} and {}",

@@ -321,3 +321,20 @@ pub fn parse_background(s: &str) -> std::result::Result<[f32; 3], String> {
         )),
     }
 }
+
+/// Set by the first Ctrl-C, SIGTERM or SIGHUP (`ctrlc`'s `termination` feature) once
+/// [`on_interrupt`] installed the handler.
+static INTERRUPTED: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
+
+/// Install the process's interrupt handler and return its flag: the first signal sets it and
+/// says `interrupt: WHAT (Ctrl-C again to abort)`; a second exits at once with status 130.
+pub fn on_interrupt(what: &'static str) -> &'static std::sync::atomic::AtomicBool {
+    use std::sync::atomic::Ordering;
+    let _ = ctrlc::set_handler(move || {
+        if INTERRUPTED.swap(true, Ordering::SeqCst) {
+            std::process::exit(130);
+        }
+        eprintln!("\ninterrupt: {what} (Ctrl-C again to abort)");
+    });
+    &INTERRUPTED
+}

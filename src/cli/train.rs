@@ -6,7 +6,7 @@ use crate::train::trainer::{train, TrainOptions};
 use anyhow::{bail, Context};
 use std::path::PathBuf;
 use std::process::ExitCode;
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::Ordering;
 
 #[derive(clap::Args, Debug)]
 pub struct Args {
@@ -43,8 +43,6 @@ pub struct Args {
     pub quiet: bool,
 }
 
-static INTERRUPTED: AtomicBool = AtomicBool::new(false);
-
 pub fn run(a: Args) -> anyhow::Result<ExitCode> {
     if let Some(pid) = crate::train::run_dir::RunLock::holder(&a.out) {
         bail!(
@@ -68,22 +66,17 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
     };
     cfg.validate()?;
     // First Ctrl-C: finish the step, write a checkpoint, exit. Second: exit at once.
-    let _ = ctrlc::set_handler(|| {
-        if INTERRUPTED.swap(true, Ordering::SeqCst) {
-            std::process::exit(130);
-        }
-        eprintln!("\ninterrupt: writing a checkpoint after this step (Ctrl-C again to abort)");
-    });
+    let interrupted = super::common::on_interrupt("writing a checkpoint after this step");
     let opts = TrainOptions {
         resume: a.resume,
         overwrite: a.overwrite,
         stop_at: a.stop_at,
-        interrupt: Some(&INTERRUPTED),
+        interrupt: Some(interrupted),
         no_final_eval: a.no_eval,
         quiet: a.quiet,
     };
     let s = train(&scene, &a.out, cfg, &opts)?;
-    Ok(if s.interrupted && INTERRUPTED.load(Ordering::SeqCst) {
+    Ok(if s.interrupted && interrupted.load(Ordering::SeqCst) {
         ExitCode::from(130)
     } else {
         ExitCode::SUCCESS

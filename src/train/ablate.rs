@@ -135,6 +135,9 @@ pub struct AblateOptions {
     pub steps_given: bool,
     /// What to do with an earlier ablation in the output folder (`OUT/ablation.json`).
     pub existing: Existing,
+    /// Set by a Ctrl-C / SIGTERM handler: the variant training stops at its next step and the
+    /// ablation ends with the variants it finished ([`AblationReport::stopped`]).
+    pub interrupt: Option<&'static std::sync::atomic::AtomicBool>,
     pub quiet: bool,
 }
 
@@ -178,6 +181,10 @@ pub struct AblationReport {
     pub results: Vec<VariantResult>,
     /// The claims, checked on the measured numbers.
     pub claims: Vec<Claim>,
+    /// When interrupted: the variants asked for that did not finish (the first was stopped
+    /// mid-training), in table order. Not stored in `ablation.json`.
+    #[serde(skip)]
+    pub stopped: Vec<Variant>,
 }
 
 #[derive(Clone, Debug, Serialize, Deserialize)]
@@ -344,6 +351,10 @@ pub fn run_ablation(scene: &Path, out: &Path, opts: &AblateOptions) -> Result<Ab
         }
         results = kept;
     }
+    let interrupted = || {
+        opts.interrupt
+            .is_some_and(|f| f.load(std::sync::atomic::Ordering::SeqCst))
+    };
     let report_of = |results: &[VariantResult]| AblationReport {
         scene: scene.to_path_buf(),
         preset: base.preset.clone(),
@@ -353,8 +364,16 @@ pub fn run_ablation(scene: &Path, out: &Path, opts: &AblateOptions) -> Result<Ab
         base_config: base_config.clone(),
         claims: check_claims(results),
         results: results.to_vec(),
+        stopped: Vec::new(),
     };
-    for &v in &opts.variants {
+    for (k, &v) in opts.variants.iter().enumerate() {
+        let stop = |results: &[VariantResult]| AblationReport {
+            stopped: opts.variants[k..].to_vec(),
+            ..report_of(results)
+        };
+        if interrupted() {
+            return Ok(stop(&results));
+        }
         let full_params = results
             .iter()
             .find(|r| r.name == Variant::Full)
@@ -363,15 +382,11 @@ pub fn run_ablation(scene: &Path, out: &Path, opts: &AblateOptions) -> Result<Ab
             ulr_variant(&ctx, &say)?
         } else {
             let (cfg, used_mesh) = configure(v, &base, &ctx, full_params, &say)?;
-            run_variant(
-                v,
-                cfg,
-                used_mesh,
-                &ctx,
-                &out.join(v.name()),
-                full_params,
-                &say,
-            )?
+            let run = out.join(v.name());
+            match run_variant(v, cfg, used_mesh, &ctx, &run, full_params, opts, &say)? {
+                Some(r) => r,
+                None => return Ok(stop(&results)),
+            }
         };
         results.push(r);
         results.sort_by_key(|r| Variant::ALL.iter().position(|&v| v == r.name));
@@ -599,6 +614,8 @@ fn subdivided(ctx: &Shared, target: usize, say: &dyn Fn(String)) -> Result<(Mesh
 }
 
 /// Train one variant into `run_dir` and collect its scores (returned by the trainer).
+/// One trained variant's result; `None` when an interrupt stopped its training.
+#[allow(clippy::too_many_arguments)]
 fn run_variant(
     v: Variant,
     cfg: RunConfig,
@@ -606,8 +623,9 @@ fn run_variant(
     ctx: &Shared,
     run_dir: &Path,
     full_params: Option<usize>,
+    opts: &AblateOptions,
     say: &dyn Fn(String),
-) -> Result<VariantResult> {
+) -> Result<Option<VariantResult>> {
     say(format!(
         "== {}: {} ({} steps of {} pixels) → {}",
         v.name(),
@@ -624,10 +642,14 @@ fn run_variant(
             quiet: true,
             // An ablation re-run into the same folder replaces its variant runs.
             overwrite: true,
+            interrupt: opts.interrupt,
             ..TrainOptions::default()
         },
     )
     .with_context(|| format!("ablation variant {}", v.name()))?;
+    if summary.interrupted {
+        return Ok(None);
+    }
     let st = TrainState::load(&run_dir.join("checkpoint.safetensors"))?;
     let params = st.ckpt.model.layout.total;
     let mean = summary
@@ -666,7 +688,7 @@ fn run_variant(
         r.params,
         r.train_seconds
     ));
-    Ok(r)
+    Ok(Some(r))
 }
 
 /// The ULR baseline (`render::ulr`) on the held-out views: no training, no parameters.

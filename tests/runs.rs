@@ -446,7 +446,11 @@ fn limits_and_bad_settings_get_clear_messages() {
         &["--preset", "tiny", "--config", cfg.to_str().unwrap()],
     );
     assert_eq!(code, 2);
-    assert!(err.contains("model.shader.width = 0"), "{err}");
+    // The file and the line that set it.
+    assert!(
+        err.contains("bad.toml:2: invalid configuration: model.shader.width = 0"),
+        "{err}"
+    );
     // A bad learning rate names the field, not a Rust struct.
     std::fs::write(&cfg, "[train.adam.shader]\nlr = -1.0\n").unwrap();
     let (code, err) = train(
@@ -458,6 +462,7 @@ fn limits_and_bad_settings_get_clear_messages() {
         err.contains("adam.shader: lr = -1") && !err.contains("AdamGroup"),
         "{err}"
     );
+    assert!(err.contains("bad.toml:1: "), "{err}");
     // A preset in the file that disagrees with --preset.
     std::fs::write(&cfg, "preset = \"cpu\"\n").unwrap();
     let (code, err) = train(

@@ -191,12 +191,15 @@ impl RunConfig {
         let base = RunConfig::preset(&preset).with_context(|| format!("{origin}: preset"))?;
         let mut v = toml::Value::try_from(&base).context("serialising the preset")?;
         merge(&mut v, over);
-        let cfg: RunConfig = v
-            .try_into()
-            .with_context(|| format!("{origin}: does not describe a run configuration"))?;
-        cfg.validate()
-            .with_context(|| format!("{origin}: invalid configuration"))?;
-        Ok(cfg)
+        let cfg: RunConfig = match v.try_into() {
+            Ok(c) => c,
+            Err(e) => {
+                let at = where_in(origin, text, &e.to_string());
+                return Err(anyhow::Error::new(e)
+                    .context(format!("{at}: does not describe a run configuration")));
+            }
+        };
+        validated(cfg, origin, text)
     }
 
     /// Preset `preset`, overridden by the file `path` if given. A user config that sets grid H's
@@ -244,9 +247,7 @@ impl RunConfig {
                         g.levels,
                     );
                 }
-                cfg.validate()
-                    .with_context(|| format!("{origin}: invalid configuration"))?;
-                Ok(cfg)
+                validated(cfg, &origin, &text)
             }
         }
     }
@@ -305,6 +306,93 @@ impl RunConfig {
     }
 }
 
+/// `cfg` if it validates, else the error with the file (and the line of the key it names,
+/// when the file sets it).
+fn validated(cfg: RunConfig, origin: &str, text: &str) -> Result<RunConfig> {
+    match cfg.validate() {
+        Ok(()) => Ok(cfg),
+        Err(e) => {
+            let at = where_in(origin, text, &format!("{e:#}"));
+            Err(e.context(format!("{at}: invalid configuration")))
+        }
+    }
+}
+
+/// `origin:LINE` when an error message names a key (`… in `train.seed``, `unknown field `x``
+/// in a table, or a leading `model.gamma …`) that the TOML `text` sets on line LINE, else
+/// `origin`.
+fn where_in(origin: &str, text: &str, msg: &str) -> String {
+    let quoted = |after: &str| {
+        msg.find(after)
+            .map(|i| &msg[i + after.len()..])
+            .and_then(|r| r.split('`').next())
+            .map(str::to_string)
+    };
+    let table = quoted("in `");
+    let keys: Vec<String> = match (quoted("unknown field `"), &table) {
+        (Some(f), Some(t)) => vec![format!("{t}.{f}")],
+        (Some(f), None) => vec![f],
+        (None, Some(t)) => vec![t.clone()],
+        // Validation's messages start with the field (`model.gamma must …`), sometimes behind
+        // its table (`train.adam: adam.shader: lr = …`).
+        (None, None) => msg
+            .split_whitespace()
+            .take_while(|w| w.ends_with(':') || w.contains('.'))
+            .map(|w| w.trim_end_matches(':').to_string())
+            .filter(|w| w.contains('.'))
+            .collect(),
+    };
+    // The most specific key the file sets; validation names some without their top table.
+    let line = keys.iter().rev().find_map(|k| {
+        [k.clone(), format!("train.{k}"), format!("model.{k}")]
+            .iter()
+            .find_map(|k| line_of_key(text, k))
+    });
+    match line {
+        Some(line) => format!("{origin}:{line}"),
+        None => origin.to_string(),
+    }
+}
+
+/// The 1-based line on which a TOML `text` sets the dotted key `path` (a `key = …` line under
+/// the header of its table) or opens the table `path` (its header); dotted keys, quoted keys
+/// and `[[…]]` headers are read, inline tables are not.
+pub fn line_of_key(text: &str, path: &str) -> Option<usize> {
+    let norm = |k: &str| -> String {
+        k.split('.')
+            .map(|p| p.trim().trim_matches('"').trim_matches('\''))
+            .collect::<Vec<_>>()
+            .join(".")
+    };
+    let mut table = String::new();
+    for (i, line) in text.lines().enumerate() {
+        let l = line.trim();
+        if l.starts_with('#') || l.is_empty() {
+            continue;
+        }
+        if let Some(h) = l.strip_prefix('[') {
+            let h = h.trim_start_matches('[');
+            table = norm(h.split(']').next().unwrap_or(""));
+            if table == path {
+                return Some(i + 1);
+            }
+            continue;
+        }
+        if let Some((k, _)) = l.split_once('=') {
+            let k = norm(k);
+            let full = if table.is_empty() {
+                k
+            } else {
+                format!("{table}.{k}")
+            };
+            if full == path {
+                return Some(i + 1);
+            }
+        }
+    }
+    None
+}
+
 /// Every key `given` sets whose value differs from `have`'s, as `key.path = value (HAVE has
 /// other)` or `(HAVE has no such setting)`, `HAVE` being `have_name` ("the run"); integers and
 /// floats compare by value (1 == 1.0). Keys of `have` that `given` leaves out are not listed.
@@ -345,6 +433,29 @@ pub fn toml_differences(given: &toml::Value, have: &toml::Value, have_name: &str
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn keys_are_found_on_their_lines() {
+        let text = "# c\npreset = \"tiny\"\n\n[model]\ngamma = 7\n[model.shader]\n width = 0 \n[train]\nadam.shader.lr = 1\n\"seed\" = 2\n";
+        assert_eq!(line_of_key(text, "preset"), Some(2));
+        assert_eq!(line_of_key(text, "model.gamma"), Some(5));
+        assert_eq!(line_of_key(text, "model.shader"), Some(6));
+        assert_eq!(line_of_key(text, "model.shader.width"), Some(7));
+        assert_eq!(line_of_key(text, "train.adam.shader.lr"), Some(9));
+        assert_eq!(line_of_key(text, "train.seed"), Some(10));
+        assert_eq!(line_of_key(text, "train.steps"), None);
+        let e = format!(
+            "{:#}",
+            RunConfig::from_toml_str("[train]\nseed = 1\nstep = 5\n", "tiny", "c.toml")
+                .unwrap_err()
+        );
+        assert!(e.starts_with("c.toml:3: "), "{e}");
+        let e = format!(
+            "{:#}",
+            RunConfig::from_toml_str("\n[model]\ngamma = 9\n", "tiny", "c.toml").unwrap_err()
+        );
+        assert!(e.starts_with("c.toml:3: invalid configuration"), "{e}");
+    }
 
     #[test]
     fn overrides_and_roundtrip() {

@@ -1,24 +1,40 @@
 //! `xscale bench-quality` on the bundled fixture: a row per evaluation (budget·2^-k, k = 5..0)
 //! with growing wall time, the ULR row, the plot, and a clear error for an unknown configuration.
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use xscale::train::bench_quality::{bench_quality, read_rows, replot, Existing};
 
-#[test]
-fn bench_quality_writes_rows_and_the_plot() {
-    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
-    let out = std::env::temp_dir().join(format!("xscale-bq-{}", std::process::id()));
+/// A fresh output folder for this test process.
+fn fresh_out(tag: &str) -> PathBuf {
+    let out = std::env::temp_dir().join(format!("xscale-bq{tag}-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&out);
-    let configs = vec!["tiny".to_string(), "ulr".to_string()];
-    let rows = bench_quality(
+    out
+}
+
+/// `tiny` and `ulr` on the bundled fixture for 0.6 s each into `out`; `stop` as Ctrl-C.
+fn tiny_and_ulr(
+    out: &Path,
+    stop: &dyn Fn() -> bool,
+) -> (Vec<xscale::train::bench_quality::Row>, Vec<String>) {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let configs = ["tiny".to_string(), "ulr".to_string()];
+    bench_quality(
         &root.join("fixtures/tiny"),
-        &out,
+        out,
         &configs,
         0.01,
         Existing::Refuse,
         &mut |_| {},
+        stop,
     )
-    .unwrap();
+    .unwrap()
+}
+
+#[test]
+fn bench_quality_writes_rows_and_the_plot() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let out = fresh_out("");
+    let (rows, _) = tiny_and_ulr(&out, &|| false);
     let tiny: Vec<_> = rows.iter().filter(|r| r.config == "tiny").collect();
     assert_eq!(tiny.len(), 6);
     assert!(tiny
@@ -39,6 +55,7 @@ fn bench_quality_writes_rows_and_the_plot() {
         0.01,
         Existing::Overwrite,
         &mut |_| {},
+        &|| false,
     )
     .unwrap_err();
     assert!(
@@ -98,7 +115,10 @@ fn an_earlier_bench_csv_is_refused_kept_or_replaced() {
     std::fs::write(&csv, &earlier).unwrap();
     let run = |configs: &[&str], existing| {
         let configs: Vec<String> = configs.iter().map(|c| c.to_string()).collect();
-        bench_quality(&scene, &out, &configs, 0.01, existing, &mut |_| {})
+        bench_quality(&scene, &out, &configs, 0.01, existing, &mut |_| {}, &|| {
+            false
+        })
+        .map(|(rows, _)| rows)
     };
 
     let e = format!("{:#}", run(&["ulr"], Existing::Refuse).unwrap_err());
@@ -153,5 +173,30 @@ fn an_earlier_bench_csv_is_refused_kept_or_replaced() {
         e.contains("bench.csv: line 2") && e.contains("--overwrite"),
         "{e}"
     );
+    let _ = std::fs::remove_dir_all(&out);
+}
+
+/// Stopped (Ctrl-C) during the first configuration: the rows it measured so far are kept in
+/// bench.csv and plotted, and the configurations not finished are returned, the stopped one
+/// first (the CLI names them in the command that finishes the run).
+#[test]
+fn a_stopped_run_keeps_its_rows_and_names_what_is_left() {
+    let out = fresh_out("-stop");
+    // The 10th check (before the 9th training step) says stop.
+    let checks = std::cell::Cell::new(0);
+    let stop = || {
+        checks.set(checks.get() + 1);
+        checks.get() >= 10
+    };
+    let (rows, stopped) = tiny_and_ulr(&out, &stop);
+    assert_eq!(stopped, ["tiny", "ulr"]);
+    assert!(
+        rows.len() < 6 && rows.iter().all(|r| r.config == "tiny"),
+        "{}",
+        rows.len()
+    );
+    assert!(rows.iter().all(|r| r.step <= 9));
+    assert_eq!(read_rows(&out.join("bench.csv")).unwrap().len(), rows.len());
+    assert!(out.join("pareto.png").is_file());
     let _ = std::fs::remove_dir_all(&out);
 }

@@ -72,13 +72,38 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
         (_, true) => Existing::Overwrite,
         _ => Existing::Refuse,
     };
-    bench_quality(&scene, &out, &configs, a.minutes, existing, &mut |m| {
-        eprintln!("{m}")
-    })?;
-    eprintln!(
-        "wrote {} and {}",
-        out.join("bench.csv").display(),
-        out.join("pareto.png").display()
+    let flag = super::common::on_interrupt(
+        "stopping the configuration in training at its next step; the rows measured are kept",
     );
+    let stop = || flag.load(std::sync::atomic::Ordering::SeqCst);
+    let (rows, stopped) = bench_quality(
+        &scene,
+        &out,
+        &configs,
+        a.minutes,
+        existing,
+        &mut |m| eprintln!("{m}"),
+        &stop,
+    )?;
+    if rows.is_empty() {
+        eprintln!(
+            "no row measured: {} holds none",
+            out.join("bench.csv").display()
+        );
+    } else {
+        eprintln!(
+            "wrote {} ({} rows) and {}",
+            out.join("bench.csv").display(),
+            rows.len(),
+            out.join("pareto.png").display()
+        );
+    }
+    if let Some(first) = stopped.first() {
+        eprintln!(
+            "interrupted during {first}; finish with the same options and --append --configs {}",
+            stopped.join(",")
+        );
+        return Ok(ExitCode::from(130));
+    }
     Ok(ExitCode::SUCCESS)
 }

@@ -139,7 +139,15 @@ fn near_far(scores: &[crate::eval::protocol::ViewScore]) -> (f64, f64) {
 }
 
 /// Train `name` for `budget_s` seconds on `scene`, evaluating at `budget · 2^-k`.
-fn bench_one(scene: &Path, name: &str, budget_s: f64, log: &mut dyn FnMut(Row)) -> Result<()> {
+/// Train configuration `name` for `budget_s` seconds, logging a row at each evaluation; `Ok(false)`
+/// when `stop()` said so before a step (the rows logged so far stand).
+fn bench_one(
+    scene: &Path,
+    name: &str,
+    budget_s: f64,
+    log: &mut dyn FnMut(Row),
+    stop: &dyn Fn() -> bool,
+) -> Result<bool> {
     let t_setup = Instant::now();
     let Some(mut cfg) = config(name)? else {
         // ULR: render the held-out views from the training photos; its time is that render.
@@ -171,7 +179,7 @@ fn bench_one(scene: &Path, name: &str, budget_s: f64, log: &mut dyn FnMut(Row)) 
             psnr_near: pn,
             psnr_far: pf,
         });
-        return Ok(());
+        return Ok(true);
     };
     let prepared = prepare(scene, &cfg, true, &mut |_| {})?;
     if prepared.scene.test.is_empty() {
@@ -192,6 +200,9 @@ fn bench_one(scene: &Path, name: &str, budget_s: f64, log: &mut dyn FnMut(Row)) 
     for k in (0..=5).rev() {
         let until = budget_s / f64::from(1u32 << k);
         while trained < until {
+            if stop() {
+                return Ok(false);
+            }
             let t = Instant::now();
             let b = sample_batch(&prepared.samples, &prepared.tracer, seed, state.step, px);
             let st = state.step_in(&b, &mut grads, f64s.as_mut())?;
@@ -214,14 +225,17 @@ fn bench_one(scene: &Path, name: &str, budget_s: f64, log: &mut dyn FnMut(Row)) 
             psnr_far: pf,
         });
     }
-    Ok(())
+    Ok(true)
 }
 
 pub use crate::train::run_dir::Existing;
 
-/// Run the benchmark; returns every row (also in `OUT/bench.csv`, appended as each evaluation
-/// finishes, so an interrupted run keeps what it measured) and writes `OUT/pareto.png`. An
-/// existing `OUT/bench.csv` is handled as `existing` says.
+/// Run the benchmark: every row (also in `OUT/bench.csv`, appended as each evaluation
+/// finishes, so an interrupted run keeps what it measured; plotted in `OUT/pareto.png`) and the
+/// configurations not finished — empty unless `stop()` (Ctrl-C) said so before a training
+/// step, then the stopped one first (its rows up to its last evaluation are kept; `--append`
+/// runs it again). An existing `OUT/bench.csv` is handled as `existing` says.
+#[allow(clippy::too_many_arguments)]
 pub fn bench_quality(
     scene: &Path,
     out: &Path,
@@ -229,7 +243,8 @@ pub fn bench_quality(
     minutes: f64,
     existing: Existing,
     say: &mut dyn FnMut(String),
-) -> Result<Vec<Row>> {
+    stop: &dyn Fn() -> bool,
+) -> Result<(Vec<Row>, Vec<String>)> {
     if !(minutes > 0.0 && minutes.is_finite()) {
         bail!("--minutes {minutes}: expected a positive number");
     }
@@ -278,7 +293,12 @@ pub fn bench_quality(
         .append(true)
         .open(&csv_path)
         .with_context(|| format!("{}: cannot open", csv_path.display()))?;
-    for name in configs {
+    let mut stopped = Vec::new();
+    for (k, name) in configs.iter().enumerate() {
+        if stop() {
+            stopped = configs[k..].to_vec();
+            break;
+        }
         say(format!("== {name} ({:.1} min of training)", minutes));
         let mut log = |r: Row| {
             let _ = writeln!(csv, "{}", r.csv());
@@ -289,14 +309,21 @@ pub fn bench_quality(
             ));
             rows.push(r);
         };
-        bench_one(scene, name, minutes * 60.0, &mut log)
+        let finished = bench_one(scene, name, minutes * 60.0, &mut log, stop)
             .with_context(|| format!("configuration {name}"))?;
+        if !finished {
+            stopped = configs[k..].to_vec();
+            break;
+        }
     }
     let title = scene
         .file_name()
         .map_or("scene".into(), |n| n.to_string_lossy().to_string());
-    plot(out, &title, &rows, say)?;
-    Ok(rows)
+    // Stopped before its first evaluation: nothing measured, no plot (an earlier one stays).
+    if !rows.is_empty() || stopped.is_empty() {
+        plot(out, &title, &rows, say)?;
+    }
+    Ok((rows, stopped))
 }
 
 /// Draw `OUT/pareto.png` from `rows` (one curve per configuration, in order of first appearance)

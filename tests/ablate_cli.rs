@@ -5,6 +5,9 @@
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
+#[path = "common/signal.rs"]
+mod signal;
+
 fn fixture() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/tiny")
 }
@@ -43,12 +46,22 @@ fn ablate_args(out: &Path, steps: &str) -> Vec<String> {
     args.iter().chain(&rest).map(|a| a.to_string()).collect()
 }
 
+/// `xscale ablate` as [`ablate_args`] says, with `extra` options.
+fn run_ablate(out: &Path, steps: &str, extra: &[&str]) -> (bool, String, String) {
+    let base = ablate_args(out, steps);
+    let args: Vec<&str> = base
+        .iter()
+        .map(String::as_str)
+        .chain(extra.iter().copied())
+        .collect();
+    xscale(&args)
+}
+
 #[test]
 fn ablate_writes_the_table_for_every_variant() {
     let out = tmp("run");
     let scene = fixture();
-    let args = ablate_args(&out, "4");
-    let (ok, stdout, err) = xscale(&args.iter().map(String::as_str).collect::<Vec<_>>());
+    let (ok, stdout, err) = run_ablate(&out, "4", &[]);
     assert!(ok, "{err}");
     let md = std::fs::read_to_string(out.join("ablation.md")).unwrap();
     assert_eq!(stdout, md, "the table is printed too");
@@ -121,16 +134,7 @@ fn results(out: &Path) -> Vec<String> {
 #[test]
 fn an_earlier_ablation_is_refused_kept_or_replaced() {
     let out = tmp("again");
-    let (scene, o) = (fixture(), out.to_str().unwrap().to_string());
-    let ablate = |extra: &[&str]| {
-        let base = ablate_args(&out, "4");
-        let args: Vec<&str> = base
-            .iter()
-            .map(String::as_str)
-            .chain(extra.iter().copied())
-            .collect();
-        xscale(&args)
-    };
+    let ablate = |extra: &[&str]| run_ablate(&out, "4", extra);
     let (ok, _, err) = ablate(&["--variants", "full,ulr"]);
     assert!(ok, "{err}");
     let first = std::fs::read(out.join("ablation.json")).unwrap();
@@ -158,22 +162,7 @@ fn an_earlier_ablation_is_refused_kept_or_replaced() {
     // A different base configuration or step budget cannot join the table.
     let (ok, _, err) = ablate(&["--variants", "ulr", "--append", "--seed", "9"]);
     assert!(!ok && err.contains("train.seed = 9"), "{err}");
-    let (ok, _, err) = xscale(&[
-        "ablate",
-        "--scene",
-        scene.to_str().unwrap(),
-        "--out",
-        &o,
-        "--preset",
-        "tiny",
-        "--steps",
-        "5",
-        "--batch",
-        "256",
-        "--variants",
-        "ulr",
-        "--append",
-    ]);
+    let (ok, _, err) = run_ablate(&out, "5", &["--variants", "ulr", "--append"]);
     assert!(!ok && err.contains("ran 4 steps"), "{err}");
     // A bad option of a later variant stops the ablation before the first variant trains.
     let (ok, _, err) = ablate(&["--variants", "full,mesh10", "--ratio", "0", "--overwrite"]);
@@ -205,11 +194,7 @@ fn the_table_is_written_after_every_variant_and_sigterm_stops_between_steps() {
         assert!(t0.elapsed().as_secs() < 300, "no ablation.json after 300 s");
         std::thread::sleep(std::time::Duration::from_millis(10));
     }
-    let st = Command::new("kill")
-        .args(["-TERM", &child.id().to_string()])
-        .status()
-        .unwrap();
-    assert!(st.success());
+    signal::terminate(&child);
     let done = child.wait_with_output().unwrap();
     let err = String::from_utf8_lossy(&done.stderr);
     assert_eq!(done.status.code(), Some(130), "{err}");
@@ -227,12 +212,7 @@ fn the_table_is_written_after_every_variant_and_sigterm_stops_between_steps() {
         .unwrap_or_else(|| panic!("{err}"))
         .trim()
         .to_string();
-    let finish: Vec<&str> = base
-        .iter()
-        .map(String::as_str)
-        .chain(["--append", "--variants", &rest])
-        .collect();
-    let (ok, stdout, err) = xscale(&finish);
+    let (ok, stdout, err) = run_ablate(&out, "200", &["--append", "--variants", &rest]);
     assert!(ok, "{err}");
     assert_eq!(results(&out), ["full", "no_deform", "no_multisampling"]);
     assert!(stdout.contains("| no_multisampling |"), "{stdout}");

@@ -63,11 +63,7 @@ pub fn run(a: Args) -> Result<ExitCode> {
         subdivide: a.subdivide,
         minutes: a.minutes,
         steps_given: a.run.steps.is_some(),
-        existing: match (a.append, a.overwrite) {
-            (true, _) => Existing::Append,
-            (_, true) => Existing::Overwrite,
-            _ => Existing::Refuse,
-        },
+        existing: Existing::from_flags(a.append, a.overwrite),
         interrupt: Some(super::common::on_interrupt(
             "stopping the variant in training at its next step; the finished ones are kept",
         )),

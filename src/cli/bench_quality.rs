@@ -67,11 +67,7 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
         return Ok(ExitCode::SUCCESS);
     }
     let (scene, out) = (a.scene.unwrap(), a.out.unwrap());
-    let existing = match (a.append, a.overwrite) {
-        (true, _) => Existing::Append,
-        (_, true) => Existing::Overwrite,
-        _ => Existing::Refuse,
-    };
+    let existing = Existing::from_flags(a.append, a.overwrite);
     let flag = super::common::on_interrupt(
         "stopping the configuration in training at its next step; the rows measured are kept",
     );

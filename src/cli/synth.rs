@@ -2,7 +2,7 @@
 //! (see `src/synth/`).
 
 use crate::synth::{self, Preset};
-use anyhow::{bail, Context};
+use anyhow::bail;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
@@ -106,18 +106,7 @@ fn check_out(args: &Args) -> anyhow::Result<()> {
             dir.display()
         );
     }
-    for name in SYNTH_FILES {
-        let p = dir.join(name);
-        let r = if p.is_dir() {
-            std::fs::remove_dir_all(&p)
-        } else if p.exists() {
-            std::fs::remove_file(&p)
-        } else {
-            Ok(())
-        };
-        r.with_context(|| format!("{}: cannot remove (--overwrite)", p.display()))?;
-    }
-    Ok(())
+    crate::train::run_dir::remove_listed(dir, &SYNTH_FILES)
 }
 
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {

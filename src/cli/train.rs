@@ -51,8 +51,7 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
         );
     }
     let (cfg, scene) = if a.resume {
-        let cfg = resume_config(&a)?;
-        (cfg, resume_scene(&a)?)
+        resume_config(&a)?
     } else {
         let scene = a
             .scene
@@ -104,9 +103,10 @@ fn resume_scene(a: &Args) -> anyhow::Result<PathBuf> {
 }
 
 /// For `--resume`: the run's stored configuration with the total step count asked for
-/// (`--steps`, else the stored one). Every other option given must agree with the run; a
-/// difference is an error naming the field (the stored configuration always wins).
-fn resume_config(a: &Args) -> anyhow::Result<RunConfig> {
+/// (`--steps`, else the stored one), and its scene ([`resume_scene`]). Every other option given
+/// must agree with the run; a difference is an error naming the field (the stored
+/// configuration always wins).
+fn resume_config(a: &Args) -> anyhow::Result<(RunConfig, PathBuf)> {
     let ckpt = crate::train::trainer::run_checkpoint(&a.out);
     if !ckpt.is_file() {
         bail!(
@@ -121,6 +121,7 @@ fn resume_config(a: &Args) -> anyhow::Result<RunConfig> {
             ckpt.display()
         )
     })?;
+    let scene = resume_scene(a)?;
     let mut diffs: Vec<String> = Vec::new();
     let r = &a.run;
     if let Some(p) = r.preset.as_ref().filter(|p| **p != stored.preset) {
@@ -139,7 +140,7 @@ fn resume_config(a: &Args) -> anyhow::Result<RunConfig> {
         ));
     }
     if let Some(m) = &a.mesh {
-        let m = super::common::absolute_mesh_path(m, &resume_scene(a)?);
+        let m = super::common::absolute_mesh_path(m, &scene);
         if stored.train.mesh.as_ref() != Some(&m) {
             diffs.push(format!(
                 "--mesh {} (the run's mesh is {})",
@@ -164,7 +165,7 @@ fn resume_config(a: &Args) -> anyhow::Result<RunConfig> {
     if let Some(n) = r.steps {
         stored.train.steps = n;
     }
-    Ok(stored)
+    Ok((stored, scene))
 }
 
 /// Every key a `--config` file sets whose value differs from the stored configuration's

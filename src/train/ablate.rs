@@ -428,23 +428,17 @@ fn same_ablation(
     }
     if old.base_config.is_empty() {
         // A report from before the configuration was recorded: what it does say.
-        if old.preset != base.preset {
-            diffs.push(format!(
-                "preset {} (the earlier ablation's is {})",
-                base.preset, old.preset
-            ));
-        }
-        if old.batch_pixels != base.train.batch_pixels {
-            diffs.push(format!(
-                "batch {} (the earlier ablation's is {})",
-                base.train.batch_pixels, old.batch_pixels
-            ));
-        }
-        if old.seed != base.train.seed {
-            diffs.push(format!(
-                "seed {} (the earlier ablation's is {})",
-                base.train.seed, old.seed
-            ));
+        let said = [
+            ("preset", base.preset.clone(), old.preset.clone()),
+            (
+                "batch",
+                base.train.batch_pixels.to_string(),
+                old.batch_pixels.to_string(),
+            ),
+            ("seed", base.train.seed.to_string(), old.seed.to_string()),
+        ];
+        for (what, now, then) in said.into_iter().filter(|(_, n, t)| n != t) {
+            diffs.push(format!("{what} {now} (the earlier ablation's is {then})"));
         }
     } else {
         let parse = |t: &str| toml::from_str::<toml::Value>(t);
@@ -613,8 +607,8 @@ fn subdivided(ctx: &Shared, target: usize, say: &dyn Fn(String)) -> Result<(Mesh
     Ok((m, path))
 }
 
-/// Train one variant into `run_dir` and collect its scores (returned by the trainer).
-/// One trained variant's result; `None` when an interrupt stopped its training.
+/// Train one variant into `run_dir` and collect its scores (returned by the trainer); `None`
+/// when an interrupt stopped its training.
 #[allow(clippy::too_many_arguments)]
 fn run_variant(
     v: Variant,

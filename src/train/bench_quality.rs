@@ -138,9 +138,9 @@ fn near_far(scores: &[crate::eval::protocol::ViewScore]) -> (f64, f64) {
     }
 }
 
-/// Train `name` for `budget_s` seconds on `scene`, evaluating at `budget · 2^-k`.
-/// Train configuration `name` for `budget_s` seconds, logging a row at each evaluation; `Ok(false)`
-/// when `stop()` said so before a step (the rows logged so far stand).
+/// Train configuration `name` for `budget_s` seconds on `scene`, logging a row at each
+/// evaluation (at `budget · 2^-k`); `Ok(false)` when `stop()` said so before a step (the rows
+/// logged so far stand).
 fn bench_one(
     scene: &Path,
     name: &str,

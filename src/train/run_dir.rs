@@ -41,6 +41,17 @@ pub enum Existing {
     Overwrite,
 }
 
+impl Existing {
+    /// From a command's `--append` / `--overwrite` flags (clap keeps them exclusive).
+    pub fn from_flags(append: bool, overwrite: bool) -> Existing {
+        match (append, overwrite) {
+            (true, _) => Existing::Append,
+            (_, true) => Existing::Overwrite,
+            _ => Existing::Refuse,
+        }
+    }
+}
+
 /// Holds `RUN/.lock` (our pid) until dropped.
 pub struct RunLock {
     path: PathBuf,
@@ -148,12 +159,20 @@ pub fn prepare_run_dir(run_dir: &Path, resume: bool, overwrite: bool) -> Result<
             existing.join(", ")
         );
     }
-    for f in existing {
-        let p = run_dir.join(f);
+    remove_listed(run_dir, &existing)
+}
+
+/// Remove the files and folders of `dir` named in `names` that exist (what `--overwrite`
+/// replaces); nothing else in `dir` is touched.
+pub fn remove_listed(dir: &Path, names: &[&str]) -> Result<()> {
+    for name in names {
+        let p = dir.join(name);
         let r = if p.is_dir() {
             std::fs::remove_dir_all(&p)
-        } else {
+        } else if p.exists() {
             std::fs::remove_file(&p)
+        } else {
+            Ok(())
         };
         r.with_context(|| format!("{}: cannot remove (--overwrite)", p.display()))?;
     }

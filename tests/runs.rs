@@ -137,6 +137,19 @@ fn resume_keeps_the_run_config_and_steps_is_the_total() {
     let (code, err) = train(&run, &["--resume", "--steps", "70", "--preset", "tiny"]);
     assert_eq!(code, 0, "{err}");
     assert_eq!(step_of(&run), 70);
+    // --mesh naming the scene's own mesh is the run's mesh (relative to the scene or not);
+    // another file is a difference.
+    let own = fixture().join("mesh.ply");
+    for m in ["mesh.ply", own.to_str().unwrap()] {
+        let (code, err) = train(&run, &["--resume", "--mesh", m]);
+        assert_eq!(code, 0, "--mesh {m}: {err}");
+    }
+    let (code, err) = train(&run, &["--resume", "--mesh", "mesh.obj"]);
+    assert_ne!(code, 0);
+    assert!(
+        err.contains("mesh.obj") && err.contains("the scene's own, "),
+        "{err}"
+    );
     // Without --scene a resume takes the scene the run records (RUN/scene.json)…
     let out = run.to_str().unwrap();
     let resume = [

@@ -141,15 +141,22 @@ fn resume_config(a: &Args) -> anyhow::Result<(RunConfig, PathBuf)> {
     }
     if let Some(m) = &a.mesh {
         let m = super::common::absolute_mesh_path(m, &scene);
-        if stored.train.mesh.as_ref() != Some(&m) {
+        // Compare files, not settings: the scene's own mesh named with --mesh is the run's mesh.
+        let (run_mesh, label) = match &stored.train.mesh {
+            Some(p) => (Some(p.clone()), p.display().to_string()),
+            None => {
+                let own = crate::scene::load::find_mesh(&scene).ok();
+                let label = own.as_ref().map_or("the scene's own".to_string(), |p| {
+                    format!("the scene's own, {}", p.display())
+                });
+                (own, label)
+            }
+        };
+        let same = run_mesh.is_some_and(|p| std::fs::canonicalize(&p).unwrap_or(p) == m);
+        if !same {
             diffs.push(format!(
-                "--mesh {} (the run's mesh is {})",
-                m.display(),
-                stored
-                    .train
-                    .mesh
-                    .as_ref()
-                    .map_or("the scene's own".to_string(), |p| p.display().to_string())
+                "--mesh {} (the run's mesh is {label})",
+                m.display()
             ));
         }
     }

@@ -369,3 +369,35 @@ fn bench_geometry_trains_refined_and_fixed_variants_and_reuses_them() {
     assert!(!ok && err.contains("possible values"), "{err}");
     let _ = std::fs::remove_dir_all(&out);
 }
+
+/// The vertex baselines under the default `cpu` preset, whose footprint level weighting a vertex
+/// model cannot have: the variant turns it off (it trained, then failed reading its own
+/// checkpoint back: "model.level_weight weights hash-grid levels").
+#[test]
+fn vertex_variants_run_under_the_cpu_preset() {
+    let out = tmp("cpu-vertex");
+    let scene = fixture();
+    let args = [
+        "ablate",
+        "--scene",
+        scene.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--preset",
+        "cpu",
+        "--variants",
+        "vertex",
+        "--steps",
+        "2",
+        "--batch",
+        "256",
+        "-q",
+    ];
+    let (ok, _, err) = xscale(&args);
+    assert!(ok, "{err}");
+    let md = std::fs::read_to_string(out.join("ablation.md")).unwrap();
+    assert!(md.contains("| vertex |"), "{md}");
+    let cfg = std::fs::read_to_string(out.join("vertex/config.toml")).unwrap();
+    assert!(cfg.contains("level_weight = \"none\""), "{cfg}");
+    let _ = std::fs::remove_dir_all(&out);
+}

@@ -249,6 +249,26 @@ fn fixtures_cover_the_claimed_configurations() {
     assert!(cpu, "no cpu-preset case");
 }
 
+/// The golden checkpoints were written by older builds (before `level_weight` existed, and the
+/// `cpu` case before that preset turned it on): their stored run configuration must read back
+/// as the model they hold, not as today's preset (it read back with the weighting on).
+#[test]
+fn stored_run_configs_read_back_as_trained() {
+    for case in cases() {
+        let n = name(&case);
+        let f = Checkpoint::read_model_tensors(case.join("checkpoint.safetensors")).unwrap();
+        let text = f.meta("run_config").unwrap();
+        let run = xscale::train::config::RunConfig::from_stored_toml(text, &n).unwrap();
+        let (ck, _) = load(&case);
+        let (run, model) = (&run.model, &ck.model.cfg);
+        assert_eq!(run.level_weight, model.level_weight, "{n}");
+        assert_eq!(run.gamma, model.gamma, "{n}");
+        assert_eq!(run.positions, model.positions, "{n}");
+        assert_eq!(run.deform.enabled, model.deform.enabled, "{n}");
+        assert_eq!(run.grid_h, model.grid_h, "{n}");
+    }
+}
+
 fn tmpdir(tag: &str) -> PathBuf {
     let d = std::env::temp_dir().join(format!("xscale-golden-{tag}-{}", std::process::id()));
     std::fs::create_dir_all(&d).unwrap();

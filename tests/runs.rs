@@ -371,6 +371,24 @@ fn usage_errors_and_runtime_errors_have_distinct_exit_codes() {
     let (code, err) = xscale(&["train", "--scene", "x", "--out", "y", "--preset", "cpux"]);
     assert_eq!(code, 64, "{err}");
     assert!(err.contains("tiny") && err.contains("paper"), "{err}");
+    // A count of 0 where a count is needed is refused before any work (a distance over 0 samples
+    // read as a perfect 0).
+    let mesh = fixture().join("mesh.ply");
+    let mesh = mesh.to_str().unwrap();
+    let (code, err) = xscale(&[
+        "mesh-distance",
+        "--mesh",
+        mesh,
+        "--truth",
+        mesh,
+        "--samples",
+        "0",
+    ]);
+    assert_eq!(code, 64, "{err}");
+    assert!(
+        err.contains("--samples") && err.contains("at least 1"),
+        "{err}"
+    );
     // A missing scene: a runtime error, exit 2, naming it.
     let run = tmp("usage");
     let (code, err) = xscale(&[

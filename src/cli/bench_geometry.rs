@@ -44,7 +44,7 @@ pub struct Args {
     #[arg(long, value_delimiter = ',', num_args = 1.., default_values_t = [Switch::Off])]
     pub refine: Vec<Switch>,
     /// Area samples per geometry-error measurement.
-    #[arg(long, default_value_t = DISTANCE_SAMPLES)]
+    #[arg(long, default_value_t = DISTANCE_SAMPLES, value_parser = super::common::parse_positive)]
     pub samples: usize,
     /// Only errors and the final table.
     #[arg(long, short)]

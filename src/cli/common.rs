@@ -168,9 +168,8 @@ pub fn load_model(path: &Path) -> Result<(Checkpoint, Option<RunConfig>)> {
     let f = Checkpoint::read_model_tensors(path)?;
     let ckpt = Checkpoint::from_tensor_file(&f)?;
     let cfg = match f.metadata.get("run_config") {
-        Some(text) => Some(RunConfig::from_toml_str(
+        Some(text) => Some(RunConfig::from_stored_toml(
             text,
-            "cpu",
             &path.display().to_string(),
         )?),
         None => None,
@@ -293,7 +292,7 @@ pub fn select_views(scene: &Scene, spec: &str) -> Result<Vec<usize>> {
     }
 }
 
-/// A count that must be at least 1 (`--batch`, `--frames`): 0 is a usage error (exit 64).
+/// A count that must be at least 1 (`--batch`, `--frames`, `--samples`): 0 is a usage error (exit 64).
 pub fn parse_positive(s: &str) -> std::result::Result<usize, String> {
     match s.trim().parse::<usize>() {
         Ok(0) => Err("must be at least 1".into()),

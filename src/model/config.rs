@@ -147,9 +147,11 @@ pub struct ModelConfig {
     /// for a scene, like `appearance_views`).
     #[serde(default, skip_serializing_if = "is_zero")]
     pub vertex_count: u32,
-    /// Footprint-aware weighting of grid H's levels (SPEC §4.10; beyond the paper). Absent from
-    /// configs that do not use it, so they are unchanged by its existence.
-    #[serde(default, skip_serializing_if = "LevelWeight::is_none")]
+    /// Footprint-aware weighting of grid H's levels (SPEC §4.10; beyond the paper). Always
+    /// written (`"none"` too): the `cpu` preset has it on, so a `RUN/config.toml` without the key,
+    /// laid over its preset as a `--config`, would turn it on. Absent from configs written before
+    /// it existed (= none, as they were trained).
+    #[serde(default)]
     pub level_weight: LevelWeight,
     /// Joint refinement of the mesh through the hit point (`[model.refine]`, beyond the paper;
     /// `model/refine.rs`). Absent from configs that keep the default (off).

@@ -563,7 +563,9 @@ fn configure(
             ));
             cfg.model.featurization = Featurization::Vertex;
             cfg.model.vertex_features = z;
+            // The baseline has no hash grid: no deformation (grid D) and no level weighting.
             cfg.model.deform.enabled = false;
+            cfg.model.level_weight = crate::model::config::LevelWeight::None;
         }
     }
     Ok((cfg, used))

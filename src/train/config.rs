@@ -202,6 +202,24 @@ impl RunConfig {
         validated(cfg, origin, text)
     }
 
+    /// A configuration a run stored (`RUN/config.toml`, a checkpoint's `run_config`): complete
+    /// as written, so it is read as it stands, not laid over its preset. A key it lacks takes
+    /// its serde default — what the build that wrote it meant: a key skipped when it holds its
+    /// default (`model.level_weight = "none"`), or one added after that build (`level_range`).
+    /// Laid over the `cpu` preset, a run trained with `level_weight = "none"` read back as
+    /// `"footprint"`.
+    pub fn from_stored_toml(text: &str, origin: &str) -> Result<RunConfig> {
+        let cfg: RunConfig = match toml::from_str(text) {
+            Ok(c) => c,
+            Err(e) => {
+                let at = where_in(origin, text, &e.to_string());
+                return Err(anyhow::Error::new(e)
+                    .context(format!("{at}: does not describe a run configuration")));
+            }
+        };
+        validated(cfg, origin, text)
+    }
+
     /// Preset `preset`, overridden by the file `path` if given. A user config that sets grid H's
     /// `per_level_scale` or `finest_resolution` fixes the level range (`finest_resolution`
     /// gives `per_level_scale = (finest / N0)^(1/(L-1))`; giving both, or `finest_resolution` with
@@ -474,6 +492,38 @@ mod tests {
         assert!(c.train.adam.grid_h.sparse, "roles are not overridable");
         let back = RunConfig::from_toml_str(&c.to_toml(), "cpu", "roundtrip").unwrap();
         assert_eq!(back, c);
+    }
+
+    /// A stored configuration reads back as the run it describes, under every preset and
+    /// either level weighting: as a checkpoint's `run_config` and as a `--config` laid over
+    /// any preset (`RUN/config.toml` reproduces the run). `level_weight = "none"` under the
+    /// `cpu` preset read back as `"footprint"` while it was left out of the TOML.
+    #[test]
+    fn stored_configs_read_back_as_written() {
+        use crate::model::config::LevelWeight;
+        for preset in ["tiny", "cpu", "paper"] {
+            for lw in [LevelWeight::None, LevelWeight::Footprint] {
+                let mut c = RunConfig::preset(preset).unwrap();
+                c.model.level_weight = lw;
+                let text = c.to_toml();
+                let stored = RunConfig::from_stored_toml(&text, "ckpt").unwrap();
+                assert_eq!(stored, c, "{preset} {lw:?}");
+                for over in ["tiny", "cpu", "paper"] {
+                    let given = RunConfig::from_toml_str(&text, over, "config.toml").unwrap();
+                    assert_eq!(given, c, "{preset} {lw:?} given under {over}");
+                }
+            }
+        }
+        // A key a stored config lacks takes its serde default (what the build that wrote it
+        // meant), not the preset's: a `cpu` run from before level weighting had none.
+        let mut old = RunConfig::preset("cpu").unwrap().to_toml();
+        old = old.replace("level_weight = \"footprint\"\n", "");
+        let c = RunConfig::from_stored_toml(&old, "old").unwrap();
+        assert_eq!(c.model.level_weight, LevelWeight::None);
+        // Errors still name the file and line.
+        let e = RunConfig::from_stored_toml("preset = \"cpu\"\n[model]\ngamma = 2\n", "ck")
+            .unwrap_err();
+        assert!(format!("{e:#}").contains("ck"), "{e:#}");
     }
 
     #[test]

@@ -105,7 +105,7 @@ impl TrainState {
             .as_ref()
             .map_or("<checkpoint>".into(), |p| p.display().to_string());
         let ckpt = Checkpoint::from_tensor_file(f)?;
-        let cfg = RunConfig::from_toml_str(f.meta("run_config")?, "cpu", &label)
+        let cfg = RunConfig::from_stored_toml(f.meta("run_config")?, &label)
             .with_context(|| format!("{label}: header metadata \"run_config\""))?;
         let step: u64 = f
             .meta("step")?
@@ -345,6 +345,9 @@ pub fn train(
     cfg: RunConfig,
     opts: &TrainOptions,
 ) -> Result<TrainSummary> {
+    // Before any work: an invalid configuration would otherwise train and only fail when its
+    // checkpoint is read back.
+    cfg.validate()?;
     std::fs::create_dir_all(run_dir)
         .with_context(|| format!("{}: cannot create the run folder", run_dir.display()))?;
     let _lock = RunLock::acquire(run_dir)?;

@@ -38,6 +38,7 @@ pub struct Args {
 }
 
 pub fn run(a: Args) -> anyhow::Result<ExitCode> {
+    crate::io::atomic::writable_folder(&a.out)?;
     let mut cfg = RunConfig::resolve(&a.preset, a.config.as_deref())?;
     if let Some(g) = a.gamma {
         cfg.model.gamma = g;

@@ -36,6 +36,7 @@ pub struct Args {
 }
 
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
+    crate::io::atomic::writable_folder(&args.out)?;
     if let Some(t) = args.kink_threshold {
         anyhow::ensure!(
             (0.0..1.0).contains(&t),

@@ -43,6 +43,9 @@ pub enum Method {
 }
 
 pub fn run(a: Args) -> Result<ExitCode> {
+    if let Some(j) = &a.json {
+        crate::io::atomic::writable_folder(j)?;
+    }
     // ULR needs no model: `--scene` alone is enough.
     let (ck_path, ck, s) = if a.method == Method::Ulr && !a.model.has_model() {
         (None, None, a.model.scene_only()?)

@@ -28,6 +28,7 @@ pub struct Args {
 }
 
 pub fn run(a: Args) -> anyhow::Result<ExitCode> {
+    crate::io::atomic::writable_folder(&a.out)?;
     let mut cfg = RunConfig::resolve(&a.preset, a.config.as_deref())?;
     cfg.train.seed = a.seed;
     let p = prepare(&a.scene, &cfg, false, &mut |m| eprintln!("{m}"))?;

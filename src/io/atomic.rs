@@ -1,8 +1,30 @@
 //! Files that are whole or absent: written to a temp file next to the target, then renamed over it,
 //! so a crash, a kill or a full disk mid-write never leaves a truncated checkpoint, render or dump.
 
-use anyhow::{anyhow, bail, Context, Result};
+use anyhow::{bail, Context, Result};
 use std::path::{Path, PathBuf};
+
+/// The folder a file `path` will be written into, if it exists (an error naming the user's
+/// path otherwise). Commands call it before their work, so a typo in an output path costs no
+/// computation; [`write_atomic`] calls it again.
+pub fn writable_folder(path: &Path) -> Result<PathBuf> {
+    let dir = match path.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
+        _ => PathBuf::from("."),
+    };
+    if path.file_name().is_none() {
+        bail!("{}: not a file path", path.display());
+    }
+    // Said here, naming the user's path: the temp file's "cannot create" would name only itself.
+    if !dir.is_dir() {
+        bail!(
+            "{}: cannot write: the folder {} does not exist",
+            path.display(),
+            dir.display()
+        );
+    }
+    Ok(dir)
+}
 
 /// Write `path` through `write`, which must write the whole file at the temp path it is given:
 /// on success the temp file (`.NAME.tmp.PID.N` in the same directory, so the rename stays on one
@@ -15,21 +37,8 @@ pub fn write_atomic(
     durable: bool,
     write: impl FnOnce(&Path) -> Result<()>,
 ) -> Result<()> {
-    let dir = match path.parent() {
-        Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
-        _ => PathBuf::from("."),
-    };
-    let fname = path
-        .file_name()
-        .ok_or_else(|| anyhow!("{}: not a file path", path.display()))?;
-    // Said here, naming the user's path: the temp file's "cannot create" would name only itself.
-    if !dir.is_dir() {
-        bail!(
-            "{}: cannot write: the folder {} does not exist",
-            path.display(),
-            dir.display()
-        );
-    }
+    let dir = writable_folder(path)?;
+    let fname = path.file_name().expect("checked by writable_folder");
     // Unique per process and per call, so concurrent writers never share a temp file.
     static COUNTER: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
     let tmp = dir.join(format!(

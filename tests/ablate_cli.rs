@@ -179,9 +179,9 @@ fn an_earlier_ablation_is_refused_kept_or_replaced() {
 fn the_table_is_written_after_every_variant_and_sigterm_stops_between_steps() {
     // SIGTERM once the first report appears: the variant in training stops at its next step,
     // the table holds the variants finished so far (not all three), and the command says how to
-    // finish; that command completes the table.
+    // finish; that command completes the table, continuing the variant stopped halfway.
     let out = tmp("partial");
-    let base = ablate_args(&out, "200");
+    let base = ablate_args(&out, "1000");
     let child = Command::new(env!("CARGO_BIN_EXE_xscale"))
         .args(&base)
         .args(["--variants", "full,no_deform,no_multisampling"])
@@ -193,6 +193,15 @@ fn the_table_is_written_after_every_variant_and_sigterm_stops_between_steps() {
     while !out.join("ablation.json").exists() {
         assert!(t0.elapsed().as_secs() < 300, "no ablation.json after 300 s");
         std::thread::sleep(std::time::Duration::from_millis(10));
+    }
+    // Once the second variant has logged a step, so that it is stopped halfway.
+    let second = out.join("no_deform/metrics.jsonl");
+    while !std::fs::read_to_string(&second).is_ok_and(|t| !t.is_empty()) {
+        assert!(
+            t0.elapsed().as_secs() < 300,
+            "no_deform never logged a step"
+        );
+        std::thread::sleep(std::time::Duration::from_millis(2));
     }
     signal::terminate(&child);
     let done = child.wait_with_output().unwrap();
@@ -212,10 +221,42 @@ fn the_table_is_written_after_every_variant_and_sigterm_stops_between_steps() {
         .unwrap_or_else(|| panic!("{err}"))
         .trim()
         .to_string();
-    let (ok, stdout, err) = run_ablate(&out, "200", &["--append", "--variants", &rest]);
+    // The variant stopped halfway has a checkpoint short of its last step…
+    let stopped = rest.split(',').next().unwrap().to_string();
+    let ckpt = out.join(&stopped).join("checkpoint.safetensors");
+    let at = xscale::io::tensors::TensorFile::read_only(&ckpt, |_| false)
+        .ok()
+        .map(|f| f.meta("step").unwrap().parse::<u64>().unwrap());
+    let (ok, stdout, err) = run_ablate(&out, "1000", &["--append", "--variants", &rest]);
     assert!(ok, "{err}");
     assert_eq!(results(&out), ["full", "no_deform", "no_multisampling"]);
     assert!(stdout.contains("| no_multisampling |"), "{stdout}");
+    // …and --append continued it from there instead of training it again: its metrics keep the
+    // stop's checkpoint line and run on to step 1000 with the time counted on.
+    if let Some(k) = at.filter(|&k| k < 1000) {
+        let m = std::fs::read_to_string(out.join(&stopped).join("metrics.jsonl")).unwrap();
+        let lines: Vec<serde_json::Value> = m
+            .lines()
+            .map(|l| serde_json::from_str(l).unwrap())
+            .collect();
+        let saved: Vec<u64> = lines
+            .iter()
+            .filter(|j| j["checkpoint"] == true)
+            .map(|j| j["step"].as_u64().unwrap())
+            .collect();
+        assert_eq!(
+            saved,
+            [k, 1000],
+            "{stopped} was not continued from step {k}:\n{m}"
+        );
+        let t: Vec<f64> = lines
+            .iter()
+            .filter_map(|j| j["elapsed_s"].as_f64())
+            .collect();
+        assert!(t.windows(2).all(|w| w[0] <= w[1]), "{m}");
+    } else {
+        panic!("{stopped}: no checkpoint short of step 1000 after the stop ({at:?})");
+    }
     let _ = std::fs::remove_dir_all(&out);
 }
 

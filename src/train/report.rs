@@ -16,6 +16,8 @@ pub struct Reporter {
     metrics: File,
     steps: u64,
     t0: Instant,
+    /// Seconds the run had trained before this process (a resumed run; 0 for a fresh one).
+    offset: f64,
     /// Running mean squared error (exponential, 0.9) for the logged PSNR.
     ema_mse: Option<f64>,
     /// Since the last log line: start, valid sub-samples, pixels.
@@ -28,8 +30,16 @@ pub fn psnr_of(mse: f64) -> f64 {
 }
 
 impl Reporter {
-    /// Append to `metrics_path`; a progress bar on a terminal unless `quiet`.
-    pub fn open(metrics_path: &Path, quiet: bool, steps: u64, first_step: u64) -> Result<Reporter> {
+    /// Append to `metrics_path`; a progress bar on a terminal unless `quiet`. `offset`: the
+    /// seconds the run had already trained (a resumed run, [`elapsed_recorded`]), so
+    /// `elapsed_s` runs on across resumes.
+    pub fn open(
+        metrics_path: &Path,
+        quiet: bool,
+        steps: u64,
+        first_step: u64,
+        offset: f64,
+    ) -> Result<Reporter> {
         let metrics = std::fs::OpenOptions::new()
             .create(true)
             .append(true)
@@ -52,6 +62,7 @@ impl Reporter {
             metrics,
             steps,
             t0: Instant::now(),
+            offset,
             ema_mse: None,
             window: (Instant::now(), 0, 0),
         })
@@ -66,9 +77,21 @@ impl Reporter {
         }
     }
 
-    /// Seconds since the reporter was opened (the loop's wall time).
+    /// The run's wall time: seconds since the reporter was opened, plus what the run had
+    /// trained before a resume.
     pub fn elapsed(&self) -> f64 {
-        self.t0.elapsed().as_secs_f64()
+        self.offset + self.t0.elapsed().as_secs_f64()
+    }
+
+    /// A checkpoint of step `k` was written: a metrics line with the time, which a resume from
+    /// it continues from ([`elapsed_recorded`]).
+    pub fn checkpointed(&mut self, k: u64) -> Result<()> {
+        writeln!(
+            self.metrics,
+            "{}",
+            serde_json::json!({"step": k, "checkpoint": true, "elapsed_s": self.elapsed()})
+        )?;
+        Ok(())
     }
 
     /// The model and the run's shape, once at the start.
@@ -203,4 +226,20 @@ impl Reporter {
         ));
         Ok(m)
     }
+}
+
+/// The last `elapsed_s` of a metrics file that ends where a run is resumed (cut back to the
+/// checkpoint's step): the checkpoint's own line when it has one, else the last line before it;
+/// 0 when there is none. Final-evaluation lines are skipped (their time is not training).
+pub fn elapsed_recorded(metrics_path: &Path) -> f64 {
+    let Ok(text) = std::fs::read_to_string(metrics_path) else {
+        return 0.0;
+    };
+    text.lines()
+        .rev()
+        .filter_map(|l| serde_json::from_str::<serde_json::Value>(l).ok())
+        .filter(|j| j.get("final").is_none())
+        .filter_map(|j| j.get("elapsed_s").and_then(|e| e.as_f64()))
+        .find(|e| e.is_finite() && *e >= 0.0)
+        .unwrap_or(0.0)
 }

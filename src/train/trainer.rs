@@ -356,11 +356,18 @@ pub fn train(
     let metrics_path = run_dir.join("metrics.jsonl");
     let (mut state, prepared) = open_run(scene_dir, run_dir, cfg, opts)?;
     let tc = state.cfg.train.clone();
-    let mut rep = Reporter::open(&metrics_path, opts.quiet, tc.steps, state.step)?;
+    // A resumed run's time runs on from its checkpoint's (`open_run` cut the metrics back to it).
+    let before = if opts.resume {
+        crate::train::report::elapsed_recorded(&metrics_path)
+    } else {
+        0.0
+    };
+    let mut rep = Reporter::open(&metrics_path, opts.quiet, tc.steps, state.step, before)?;
     rep.model(&state);
     let interrupted = run_loop(&mut state, &prepared, &ckpt_path, opts, &mut rep)?;
     rep.loop_done();
     state.save(&ckpt_path)?;
+    rep.checkpointed(state.step)?;
     crate::train::refine::write_refined(&state, &prepared, run_dir)?;
     let seconds = rep.elapsed();
     if interrupted || state.step < tc.steps {
@@ -568,6 +575,7 @@ fn run_loop(
         }
         if tc.checkpoint_every > 0 && k % tc.checkpoint_every == 0 && k < tc.steps {
             state.save(ckpt_path)?;
+            rep.checkpointed(k)?;
         }
         if opts.interrupt.is_some_and(|f| f.load(Ordering::SeqCst)) {
             return Ok(true);

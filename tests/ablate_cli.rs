@@ -442,3 +442,71 @@ fn vertex_variants_run_under_the_cpu_preset() {
     assert!(cfg.contains("level_weight = \"none\""), "{cfg}");
     let _ = std::fs::remove_dir_all(&out);
 }
+
+/// Ctrl-C / SIGTERM stops `bench-geometry`'s run in training with a checkpoint (exit 130), and
+/// the same command continues that run from it rather than training it again.
+#[test]
+fn bench_geometry_continues_a_stopped_run() {
+    let out = tmp("geo-stop");
+    let o = out.to_str().unwrap().to_string();
+    let args = [
+        "bench-geometry",
+        "--scene-preset",
+        "tiny",
+        "--out",
+        &o,
+        "--preset",
+        "tiny",
+        "--steps",
+        "5000",
+        "--rms",
+        "0",
+        "--decimate",
+        "0",
+        "--deform",
+        "off",
+        "--refine",
+        "off",
+        "--samples",
+        "2000",
+        "-q",
+    ];
+    let child = Command::new(env!("CARGO_BIN_EXE_xscale"))
+        .args(args)
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let run = out.join("runs/exact_noxi");
+    let t0 = std::time::Instant::now();
+    while !std::fs::read_to_string(run.join("metrics.jsonl")).is_ok_and(|t| !t.is_empty()) {
+        assert!(t0.elapsed().as_secs() < 300, "the run never logged a step");
+        std::thread::sleep(std::time::Duration::from_millis(2));
+    }
+    signal::terminate(&child);
+    let done = child.wait_with_output().unwrap();
+    let err = String::from_utf8_lossy(&done.stderr);
+    assert_eq!(done.status.code(), Some(130), "{err}");
+    assert!(err.contains("run the same command again"), "{err}");
+    assert!(!out.join("geometry.csv").exists());
+    let step = |k: &serde_json::Value| k["step"].as_u64().unwrap();
+    let checkpoints = || -> Vec<u64> {
+        std::fs::read_to_string(run.join("metrics.jsonl"))
+            .unwrap()
+            .lines()
+            .map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap())
+            .filter(|j| j["checkpoint"] == true)
+            .map(|j| step(&j))
+            .collect()
+    };
+    let stopped = checkpoints();
+    assert!(
+        stopped.len() == 1 && stopped[0] < 5000,
+        "not stopped halfway: {stopped:?}"
+    );
+    let (ok, _, err) = xscale(&args);
+    assert!(ok, "{err}");
+    assert!(out.join("geometry.csv").is_file());
+    assert_eq!(checkpoints(), [stopped[0], 5000], "not continued");
+    let _ = std::fs::remove_dir_all(&out);
+}

@@ -134,8 +134,16 @@ pub fn run(a: Args) -> Result<ExitCode> {
         refine: dedup(&a.refine),
         samples: a.samples,
         quiet: a.quiet,
+        interrupt: Some(super::common::on_interrupt(
+            "stopping the run in training at its next step with a checkpoint",
+        )),
     };
-    let rep = bench_geometry(&scene, &a.out, &opts, &mut say)?;
+    let Some(rep) = bench_geometry(&scene, &a.out, &opts, &mut say)? else {
+        eprintln!(
+            "stopped; run the same command again to continue (finished runs are reused, the stopped one continues from its checkpoint)"
+        );
+        return Ok(ExitCode::from(130));
+    };
     print!("{}", crate::train::bench_geometry::markdown(&rep));
     eprintln!(
         "wrote {}, geometry.csv, geometry.json, geometry-psnr.png, geometry-ssim.png",

@@ -609,25 +609,6 @@ fn subdivided(ctx: &Shared, target: usize, say: &dyn Fn(String)) -> Result<(Mesh
     Ok((m, path))
 }
 
-/// The settings a variant's run folder was trained with (its unresolved configuration), written
-/// before it trains.
-pub const VARIANT_FILE: &str = "variant.toml";
-
-/// Whether `run_dir` holds a run of exactly these settings that was stopped before its last step
-/// (Ctrl-C, SIGTERM, a crash after a periodic checkpoint): then the variant continues it, as
-/// `xscale train --resume` would, with the same bits as an uninterrupted run. A finished run of
-/// the variant is trained again (a variant run again replaces its run).
-fn stopped_run_of(run_dir: &Path, cfg: &RunConfig) -> bool {
-    let same =
-        std::fs::read_to_string(run_dir.join(VARIANT_FILE)).is_ok_and(|t| t == cfg.to_toml());
-    let ckpt = run_dir.join("checkpoint.safetensors");
-    let step = || -> Option<u64> {
-        let f = crate::io::tensors::TensorFile::read_only(&ckpt, |_| false).ok()?;
-        f.meta("step").ok()?.parse().ok()
-    };
-    same && ckpt.is_file() && step().is_some_and(|k| k < cfg.train.steps)
-}
-
 /// Train one variant into `run_dir` and collect its scores (returned by the trainer); `None`
 /// when an interrupt stopped its training.
 #[allow(clippy::too_many_arguments)]
@@ -649,20 +630,15 @@ fn run_variant(
         cfg.train.batch_pixels,
         run_dir.display()
     ));
-    let resume = opts.existing != Existing::Overwrite && stopped_run_of(run_dir, &cfg);
+    // A variant stopped halfway (the command an interrupt prints) continues from its checkpoint.
+    let may_continue = opts.existing != Existing::Overwrite;
+    let resume = crate::train::run_dir::continue_or_start(run_dir, &cfg, may_continue)?;
     if resume {
         say(format!(
             "   {}: continuing the stopped run in {}",
             v.name(),
             run_dir.display()
         ));
-    } else {
-        // Replaced: its old checkpoint goes before the new settings are written, so the
-        // settings never sit next to another run's checkpoint.
-        crate::train::run_dir::remove_listed(run_dir, &crate::train::run_dir::RUN_FILES)?;
-        std::fs::create_dir_all(run_dir)
-            .with_context(|| format!("{}: cannot create", run_dir.display()))?;
-        crate::io::atomic::write_bytes(&run_dir.join(VARIANT_FILE), cfg.to_toml())?;
     }
     let summary = train(
         ctx.scene,

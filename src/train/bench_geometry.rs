@@ -16,7 +16,9 @@
 //! `geometry.csv`, `geometry.md`, `geometry-psnr.png`, `geometry-ssim.png`. A run folder whose
 //! `bench.json` records the same variant settings and that holds an `eval.json` is reused, not
 //! retrained (so an interrupted benchmark continues where it stopped, and a new variant can be
-//! added without retraining the others).
+//! added without retraining the others). Ctrl-C / SIGTERM stops the run in training at its next
+//! step with a checkpoint; the same command then continues that run from it
+//! (`run_dir::continue_or_start`).
 
 use crate::eval::plot::{lines_png, Axes, Curve};
 use crate::eval::protocol::{mean_score, scale_summary, ViewScore};
@@ -78,6 +80,9 @@ pub struct GeometryOptions {
     /// Area samples per distance measurement.
     pub samples: usize,
     pub quiet: bool,
+    /// Set by a Ctrl-C / SIGTERM handler: the run in training stops at its next step with a
+    /// checkpoint, and the benchmark ends without its report; the same command continues it.
+    pub interrupt: Option<&'static std::sync::atomic::AtomicBool>,
 }
 
 /// A proxy with its geometry error against the truth.
@@ -259,7 +264,7 @@ pub fn bench_geometry(
     out: &Path,
     opts: &GeometryOptions,
     say: &mut dyn FnMut(String),
-) -> Result<GeometryReport> {
+) -> Result<Option<GeometryReport>> {
     ensure!(!opts.proxies.is_empty(), "no proxies to build");
     ensure!(
         !opts.deform.is_empty() && !opts.refine.is_empty(),
@@ -309,7 +314,9 @@ pub fn bench_geometry(
                     refine,
                     config: cfg.to_toml(),
                 };
-                let v = run_variant(&name, &key, cfg, scene, &dir, &index, opts.samples, say)?;
+                let Some(v) = run_variant(&name, &key, cfg, scene, &dir, &index, opts, say)? else {
+                    return Ok(None);
+                };
                 say(format!(
                     "   {name}: masked PSNR {:.2} (close-up {:.2}, far {:.2}), SSIM {:.4}, {:.0} s{}",
                     v.all.psnr_masked,
@@ -338,7 +345,7 @@ pub fn bench_geometry(
         variants,
     };
     write_outputs(out, &rep)?;
-    Ok(rep)
+    Ok(Some(rep))
 }
 
 /// Scores and timing a run folder recorded (`eval.json`, `metrics.jsonl`).
@@ -395,9 +402,9 @@ fn run_variant(
     scene: &Path,
     dir: &Path,
     truth: &SurfaceIndex,
-    samples: usize,
+    opts: &GeometryOptions,
     say: &mut dyn FnMut(String),
-) -> Result<VariantResult> {
+) -> Result<Option<VariantResult>> {
     let key_path = dir.join("bench.json");
     let reuse = std::fs::read_to_string(&key_path)
         .ok()
@@ -422,17 +429,27 @@ fn run_variant(
             dir.display()
         ));
         let _ = std::fs::remove_file(&key_path);
+        // A run stopped halfway (Ctrl-C, SIGTERM) continues from its checkpoint.
+        let resume = crate::train::run_dir::continue_or_start(dir, &cfg, true)?;
+        if resume {
+            say(format!("   {name}: continuing the stopped run"));
+        }
         let s = train(
             scene,
             dir,
             cfg.clone(),
             &TrainOptions {
                 quiet: true,
-                overwrite: true,
+                resume,
+                overwrite: !resume,
+                interrupt: opts.interrupt,
                 ..TrainOptions::default()
             },
         )
         .with_context(|| format!("bench-geometry variant {name}"))?;
+        if s.interrupted {
+            return Ok(None);
+        }
         ensure!(
             !s.views.is_empty(),
             "{name}: the run has no final evaluation"
@@ -454,11 +471,11 @@ fn run_variant(
         let m = load_mesh(&p)
             .with_context(|| format!("{name}: the refined mesh"))?
             .0;
-        Some(surface_distance(&m, truth, samples))
+        Some(surface_distance(&m, truth, opts.samples))
     } else {
         None
     };
-    Ok(VariantResult {
+    Ok(Some(VariantResult {
         name: name.to_string(),
         proxy: key.proxy.clone(),
         deform: key.deform,
@@ -470,7 +487,7 @@ fn run_variant(
         far,
         refined_to_truth,
         run: dir.to_path_buf(),
-    })
+    }))
 }
 
 const CSV_HEADER: &str = "variant,proxy,deform,refine,proxy_rms_pct,proxy_mean,proxy_rms,truth_to_proxy_rms,refined_mean,refined_rms,steps,train_s,psnr_masked,ssim_masked,psnr_near,ssim_near,psnr_far,ssim_far,views_near,views_far";

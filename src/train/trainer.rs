@@ -512,7 +512,7 @@ fn run_loop(
     .map(|g| g.schedule.warmup_steps as u64)
     .max()
     .unwrap_or(0);
-    let mut guard = Guard::new(state.step + warmup);
+    let mut guard = Guard::new(warmup, state.step);
     let mut f64s = crate::train::precision::F64Step::for_config(state);
     // Mesh refinement (`[model.refine]`) steps and draws batches itself (`train/refine.rs`).
     let mut refiner = crate::train::refine::Refiner::for_run(state, prepared, opts.interrupt)?;

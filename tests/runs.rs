@@ -636,3 +636,42 @@ fn zero_frames_or_batch_is_a_usage_error() {
     );
     assert!(!out.exists(), "nothing written");
 }
+
+/// A run trained on a mesh given with `--mesh` whose file is gone: `eval`/`render --run` and
+/// `--resume` say which mesh and what to do (they said only "cannot read").
+#[test]
+fn a_runs_mesh_that_is_gone_is_named() {
+    let run = tmp("gone-mesh");
+    std::fs::create_dir_all(&run).unwrap();
+    let mesh = run.join("copy.ply");
+    std::fs::copy(fixture().join("mesh.ply"), &mesh).unwrap();
+    let r = run.join("run");
+    let (code, err) = train(
+        &r,
+        &[
+            "--preset",
+            "tiny",
+            "--steps",
+            "10",
+            "--stop-at",
+            "5",
+            "--mesh",
+            mesh.to_str().unwrap(),
+        ],
+    );
+    assert_eq!(code, 0, "{err}");
+    std::fs::remove_file(&mesh).unwrap();
+    let (code, err) = xscale(&["eval", "--run", r.to_str().unwrap()]);
+    assert_eq!(code, 2, "{err}");
+    assert!(
+        err.contains("copy.ply") && err.contains("no longer exists") && err.contains("--mesh"),
+        "{err}"
+    );
+    let (code, err) = xscale(&["train", "--out", r.to_str().unwrap(), "--resume", "-q"]);
+    assert_eq!(code, 2, "{err}");
+    assert!(
+        err.contains("copy.ply") && err.contains("no longer exists"),
+        "{err}"
+    );
+    let _ = std::fs::remove_dir_all(&run);
+}

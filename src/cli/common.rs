@@ -215,6 +215,14 @@ pub fn scene_for_model(
             .or_else(|| cfg.and_then(|c| c.train.mesh.clone())),
         ..LoadOptions::default()
     };
+    if let (None, Some(m)) = (mesh, &opts.mesh) {
+        if !m.exists() {
+            bail!(
+                "{}: the mesh this model was trained on (train.mesh of its run configuration) no longer exists; give it with --mesh FILE",
+                m.display()
+            );
+        }
+    }
     let mut scene = Scene::load(dir, &opts)?;
     if let Some(vt) = &ckpt.model.vertex {
         if scene.mesh.vertices.len() != vt.n_vertices || scene.mesh.triangles[..] != vt.faces[..] {

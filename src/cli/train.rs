@@ -122,6 +122,12 @@ fn resume_config(a: &Args) -> anyhow::Result<(RunConfig, PathBuf)> {
         )
     })?;
     let scene = resume_scene(a)?;
+    if let Some(m) = stored.train.mesh.as_ref().filter(|m| !m.exists()) {
+        bail!(
+            "--resume: {}: the mesh the run trains on (train.mesh of its configuration) no longer exists; put it back there (the run checks the mesh it resumes on is the same)",
+            m.display()
+        );
+    }
     let mut diffs: Vec<String> = Vec::new();
     let r = &a.run;
     if let Some(p) = r.preset.as_ref().filter(|p| **p != stored.preset) {

@@ -5,6 +5,8 @@
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
+#[path = "common/metrics.rs"]
+mod metrics;
 #[path = "common/signal.rs"]
 mod signal;
 
@@ -234,26 +236,14 @@ fn the_table_is_written_after_every_variant_and_sigterm_stops_between_steps() {
     // …and --append continued it from there instead of training it again: its metrics keep the
     // stop's checkpoint line and run on to step 1000 with the time counted on.
     if let Some(k) = at.filter(|&k| k < 1000) {
-        let m = std::fs::read_to_string(out.join(&stopped).join("metrics.jsonl")).unwrap();
-        let lines: Vec<serde_json::Value> = m
-            .lines()
-            .map(|l| serde_json::from_str(l).unwrap())
-            .collect();
-        let saved: Vec<u64> = lines
-            .iter()
-            .filter(|j| j["checkpoint"] == true)
-            .map(|j| j["step"].as_u64().unwrap())
-            .collect();
+        let run = out.join(&stopped);
+        let saved = metrics::checkpoints(&run);
         assert_eq!(
             saved,
             [k, 1000],
-            "{stopped} was not continued from step {k}:\n{m}"
+            "{stopped} was not continued from step {k}"
         );
-        let t: Vec<f64> = lines
-            .iter()
-            .filter_map(|j| j["elapsed_s"].as_f64())
-            .collect();
-        assert!(t.windows(2).all(|w| w[0] <= w[1]), "{m}");
+        assert!(metrics::elapsed_runs_on(&run, 2));
     } else {
         panic!("{stopped}: no checkpoint short of step 1000 after the stop ({at:?})");
     }
@@ -489,17 +479,7 @@ fn bench_geometry_continues_a_stopped_run() {
     assert_eq!(done.status.code(), Some(130), "{err}");
     assert!(err.contains("run the same command again"), "{err}");
     assert!(!out.join("geometry.csv").exists());
-    let step = |k: &serde_json::Value| k["step"].as_u64().unwrap();
-    let checkpoints = || -> Vec<u64> {
-        std::fs::read_to_string(run.join("metrics.jsonl"))
-            .unwrap()
-            .lines()
-            .map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap())
-            .filter(|j| j["checkpoint"] == true)
-            .map(|j| step(&j))
-            .collect()
-    };
-    let stopped = checkpoints();
+    let stopped = metrics::checkpoints(&run);
     assert!(
         stopped.len() == 1 && stopped[0] < 5000,
         "not stopped halfway: {stopped:?}"
@@ -507,6 +487,10 @@ fn bench_geometry_continues_a_stopped_run() {
     let (ok, _, err) = xscale(&args);
     assert!(ok, "{err}");
     assert!(out.join("geometry.csv").is_file());
-    assert_eq!(checkpoints(), [stopped[0], 5000], "not continued");
+    assert_eq!(
+        metrics::checkpoints(&run),
+        [stopped[0], 5000],
+        "not continued"
+    );
     let _ = std::fs::remove_dir_all(&out);
 }

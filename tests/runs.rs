@@ -8,6 +8,8 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
+#[path = "common/metrics.rs"]
+mod metrics;
 #[path = "common/signal.rs"]
 mod signal;
 
@@ -131,25 +133,8 @@ fn resume_keeps_the_run_config_and_steps_is_the_total() {
     assert_eq!(step_of(&run), 60);
     // The run's time runs on across the resume: every checkpoint has its line, and elapsed_s
     // never goes back (it restarted from 0 in the resumed process).
-    let metrics = std::fs::read_to_string(run.join("metrics.jsonl")).unwrap();
-    let lines: Vec<serde_json::Value> = metrics
-        .lines()
-        .map(|l| serde_json::from_str(l).unwrap())
-        .collect();
-    let saved: Vec<u64> = lines
-        .iter()
-        .filter(|j| j["checkpoint"] == true)
-        .map(|j| j["step"].as_u64().unwrap())
-        .collect();
-    assert_eq!(saved, [40, 60], "{metrics}");
-    let elapsed: Vec<f64> = lines
-        .iter()
-        .filter_map(|j| j["elapsed_s"].as_f64())
-        .collect();
-    assert!(
-        elapsed.len() > 3 && elapsed.windows(2).all(|w| w[0] <= w[1]),
-        "{metrics}"
-    );
+    assert_eq!(metrics::checkpoints(&run), [40, 60]);
+    assert!(metrics::elapsed_runs_on(&run, 4));
     // Without --steps the stored total (now 60) stands: nothing left to do.
     let (code, err) = train(&run, &["--resume"]);
     assert_eq!(code, 0, "{err}");

@@ -191,15 +191,7 @@ impl RunConfig {
         let base = RunConfig::preset(&preset).with_context(|| format!("{origin}: preset"))?;
         let mut v = toml::Value::try_from(&base).context("serialising the preset")?;
         merge(&mut v, over);
-        let cfg: RunConfig = match v.try_into() {
-            Ok(c) => c,
-            Err(e) => {
-                let at = where_in(origin, text, &e.to_string());
-                return Err(anyhow::Error::new(e)
-                    .context(format!("{at}: does not describe a run configuration")));
-            }
-        };
-        validated(cfg, origin, text)
+        described(v, origin, text)
     }
 
     /// A configuration a run stored (`RUN/config.toml`, a checkpoint's `run_config`): complete
@@ -209,15 +201,9 @@ impl RunConfig {
     /// Laid over the `cpu` preset, a run trained with `level_weight = "none"` read back as
     /// `"footprint"`.
     pub fn from_stored_toml(text: &str, origin: &str) -> Result<RunConfig> {
-        let cfg: RunConfig = match toml::from_str(text) {
-            Ok(c) => c,
-            Err(e) => {
-                let at = where_in(origin, text, &e.to_string());
-                return Err(anyhow::Error::new(e)
-                    .context(format!("{at}: does not describe a run configuration")));
-            }
-        };
-        validated(cfg, origin, text)
+        let v: toml::Value =
+            toml::from_str(text).with_context(|| format!("{origin}: not valid TOML"))?;
+        described(v, origin, text)
     }
 
     /// Preset `preset`, overridden by the file `path` if given. A user config that sets grid H's
@@ -326,6 +312,20 @@ impl RunConfig {
 
 /// `cfg` if it validates, else the error with the file (and the line of the key it names,
 /// when the file sets it).
+/// The run configuration the TOML value `v` (read from `text`, named `origin`) describes, or an
+/// error at the line of the key it names.
+fn described(v: toml::Value, origin: &str, text: &str) -> Result<RunConfig> {
+    let cfg: RunConfig = match v.try_into() {
+        Ok(c) => c,
+        Err(e) => {
+            let at = where_in(origin, text, &e.to_string());
+            return Err(anyhow::Error::new(e)
+                .context(format!("{at}: does not describe a run configuration")));
+        }
+    };
+    validated(cfg, origin, text)
+}
+
 fn validated(cfg: RunConfig, origin: &str, text: &str) -> Result<RunConfig> {
     match cfg.validate() {
         Ok(()) => Ok(cfg),

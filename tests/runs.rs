@@ -660,3 +660,19 @@ fn a_runs_mesh_that_is_gone_is_named() {
     );
     let _ = std::fs::remove_dir_all(&run);
 }
+
+/// A run `xscale train --overwrite` replaces takes a tool's settings file (`variant.toml`) with
+/// it, so `ablate`/`bench-geometry` never take the new run for their own stopped one.
+#[test]
+fn overwriting_a_tools_run_drops_its_settings() {
+    let run = tmp("settings");
+    assert_eq!(train(&run, &["--preset", "tiny", "--steps", "5"]).0, 0);
+    std::fs::write(run.join("variant.toml"), "preset = \"tiny\"\n").unwrap();
+    let (code, err) = train(&run, &["--preset", "tiny", "--steps", "5"]);
+    assert_ne!(code, 0);
+    assert!(err.contains("variant.toml"), "{err}");
+    let (code, err) = train(&run, &["--preset", "tiny", "--steps", "5", "--overwrite"]);
+    assert_eq!(code, 0, "{err}");
+    assert!(!run.join("variant.toml").exists());
+    let _ = std::fs::remove_dir_all(&run);
+}

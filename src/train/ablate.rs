@@ -631,8 +631,8 @@ fn run_variant(
         run_dir.display()
     ));
     // A variant stopped halfway (the command an interrupt prints) continues from its checkpoint.
-    let may_continue = opts.existing != Existing::Overwrite;
-    let resume = crate::train::run_dir::continue_or_start(run_dir, &cfg, may_continue)?;
+    let resume = opts.existing != Existing::Overwrite
+        && crate::train::run_dir::stopped_run_of(run_dir, &cfg);
     if resume {
         say(format!(
             "   {}: continuing the stopped run in {}",
@@ -650,6 +650,7 @@ fn run_variant(
             // A variant run again, not stopped halfway, replaces its run.
             overwrite: !resume,
             interrupt: opts.interrupt,
+            settings: Some(cfg.to_toml()),
             ..TrainOptions::default()
         },
     )

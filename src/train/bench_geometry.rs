@@ -18,7 +18,7 @@
 //! retrained (so an interrupted benchmark continues where it stopped, and a new variant can be
 //! added without retraining the others). Ctrl-C / SIGTERM stops the run in training at its next
 //! step with a checkpoint; the same command then continues that run from it
-//! (`run_dir::continue_or_start`).
+//! (`run_dir::stopped_run_of`).
 
 use crate::eval::plot::{lines_png, Axes, Curve};
 use crate::eval::protocol::{mean_score, scale_summary, ViewScore};
@@ -430,7 +430,7 @@ fn run_variant(
         ));
         let _ = std::fs::remove_file(&key_path);
         // A run stopped halfway (Ctrl-C, SIGTERM) continues from its checkpoint.
-        let resume = crate::train::run_dir::continue_or_start(dir, &cfg, true)?;
+        let resume = crate::train::run_dir::stopped_run_of(dir, &cfg);
         if resume {
             say(format!("   {name}: continuing the stopped run"));
         }
@@ -443,6 +443,7 @@ fn run_variant(
                 resume,
                 overwrite: !resume,
                 interrupt: opts.interrupt,
+                settings: Some(cfg.to_toml()),
                 ..TrainOptions::default()
             },
         )

@@ -8,7 +8,7 @@
 //!   an error and `eval`/`render --run` can find the scene.
 //! - [`Existing`]: what a command that fills an output folder (`bench-quality`, `ablate`) does
 //!   with the results an earlier run left there.
-//! - [`continue_or_start`]: a run folder a tool trains (`ablate`, `bench-geometry`) is continued
+//! - [`stopped_run_of`]: a run folder a tool trains (`ablate`, `bench-geometry`) is continued
 //!   when it holds the same settings' run stopped halfway, else started afresh.
 
 use crate::scene::Scene;
@@ -17,7 +17,7 @@ use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
 /// Files and folders a run writes (what `--overwrite` removes; nothing else is touched).
-pub const RUN_FILES: [&str; 9] = [
+pub const RUN_FILES: [&str; 10] = [
     "checkpoint.safetensors",
     "checkpoint-diverged.safetensors",
     "metrics.jsonl",
@@ -27,6 +27,8 @@ pub const RUN_FILES: [&str; 9] = [
     "render",
     "eval",
     "refined.ply",
+    // A tool's settings for the run (`stopped_run_of`): replaced with the run it describes.
+    SETTINGS_FILE,
 ];
 
 /// What to do with the results an earlier run left in an output folder (`bench-quality`'s
@@ -165,37 +167,22 @@ pub fn prepare_run_dir(run_dir: &Path, resume: bool, overwrite: bool) -> Result<
 }
 
 /// The settings a tool that trains run folders itself (`ablate`, `bench-geometry`) started a
-/// run with: its unresolved configuration, written before the run trains.
+/// run with: its unresolved configuration, written by the trainer when the run starts
+/// (`TrainOptions::settings`). Listed in [`RUN_FILES`], so it goes with the run it describes.
 pub const SETTINGS_FILE: &str = "variant.toml";
 
-/// For a tool that trains `run_dir` with `cfg`: `true` when the folder holds a run of exactly
-/// these settings that stopped before its last step (Ctrl-C, SIGTERM, a kill after a periodic
-/// checkpoint) and `may_continue` — train it with `resume`, which gives the bits of an
-/// uninterrupted run. Otherwise the folder's run files are removed and the settings written
-/// (`false`: train it afresh); the old checkpoint goes first, so the settings never sit next to
-/// another run's checkpoint. A finished run is trained again.
-pub fn continue_or_start(
-    run_dir: &Path,
-    cfg: &crate::train::config::RunConfig,
-    may_continue: bool,
-) -> Result<bool> {
-    let settings = cfg.to_toml();
+/// Whether `run_dir` holds a run a tool started with exactly the settings `cfg` that stopped
+/// before its last step (Ctrl-C, SIGTERM, a kill after a periodic checkpoint): the tool then
+/// trains it with `resume`, which gives the bits of an uninterrupted run. A finished run, or one
+/// of other settings, is not (the tool trains afresh, replacing it).
+pub fn stopped_run_of(run_dir: &Path, cfg: &crate::train::config::RunConfig) -> bool {
     let ckpt = run_dir.join("checkpoint.safetensors");
     let step = || -> Option<u64> {
         let f = crate::io::tensors::TensorFile::read_only(&ckpt, |_| false).ok()?;
         f.meta("step").ok()?.parse().ok()
     };
-    let stopped = may_continue
-        && std::fs::read_to_string(run_dir.join(SETTINGS_FILE)).is_ok_and(|t| t == settings)
-        && step().is_some_and(|k| k < cfg.train.steps);
-    if stopped {
-        return Ok(true);
-    }
-    remove_listed(run_dir, &RUN_FILES)?;
-    std::fs::create_dir_all(run_dir)
-        .with_context(|| format!("{}: cannot create", run_dir.display()))?;
-    crate::io::atomic::write_bytes(&run_dir.join(SETTINGS_FILE), settings)?;
-    Ok(false)
+    std::fs::read_to_string(run_dir.join(SETTINGS_FILE)).is_ok_and(|t| t == cfg.to_toml())
+        && step().is_some_and(|k| k < cfg.train.steps)
 }
 
 /// Remove the files and folders of `dir` named in `names` that exist (what `--overwrite`

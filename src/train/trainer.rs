@@ -24,7 +24,7 @@ use crate::train::adam::AdamState;
 use crate::train::config::RunConfig;
 use crate::train::divergence::Guard;
 use crate::train::report::Reporter;
-use crate::train::run_dir::{prepare_run_dir, RunLock, SceneFingerprint};
+use crate::train::run_dir::{prepare_run_dir, RunLock, SceneFingerprint, SETTINGS_FILE};
 use crate::train::sampler::sample_batch;
 use crate::train::setup::{prepare, resolve_levels, Prepared};
 use anyhow::{bail, Context, Result};
@@ -270,6 +270,10 @@ pub struct TrainOptions {
     pub no_final_eval: bool,
     /// Print nothing but errors.
     pub quiet: bool,
+    /// A tool's settings for a fresh run (`ablate`, `bench-geometry`: the configuration it asked
+    /// for), written to `RUN/variant.toml` once the folder is prepared, so the tool can tell its
+    /// own stopped run later (`run_dir::stopped_run_of`).
+    pub settings: Option<String>,
 }
 
 /// How a run ended.
@@ -352,6 +356,9 @@ pub fn train(
         .with_context(|| format!("{}: cannot create the run folder", run_dir.display()))?;
     let _lock = RunLock::acquire(run_dir)?;
     prepare_run_dir(run_dir, opts.resume, opts.overwrite)?;
+    if let (false, Some(settings)) = (opts.resume, &opts.settings) {
+        crate::io::atomic::write_bytes(&run_dir.join(SETTINGS_FILE), settings)?;
+    }
     let ckpt_path = run_checkpoint(run_dir);
     let metrics_path = run_dir.join("metrics.jsonl");
     let (mut state, prepared) = open_run(scene_dir, run_dir, cfg, opts)?;

@@ -73,6 +73,7 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
         interrupt: Some(interrupted),
         no_final_eval: a.no_eval,
         quiet: a.quiet,
+        bar: false,
         settings: None,
     };
     let s = train(&scene, &a.out, cfg, &opts)?;

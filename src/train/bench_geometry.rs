@@ -444,6 +444,7 @@ fn run_variant(
                 overwrite: !resume,
                 interrupt: opts.interrupt,
                 settings: Some(cfg.to_toml()),
+                bar: !opts.quiet,
                 ..TrainOptions::default()
             },
         )

@@ -30,12 +30,14 @@ pub fn psnr_of(mse: f64) -> f64 {
 }
 
 impl Reporter {
-    /// Append to `metrics_path`; a progress bar on a terminal unless `quiet`. `offset`: the
+    /// Append to `metrics_path`; a progress bar on a terminal unless `quiet` (or, with `bar`,
+    /// even then: a tool's run shows its progress but none of its messages). `offset`: the
     /// seconds the run had already trained (a resumed run, [`elapsed_recorded`]), so
     /// `elapsed_s` runs on across resumes.
     pub fn open(
         metrics_path: &Path,
         quiet: bool,
+        bar: bool,
         steps: u64,
         first_step: u64,
         offset: f64,
@@ -45,7 +47,7 @@ impl Reporter {
             .append(true)
             .open(metrics_path)
             .with_context(|| format!("{}: cannot open", metrics_path.display()))?;
-        let bar = (!quiet && std::io::stderr().is_terminal()).then(|| {
+        let bar = ((!quiet || bar) && std::io::stderr().is_terminal()).then(|| {
             let b = indicatif::ProgressBar::new(steps);
             b.set_style(
                 indicatif::ProgressStyle::with_template(
@@ -70,10 +72,12 @@ impl Reporter {
 
     /// A line for the user (above the bar when there is one).
     pub fn say(&self, msg: String) {
+        if self.quiet && !msg.starts_with("warning:") {
+            return;
+        }
         match &self.bar {
             Some(b) => b.println(msg),
-            None if !self.quiet || msg.starts_with("warning:") => eprintln!("{msg}"),
-            None => {}
+            None => eprintln!("{msg}"),
         }
     }
 

@@ -270,6 +270,8 @@ pub struct TrainOptions {
     pub no_final_eval: bool,
     /// Print nothing but errors.
     pub quiet: bool,
+    /// With `quiet`: still show the progress bar on a terminal (a tool training its runs).
+    pub bar: bool,
     /// A tool's settings for a fresh run (`ablate`, `bench-geometry`: the configuration it asked
     /// for), written to `RUN/variant.toml` once the folder is prepared, so the tool can tell its
     /// own stopped run later (`run_dir::stopped_run_of`).
@@ -369,7 +371,14 @@ pub fn train(
     } else {
         0.0
     };
-    let mut rep = Reporter::open(&metrics_path, opts.quiet, tc.steps, state.step, before)?;
+    let mut rep = Reporter::open(
+        &metrics_path,
+        opts.quiet,
+        opts.bar,
+        tc.steps,
+        state.step,
+        before,
+    )?;
     rep.model(&state);
     let interrupted = run_loop(&mut state, &prepared, &ckpt_path, opts, &mut rep)?;
     rep.loop_done();

@@ -655,9 +655,38 @@ fn a_runs_mesh_that_is_gone_is_named() {
     let (code, err) = xscale(&["train", "--out", r.to_str().unwrap(), "--resume", "-q"]);
     assert_eq!(code, 2, "{err}");
     assert!(
-        err.contains("copy.ply") && err.contains("no longer exists"),
+        err.contains("copy.ply") && err.contains("no longer exists") && err.contains("--mesh"),
         "{err}"
     );
+    // Its new place given with --mesh: the resume checks it is the same mesh, then records it.
+    let moved = run.join("moved.ply");
+    let resume_on = |m: &Path| {
+        xscale(&[
+            "train",
+            "--out",
+            r.to_str().unwrap(),
+            "--resume",
+            "--mesh",
+            m.to_str().unwrap(),
+            "--no-eval",
+            "-q",
+        ])
+    };
+    let src = fixture().join("mesh.ply");
+    let (src, dst) = (src.to_str().unwrap(), moved.to_str().unwrap());
+    let decimate = ["decimate", "--in", src, "--ratio", "0.5", "--out", dst];
+    assert_eq!(xscale(&decimate).0, 0);
+    let (code, err) = resume_on(&moved);
+    assert_eq!(code, 2, "another mesh is refused: {err}");
+    assert!(err.contains("mesh changed"), "{err}");
+    std::fs::copy(fixture().join("mesh.ply"), &moved).unwrap();
+    let (code, err) = resume_on(&moved);
+    assert_eq!(code, 0, "{err}");
+    assert_eq!(step_of(&r), 10);
+    let cfg = std::fs::read_to_string(r.join("config.toml")).unwrap();
+    assert!(cfg.contains("moved.ply"), "{cfg}");
+    let (code, err) = xscale(&["eval", "--run", r.to_str().unwrap()]);
+    assert_eq!(code, 0, "eval finds the mesh's new place: {err}");
     let _ = std::fs::remove_dir_all(&run);
 }
 

@@ -124,11 +124,17 @@ fn resume_config(a: &Args) -> anyhow::Result<(RunConfig, PathBuf)> {
         )
     })?;
     let scene = resume_scene(a)?;
-    if let Some(m) = stored.train.mesh.as_ref().filter(|m| !m.exists()) {
-        bail!(
-            "--resume: {}: the mesh the run trains on (train.mesh of its configuration) no longer exists; put it back there (the run checks the mesh it resumes on is the same)",
-            m.display()
-        );
+    // The run's mesh file moved: --mesh gives its new place (the scene fingerprint then checks
+    // it is the same mesh), and the run records it from here on.
+    let mut mesh_given = a.mesh.clone();
+    if let Some(m) = stored.train.mesh.clone().filter(|m| !m.exists()) {
+        let Some(new) = mesh_given.take() else {
+            bail!(
+                "--resume: {}: the mesh the run trains on (train.mesh of its configuration) no longer exists; put it back, or give its new place with --mesh FILE (it must be the same mesh: the run checks)",
+                m.display()
+            );
+        };
+        stored.train.mesh = Some(super::common::absolute_mesh_path(&new, &scene));
     }
     let mut diffs: Vec<String> = Vec::new();
     let r = &a.run;
@@ -147,7 +153,7 @@ fn resume_config(a: &Args) -> anyhow::Result<(RunConfig, PathBuf)> {
             stored.train.batch_pixels
         ));
     }
-    if let Some(m) = &a.mesh {
+    if let Some(m) = &mesh_given {
         let m = super::common::absolute_mesh_path(m, &scene);
         // Compare files, not settings: the scene's own mesh named with --mesh is the run's mesh.
         let (run_mesh, label) = match &stored.train.mesh {

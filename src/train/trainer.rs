@@ -455,6 +455,12 @@ fn open_run(
             );
         }
         st.cfg.train.steps = cfg.train.steps;
+        // The mesh's place may have moved (`xscale train --resume --mesh`, which passes the
+        // stored configuration with the new place); the scene fingerprint below checks it is
+        // the same mesh.
+        if cfg.train.mesh.is_some() {
+            st.cfg.train.mesh = cfg.train.mesh.clone();
+        }
         say(format!(
             "resuming {} at step {} of {}",
             ckpt_path.display(),

@@ -123,7 +123,8 @@ impl Mlp {
             } else {
                 std::mem::take(&mut acts.out)
             };
-            y.clear();
+            // Every element is written by `linear_forward` (bias or zero, then the product), so
+            // a reused buffer keeps its old values here rather than being zeroed twice.
             y.resize(rows * l.out_dim, R::ZERO);
             {
                 let input: &[R] = if k == 0 { x } else { &acts.hidden[k - 1] };
@@ -257,14 +258,17 @@ fn linear_forward_body<R: Real, const AVX2: bool>(
     y: &mut [R],
 ) {
     assert!(wt.len() == in_dim * out_dim && x.len() >= rows * in_dim && y.len() >= rows * out_dim);
-    for yr in y[..rows * out_dim].chunks_exact_mut(out_dim.max(1)) {
-        match b {
-            Some(b) => yr.copy_from_slice(b),
-            None => yr.fill(R::ZERO),
+    match b {
+        Some(b) => {
+            for yr in y[..rows * out_dim].chunks_exact_mut(out_dim.max(1)) {
+                yr.copy_from_slice(b);
+            }
+            // y [rows, out] += x [rows, in] · Wᵀ [in, out]
+            gemm_acc::<R, AVX2>(rows, out_dim, in_dim, x, in_dim, 1, wt, out_dim, y, out_dim);
         }
+        // y [rows, out] = 0 + x [rows, in] · Wᵀ [in, out]
+        None => gemm_set::<R, AVX2>(rows, out_dim, in_dim, x, in_dim, 1, wt, out_dim, y, out_dim),
     }
-    // y [rows, out] += x [rows, in] · Wᵀ [in, out]
-    gemm_acc::<R, AVX2>(rows, out_dim, in_dim, x, in_dim, 1, wt, out_dim, y, out_dim);
 }
 
 /// Register tile of [`gemm_acc`]: MR rows × NR columns of C kept in registers.
@@ -295,6 +299,45 @@ fn gemm_acc<R: Real, const AVX2: bool>(
     c: &mut [R],
     ldc: usize,
 ) {
+    gemm::<R, AVX2>(m, n, k, a, a_rs, a_cs, b, ldb, c, ldc, false)
+}
+
+/// [`gemm_acc`] from zero: `C [m, n] = 0 + A [m, k] · B [k, n]`, the same bits as zeroing C and
+/// accumulating, without the pass that zeroes it (the AVX2 kernel starts its tiles at +0
+/// instead of loading C; C's earlier contents are never read).
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+fn gemm_set<R: Real, const AVX2: bool>(
+    m: usize,
+    n: usize,
+    k: usize,
+    a: &[R],
+    a_rs: usize,
+    a_cs: usize,
+    b: &[R],
+    ldb: usize,
+    c: &mut [R],
+    ldc: usize,
+) {
+    gemm::<R, AVX2>(m, n, k, a, a_rs, a_cs, b, ldb, c, ldc, true)
+}
+
+/// [`gemm_acc`] (`zero_c` false) and [`gemm_set`] (true).
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+fn gemm<R: Real, const AVX2: bool>(
+    m: usize,
+    n: usize,
+    k: usize,
+    a: &[R],
+    a_rs: usize,
+    a_cs: usize,
+    b: &[R],
+    ldb: usize,
+    c: &mut [R],
+    ldc: usize,
+    zero_c: bool,
+) {
     if m == 0 || n == 0 {
         return;
     }
@@ -321,9 +364,15 @@ fn gemm_acc<R: Real, const AVX2: bool>(
                     ldb,
                     c32.as_mut_ptr(),
                     ldc,
+                    zero_c,
                 )
             };
             return;
+        }
+    }
+    if zero_c {
+        for row in c[..(m - 1) * ldc + n].chunks_mut(ldc) {
+            row[..n].fill(R::ZERO);
         }
     }
     gemm_acc_generic(m, n, k, a, a_rs, a_cs, b, ldb, c, ldc)
@@ -437,6 +486,7 @@ mod avx2 {
         ldb: usize,
         c: *mut f32,
         ldc: usize,
+        zero_c: bool,
     ) {
         let g = Gemm {
             n,
@@ -448,6 +498,7 @@ mod avx2 {
             ldb,
             c,
             ldc,
+            zero_c,
         };
         let mut i0 = 0;
         while i0 + 6 <= m {
@@ -475,6 +526,8 @@ mod avx2 {
         ldb: usize,
         c: *mut f32,
         ldc: usize,
+        /// Start the tiles at +0 instead of loading C (`gemm_set`): C is only written.
+        zero_c: bool,
     }
 
     impl Gemm {
@@ -505,7 +558,9 @@ mod avx2 {
             let mut off = [0usize; MR];
             for r in 0..MR {
                 off[r] = (i0 + r) * self.a_rs;
-                acc[r] = _mm256_maskload_ps(self.c.add((i0 + r) * self.ldc + j0), mask);
+                if !self.zero_c {
+                    acc[r] = _mm256_maskload_ps(self.c.add((i0 + r) * self.ldc + j0), mask);
+                }
             }
             let mut ap = self.a;
             let mut bp = self.b.add(j0);
@@ -530,8 +585,10 @@ mod avx2 {
             let mut off = [0usize; MR];
             for r in 0..MR {
                 off[r] = (i0 + r) * self.a_rs;
-                for v in 0..NV {
-                    acc[r][v] = _mm256_loadu_ps(self.c.add((i0 + r) * self.ldc + j0 + 8 * v));
+                if !self.zero_c {
+                    for v in 0..NV {
+                        acc[r][v] = _mm256_loadu_ps(self.c.add((i0 + r) * self.ldc + j0 + 8 * v));
+                    }
                 }
             }
             let mut ap = self.a;
@@ -739,6 +796,24 @@ mod tests {
                     c1.iter().zip(&c2).all(|(x, y)| x.to_bits() == y.to_bits()),
                     "shape {m}x{n}x{k}, strides ({a_rs}, {a_cs})"
                 );
+                // From zero: C's old contents (NaN here) are never read, and the result is
+                // zeroing C then accumulating, bit for bit, in both builds.
+                let mut zeroed = vec![0.0f32; m * n];
+                gemm_acc_generic(m, n, k, &a, a_rs, a_cs, &b, n, &mut zeroed, n);
+                for avx2 in [true, false] {
+                    let mut c3 = vec![f32::NAN; m * n];
+                    if avx2 && std::is_x86_feature_detected!("avx2") {
+                        gemm_set::<f32, true>(m, n, k, &a, a_rs, a_cs, &b, n, &mut c3, n);
+                    } else {
+                        gemm_set::<f32, false>(m, n, k, &a, a_rs, a_cs, &b, n, &mut c3, n);
+                    }
+                    assert!(
+                        c3.iter()
+                            .zip(&zeroed)
+                            .all(|(x, y)| x.to_bits() == y.to_bits()),
+                        "gemm_set, shape {m}x{n}x{k}, strides ({a_rs}, {a_cs}), avx2 {avx2}"
+                    );
+                }
             }
         }
     }

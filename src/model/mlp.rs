@@ -13,7 +13,7 @@
 //!   buffer's current value.
 //!   Callers hand in a fresh (zeroed) chunk buffer for `dW` per fixed-size chunk of rows and
 //!   combine chunk buffers in chunk order (SPEC §5), so results never depend on the thread count.
-//! - All three products go through one register-tiled kernel (`gemm_acc`): for f32 on x86-64
+//! - All three products go through one register-tiled kernel (`gemm`): for f32 on x86-64
 //!   with AVX2 (detected at run time) an intrinsics kernel with 6×16 tiles and masked column
 //!   edges, otherwise a portable one with 4×16 tiles the compiler keeps in registers. Both do
 //!   the same IEEE operations in the same order, so they are bit-identical (tested below).
@@ -246,7 +246,7 @@ unsafe fn linear_forward_avx2<R: Real>(
     linear_forward_body::<R, true>(wt, b, x, rows, in_dim, out_dim, y)
 }
 
-/// `AVX2`: the caller has checked that the CPU has AVX2 (see [`gemm_acc`]).
+/// `AVX2`: the caller has checked that the CPU has AVX2 (see [`gemm`]).
 #[inline(always)]
 fn linear_forward_body<R: Real, const AVX2: bool>(
     wt: &[R],
@@ -264,14 +264,18 @@ fn linear_forward_body<R: Real, const AVX2: bool>(
                 yr.copy_from_slice(b);
             }
             // y [rows, out] += x [rows, in] · Wᵀ [in, out]
-            gemm_acc::<R, AVX2>(rows, out_dim, in_dim, x, in_dim, 1, wt, out_dim, y, out_dim);
+            gemm::<R, AVX2>(
+                rows, out_dim, in_dim, x, in_dim, 1, wt, out_dim, y, out_dim, false,
+            );
         }
         // y [rows, out] = 0 + x [rows, in] · Wᵀ [in, out]
-        None => gemm_set::<R, AVX2>(rows, out_dim, in_dim, x, in_dim, 1, wt, out_dim, y, out_dim),
+        None => gemm::<R, AVX2>(
+            rows, out_dim, in_dim, x, in_dim, 1, wt, out_dim, y, out_dim, true,
+        ),
     }
 }
 
-/// Register tile of [`gemm_acc`]: MR rows × NR columns of C kept in registers.
+/// Register tile of [`gemm`]: MR rows × NR columns of C kept in registers.
 const MR: usize = 4;
 const NR: usize = 16;
 
@@ -285,44 +289,10 @@ const NR: usize = 16;
 /// `AVX2 = true` is a promise that the CPU has AVX2: only the run-time dispatch of
 /// [`linear_forward`] / [`linear_backward`] passes it, after `is_x86_feature_detected!`. With it,
 /// f32 products take the intrinsics kernel (`avx2::gemm_acc_f32`).
-#[inline(always)]
-#[allow(clippy::too_many_arguments)]
-fn gemm_acc<R: Real, const AVX2: bool>(
-    m: usize,
-    n: usize,
-    k: usize,
-    a: &[R],
-    a_rs: usize,
-    a_cs: usize,
-    b: &[R],
-    ldb: usize,
-    c: &mut [R],
-    ldc: usize,
-) {
-    gemm::<R, AVX2>(m, n, k, a, a_rs, a_cs, b, ldb, c, ldc, false)
-}
-
-/// [`gemm_acc`] from zero: `C [m, n] = 0 + A [m, k] · B [k, n]`, the same bits as zeroing C and
-/// accumulating, without the pass that zeroes it (the AVX2 kernel starts its tiles at +0
-/// instead of loading C; C's earlier contents are never read).
-#[inline(always)]
-#[allow(clippy::too_many_arguments)]
-fn gemm_set<R: Real, const AVX2: bool>(
-    m: usize,
-    n: usize,
-    k: usize,
-    a: &[R],
-    a_rs: usize,
-    a_cs: usize,
-    b: &[R],
-    ldb: usize,
-    c: &mut [R],
-    ldc: usize,
-) {
-    gemm::<R, AVX2>(m, n, k, a, a_rs, a_cs, b, ldb, c, ldc, true)
-}
-
-/// [`gemm_acc`] (`zero_c` false) and [`gemm_set`] (true).
+///
+/// With `zero_c`, C starts from zero instead: `C [m, n] = 0 + A [m, k] · B [k, n]`, the same
+/// bits as zeroing C and accumulating, without the pass that zeroes it (the AVX2 kernel starts
+/// its tiles at +0 instead of loading C; C's earlier contents are never read).
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
 fn gemm<R: Real, const AVX2: bool>(
@@ -378,7 +348,7 @@ fn gemm<R: Real, const AVX2: bool>(
     gemm_acc_generic(m, n, k, a, a_rs, a_cs, b, ldb, c, ldc)
 }
 
-/// The portable [`gemm_acc`] (any `R`; the f64 model and machines without AVX2).
+/// The portable [`gemm`] (any `R`; the f64 model and machines without AVX2).
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
 fn gemm_acc_generic<R: Real>(
@@ -460,7 +430,7 @@ fn as_f32_mut<R: Real>(x: &mut [R]) -> Option<&mut [f32]> {
         .then(|| unsafe { std::slice::from_raw_parts_mut(x.as_mut_ptr() as *mut f32, x.len()) })
 }
 
-/// The f32 [`gemm_acc`] with AVX2 intrinsics: 6×16 register tiles (12 accumulators), then an
+/// The f32 [`gemm`] with AVX2 intrinsics: 6×16 register tiles (12 accumulators), then an
 /// 8-wide and a masked column edge, every C element summed over k in ascending order with a separately
 /// rounded product and sum, exactly as the generic kernel (tested bit for bit). The generic
 /// kernel, compiled with AVX2, spends half its instructions on bounds checks and reloading row
@@ -526,7 +496,7 @@ mod avx2 {
         ldb: usize,
         c: *mut f32,
         ldc: usize,
-        /// Start the tiles at +0 instead of loading C (`gemm_set`): C is only written.
+        /// Start the tiles at +0 instead of loading C (`gemm` from zero): C is only written.
         zero_c: bool,
     }
 
@@ -671,7 +641,7 @@ unsafe fn linear_backward_avx2<R: Real>(
     linear_backward_body::<R, true>(w, x, dy, rows, in_dim, out_dim, dw, db, dx)
 }
 
-/// `AVX2`: the caller has checked that the CPU has AVX2 (see [`gemm_acc`]).
+/// `AVX2`: the caller has checked that the CPU has AVX2 (see [`gemm`]).
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
 fn linear_backward_body<R: Real, const AVX2: bool>(
@@ -695,11 +665,15 @@ fn linear_backward_body<R: Real, const AVX2: bool>(
         }
     }
     // dW [out, in] += dyᵀ [out, rows] · x [rows, in]   (rows ascending)
-    gemm_acc::<R, AVX2>(out_dim, in_dim, rows, dy, 1, out_dim, x, in_dim, dw, in_dim);
+    gemm::<R, AVX2>(
+        out_dim, in_dim, rows, dy, 1, out_dim, x, in_dim, dw, in_dim, false,
+    );
     // dx [rows, in] += dy [rows, out] · W [out, in]     (o ascending)
     if let Some(dx) = dx {
         assert!(dx.len() >= rows * in_dim);
-        gemm_acc::<R, AVX2>(rows, in_dim, out_dim, dy, out_dim, 1, w, in_dim, dx, in_dim);
+        gemm::<R, AVX2>(
+            rows, in_dim, out_dim, dy, out_dim, 1, w, in_dim, dx, in_dim, false,
+        );
     }
 }
 
@@ -787,9 +761,9 @@ mod tests {
                 let c0 = rand_vec(m * n, 60 + si as u64);
                 let (mut c1, mut c2) = (c0.clone(), c0.clone());
                 if std::is_x86_feature_detected!("avx2") {
-                    gemm_acc::<f32, true>(m, n, k, &a, a_rs, a_cs, &b, n, &mut c1, n);
+                    gemm::<f32, true>(m, n, k, &a, a_rs, a_cs, &b, n, &mut c1, n, false);
                 } else {
-                    gemm_acc::<f32, false>(m, n, k, &a, a_rs, a_cs, &b, n, &mut c1, n);
+                    gemm::<f32, false>(m, n, k, &a, a_rs, a_cs, &b, n, &mut c1, n, false);
                 }
                 gemm_acc_generic(m, n, k, &a, a_rs, a_cs, &b, n, &mut c2, n);
                 assert!(
@@ -803,15 +777,15 @@ mod tests {
                 for avx2 in [true, false] {
                     let mut c3 = vec![f32::NAN; m * n];
                     if avx2 && std::is_x86_feature_detected!("avx2") {
-                        gemm_set::<f32, true>(m, n, k, &a, a_rs, a_cs, &b, n, &mut c3, n);
+                        gemm::<f32, true>(m, n, k, &a, a_rs, a_cs, &b, n, &mut c3, n, true);
                     } else {
-                        gemm_set::<f32, false>(m, n, k, &a, a_rs, a_cs, &b, n, &mut c3, n);
+                        gemm::<f32, false>(m, n, k, &a, a_rs, a_cs, &b, n, &mut c3, n, true);
                     }
                     assert!(
                         c3.iter()
                             .zip(&zeroed)
                             .all(|(x, y)| x.to_bits() == y.to_bits()),
-                        "gemm_set, shape {m}x{n}x{k}, strides ({a_rs}, {a_cs}), avx2 {avx2}"
+                        "gemm from zero, shape {m}x{n}x{k}, strides ({a_rs}, {a_cs}), avx2 {avx2}"
                     );
                 }
             }

@@ -37,7 +37,8 @@ pub struct Args {
     #[arg(long)]
     pub subdivide: Option<u32>,
     /// Keep the earlier ablation in OUT (its variants not run again stay in the table; a variant
-    /// run again replaces its result). The step count and base configuration must be the same.
+    /// run again replaces its result, and one stopped by Ctrl-C continues from its checkpoint).
+    /// The step count and base configuration must be the same.
     #[arg(long, conflicts_with = "overwrite")]
     pub append: bool,
     /// Replace the earlier ablation in OUT (without --append or --overwrite, a folder holding

@@ -63,7 +63,7 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
         }
         (cfg, scene)
     };
-    cfg.validate()?;
+    // (`train` validates the configuration before any work.)
     // First Ctrl-C: finish the step, write a checkpoint, exit. Second: exit at once.
     let interrupted = super::common::on_interrupt("writing a checkpoint after this step");
     let opts = TrainOptions {

@@ -659,8 +659,9 @@ fn run_variant(
     if summary.interrupted {
         return Ok(None);
     }
-    let st = TrainState::load(&run_dir.join("checkpoint.safetensors"))?;
-    let params = st.ckpt.model.layout.total;
+    // The model only: its Adam state (three quarters of the file) is not needed here.
+    let ckpt = crate::model::checkpoint::Checkpoint::load(run_dir.join("checkpoint.safetensors"))?;
+    let params = ckpt.model.layout.total;
     let mean = summary
         .final_scores
         .clone()
@@ -678,7 +679,7 @@ fn run_variant(
         mesh: used_mesh.0,
         mesh_faces: used_mesh.1,
         mesh_vertices: used_mesh.2,
-        feature_width: st.ckpt.model.feat_dim(),
+        feature_width: ckpt.model.feat_dim(),
         params,
         params_ratio: full_params
             .or((v == Variant::Full).then_some(params))

@@ -378,19 +378,8 @@ fn recorded(dir: &Path) -> Result<(Vec<ViewScore>, u64, f64)> {
         .collect();
     let step = v.get("step").and_then(|x| x.as_u64()).unwrap_or(0);
     // The training time: the last metrics line's elapsed seconds before the final evaluation.
-    let mut seconds = f64::NAN;
-    if let Ok(m) = std::fs::read_to_string(dir.join("metrics.jsonl")) {
-        for l in m.lines() {
-            if let Ok(j) = serde_json::from_str::<serde_json::Value>(l) {
-                if j.get("final").is_some() {
-                    continue;
-                }
-                if let Some(e) = j.get("elapsed_s").and_then(|x| x.as_f64()) {
-                    seconds = e;
-                }
-            }
-        }
-    }
+    let seconds =
+        crate::train::report::elapsed_recorded(&dir.join("metrics.jsonl")).unwrap_or(f64::NAN);
     Ok((views, step, seconds))
 }
 

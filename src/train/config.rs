@@ -310,8 +310,6 @@ impl RunConfig {
     }
 }
 
-/// `cfg` if it validates, else the error with the file (and the line of the key it names,
-/// when the file sets it).
 /// The run configuration the TOML value `v` (read from `text`, named `origin`) describes, or an
 /// error at the line of the key it names.
 fn described(v: toml::Value, origin: &str, text: &str) -> Result<RunConfig> {
@@ -326,6 +324,8 @@ fn described(v: toml::Value, origin: &str, text: &str) -> Result<RunConfig> {
     validated(cfg, origin, text)
 }
 
+/// `cfg` if it validates, else the error with the file (and the line of the key it names,
+/// when the file sets it).
 fn validated(cfg: RunConfig, origin: &str, text: &str) -> Result<RunConfig> {
     match cfg.validate() {
         Ok(()) => Ok(cfg),

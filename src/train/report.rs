@@ -232,18 +232,15 @@ impl Reporter {
     }
 }
 
-/// The last `elapsed_s` of a metrics file that ends where a run is resumed (cut back to the
-/// checkpoint's step): the checkpoint's own line when it has one, else the last line before it;
-/// 0 when there is none. Final-evaluation lines are skipped (their time is not training).
-pub fn elapsed_recorded(metrics_path: &Path) -> f64 {
-    let Ok(text) = std::fs::read_to_string(metrics_path) else {
-        return 0.0;
-    };
+/// The run's training time as its metrics file records it: the last `elapsed_s` outside a
+/// final-evaluation line (whose time is not training) — for a file cut back to a resumed
+/// checkpoint's step, that checkpoint's own line when it has one; `None` without any.
+pub fn elapsed_recorded(metrics_path: &Path) -> Option<f64> {
+    let text = std::fs::read_to_string(metrics_path).ok()?;
     text.lines()
         .rev()
         .filter_map(|l| serde_json::from_str::<serde_json::Value>(l).ok())
         .filter(|j| j.get("final").is_none())
         .filter_map(|j| j.get("elapsed_s").and_then(|e| e.as_f64()))
         .find(|e| e.is_finite() && *e >= 0.0)
-        .unwrap_or(0.0)
 }

@@ -367,7 +367,7 @@ pub fn train(
     let tc = state.cfg.train.clone();
     // A resumed run's time runs on from its checkpoint's (`open_run` cut the metrics back to it).
     let before = if opts.resume {
-        crate::train::report::elapsed_recorded(&metrics_path)
+        crate::train::report::elapsed_recorded(&metrics_path).unwrap_or(0.0)
     } else {
         0.0
     };

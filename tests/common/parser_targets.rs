@@ -285,6 +285,31 @@ pub fn targets(fx: &Path, work: &Path) -> Vec<Target> {
         }),
     });
 
+    // A run configuration as a checkpoint stores it (`run_config` metadata), read as written
+    // (`RunConfig::from_stored_toml`, not laid over a preset): seeds from the golden checkpoints.
+    let stored: Vec<Vec<u8>> = ["tiny-f64-linear", "cpu-t10", "tiny-tcnn-smoothstep"]
+        .iter()
+        .map(|d| {
+            let ck = fx.join("golden").join(d).join("checkpoint.safetensors");
+            let f = xscale::model::checkpoint::Checkpoint::read_model_tensors(&ck).unwrap();
+            f.meta("run_config").unwrap().as_bytes().to_vec()
+        })
+        .collect();
+    ts.push(Target {
+        name: "stored_config",
+        seeds: stored,
+        text: true,
+        quick: 1500,
+        run: Box::new(|b, w| {
+            let origin = disp(&w.join("checkpoint.safetensors"));
+            let text = String::from_utf8_lossy(b);
+            (
+                origin.clone(),
+                RunConfig::from_stored_toml(&text, &origin).map(|_| ()),
+            )
+        }),
+    });
+
     // safetensors checkpoints and batches, read from disk as the CLI does.
     ts.push(Target {
         name: "checkpoint",

@@ -433,8 +433,9 @@ fn vertex_variants_run_under_the_cpu_preset() {
     let _ = std::fs::remove_dir_all(&out);
 }
 
-/// Ctrl-C / SIGTERM stops `bench-geometry`'s run in training with a checkpoint (exit 130), and
-/// the same command continues that run from it rather than training it again.
+/// A `bench-geometry` run killed outright continues from its latest periodic checkpoint; Ctrl-C /
+/// SIGTERM stops it with a checkpoint (exit 130); each time the same command continues the run
+/// rather than training it again.
 #[test]
 fn bench_geometry_continues_a_stopped_run() {
     let out = tmp("geo-stop");
@@ -461,18 +462,44 @@ fn bench_geometry_continues_a_stopped_run() {
         "2000",
         "-q",
     ];
-    let child = Command::new(env!("CARGO_BIN_EXE_xscale"))
-        .args(args)
-        .stdout(std::process::Stdio::null())
-        .stderr(std::process::Stdio::piped())
-        .spawn()
-        .unwrap();
+    let spawn = || {
+        Command::new(env!("CARGO_BIN_EXE_xscale"))
+            .args(args)
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::piped())
+            .spawn()
+            .unwrap()
+    };
     let run = out.join("runs/exact_noxi");
-    let t0 = std::time::Instant::now();
-    while !std::fs::read_to_string(run.join("metrics.jsonl")).is_ok_and(|t| !t.is_empty()) {
-        assert!(t0.elapsed().as_secs() < 300, "the run never logged a step");
-        std::thread::sleep(std::time::Duration::from_millis(2));
-    }
+    // Wait until the run's metrics hold a checkpoint past `after`.
+    let wait_for_checkpoint_after = |after: u64| {
+        let t0 = std::time::Instant::now();
+        while !std::fs::read_to_string(run.join("metrics.jsonl")).is_ok_and(|t| {
+            t.lines().any(|l| {
+                let j: serde_json::Value = serde_json::from_str(l).unwrap_or_default();
+                j["checkpoint"] == true && j["step"].as_u64().is_some_and(|k| k > after)
+            })
+        }) {
+            assert!(
+                t0.elapsed().as_secs() < 300,
+                "no checkpoint after step {after}"
+            );
+            std::thread::sleep(std::time::Duration::from_millis(2));
+        }
+    };
+    // SIGKILL once the first periodic checkpoint (a tenth of the run apart, at least 1,000
+    // steps) is written: the same command continues from the latest one, keeping the metrics
+    // written before it (a fresh run would rewrite the first line with another elapsed_s).
+    let mut child = spawn();
+    wait_for_checkpoint_after(0);
+    child.kill().unwrap();
+    child.wait().unwrap();
+    let first_line = metrics::lines(&run)[0].to_string();
+    let killed_at = *metrics::checkpoints(&run).last().unwrap();
+    assert!(killed_at < 5000, "finished before the kill");
+    // SIGTERM: a checkpoint at the next step and exit 130.
+    let child = spawn();
+    wait_for_checkpoint_after(killed_at);
     signal::terminate(&child);
     let done = child.wait_with_output().unwrap();
     let err = String::from_utf8_lossy(&done.stderr);
@@ -481,16 +508,26 @@ fn bench_geometry_continues_a_stopped_run() {
     assert!(!out.join("geometry.csv").exists());
     let stopped = metrics::checkpoints(&run);
     assert!(
-        stopped.len() == 1 && stopped[0] < 5000,
-        "not stopped halfway: {stopped:?}"
+        stopped[0] == 1000
+            && stopped.contains(&killed_at)
+            && (killed_at + 1..5000).contains(stopped.last().unwrap()),
+        "not continued after the kill, or not stopped halfway: {stopped:?}"
     );
     let (ok, _, err) = xscale(&args);
     assert!(ok, "{err}");
     assert!(out.join("geometry.csv").is_file());
-    assert_eq!(
-        metrics::checkpoints(&run),
-        [stopped[0], 5000],
-        "not continued"
+    let all = metrics::checkpoints(&run);
+    assert!(
+        all.starts_with(&stopped)
+            && all.last() == Some(&5000)
+            && all.windows(2).all(|w| w[0] < w[1]),
+        "not continued: {stopped:?} then {all:?}"
     );
+    assert_eq!(
+        metrics::lines(&run)[0].to_string(),
+        first_line,
+        "restarted from step 0"
+    );
+    assert!(metrics::elapsed_runs_on(&run, 5));
     let _ = std::fs::remove_dir_all(&out);
 }

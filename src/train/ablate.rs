@@ -326,10 +326,12 @@ pub fn run_ablation(scene: &Path, out: &Path, opts: &AblateOptions) -> Result<Ab
             }
         }
     }
-    // No periodic evaluation or checkpoints inside the runs: the final evaluation is the result.
+    // No periodic evaluation inside the runs: the final evaluation is the result. Checkpoints a
+    // tenth of a run apart, so a killed variant continues from one (`base_config` and the
+    // variants' settings leave the interval out, so earlier ablations still match).
     base.train.eval_every = 0;
-    base.train.checkpoint_every = 0;
-    let base_config = base.to_toml();
+    base.train.checkpoint_every = crate::train::config::tool_checkpoint_every(base.train.steps);
+    let base_config = base.results_toml();
     let mut results: Vec<VariantResult> = Vec::new();
     if let Some(old) = earlier {
         same_ablation(&old, scene, &base, &base_config)?;
@@ -650,7 +652,7 @@ fn run_variant(
             // A variant run again, not stopped halfway, replaces its run.
             overwrite: !resume,
             interrupt: opts.interrupt,
-            settings: Some(cfg.to_toml()),
+            settings: Some(cfg.results_toml()),
             bar: !opts.quiet,
             ..TrainOptions::default()
         },

@@ -18,7 +18,8 @@
 //! retrained (so an interrupted benchmark continues where it stopped, and a new variant can be
 //! added without retraining the others). Ctrl-C / SIGTERM stops the run in training at its next
 //! step with a checkpoint; the same command then continues that run from it
-//! (`run_dir::stopped_run_of`).
+//! (`run_dir::stopped_run_of`). A run killed outright continues from its latest periodic
+//! checkpoint, a tenth of the run apart (`config::tool_checkpoint_every`).
 
 use crate::eval::plot::{lines_png, Axes, Curve};
 use crate::eval::protocol::{mean_score, scale_summary, ViewScore};
@@ -144,6 +145,7 @@ struct VariantKey {
     mesh: PathBuf,
     deform: bool,
     refine: bool,
+    /// `RunConfig::results_toml` of the run (its checkpoint interval left out).
     config: String,
 }
 
@@ -272,9 +274,11 @@ pub fn bench_geometry(
     );
     let mut base = opts.base.clone();
     base.validate()?;
-    // No periodic evaluations or checkpoints inside the runs: the final evaluation is the result.
+    // No periodic evaluations inside the runs: the final evaluation is the result. Checkpoints
+    // a tenth of a run apart, so a killed run continues from one (the variant keys leave the
+    // interval out, so runs of earlier builds, which had none, are still reused).
     base.train.eval_every = 0;
-    base.train.checkpoint_every = 0;
+    base.train.checkpoint_every = crate::train::config::tool_checkpoint_every(base.train.steps);
     let truth = load_truth(scene)?;
     let diag = diagonal(&truth);
     say(format!(
@@ -312,7 +316,7 @@ pub fn bench_geometry(
                     mesh: p.path.clone(),
                     deform,
                     refine,
-                    config: cfg.to_toml(),
+                    config: cfg.results_toml(),
                 };
                 let Some(v) = run_variant(&name, &key, cfg, scene, &dir, &index, opts, say)? else {
                     return Ok(None);
@@ -432,7 +436,7 @@ fn run_variant(
                 resume,
                 overwrite: !resume,
                 interrupt: opts.interrupt,
-                settings: Some(cfg.to_toml()),
+                settings: Some(cfg.results_toml()),
                 bar: !opts.quiet,
                 ..TrainOptions::default()
             },

@@ -260,6 +260,17 @@ impl RunConfig {
         toml::to_string(self).expect("a RunConfig always serialises")
     }
 
+    /// The settings that decide what a run computes, as TOML: [`to_toml`](Self::to_toml) with
+    /// `train.checkpoint_every` set to 0, since a checkpoint changes no result (a resumed run
+    /// writes the same bytes, SPEC §5). Tools that reuse or continue their earlier runs
+    /// (`ablate`, `bench-geometry`) compare this, so a change of checkpoint interval — theirs
+    /// included, [`tool_checkpoint_every`] — does not make them train a run again.
+    pub fn results_toml(&self) -> String {
+        let mut c = self.clone();
+        c.train.checkpoint_every = 0;
+        c.to_toml()
+    }
+
     pub fn validate(&self) -> Result<()> {
         let t = &self.train;
         if t.batch_pixels == 0 {
@@ -411,6 +422,15 @@ pub fn line_of_key(text: &str, path: &str) -> Option<usize> {
     None
 }
 
+/// The checkpoint interval of the runs a tool trains one after another (`ablate`,
+/// `bench-geometry`): about every tenth of the run, at least 1,000 steps apart, so a run killed
+/// outright (SIGKILL, the OOM killer, a reboot) loses at most a tenth of itself while a
+/// 2,000-step run saves once. A save costs 0.3–1 s on `small` (`docs/performance.md`,
+/// "Checkpoints") and counts in the run's training time.
+pub fn tool_checkpoint_every(steps: u64) -> u64 {
+    steps.div_ceil(10).max(1000)
+}
+
 /// Every key `given` sets whose value differs from `have`'s, as `key.path = value (HAVE has
 /// other)` or `(HAVE has no such setting)`, `HAVE` being `have_name` ("the run"); integers and
 /// floats compare by value (1 == 1.0). Keys of `have` that `given` leaves out are not listed.
@@ -524,6 +544,32 @@ mod tests {
         let e = RunConfig::from_stored_toml("preset = \"cpu\"\n[model]\ngamma = 2\n", "ck")
             .unwrap_err();
         assert!(format!("{e:#}").contains("ck"), "{e:#}");
+    }
+
+    /// The key tools compare to reuse a run leaves out its checkpoint interval, and only it:
+    /// runs an earlier build trained with none match runs now trained with one.
+    #[test]
+    fn results_toml_leaves_out_the_checkpoint_interval_only() {
+        let mut a = RunConfig::preset("cpu").unwrap();
+        a.train.checkpoint_every = 0;
+        let mut b = a.clone();
+        b.train.checkpoint_every = tool_checkpoint_every(20_000);
+        assert_eq!(b.train.checkpoint_every, 2_000);
+        assert_ne!(a.to_toml(), b.to_toml());
+        assert_eq!(a.results_toml(), b.results_toml());
+        assert_eq!(
+            a.results_toml(),
+            a.to_toml(),
+            "an interval of 0 is written as is"
+        );
+        b.train.eval_every += 1;
+        assert_ne!(a.results_toml(), b.results_toml());
+        assert_eq!(tool_checkpoint_every(2_000), 1_000);
+        assert_eq!(
+            tool_checkpoint_every(500),
+            1_000,
+            "a short run is not saved on the way"
+        );
     }
 
     /// Every configuration the repository ships (`configs/`) is valid under every preset

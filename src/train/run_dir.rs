@@ -114,14 +114,29 @@ impl Drop for RunLock {
     }
 }
 
-/// Whether process `pid` exists (Linux: `/proc/<pid>`; elsewhere assumed alive, so a stale lock
-/// must be removed by hand).
+/// Whether process `pid` is running (Linux: `/proc/<pid>/stat`; elsewhere assumed alive, so a
+/// stale lock must be removed by hand). A killed process stays in `/proc` as a zombie (state `Z`)
+/// until its parent reaps it, which can take a while when the parent is a shell that has
+/// moved on: it counts as gone, or a run killed by SIGKILL would block the command that
+/// continues it ("another xscale process (pid N) is training into this run folder").
 fn process_alive(pid: u32) -> bool {
     let proc = Path::new("/proc");
     if !proc.is_dir() {
         return true;
     }
-    pid == std::process::id() || proc.join(pid.to_string()).exists()
+    if pid == std::process::id() {
+        return true;
+    }
+    match std::fs::read_to_string(proc.join(pid.to_string()).join("stat")) {
+        Ok(stat) => !matches!(stat_state(&stat), Some('Z' | 'X' | 'x')),
+        Err(_) => false,
+    }
+}
+
+/// The state letter of a `/proc/<pid>/stat` line: the first field after the command name, which
+/// is in parentheses and may itself hold spaces and parentheses (so: after the last `)`).
+fn stat_state(stat: &str) -> Option<char> {
+    stat[stat.rfind(')')? + 1..].trim_start().chars().next()
 }
 
 /// Make `run_dir` ready for a run: create it; refuse one that holds a run unless `resume`
@@ -167,12 +182,13 @@ pub fn prepare_run_dir(run_dir: &Path, resume: bool, overwrite: bool) -> Result<
 }
 
 /// The settings a tool that trains run folders itself (`ablate`, `bench-geometry`) started a
-/// run with: its unresolved configuration, written by the trainer when the run starts
-/// (`TrainOptions::settings`). Listed in [`RUN_FILES`], so it goes with the run it describes.
+/// run with: its unresolved configuration ([`crate::train::config::RunConfig::results_toml`]), written by the trainer
+/// when the run starts (`TrainOptions::settings`). Listed in [`RUN_FILES`], so it goes with the run it describes.
 pub const SETTINGS_FILE: &str = "variant.toml";
 
-/// Whether `run_dir` holds a run a tool started with exactly the settings `cfg` that stopped
-/// before its last step (Ctrl-C, SIGTERM, a kill after a periodic checkpoint): the tool then
+/// Whether `run_dir` holds a run a tool started with exactly the settings `cfg` (its checkpoint
+/// interval aside) that stopped before its last step (Ctrl-C, SIGTERM, a kill after a periodic
+/// checkpoint): the tool then
 /// trains it with `resume`, which gives the bits of an uninterrupted run. A finished run, or one
 /// of other settings, is not (the tool trains afresh, replacing it).
 pub fn stopped_run_of(run_dir: &Path, cfg: &crate::train::config::RunConfig) -> bool {
@@ -181,7 +197,7 @@ pub fn stopped_run_of(run_dir: &Path, cfg: &crate::train::config::RunConfig) -> 
         let f = crate::io::tensors::TensorFile::read_only(&ckpt, |_| false).ok()?;
         f.meta("step").ok()?.parse().ok()
     };
-    std::fs::read_to_string(run_dir.join(SETTINGS_FILE)).is_ok_and(|t| t == cfg.to_toml())
+    std::fs::read_to_string(run_dir.join(SETTINGS_FILE)).is_ok_and(|t| t == cfg.results_toml())
         && step().is_some_and(|k| k < cfg.train.steps)
 }
 
@@ -327,5 +343,53 @@ impl SceneFingerprint {
             );
         }
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn stat_state_is_read_after_the_command_name() {
+        assert_eq!(stat_state("42 (xscale) R 1 42 42 0"), Some('R'));
+        assert_eq!(stat_state("42 (a) b) (c) Z 1 42"), Some('Z'));
+        assert_eq!(stat_state("42 (xscale"), None);
+    }
+
+    /// A lock held by a live process is refused; one held by a killed process that its parent
+    /// has not reaped yet (a zombie, as after `kill -9` of a job a shell started with `&`) is
+    /// taken over.
+    #[cfg(target_os = "linux")]
+    #[test]
+    fn a_zombie_does_not_hold_the_lock() {
+        let dir = std::env::temp_dir().join(format!("xscale-lock-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let lock_of = |pid: u32| std::fs::write(dir.join(".lock"), format!("{pid}\n")).unwrap();
+        let mut live = std::process::Command::new("sleep")
+            .arg("30")
+            .spawn()
+            .unwrap();
+        lock_of(live.id());
+        let e = RunLock::acquire(&dir)
+            .err()
+            .expect("a live holder is refused");
+        assert!(format!("{e:#}").contains("another xscale process"), "{e:#}");
+        live.kill().unwrap();
+        // Not reaped yet: a zombie.
+        let t0 = std::time::Instant::now();
+        let stat = Path::new("/proc").join(live.id().to_string()).join("stat");
+        while stat_state(&std::fs::read_to_string(&stat).unwrap()) != Some('Z') {
+            assert!(t0.elapsed().as_secs() < 10, "never became a zombie");
+            std::thread::sleep(std::time::Duration::from_millis(1));
+        }
+        let lock = RunLock::acquire(&dir).expect("a zombie's lock is taken over");
+        assert_eq!(
+            std::fs::read_to_string(dir.join(".lock")).unwrap().trim(),
+            std::process::id().to_string()
+        );
+        drop(lock);
+        live.wait().unwrap();
+        let _ = std::fs::remove_dir_all(&dir);
     }
 }

@@ -694,6 +694,56 @@ fn transforms_bad_inputs() {
     assert_contains(&err(transforms::load(&p)), &["frame 0", "focal length"]);
 }
 
+/// Text files saved by Windows editors: a UTF-8 byte-order mark and CRLF line ends in every
+/// camera file, `transforms.json`, `scene.toml` and a `--config`. Each layout loads the same
+/// cameras as the plain files (a mark made `transforms.json` "malformed JSON at line 1
+/// column 1" and COLMAP's and MVSNet's first lines unreadable).
+#[test]
+fn byte_order_marks_and_crlf_are_read_in_every_layout() {
+    let tiny = Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/tiny");
+    let d = scratch("bom_crlf");
+    copy_dir(&tiny, &d);
+    let mut edited = 0;
+    let mut stack = vec![d.clone()];
+    while let Some(dir) = stack.pop() {
+        for e in fs::read_dir(&dir).unwrap() {
+            let p = e.unwrap().path();
+            let ext = p.extension().and_then(|e| e.to_str()).unwrap_or("");
+            if p.is_dir() {
+                stack.push(p);
+            } else if ["txt", "json", "toml"].contains(&ext) {
+                let text = fs::read_to_string(&p).unwrap();
+                fs::write(&p, format!("\u{feff}{}", text.replace('\n', "\r\n"))).unwrap();
+                edited += 1;
+            }
+        }
+    }
+    assert!(edited >= 12, "{edited} files edited");
+    for format in [
+        CameraFormat::Colmap,
+        CameraFormat::MvsNet,
+        CameraFormat::Transforms,
+    ] {
+        let opts = |dir: &Path| {
+            Scene::load(
+                dir,
+                &LoadOptions {
+                    format: Some(format),
+                    ..LoadOptions::default()
+                },
+            )
+            .unwrap_or_else(|e| panic!("{format:?} in {}: {e:#}", dir.display()))
+        };
+        let (plain, marked) = (opts(&tiny), opts(&d));
+        assert_cameras_close(&plain.views, &marked.views, 0.0);
+        assert_eq!(plain.test, marked.test, "{format:?}: the split");
+    }
+    let cfg = d.join("c.toml");
+    fs::write(&cfg, "\u{feff}[train]\r\nsteps = 7\r\n").unwrap();
+    let c = xscale::train::config::RunConfig::resolve("tiny", Some(&cfg)).unwrap();
+    assert_eq!(c.train.steps, 7);
+}
+
 // ------------------------------------------------------------------------------------------
 // Images
 // ------------------------------------------------------------------------------------------

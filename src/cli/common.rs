@@ -59,8 +59,7 @@ impl RunArgs {
 
 /// The `preset` key of a `--config` file, if it has one.
 pub fn config_file_preset(file: &Path) -> Result<Option<String>> {
-    let text = std::fs::read_to_string(file)
-        .with_context(|| format!("{}: cannot read config", file.display()))?;
+    let text = crate::io::text::read(file)?;
     let v: toml::Value =
         toml::from_str(&text).with_context(|| format!("{}: not valid TOML", file.display()))?;
     Ok(v.get("preset").and_then(|p| p.as_str()).map(str::to_string))

@@ -192,8 +192,7 @@ fn resume_config(a: &Args) -> anyhow::Result<(RunConfig, PathBuf)> {
 /// Every key a `--config` file sets whose value differs from the stored configuration's
 /// (`train.steps` aside: it is the total asked for).
 fn config_differences(file: &std::path::Path, stored: &RunConfig) -> anyhow::Result<Vec<String>> {
-    let text = std::fs::read_to_string(file)
-        .with_context(|| format!("{}: cannot read config", file.display()))?;
+    let text = crate::io::text::read(file)?;
     let given: toml::Value =
         toml::from_str(&text).with_context(|| format!("{}: not valid TOML", file.display()))?;
     let have: toml::Value = toml::from_str(&stored.to_toml()).expect("a RunConfig serialises");

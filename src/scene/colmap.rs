@@ -320,8 +320,7 @@ pub fn load(dir: &Path, images_dir: &Path) -> Result<Vec<View>> {
 // ---------------------------------------------------------------------------------------------
 
 fn read_text_file(path: &Path) -> Result<String> {
-    let b = fs::read(path).with_context(|| format!("{}: cannot read", path.display()))?;
-    String::from_utf8(b).map_err(|_| anyhow!("{}: not UTF-8 text", path.display()))
+    crate::io::text::read(path)
 }
 
 fn parse_num<T: std::str::FromStr>(s: &str, where_: &str, what: &str) -> Result<T> {

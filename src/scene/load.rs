@@ -310,8 +310,7 @@ fn read_scene_toml(path: &Path) -> Result<SceneToml> {
     if !path.is_file() {
         return Ok(SceneToml::default());
     }
-    let text = std::fs::read_to_string(path)
-        .map_err(|e| anyhow!("{}: cannot read: {e}", path.display()))?;
+    let text = crate::io::text::read(path)?;
     toml::from_str(&text).map_err(|e| anyhow!("{}: {e}", path.display()))
 }
 

@@ -85,7 +85,7 @@ pub fn find_layouts(scene: &Path) -> Vec<Layout> {
 /// Parse one cam file into (rotation, translation, K = (fx, fy, cx, cy)).
 pub fn parse_cam(path: &Path) -> Result<(DMat3, DVec3, [f64; 4])> {
     let p = path.display();
-    let text = fs::read_to_string(path).with_context(|| format!("{p}: cannot read"))?;
+    let text = crate::io::text::read(path)?;
     // Non-blank lines with their numbers.
     let lines: Vec<(usize, &str)> = text
         .lines()

@@ -27,8 +27,7 @@ use std::path::{Path, PathBuf};
 
 /// Parse a JSON file with an error naming the file, line and column.
 fn read_json(path: &Path) -> Result<Value> {
-    let text =
-        fs::read_to_string(path).with_context(|| format!("{}: cannot read", path.display()))?;
+    let text = crate::io::text::read(path)?;
     serde_json::from_str(&text).map_err(|e| {
         anyhow!(
             "{}: line {} column {}: malformed JSON: {e}",

@@ -216,8 +216,7 @@ impl RunConfig {
         match path {
             None => RunConfig::preset(preset),
             Some(p) => {
-                let text = std::fs::read_to_string(p)
-                    .with_context(|| format!("{}: cannot read config", p.display()))?;
+                let text = crate::io::text::read(p)?;
                 let origin = p.display().to_string();
                 let mut cfg = RunConfig::from_toml_str(&text, preset, &origin)?;
                 let over: toml::Value =

@@ -8,7 +8,7 @@ use std::fs;
 use std::path::{Path, PathBuf};
 use xscale::scene::{
     colmap, image, mesh, mvsnet, transforms, Camera, CameraFormat, Distortion, Image, LoadOptions,
-    Mesh, NormalizeMode, Scene, View,
+    MaskSource, Mesh, NormalizeMode, Scene, View,
 };
 
 fn fixture(p: &str) -> PathBuf {
@@ -692,6 +692,68 @@ fn transforms_bad_inputs() {
     );
     fs::write(&p, good.replacen("\"camera_angle_x\"", "\"angle\"", 1)).unwrap();
     assert_contains(&err(transforms::load(&p)), &["frame 0", "focal length"]);
+}
+
+/// nerfstudio's per-frame `mask_path`: every frame's file becomes its view's mask (it was
+/// ignored, so a user's masked-out pixels were trained on); a frame without one when others
+/// have one, or a path naming no file, is an error naming it.
+#[test]
+fn transforms_mask_paths_are_the_views_masks() {
+    let tiny = Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/tiny");
+    let d = scratch("mask_path");
+    copy_dir(&tiny, &d);
+    let p = d.join("transforms.json");
+    let mut j: serde_json::Value = serde_json::from_str(&fs::read_to_string(&p).unwrap()).unwrap();
+    fs::create_dir_all(d.join("dyn")).unwrap();
+    let frames = j["frames"].as_array_mut().unwrap();
+    for (i, f) in frames.iter_mut().enumerate() {
+        f["mask_path"] = format!("./dyn/m{i}.png").into();
+        // Left half kept, right half masked out.
+        let m = ::image::GrayImage::from_fn(64, 48, |x, _| {
+            ::image::Luma([if x < 32 { 255 } else { 0 }])
+        });
+        m.save(d.join(format!("dyn/m{i}.png"))).unwrap();
+    }
+    let n = frames.len();
+    fs::write(&p, serde_json::to_string(&j).unwrap()).unwrap();
+    let load = || {
+        Scene::load(
+            &d,
+            &LoadOptions {
+                format: Some(CameraFormat::Transforms),
+                ..LoadOptions::default()
+            },
+        )
+    };
+    let scene = load().unwrap();
+    let want: Vec<MaskSource> = (0..n)
+        .map(|i| MaskSource::File(d.join(format!("dyn/m{i}.png"))))
+        .collect();
+    assert_eq!(scene.masks, want);
+    let v = &scene.views[1];
+    let m = xscale::scene::mask::load_mask(&scene.masks[1], &v.image_path, 1, (64, 48))
+        .unwrap()
+        .unwrap();
+    assert!(m[..32].iter().all(|&b| b) && m[32..64].iter().all(|&b| !b));
+
+    let good = j.clone();
+    j["frames"][3].as_object_mut().unwrap().remove("mask_path");
+    fs::write(&p, serde_json::to_string(&j).unwrap()).unwrap();
+    assert_contains(
+        &err(load()),
+        &[
+            "transforms.json",
+            &format!("{} of {n} frames give a mask_path", n - 1),
+            "images/0003.png",
+        ],
+    );
+    let mut j = good;
+    j["frames"][0]["mask_path"] = "dyn/nope.png".into();
+    fs::write(&p, serde_json::to_string(&j).unwrap()).unwrap();
+    assert_contains(
+        &err(load()),
+        &["frame 0", "mask_path 'dyn/nope.png'", "not found"],
+    );
 }
 
 /// Text files saved by Windows editors: a UTF-8 byte-order mark and CRLF line ends in every

@@ -258,9 +258,9 @@ impl Scene {
         let toml_path = dir.join("scene.toml");
         let cfg = read_scene_toml(&toml_path)?;
         let format = choose_format(dir, opts, &cfg, &toml_path)?;
-        let (mut views, format_test) = match format {
-            CameraFormat::Colmap => (load_colmap(dir)?, None),
-            CameraFormat::MvsNet => (load_mvsnet(dir, opts.mvsnet_dsp)?, None),
+        let (mut views, format_test, given_masks) = match format {
+            CameraFormat::Colmap => (load_colmap(dir)?, None, None),
+            CameraFormat::MvsNet => (load_mvsnet(dir, opts.mvsnet_dsp)?, None, None),
             CameraFormat::Transforms => load_transforms(dir)?,
         };
         check_views(dir, &views)?;
@@ -284,7 +284,10 @@ impl Scene {
                 toml_path.display()
             );
         }
-        let masks = find_masks(dir, &views, opts.load_images_check)?;
+        let masks = match given_masks {
+            Some(files) => files.into_iter().map(MaskSource::File).collect(),
+            None => find_masks(dir, &views, opts.load_images_check)?,
+        };
         let scene = Scene {
             root: dir.to_path_buf(),
             mesh,
@@ -398,31 +401,54 @@ fn load_mvsnet(dir: &Path, dsp: Option<u32>) -> Result<Vec<View>> {
     mvsnet::load(&layout)
 }
 
+/// The views of a layout, the layout's own test split (view names) and the mask files its
+/// frames name (one per view).
+type LoadedViews = (Vec<View>, Option<Vec<String>>, Option<Vec<PathBuf>>);
+
 /// `transforms.json`, or NeRF-synthetic `transforms_{train,val,test}.json` (the test file's
-/// views are returned as the format's own test split).
-fn load_transforms(dir: &Path) -> Result<(Vec<View>, Option<Vec<String>>)> {
+/// views are returned as the format's own test split), with the frames' `mask_path` files when
+/// every frame gives one.
+fn load_transforms(dir: &Path) -> Result<LoadedViews> {
     let single = dir.join("transforms.json");
-    if single.is_file() {
-        return Ok((transforms::load(&single)?, None));
-    }
-    let train = dir.join("transforms_train.json");
-    if !train.is_file() {
-        bail!("{}: transforms.json not found", dir.display());
-    }
-    let mut v = transforms::load(&train)?;
-    let val = dir.join("transforms_val.json");
-    if val.is_file() {
-        v.extend(transforms::load(&val)?);
-    }
-    let test = dir.join("transforms_test.json");
-    let t = if test.is_file() {
-        transforms::load(&test)?
+    let nerf_synthetic = !single.is_file();
+    let files: Vec<PathBuf> = if !nerf_synthetic {
+        vec![single]
     } else {
-        Vec::new()
+        let train = dir.join("transforms_train.json");
+        if !train.is_file() {
+            bail!("{}: transforms.json not found", dir.display());
+        }
+        ["train", "val", "test"]
+            .iter()
+            .map(|s| dir.join(format!("transforms_{s}.json")))
+            .filter(|p| p.is_file())
+            .collect()
     };
-    let names = t.iter().map(|x| x.name.clone()).collect();
-    v.extend(t);
-    Ok((v, Some(names)))
+    // NeRF-synthetic: the test file's views are the split (none without a test file).
+    let mut test = nerf_synthetic.then(Vec::new);
+    let (mut views, mut masks) = (Vec::new(), Vec::new());
+    for f in &files {
+        let (v, m) = transforms::load_with_masks(f)?;
+        if f.ends_with("transforms_test.json") {
+            test = Some(v.iter().map(|x| x.name.clone()).collect());
+        }
+        views.extend(v);
+        masks.extend(m.into_iter().map(|m| (f, m)));
+    }
+    let given = masks.iter().filter(|(_, m)| m.is_some()).count();
+    if given == 0 {
+        return Ok((views, test, None));
+    }
+    if let Some(k) = masks.iter().position(|(_, m)| m.is_none()) {
+        bail!(
+            "{}: {given} of {} frames give a mask_path, but view '{}' has none: give every frame one or none (nerfstudio's rule)",
+            masks[k].0.display(),
+            masks.len(),
+            views[k].name
+        );
+    }
+    let files = masks.into_iter().filter_map(|(_, m)| m).collect();
+    Ok((views, test, Some(files)))
 }
 
 /// At least one view, and unique names.

@@ -2,6 +2,8 @@
 //! pixels inside the mask and the held-out scores are computed inside it (SPEC §7).
 //!
 //! ## Where a view's mask comes from
+//! 0. With `transforms.json` layouts, the frames' `mask_path` (nerfstudio: relative to the JSON
+//!    file, given for every frame or none; a mix is an error naming the first view without one).
 //! 1. A `masks/` folder in the scene directory (as object datasets ship them): for a view named
 //!    `NAME` (its name in the camera file, e.g. `images/0003.png`, `cam1/0003.jpg`), the first of
 //!    `masks/NAME`, `masks/NAME.png` (COLMAP's convention for `NAME.jpg`), `masks/<NAME with its
@@ -15,7 +17,8 @@
 //! ## Values
 //! A mask file's coverage is its alpha channel when it has one, else its grey value (the mean
 //! of R, G, B for a colour file), scaled to [0, 1]. A pixel is inside the mask when its coverage
-//! is ≥ 0.5. With `--downsample s`, coverage is averaged over each s×s block first, as photos
+//! is ≥ 0.5 (nerfstudio keeps every non-zero pixel; the two agree on the usual 0/255 masks). With
+//! `--downsample s`, coverage is averaged over each s×s block first, as photos
 //! are.
 
 use anyhow::{anyhow, bail, Context, Result};

@@ -17,6 +17,9 @@
 //! path is not a file, `.png`, `.jpg`, `.jpeg`, `.exr` (and upper-case) are tried. The view
 //! name is `file_path` without a leading `./`, plus the extension found. Views keep the file's
 //! frame order.
+//!
+//! A frame's `mask_path` (nerfstudio), relative to the JSON file like `file_path`, is that view's
+//! object mask (`scene/mask.rs`); nerfstudio's rule holds: every frame has one or none does.
 
 use super::{Camera, Distortion, View};
 use anyhow::{anyhow, bail, Context, Result};
@@ -78,6 +81,13 @@ fn resolve_image(base: &Path, file_path: &str) -> Option<(PathBuf, String)> {
 
 /// Load all frames of a transforms file.
 pub fn load(path: &Path) -> Result<Vec<View>> {
+    Ok(load_with_masks(path)?.0)
+}
+
+/// [`load`], with each frame's `mask_path` (nerfstudio's per-frame object mask; `scene/mask.rs`)
+/// resolved against the file's folder like `file_path`: `None` for a frame without one; a
+/// `mask_path` naming no file is an error.
+pub fn load_with_masks(path: &Path) -> Result<(Vec<View>, Vec<Option<PathBuf>>)> {
     let pd = path.display().to_string();
     let root = read_json(path)?;
     let top = root
@@ -98,6 +108,7 @@ pub fn load(path: &Path) -> Result<Vec<View>> {
         .and_then(|f| f.as_array())
         .ok_or_else(|| anyhow!("{pd}: no 'frames' array"))?;
     let mut views = Vec::with_capacity(frames.len());
+    let mut masks = Vec::with_capacity(frames.len());
     for (i, f) in frames.iter().enumerate() {
         let wh = format!("{pd}: frame {i}");
         let fr = f
@@ -128,13 +139,29 @@ pub fn load(path: &Path) -> Result<Vec<View>> {
         })?;
         let (rotation, translation) = pose(&wh, fr)?;
         let camera = intrinsics(&wh, fr, top, model, &image_path, rotation, translation)?;
+        masks.push(mask_path(&wh, base, fr)?);
         views.push(View {
             name,
             camera,
             image_path,
         });
     }
-    Ok(views)
+    Ok((views, masks))
+}
+
+/// A frame's `mask_path`, if it has one: relative to the JSON file's folder, and an existing file.
+fn mask_path(wh: &str, base: &Path, fr: &Map<String, Value>) -> Result<Option<PathBuf>> {
+    let Some(v) = fr.get("mask_path") else {
+        return Ok(None);
+    };
+    let rel = v
+        .as_str()
+        .ok_or_else(|| anyhow!("{wh}: 'mask_path' must be a string, got {v}"))?;
+    let p = base.join(rel.strip_prefix("./").unwrap_or(rel));
+    if !p.is_file() {
+        bail!("{wh}: mask_path '{rel}': {} not found", p.display());
+    }
+    Ok(Some(p))
 }
 
 /// A frame's `transform_matrix` (4x4, or 3x4; camera→world, OpenGL axes) as the world→camera

@@ -80,18 +80,18 @@ pub fn prepare(
         );
     }
     if scene.has_masks() {
-        let files = scene
-            .masks
-            .iter()
-            .filter(|m| matches!(m, crate::scene::MaskSource::File(_)))
-            .count();
+        // Mask files come from `masks/` or from transforms.json's `mask_path`: name the folder
+        // of the first.
+        let folder = scene.masks.iter().find_map(|m| match m {
+            crate::scene::MaskSource::File(p) => p.parent(),
+            _ => None,
+        });
         log(format!(
             "object masks: {} views from {}; training and scores use only pixels inside them",
             scene.masks.len(),
-            if files > 0 {
-                "the masks/ folder"
-            } else {
-                "the photos' alpha channels"
+            match folder {
+                Some(f) => format!("mask files (in {})", f.display()),
+                None => "the photos' alpha channels".to_string(),
             }
         ));
     }

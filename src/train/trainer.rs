@@ -354,6 +354,12 @@ pub fn train(
     // Before any work: an invalid configuration would otherwise train and only fail when its
     // checkpoint is read back.
     cfg.validate()?;
+    if run_dir.exists() && !run_dir.is_dir() {
+        bail!(
+            "{}: is a file, not a run folder; give --out a folder (new or holding a run)",
+            run_dir.display()
+        );
+    }
     std::fs::create_dir_all(run_dir)
         .with_context(|| format!("{}: cannot create the run folder", run_dir.display()))?;
     let _lock = RunLock::acquire(run_dir)?;

@@ -756,6 +756,77 @@ fn transforms_mask_paths_are_the_views_masks() {
     );
 }
 
+/// nerfstudio's `applied_transform` (`ns-process-data` from COLMAP: world (x, y, z) → (x, z, −y),
+/// applied to every pose) is undone, so the cameras stand where the COLMAP reconstruction's
+/// meshes are; `applied_transform = "keep"` in `scene.toml` keeps the file's frame. It was
+/// ignored: with a COLMAP mesh the cameras looked past it.
+#[test]
+fn transforms_applied_transform_is_undone_unless_kept() {
+    let tiny = Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/tiny");
+    let d = scratch("applied_transform");
+    copy_dir(&tiny, &d);
+    let p = d.join("transforms.json");
+    let mut j: serde_json::Value = serde_json::from_str(&fs::read_to_string(&p).unwrap()).unwrap();
+    // A translation too, which nerfstudio does not write but the format allows.
+    let a = [
+        [1.0, 0.0, 0.0, 0.5],
+        [0.0, 0.0, 1.0, -2.0],
+        [0.0, -1.0, 0.0, 3.0],
+    ];
+    for f in j["frames"].as_array_mut().unwrap() {
+        let m: Vec<Vec<f64>> = serde_json::from_value(f["transform_matrix"].clone()).unwrap();
+        let mut out = m.clone();
+        for r in 0..3 {
+            for c in 0..4 {
+                out[r][c] = (0..3).map(|k| a[r][k] * m[k][c]).sum::<f64>()
+                    + if c == 3 { a[r][3] } else { 0.0 };
+            }
+        }
+        f["transform_matrix"] = serde_json::to_value(out).unwrap();
+    }
+    j["applied_transform"] = serde_json::to_value(a).unwrap();
+    fs::write(&p, serde_json::to_string(&j).unwrap()).unwrap();
+    let load = |dir: &Path| {
+        Scene::load_report(
+            dir,
+            &LoadOptions {
+                format: Some(CameraFormat::Transforms),
+                ..LoadOptions::default()
+            },
+        )
+    };
+    let (plain, _) = load(&tiny).unwrap();
+    let (undone, report) = load(&d).unwrap();
+    assert_cameras_close(&plain.views, &undone.views, 1e-9);
+    assert!(
+        report
+            .notes
+            .iter()
+            .any(|n| n.contains("applied_transform is undone")),
+        "{:?}",
+        report.notes
+    );
+    fs::write(d.join("scene.toml"), "applied_transform = \"keep\"\n").unwrap();
+    let (kept, report) = load(&d).unwrap();
+    assert!(report.notes.is_empty());
+    let c = kept.views[0].camera.center();
+    let c0 = plain.views[0].camera.center();
+    let want = DVec3::new(c0.x + 0.5, c0.z - 2.0, -c0.y + 3.0);
+    assert!((c - want).length() < 1e-9, "{c} against {want}");
+    fs::write(d.join("scene.toml"), "").unwrap();
+    j["applied_transform"][1][2] = 2.0.into();
+    fs::write(&p, serde_json::to_string(&j).unwrap()).unwrap();
+    assert_contains(
+        &err(load(&d)),
+        &[
+            "transforms.json",
+            "'applied_transform'",
+            "not a rotation",
+            "keep",
+        ],
+    );
+}
+
 /// Text files saved by Windows editors: a UTF-8 byte-order mark and CRLF line ends in every
 /// camera file, `transforms.json`, `scene.toml` and a `--config`. Each layout loads the same
 /// cameras as the plain files (a mark made `transforms.json` "malformed JSON at line 1

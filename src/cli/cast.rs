@@ -119,6 +119,9 @@ fn build_tracer(
         report.mesh_stats.dropped_degenerate,
         t0.elapsed().as_secs_f64()
     );
+    for n in &report.notes {
+        eprintln!("{n}");
+    }
     for w in &report.warnings {
         eprintln!("warning: {w}");
     }

@@ -90,6 +90,9 @@ struct SceneToml {
     holdout_every: Option<usize>,
     /// Colour of misses in renders, `[r, g, b]` in [0, 1] (default white).
     background: Option<[f32; 3]>,
+    /// `transforms.json`'s `applied_transform`: `"undo"` (default) or `"keep"`
+    /// ([`transforms::AppliedTransform`]).
+    applied_transform: Option<transforms::AppliedTransform>,
 }
 
 /// What [`Scene::load_report`] found.
@@ -98,6 +101,8 @@ pub struct LoadReport {
     pub format: CameraFormat,
     pub mesh_path: PathBuf,
     pub mesh_stats: mesh::MeshStats,
+    /// What loading did that the user should know of (printed by the callers as they are).
+    pub notes: Vec<String>,
     /// Things that load but are probably wrong (printed by the callers as `warning: …`).
     pub warnings: Vec<String>,
 }
@@ -258,10 +263,24 @@ impl Scene {
         let toml_path = dir.join("scene.toml");
         let cfg = read_scene_toml(&toml_path)?;
         let format = choose_format(dir, opts, &cfg, &toml_path)?;
+        let mut notes = Vec::new();
         let (mut views, format_test, given_masks) = match format {
             CameraFormat::Colmap => (load_colmap(dir)?, None, None),
             CameraFormat::MvsNet => (load_mvsnet(dir, opts.mvsnet_dsp)?, None, None),
-            CameraFormat::Transforms => load_transforms(dir)?,
+            CameraFormat::Transforms => {
+                let applied = cfg
+                    .applied_transform
+                    .unwrap_or(transforms::AppliedTransform::Undo);
+                let (loaded, undone) = load_transforms(dir, applied)?;
+                if let Some(file) = undone {
+                    notes.push(format!(
+                        "{}: its applied_transform is undone, so the cameras stand in the frame of the reconstruction it was written from (COLMAP's, Metashape's), where that reconstruction's meshes are; for a mesh in the file's own frame set applied_transform = \"keep\" in {}",
+                        file.display(),
+                        toml_path.display()
+                    ));
+                }
+                loaded
+            }
         };
         check_views(dir, &views)?;
         check_images(&views, opts.load_images_check)?;
@@ -302,6 +321,7 @@ impl Scene {
             format,
             mesh_path,
             mesh_stats,
+            notes,
             warnings,
         };
         Ok((scene, report))
@@ -407,8 +427,11 @@ type LoadedViews = (Vec<View>, Option<Vec<String>>, Option<Vec<PathBuf>>);
 
 /// `transforms.json`, or NeRF-synthetic `transforms_{train,val,test}.json` (the test file's
 /// views are returned as the format's own test split), with the frames' `mask_path` files when
-/// every frame gives one.
-fn load_transforms(dir: &Path) -> Result<LoadedViews> {
+/// every frame gives one, and the first file whose `applied_transform` was undone.
+fn load_transforms(
+    dir: &Path,
+    applied: transforms::AppliedTransform,
+) -> Result<(LoadedViews, Option<PathBuf>)> {
     let single = dir.join("transforms.json");
     let nerf_synthetic = !single.is_file();
     let files: Vec<PathBuf> = if !nerf_synthetic {
@@ -426,18 +449,21 @@ fn load_transforms(dir: &Path) -> Result<LoadedViews> {
     };
     // NeRF-synthetic: the test file's views are the split (none without a test file).
     let mut test = nerf_synthetic.then(Vec::new);
-    let (mut views, mut masks) = (Vec::new(), Vec::new());
+    let (mut views, mut masks, mut undone) = (Vec::new(), Vec::new(), None);
     for f in &files {
-        let (v, m) = transforms::load_with_masks(f)?;
+        let loaded = transforms::load_full(f, applied)?;
         if f.ends_with("transforms_test.json") {
-            test = Some(v.iter().map(|x| x.name.clone()).collect());
+            test = Some(loaded.views.iter().map(|x| x.name.clone()).collect());
         }
-        views.extend(v);
-        masks.extend(m.into_iter().map(|m| (f, m)));
+        if loaded.undone && undone.is_none() {
+            undone = Some(f.clone());
+        }
+        views.extend(loaded.views);
+        masks.extend(loaded.masks.into_iter().map(|m| (f, m)));
     }
     let given = masks.iter().filter(|(_, m)| m.is_some()).count();
     if given == 0 {
-        return Ok((views, test, None));
+        return Ok(((views, test, None), undone));
     }
     if let Some(k) = masks.iter().position(|(_, m)| m.is_none()) {
         bail!(
@@ -448,7 +474,7 @@ fn load_transforms(dir: &Path) -> Result<LoadedViews> {
         );
     }
     let files = masks.into_iter().filter_map(|(_, m)| m).collect();
-    Ok((views, test, Some(files)))
+    Ok(((views, test, Some(files)), undone))
 }
 
 /// At least one view, and unique names.

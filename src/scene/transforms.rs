@@ -18,6 +18,10 @@
 //! name is `file_path` without a leading `./`, plus the extension found. Views keep the file's
 //! frame order.
 //!
+//! A top-level `applied_transform` (nerfstudio: the rigid map it applied to the reconstruction's
+//! poses) is undone by default, so the cameras stand where the reconstruction's meshes are
+//! ([`AppliedTransform`]; `applied_transform = "keep"` in `scene.toml` keeps the file's frame).
+//!
 //! A frame's `mask_path` (nerfstudio), relative to the JSON file like `file_path`, is that view's
 //! object mask (`scene/mask.rs`); nerfstudio's rule holds: every frame has one or none does.
 
@@ -81,18 +85,45 @@ fn resolve_image(base: &Path, file_path: &str) -> Option<(PathBuf, String)> {
 
 /// Load all frames of a transforms file.
 pub fn load(path: &Path) -> Result<Vec<View>> {
-    Ok(load_with_masks(path)?.0)
+    Ok(load_full(path, AppliedTransform::Undo)?.views)
 }
 
-/// [`load`], with each frame's `mask_path` (nerfstudio's per-frame object mask; `scene/mask.rs`)
-/// resolved against the file's folder like `file_path`: `None` for a frame without one; a
-/// `mask_path` naming no file is an error.
-pub fn load_with_masks(path: &Path) -> Result<(Vec<View>, Vec<Option<PathBuf>>)> {
+/// What to do with a file's top-level `applied_transform` (nerfstudio): the map its writer
+/// applied to the poses of the reconstruction it read (`ns-process-data` from COLMAP: world
+/// `(x, y, z) → (x, z, −y)`; also written by its Metashape converter), and to the point cloud it
+/// exported with them — not to a mesh the user made from the same reconstruction.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum AppliedTransform {
+    /// Take the poses back to the reconstruction's frame, where its multi-view-stereo meshes
+    /// are (COLMAP's dense `meshed-*.ply`, Metashape's export). The default.
+    Undo,
+    /// Keep the file's frame (a mesh made in it).
+    Keep,
+}
+
+/// A transforms file's contents ([`load_full`]).
+pub struct Loaded {
+    pub views: Vec<View>,
+    /// Each frame's `mask_path` (nerfstudio's per-frame object mask; `scene/mask.rs`), resolved
+    /// against the file's folder like `file_path`; `None` for a frame without one.
+    pub masks: Vec<Option<PathBuf>>,
+    /// Whether the file has an `applied_transform` that was undone.
+    pub undone: bool,
+}
+
+/// [`load`], with the frames' mask files (a `mask_path` naming no file is an error) and the
+/// file's `applied_transform` undone or kept.
+pub fn load_full(path: &Path, applied: AppliedTransform) -> Result<Loaded> {
     let pd = path.display().to_string();
     let root = read_json(path)?;
     let top = root
         .as_object()
         .ok_or_else(|| anyhow!("{pd}: expected a JSON object at the top level"))?;
+    let undo = match top.get("applied_transform") {
+        Some(m) if applied == AppliedTransform::Undo => Some(world_map(&pd, m)?),
+        _ => None,
+    };
     let base = path.parent().unwrap_or(Path::new("."));
     let top_model = top.get("camera_model").and_then(|v| v.as_str());
     if let Some(m) = top_model {
@@ -137,7 +168,13 @@ pub fn load_with_masks(path: &Path) -> Result<(Vec<View>, Vec<Option<PathBuf>>)>
                 super::mvsnet::IMAGE_EXTS.join(",")
             )
         })?;
-        let (rotation, translation) = pose(&wh, fr)?;
+        let (mut rotation, mut translation) = pose(&wh, fr)?;
+        if let Some((r, t)) = undo {
+            // The file's world point is x' = r·x + t of the reconstruction's x, and its camera
+            // maps x' to rotation·x' + translation.
+            translation += rotation * t;
+            rotation *= r;
+        }
         let camera = intrinsics(&wh, fr, top, model, &image_path, rotation, translation)?;
         masks.push(mask_path(&wh, base, fr)?);
         views.push(View {
@@ -146,7 +183,50 @@ pub fn load_with_masks(path: &Path) -> Result<(Vec<View>, Vec<Option<PathBuf>>)>
             image_path,
         });
     }
-    Ok((views, masks))
+    Ok(Loaded {
+        views,
+        masks,
+        undone: undo.is_some(),
+    })
+}
+
+/// `applied_transform` (3×4, or 4×4 with last row [0, 0, 0, 1]) as the rigid world map
+/// `x' = r·x + t`; its 3×3 part must be a rotation to 1e-6 (nerfstudio's are axis permutations).
+fn world_map(pd: &str, m: &Value) -> Result<(DMat3, DVec3)> {
+    let wh = format!("{pd}: 'applied_transform'");
+    let rows = m
+        .as_array()
+        .filter(|r| r.len() == 3 || r.len() == 4)
+        .ok_or_else(|| anyhow!("{wh} must be a 3x4 or 4x4 array"))?;
+    let mut a = [[0f64; 4]; 4];
+    for (r, row) in rows.iter().enumerate() {
+        let row = row
+            .as_array()
+            .filter(|row| row.len() == 4)
+            .ok_or_else(|| anyhow!("{wh} row {r} must have 4 numbers"))?;
+        for (c, v) in row.iter().enumerate() {
+            a[r][c] = v
+                .as_f64()
+                .filter(|x| x.is_finite())
+                .ok_or_else(|| anyhow!("{wh}[{r}][{c}] is not a finite number"))?;
+        }
+    }
+    if rows.len() == 4 && a[3] != [0.0, 0.0, 0.0, 1.0] {
+        bail!("{wh}: last row must be [0,0,0,1], found {:?}", a[3]);
+    }
+    let r = DMat3::from_cols_array_2d(&[
+        [a[0][0], a[1][0], a[2][0]],
+        [a[0][1], a[1][1], a[2][1]],
+        [a[0][2], a[1][2], a[2][2]],
+    ]);
+    let ortho = (r.transpose() * r - DMat3::IDENTITY)
+        .to_cols_array()
+        .iter()
+        .fold(0f64, |mx, v| mx.max(v.abs()));
+    if ortho > 1e-6 || r.determinant() <= 0.0 {
+        bail!("{wh}: its 3x3 part is not a rotation (|RᵀR − I| = {ortho:.2e}); set applied_transform = \"keep\" in scene.toml to use the poses as written");
+    }
+    Ok((r, DVec3::new(a[0][3], a[1][3], a[2][3])))
 }
 
 /// A frame's `mask_path`, if it has one: relative to the JSON file's folder, and an existing file.

@@ -69,6 +69,9 @@ pub fn prepare(
         scene.mesh.triangles.len(),
         report.mesh_stats.dropped_degenerate
     ));
+    for n in &report.notes {
+        log(n.clone());
+    }
     for w in &report.warnings {
         log(format!("warning: {w}"));
     }
@@ -148,6 +151,10 @@ pub fn prepare(
             dir.display()
         );
     }
+    let all: u64 = sizes.iter().map(|&(w, h)| w as u64 * h as u64).sum();
+    if let Some(w) = few_hits_warning(samples.len() as u64, all) {
+        log(w);
+    }
     log(format!(
         "cast {} training views with γ={gamma} in {:.2} s: {} pixels see the mesh; {} {:.1} MB ({why})",
         train_views.len(),
@@ -164,6 +171,22 @@ pub fn prepare(
         tracer,
         train_views,
         samples,
+    })
+}
+
+/// Below this share of the training views' pixels seeing the mesh, `train` warns: a scene's mesh
+/// fills most of its photos (the synthetic scenes: 99–100 %; an object with masks, tens of
+/// percent), while a mesh and cameras in different frames or units leave a few percent.
+pub const FEW_HITS: f64 = 0.05;
+
+/// The warning for `hits` of `pixels` training pixels seeing the mesh, when under [`FEW_HITS`].
+pub fn few_hits_warning(hits: u64, pixels: u64) -> Option<String> {
+    let share = hits as f64 / pixels.max(1) as f64;
+    (share < FEW_HITS).then(|| {
+        format!(
+            "warning: only {:.1} % of the training views' pixels see the mesh: check that the mesh and the cameras are in one frame and unit (`xscale cast` lists each view's share; a transforms.json with an applied_transform: scene.toml's applied_transform)",
+            100.0 * share
+        )
     })
 }
 
@@ -278,6 +301,18 @@ pub fn drop_fine_levels(model: &mut ModelConfig, footprint_min: f64) -> Option<S
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn few_hits_are_flagged() {
+        assert_eq!(few_hits_warning(18_429, 18_432), None);
+        assert_eq!(few_hits_warning(1_000, 20_000), None, "5 % is enough");
+        let w = few_hits_warning(999, 20_000).unwrap();
+        assert!(
+            w.contains("only 5.0 % of the training views' pixels"),
+            "{w}"
+        );
+        assert!(few_hits_warning(0, 0).is_some());
+    }
 
     #[test]
     fn level_dropping() {

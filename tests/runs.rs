@@ -512,6 +512,7 @@ fn limits_and_bad_settings_get_clear_messages() {
 
 /// A file-size limit (`ulimit -f`) used to kill the process with SIGXFSZ and no message; now the
 /// write fails, the error names the file and a hint names the limit, and no temporary file stays.
+/// A failed checkpoint (as on a full disk) says which step the run still holds.
 #[cfg(unix)]
 #[test]
 fn a_file_size_limit_gets_a_message_not_a_silent_kill() {
@@ -534,6 +535,40 @@ fn a_file_size_limit_gets_a_message_not_a_silent_kill() {
         .filter(|e| e.file_name().to_string_lossy().contains(".tmp."))
         .collect();
     assert!(leftovers.is_empty(), "temporary files left: {leftovers:?}");
+    assert!(
+        err.contains(
+            "step 20: the checkpoint could not be written; no earlier checkpoint was written"
+        ),
+        "{err}"
+    );
+    // A run with a checkpoint that cannot write the next one (a full disk acts the same) says
+    // which step it still holds, and continues from it once the cause is gone.
+    let (code, err) = train(&run, &["--preset", "tiny", "--steps", "10", "--overwrite"]);
+    assert_eq!(code, 0, "{err}");
+    let resume = format!(
+        "ulimit -f 100; exec '{}' train --out '{}' --resume --steps 20 -q",
+        env!("CARGO_BIN_EXE_xscale"),
+        run.display()
+    );
+    let out = Command::new("sh").arg("-c").arg(&resume).output().unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{err}");
+    assert!(
+        err.contains(
+            "checkpoint.safetensors still holds step 10; once the cause (below) is mended"
+        ),
+        "{err}"
+    );
+    let (code, err) = xscale(&[
+        "train",
+        "--out",
+        run.to_str().unwrap(),
+        "--resume",
+        "--steps",
+        "20",
+        "-q",
+    ]);
+    assert_eq!(code, 0, "{err}");
     let _ = std::fs::remove_dir_all(&run);
 }
 

@@ -388,7 +388,7 @@ pub fn train(
     rep.model(&state);
     let interrupted = run_loop(&mut state, &prepared, &ckpt_path, opts, &mut rep)?;
     rep.loop_done();
-    state.save(&ckpt_path)?;
+    save_checkpoint(&state, &ckpt_path)?;
     rep.checkpointed(state.step)?;
     crate::train::refine::write_refined(&state, &prepared, run_dir)?;
     let seconds = rep.elapsed();
@@ -602,7 +602,7 @@ fn run_loop(
             rep.eval(k, &scores)?;
         }
         if tc.checkpoint_every > 0 && k % tc.checkpoint_every == 0 && k < tc.steps {
-            state.save(ckpt_path)?;
+            save_checkpoint(state, ckpt_path)?;
             rep.checkpointed(k)?;
         }
         if opts.interrupt.is_some_and(|f| f.load(Ordering::SeqCst)) {
@@ -610,6 +610,27 @@ fn run_loop(
         }
     }
     Ok(false)
+}
+
+/// Write the run's checkpoint; when that fails (a full disk, a quota), say what the run still
+/// has: the checkpoint file is written whole or not at all, so the previous one is intact.
+fn save_checkpoint(state: &TrainState, ckpt_path: &Path) -> Result<()> {
+    state.save(ckpt_path).map_err(|e| {
+        let kept = crate::io::tensors::TensorFile::read_only(ckpt_path, |_| false)
+            .ok()
+            .and_then(|f| f.meta("step").ok().map(str::to_string));
+        let what = match kept {
+            Some(step) => format!(
+                "{} still holds step {step}; once the cause (below) is mended, e.g. room made, continue with --resume",
+                ckpt_path.display()
+            ),
+            None => "no earlier checkpoint was written".to_string(),
+        };
+        e.context(format!(
+            "step {}: the checkpoint could not be written; {what}",
+            state.step
+        ))
+    })
 }
 
 /// `RUN/checkpoint.safetensors` of a run folder.

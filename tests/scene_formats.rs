@@ -881,6 +881,42 @@ fn byte_order_marks_and_crlf_are_read_in_every_layout() {
 // Images
 // ------------------------------------------------------------------------------------------
 
+/// TIFF photos (COLMAP and photogrammetry scenes ship them, and their names are in `images.txt`,
+/// so converting them means editing the model): 8- and 16-bit RGB and grey load with the PNG
+/// conventions; they were "The image format Tiff is not supported".
+#[test]
+fn tiff_photos_load_like_png() {
+    let d = scratch("tiff");
+    let rgb16 = ::image::ImageBuffer::<::image::Rgb<u16>, _>::from_fn(5, 3, |x, y| {
+        ::image::Rgb([x as u16 * 13_000, y as u16 * 30_000, 65_535 - x as u16 * 7])
+    });
+    let variants = [
+        ("rgb16", ::image::DynamicImage::ImageRgb16(rgb16.clone())),
+        (
+            "rgb8",
+            ::image::DynamicImage::ImageRgb8(
+                ::image::DynamicImage::ImageRgb16(rgb16.clone()).to_rgb8(),
+            ),
+        ),
+        (
+            "grey8",
+            ::image::DynamicImage::ImageLuma8(::image::DynamicImage::ImageRgb16(rgb16).to_luma8()),
+        ),
+    ];
+    for (name, img) in variants {
+        let (tif, png) = (d.join(format!("{name}.tif")), d.join(format!("{name}.png")));
+        img.save(&tif).unwrap();
+        img.save(&png).unwrap();
+        let (a, b) = (
+            image::load_rgb(&tif).unwrap(),
+            image::load_rgb(&png).unwrap(),
+        );
+        assert_eq!((a.width, a.height), (5, 3), "{name}");
+        assert_eq!(a.data, b.data, "{name}: TIFF and PNG of one image");
+        assert_eq!(image::dimensions(&tif).unwrap(), (5, 3));
+    }
+}
+
 #[test]
 fn png_variants_load_as_rgb() {
     let g = image::load_rgb(&fixture("images/gray16.png")).unwrap();

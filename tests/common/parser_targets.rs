@@ -95,6 +95,21 @@ pub fn check_views(vs: &[xscale::scene::view::View]) -> anyhow::Result<()> {
 }
 
 /// Every parser, its seeds from `fx` (the repository's `fixtures/`), writing into `work`.
+/// A transforms.json with the keys nerfstudio adds: a top-level `applied_transform` and each
+/// frame's `mask_path` (naming the frame's own image, which exists next to the file).
+fn nerfstudio_keys(json: &[u8]) -> Vec<u8> {
+    let mut j: serde_json::Value = serde_json::from_slice(json).unwrap();
+    j["applied_transform"] = serde_json::json!([
+        [1.0, 0.0, 0.0, 0.0],
+        [0.0, 0.0, 1.0, 0.0],
+        [0.0, -1.0, 0.0, 0.0]
+    ]);
+    for f in j["frames"].as_array_mut().unwrap() {
+        f["mask_path"] = f["file_path"].clone();
+    }
+    serde_json::to_vec_pretty(&j).unwrap()
+}
+
 pub fn targets(fx: &Path, work: &Path) -> Vec<Target> {
     let fx = fx.to_path_buf();
     let mut ts = Vec::new();
@@ -235,6 +250,7 @@ pub fn targets(fx: &Path, work: &Path) -> Vec<Target> {
         seeds: vec![
             read(fx.join("formats/transforms/transforms.json")),
             read(fx.join("tiny/transforms.json")),
+            nerfstudio_keys(&read(fx.join("tiny/transforms.json"))),
         ],
         text: true,
         quick: 2500,
@@ -253,6 +269,7 @@ pub fn targets(fx: &Path, work: &Path) -> Vec<Target> {
         seeds: vec![
             b"holdout_every = 2\nbackground = [0.0, 0.5, 1.0]\nformat = \"colmap\"\n".to_vec(),
             b"test_views = [\"a.png\"]\n".to_vec(),
+            b"applied_transform = \"keep\"\nformat = \"colmap\"\n".to_vec(),
         ],
         text: true,
         quick: 1500,

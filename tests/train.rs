@@ -182,3 +182,58 @@ fn resume_without_checkpoint_is_an_error() {
         .unwrap();
     assert!(format!("{e:#}").contains("checkpoint.safetensors"), "{e:#}");
 }
+
+/// An interrupt raised while the scene is prepared (casting a large scene's views takes seconds
+/// to minutes) stops there: no step trained, no checkpoint written, a resumed run's checkpoint
+/// untouched. It used to sit through the casting, train one step and save it.
+#[test]
+fn an_interrupt_during_setup_stops_before_training() {
+    static STOP: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(true);
+    let run = tmp("setup-stop");
+    let opts = TrainOptions {
+        interrupt: Some(&STOP),
+        ..quiet(false, None)
+    };
+    let s = train(&fixture(), &run, cfg(10), &opts).unwrap();
+    assert!(s.interrupted && s.steps == 0);
+    assert!(!run.join("checkpoint.safetensors").exists());
+    assert!(!run.join("metrics.jsonl").exists());
+    // Train 10 steps, then resume towards 20 with the flag raised: the step-10 checkpoint stays.
+    train(&fixture(), &run, cfg(10), &quiet(false, None)).unwrap();
+    let before = checkpoint_bytes(&run);
+    let opts = TrainOptions {
+        interrupt: Some(&STOP),
+        ..quiet(true, None)
+    };
+    let s = train(&fixture(), &run, cfg(20), &opts).unwrap();
+    assert!(s.interrupted);
+    assert_eq!(checkpoint_bytes(&run), before);
+    let _ = std::fs::remove_dir_all(&run);
+}
+
+/// An interrupt during the final evaluation stops it between views (`evaluate_until` gives
+/// `None`); a tool's run stopped there counts as stopped (`stopped_run_of`), so the tool
+/// resumes it at its last step, which only evaluates, instead of training it again.
+#[test]
+fn an_interrupted_final_evaluation_is_resumed_not_retrained() {
+    static STOP: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(true);
+    let run = tmp("eval-stop");
+    let c = cfg(10);
+    let opts = TrainOptions {
+        settings: Some(c.results_toml()),
+        ..quiet(false, None)
+    };
+    train(&fixture(), &run, c.clone(), &opts).unwrap();
+    let state = TrainState::load(&run.join("checkpoint.safetensors")).unwrap();
+    let prepared =
+        xscale::train::setup::prepare(&fixture(), &state.cfg, true, &mut |_| {}).unwrap();
+    let eval =
+        |stop| xscale::train::trainer::evaluate_until(&state, &prepared, 0, None, stop).unwrap();
+    assert!(eval(Some(&STOP)).is_none());
+    assert_eq!(eval(None).unwrap().len(), prepared.scene.test.len());
+    // At its last step without eval.json (no final evaluation ran): stopped.
+    assert!(xscale::train::run_dir::stopped_run_of(&run, &c));
+    std::fs::write(run.join("eval.json"), "{}").unwrap();
+    assert!(!xscale::train::run_dir::stopped_run_of(&run, &c));
+    let _ = std::fs::remove_dir_all(&run);
+}

@@ -65,7 +65,9 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
     };
     // (`train` validates the configuration before any work.)
     // First Ctrl-C: finish the step, write a checkpoint, exit. Second: exit at once.
-    let interrupted = super::common::on_interrupt("writing a checkpoint after this step");
+    let interrupted = super::common::on_interrupt(
+        "stopping: in training, after this step with a checkpoint; before or after, at once",
+    );
     let opts = TrainOptions {
         resume: a.resume,
         overwrite: a.overwrite,

@@ -182,15 +182,17 @@ pub fn prepare_run_dir(run_dir: &Path, resume: bool, overwrite: bool) -> Result<
 }
 
 /// The settings a tool that trains run folders itself (`ablate`, `bench-geometry`) started a
-/// run with: its unresolved configuration ([`crate::train::config::RunConfig::results_toml`]), written by the trainer
-/// when the run starts (`TrainOptions::settings`). Listed in [`RUN_FILES`], so it goes with the run it describes.
+/// run with: its unresolved configuration ([`crate::train::config::RunConfig::results_toml`]),
+/// written by the trainer when the run starts (`TrainOptions::settings`). Listed in
+/// [`RUN_FILES`], so it goes with the run it describes.
 pub const SETTINGS_FILE: &str = "variant.toml";
 
 /// Whether `run_dir` holds a run a tool started with exactly the settings `cfg` (its checkpoint
 /// interval aside) that stopped before its last step (Ctrl-C, SIGTERM, a kill after a periodic
-/// checkpoint): the tool then
-/// trains it with `resume`, which gives the bits of an uninterrupted run. A finished run, or one
-/// of other settings, is not (the tool trains afresh, replacing it).
+/// checkpoint), or at its last step before its final evaluation wrote `eval.json`: the tool then
+/// trains it with `resume`, which gives the bits of an uninterrupted run (and, at the last step,
+/// only evaluates). A finished and evaluated run, or one of other settings, is not (the tool
+/// trains afresh, replacing it).
 pub fn stopped_run_of(run_dir: &Path, cfg: &crate::train::config::RunConfig) -> bool {
     let ckpt = run_dir.join("checkpoint.safetensors");
     let step = || -> Option<u64> {
@@ -198,7 +200,9 @@ pub fn stopped_run_of(run_dir: &Path, cfg: &crate::train::config::RunConfig) -> 
         f.meta("step").ok()?.parse().ok()
     };
     std::fs::read_to_string(run_dir.join(SETTINGS_FILE)).is_ok_and(|t| t == cfg.results_toml())
-        && step().is_some_and(|k| k < cfg.train.steps)
+        && step().is_some_and(|k| {
+            k < cfg.train.steps || (k == cfg.train.steps && !run_dir.join("eval.json").is_file())
+        })
 }
 
 /// Remove the files and folders of `dir` named in `names` that exist (what `--overwrite`

@@ -50,6 +50,33 @@ pub fn prepare(
     with_images: bool,
     log: &mut dyn FnMut(String),
 ) -> Result<Prepared> {
+    prepare_until(dir, cfg, with_images, log, None)
+}
+
+/// The error [`prepare_until`] returns when `stop` was raised (Ctrl-C, SIGTERM) before it was
+/// done: nothing is trained yet, so there is nothing to save (a callers tells it apart with
+/// `downcast_ref`).
+#[derive(Debug)]
+pub struct StoppedInSetup;
+
+impl std::fmt::Display for StoppedInSetup {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("stopped while the scene was being prepared, before training began")
+    }
+}
+
+impl std::error::Error for StoppedInSetup {}
+
+/// [`prepare`], giving up with [`StoppedInSetup`] between views once `stop` is raised: casting
+/// a large scene's views takes seconds to minutes (`synth --preset large`: 12 s), which a
+/// Ctrl-C used to sit through before training one step and writing a checkpoint of it.
+pub fn prepare_until(
+    dir: &Path,
+    cfg: &RunConfig,
+    with_images: bool,
+    log: &mut dyn FnMut(String),
+    stop: Option<&std::sync::atomic::AtomicBool>,
+) -> Result<Prepared> {
     let opts = LoadOptions {
         downsample: cfg.train.downsample,
         normalize: cfg.train.normalize,
@@ -121,6 +148,9 @@ pub fn prepare(
     };
     // One photo in memory at a time: load, cast, keep what the mode keeps.
     for (k, &i) in train_views.iter().enumerate() {
+        if stop.is_some_and(|f| f.load(std::sync::atomic::Ordering::SeqCst)) {
+            return Err(StoppedInSetup.into());
+        }
         let img = if with_images {
             Some(scene.load_image(i)?)
         } else {

@@ -26,7 +26,7 @@ use crate::train::divergence::Guard;
 use crate::train::report::Reporter;
 use crate::train::run_dir::{prepare_run_dir, RunLock, SceneFingerprint, SETTINGS_FILE};
 use crate::train::sampler::sample_batch;
-use crate::train::setup::{prepare, resolve_levels, Prepared};
+use crate::train::setup::{prepare_until, resolve_levels, Prepared};
 use anyhow::{bail, Context, Result};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -316,6 +316,19 @@ pub fn evaluate(
     max: usize,
     out: Option<&Path>,
 ) -> Result<Vec<ViewScore>> {
+    Ok(evaluate_until(state, prepared, max, out, None)?.expect("no stop flag"))
+}
+
+/// [`evaluate`], giving up between views once `stop` is raised (`None` then): a large scene's
+/// final evaluation takes tens of seconds (`synth --preset large`: 33 s for 15 views), which a
+/// Ctrl-C used to sit through.
+pub fn evaluate_until(
+    state: &TrainState,
+    prepared: &Prepared,
+    max: usize,
+    out: Option<&Path>,
+    stop: Option<&AtomicBool>,
+) -> Result<Option<Vec<ViewScore>>> {
     let views: Vec<usize> = if max == 0 {
         prepared.scene.test.clone()
     } else {
@@ -325,6 +338,9 @@ pub fn evaluate(
     let tracer = refined.as_ref().unwrap_or(&prepared.tracer);
     let mut scores = Vec::new();
     for &i in &views {
+        if stop.is_some_and(|f| f.load(Ordering::SeqCst)) {
+            return Ok(None);
+        }
         let e = evaluate_view(
             &state.ckpt.model,
             &state.ckpt.params,
@@ -341,7 +357,7 @@ pub fn evaluate(
         }
         scores.push(e.scored.score);
     }
-    Ok(scores)
+    Ok(Some(scores))
 }
 
 /// Train on `scene_dir` into `run_dir`.
@@ -369,7 +385,24 @@ pub fn train(
     }
     let ckpt_path = run_checkpoint(run_dir);
     let metrics_path = run_dir.join("metrics.jsonl");
-    let (mut state, prepared) = open_run(scene_dir, run_dir, cfg, opts)?;
+    let (mut state, prepared) = match open_run(scene_dir, run_dir, cfg, opts) {
+        Err(e)
+            if e.downcast_ref::<crate::train::setup::StoppedInSetup>()
+                .is_some() =>
+        {
+            // Nothing trained, nothing to save: the folder holds what it held (a resumed
+            // run's checkpoint untouched), so the same command starts again.
+            eprintln!("{e}; nothing new to save: run the same command again");
+            return Ok(TrainSummary {
+                steps: 0,
+                interrupted: true,
+                final_scores: None,
+                views: Vec::new(),
+                seconds: 0.0,
+            });
+        }
+        r => r?,
+    };
     let tc = state.cfg.train.clone();
     // A resumed run's time runs on from its checkpoint's (`open_run` cut the metrics back to it).
     let before = if opts.resume {
@@ -416,7 +449,20 @@ pub fn train(
         );
     }
     if !opts.no_final_eval && !prepared.scene.test.is_empty() {
-        let scores = evaluate(&state, &prepared, 0, Some(run_dir))?;
+        let Some(scores) = evaluate_until(&state, &prepared, 0, Some(run_dir), opts.interrupt)?
+        else {
+            rep.say(format!(
+                "the final evaluation was stopped; training is done and its checkpoint written: `xscale eval --run {}` (or `train --resume`) scores the held-out views",
+                run_dir.display()
+            ));
+            return Ok(TrainSummary {
+                steps: state.step,
+                interrupted: true,
+                final_scores: None,
+                views: Vec::new(),
+                seconds,
+            });
+        };
         final_scores = Some(rep.final_eval(state.step, &scores, run_dir)?);
         views = scores;
     }
@@ -479,7 +525,7 @@ fn open_run(
         None
     };
     let run_cfg = resumed.as_ref().map_or(cfg, |s| s.cfg.clone());
-    let prepared = prepare(scene_dir, &run_cfg, true, &mut |m| say(m))?;
+    let prepared = prepare_until(scene_dir, &run_cfg, true, &mut |m| say(m), opts.interrupt)?;
     let fingerprint = SceneFingerprint::of(scene_dir, &prepared.scene);
     if resumed.is_some() {
         if let Some(stored) = SceneFingerprint::read(run_dir)? {

@@ -13,8 +13,8 @@ use crate::eval::protocol::{mean_score, scale_summary, score_rendered};
 use crate::model::params::Grads;
 use crate::train::config::RunConfig;
 use crate::train::sampler::sample_batch;
-use crate::train::setup::{prepare, resolve_levels};
-use crate::train::trainer::{evaluate, TrainState};
+use crate::train::setup::{prepare_until, resolve_levels, StoppedInSetup};
+use crate::train::trainer::{evaluate_until, TrainState};
 use anyhow::{anyhow, bail, Context, Result};
 use std::io::Write;
 use std::path::Path;
@@ -181,7 +181,10 @@ fn bench_one(
         });
         return Ok(true);
     };
-    let prepared = prepare(scene, &cfg, true, &mut |_| {})?;
+    let prepared = match prepare_until(scene, &cfg, true, &mut |_| {}, stop) {
+        Err(e) if e.downcast_ref::<StoppedInSetup>().is_some() => return Ok(false),
+        r => r?,
+    };
     if prepared.scene.test.is_empty() {
         bail!(
             "{}: the scene holds no view out to evaluate",
@@ -211,7 +214,9 @@ fn bench_one(
                 bail!("{name}: the loss became {} at step {}", st.loss, state.step);
             }
         }
-        let scores = evaluate(&state, &prepared, 0, None)?;
+        let Some(scores) = evaluate_until(&state, &prepared, 0, None, stop)? else {
+            return Ok(false);
+        };
         let m = mean_score(&scores);
         let (pn, pf) = near_far(&scores);
         log(Row {
@@ -232,8 +237,8 @@ pub use crate::train::run_dir::Existing;
 
 /// Run the benchmark: every row (also in `OUT/bench.csv`, appended as each evaluation
 /// finishes, so an interrupted run keeps what it measured; plotted in `OUT/pareto.png`) and the
-/// configurations not finished — empty unless `stop()` (Ctrl-C) said so before a training
-/// step, then the stopped one first (its rows up to its last evaluation are kept; `--append`
+/// configurations not finished — empty unless `stop()` (Ctrl-C) said so (checked before each
+/// training step and between the views being cast or evaluated), then the stopped one first (its rows up to its last evaluation are kept; `--append`
 /// runs it again). An existing `OUT/bench.csv` is handled as `existing` says.
 #[allow(clippy::too_many_arguments)]
 pub fn bench_quality(

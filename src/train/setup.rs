@@ -50,10 +50,10 @@ pub fn prepare(
     with_images: bool,
     log: &mut dyn FnMut(String),
 ) -> Result<Prepared> {
-    prepare_until(dir, cfg, with_images, log, None)
+    prepare_until(dir, cfg, with_images, log, &|| false)
 }
 
-/// The error [`prepare_until`] returns when `stop` was raised (Ctrl-C, SIGTERM) before it was
+/// The error [`prepare_until`] returns when `stop()` said so (Ctrl-C, SIGTERM) before it was
 /// done: nothing is trained yet, so there is nothing to save (a callers tells it apart with
 /// `downcast_ref`).
 #[derive(Debug)]
@@ -67,7 +67,7 @@ impl std::fmt::Display for StoppedInSetup {
 
 impl std::error::Error for StoppedInSetup {}
 
-/// [`prepare`], giving up with [`StoppedInSetup`] between views once `stop` is raised: casting
+/// [`prepare`], giving up with [`StoppedInSetup`] between views once `stop()` says so: casting
 /// a large scene's views takes seconds to minutes (`synth --preset large`: 12 s), which a
 /// Ctrl-C used to sit through before training one step and writing a checkpoint of it.
 pub fn prepare_until(
@@ -75,7 +75,7 @@ pub fn prepare_until(
     cfg: &RunConfig,
     with_images: bool,
     log: &mut dyn FnMut(String),
-    stop: Option<&std::sync::atomic::AtomicBool>,
+    stop: &dyn Fn() -> bool,
 ) -> Result<Prepared> {
     let opts = LoadOptions {
         downsample: cfg.train.downsample,
@@ -148,7 +148,7 @@ pub fn prepare_until(
     };
     // One photo in memory at a time: load, cast, keep what the mode keeps.
     for (k, &i) in train_views.iter().enumerate() {
-        if stop.is_some_and(|f| f.load(std::sync::atomic::Ordering::SeqCst)) {
+        if stop() {
             return Err(StoppedInSetup.into());
         }
         let img = if with_images {

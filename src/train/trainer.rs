@@ -278,6 +278,13 @@ pub struct TrainOptions {
     pub settings: Option<String>,
 }
 
+impl TrainOptions {
+    /// Whether the interrupt flag is raised.
+    pub fn stopped(&self) -> bool {
+        self.interrupt.is_some_and(|f| f.load(Ordering::SeqCst))
+    }
+}
+
 /// How a run ended.
 pub struct TrainSummary {
     pub steps: u64,
@@ -316,10 +323,10 @@ pub fn evaluate(
     max: usize,
     out: Option<&Path>,
 ) -> Result<Vec<ViewScore>> {
-    Ok(evaluate_until(state, prepared, max, out, None)?.expect("no stop flag"))
+    Ok(evaluate_until(state, prepared, max, out, &|| false)?.expect("never stopped"))
 }
 
-/// [`evaluate`], giving up between views once `stop` is raised (`None` then): a large scene's
+/// [`evaluate`], giving up between views once `stop()` says so (`None` then): a large scene's
 /// final evaluation takes tens of seconds (`synth --preset large`: 33 s for 15 views), which a
 /// Ctrl-C used to sit through.
 pub fn evaluate_until(
@@ -327,7 +334,7 @@ pub fn evaluate_until(
     prepared: &Prepared,
     max: usize,
     out: Option<&Path>,
-    stop: Option<&AtomicBool>,
+    stop: &dyn Fn() -> bool,
 ) -> Result<Option<Vec<ViewScore>>> {
     let views: Vec<usize> = if max == 0 {
         prepared.scene.test.clone()
@@ -338,7 +345,7 @@ pub fn evaluate_until(
     let tracer = refined.as_ref().unwrap_or(&prepared.tracer);
     let mut scores = Vec::new();
     for &i in &views {
-        if stop.is_some_and(|f| f.load(Ordering::SeqCst)) {
+        if stop() {
             return Ok(None);
         }
         let e = evaluate_view(
@@ -449,7 +456,7 @@ pub fn train(
         );
     }
     if !opts.no_final_eval && !prepared.scene.test.is_empty() {
-        let Some(scores) = evaluate_until(&state, &prepared, 0, Some(run_dir), opts.interrupt)?
+        let Some(scores) = evaluate_until(&state, &prepared, 0, Some(run_dir), &|| opts.stopped())?
         else {
             rep.say(format!(
                 "the final evaluation was stopped; training is done and its checkpoint written: `xscale eval --run {}` (or `train --resume`) scores the held-out views",
@@ -525,7 +532,9 @@ fn open_run(
         None
     };
     let run_cfg = resumed.as_ref().map_or(cfg, |s| s.cfg.clone());
-    let prepared = prepare_until(scene_dir, &run_cfg, true, &mut |m| say(m), opts.interrupt)?;
+    let prepared = prepare_until(scene_dir, &run_cfg, true, &mut |m| say(m), &|| {
+        opts.stopped()
+    })?;
     let fingerprint = SceneFingerprint::of(scene_dir, &prepared.scene);
     if resumed.is_some() {
         if let Some(stored) = SceneFingerprint::read(run_dir)? {
@@ -651,7 +660,7 @@ fn run_loop(
             save_checkpoint(state, ckpt_path)?;
             rep.checkpointed(k)?;
         }
-        if opts.interrupt.is_some_and(|f| f.load(Ordering::SeqCst)) {
+        if opts.stopped() {
             return Ok(true);
         }
     }

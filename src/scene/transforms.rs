@@ -194,35 +194,13 @@ pub fn load_full(path: &Path, applied: AppliedTransform) -> Result<Loaded> {
 /// `x' = r·x + t`; its 3×3 part must be a rotation to 1e-6 (nerfstudio's are axis permutations).
 fn world_map(pd: &str, m: &Value) -> Result<(DMat3, DVec3)> {
     let wh = format!("{pd}: 'applied_transform'");
-    let rows = m
-        .as_array()
-        .filter(|r| r.len() == 3 || r.len() == 4)
-        .ok_or_else(|| anyhow!("{wh} must be a 3x4 or 4x4 array"))?;
-    let mut a = [[0f64; 4]; 4];
-    for (r, row) in rows.iter().enumerate() {
-        let row = row
-            .as_array()
-            .filter(|row| row.len() == 4)
-            .ok_or_else(|| anyhow!("{wh} row {r} must have 4 numbers"))?;
-        for (c, v) in row.iter().enumerate() {
-            a[r][c] = v
-                .as_f64()
-                .filter(|x| x.is_finite())
-                .ok_or_else(|| anyhow!("{wh}[{r}][{c}] is not a finite number"))?;
-        }
-    }
-    if rows.len() == 4 && a[3] != [0.0, 0.0, 0.0, 1.0] {
-        bail!("{wh}: last row must be [0,0,0,1], found {:?}", a[3]);
-    }
+    let a = affine_rows(&wh, m)?;
     let r = DMat3::from_cols_array_2d(&[
         [a[0][0], a[1][0], a[2][0]],
         [a[0][1], a[1][1], a[2][1]],
         [a[0][2], a[1][2], a[2][2]],
     ]);
-    let ortho = (r.transpose() * r - DMat3::IDENTITY)
-        .to_cols_array()
-        .iter()
-        .fold(0f64, |mx, v| mx.max(v.abs()));
+    let ortho = non_orthonormality(&r);
     if ortho > 1e-6 || r.determinant() <= 0.0 {
         bail!("{wh}: its 3x3 part is not a rotation (|RᵀR − I| = {ortho:.2e}); set applied_transform = \"keep\" in scene.toml to use the poses as written");
     }
@@ -249,45 +227,52 @@ fn mask_path(wh: &str, base: &Path, fr: &Map<String, Value>) -> Result<Option<Pa
 fn pose(wh: &str, fr: &Map<String, Value>) -> Result<(DMat3, DVec3)> {
     let m = fr
         .get("transform_matrix")
-        .and_then(|v| v.as_array())
         .ok_or_else(|| anyhow!("{wh}: missing 'transform_matrix' (4x4 array)"))?;
-    if m.len() != 4 && m.len() != 3 {
-        bail!(
-            "{wh}: 'transform_matrix' must have 4 rows, found {}",
-            m.len()
-        );
-    }
-    let mut a = [[0f64; 4]; 4];
-    for (r, row) in m.iter().enumerate() {
-        let row = row
-            .as_array()
-            .filter(|row| row.len() == 4)
-            .ok_or_else(|| anyhow!("{wh}: 'transform_matrix' row {r} must have 4 numbers"))?;
-        for (c, v) in row.iter().enumerate() {
-            a[r][c] = v.as_f64().filter(|x| x.is_finite()).ok_or_else(|| {
-                anyhow!("{wh}: 'transform_matrix'[{r}][{c}] is not a finite number")
-            })?;
-        }
-    }
-    if m.len() == 4 && (a[3] != [0.0, 0.0, 0.0, 1.0]) {
-        bail!(
-            "{wh}: 'transform_matrix' last row must be [0,0,0,1], found {:?}",
-            a[3]
-        );
-    }
+    let a = affine_rows(&format!("{wh}: 'transform_matrix'"), m)?;
     // Columns of the camera→world rotation in OpenCV axes: x, -y, -z of the GL one.
     let col = |c: usize, s: f64| DVec3::new(s * a[0][c], s * a[1][c], s * a[2][c]);
     let c2w = DMat3::from_cols(col(0, 1.0), col(1, -1.0), col(2, -1.0));
-    let ortho = (c2w.transpose() * c2w - DMat3::IDENTITY)
-        .to_cols_array()
-        .iter()
-        .fold(0f64, |mx, v| mx.max(v.abs()));
+    let ortho = non_orthonormality(&c2w);
     if ortho > 1e-3 || c2w.determinant() <= 0.0 {
         bail!("{wh}: the rotation part of 'transform_matrix' is not a rotation (|RᵀR − I| = {ortho:.2e})");
     }
     let center = DVec3::new(a[0][3], a[1][3], a[2][3]);
     let rotation = c2w.transpose();
     Ok((rotation, -(rotation * center)))
+}
+
+/// The top three rows of a 3×4, or 4×4 with last row [0, 0, 0, 1], matrix of finite numbers;
+/// errors start with `wh` (the file, frame and key).
+fn affine_rows(wh: &str, m: &Value) -> Result<[[f64; 4]; 3]> {
+    let rows = m
+        .as_array()
+        .filter(|r| r.len() == 3 || r.len() == 4)
+        .ok_or_else(|| anyhow!("{wh} must be a 4x4 (or 3x4) array"))?;
+    let mut a = [[0f64; 4]; 4];
+    for (r, row) in rows.iter().enumerate() {
+        let row = row
+            .as_array()
+            .filter(|row| row.len() == 4)
+            .ok_or_else(|| anyhow!("{wh} row {r} must have 4 numbers"))?;
+        for (c, v) in row.iter().enumerate() {
+            a[r][c] = v
+                .as_f64()
+                .filter(|x| x.is_finite())
+                .ok_or_else(|| anyhow!("{wh}[{r}][{c}] is not a finite number"))?;
+        }
+    }
+    if rows.len() == 4 && a[3] != [0.0, 0.0, 0.0, 1.0] {
+        bail!("{wh}: last row must be [0,0,0,1], found {:?}", a[3]);
+    }
+    Ok([a[0], a[1], a[2]])
+}
+
+/// max |RᵀR − I|: how far a matrix is from orthonormal.
+fn non_orthonormality(r: &DMat3) -> f64 {
+    (r.transpose() * *r - DMat3::IDENTITY)
+        .to_cols_array()
+        .iter()
+        .fold(0f64, |mx, v| mx.max(v.abs()))
 }
 
 /// A frame's camera: size (or the image's), focal lengths (or field of view), principal point

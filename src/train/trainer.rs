@@ -296,6 +296,19 @@ pub struct TrainSummary {
     pub seconds: f64,
 }
 
+impl TrainSummary {
+    /// A run stopped by an interrupt at `steps`, without a final evaluation.
+    fn stopped(steps: u64, seconds: f64) -> TrainSummary {
+        TrainSummary {
+            steps,
+            interrupted: true,
+            final_scores: None,
+            views: Vec::new(),
+            seconds,
+        }
+    }
+}
+
 /// Keep only the metrics lines of steps ≤ `step` (resume rewrites history from there on).
 fn truncate_metrics(path: &Path, step: u64) -> Result<()> {
     let Ok(text) = std::fs::read_to_string(path) else {
@@ -400,13 +413,7 @@ pub fn train(
             // Nothing trained, nothing to save: the folder holds what it held (a resumed
             // run's checkpoint untouched), so the same command starts again.
             eprintln!("{e}; nothing new to save: run the same command again");
-            return Ok(TrainSummary {
-                steps: 0,
-                interrupted: true,
-                final_scores: None,
-                views: Vec::new(),
-                seconds: 0.0,
-            });
+            return Ok(TrainSummary::stopped(0, 0.0));
         }
         r => r?,
     };
@@ -439,13 +446,7 @@ pub fn train(
             tc.steps,
             ckpt_path.display()
         ));
-        return Ok(TrainSummary {
-            steps: state.step,
-            interrupted: true,
-            final_scores: None,
-            views: Vec::new(),
-            seconds,
-        });
+        return Ok(TrainSummary::stopped(state.step, seconds));
     }
     rep.trained(state.step, seconds, &ckpt_path)?;
     let (mut final_scores, mut views) = (None, Vec::new());
@@ -462,13 +463,7 @@ pub fn train(
                 "the final evaluation was stopped; training is done and its checkpoint written: `xscale eval --run {}` (or `train --resume`) scores the held-out views",
                 run_dir.display()
             ));
-            return Ok(TrainSummary {
-                steps: state.step,
-                interrupted: true,
-                final_scores: None,
-                views: Vec::new(),
-                seconds,
-            });
+            return Ok(TrainSummary::stopped(state.step, seconds));
         };
         final_scores = Some(rep.final_eval(state.step, &scores, run_dir)?);
         views = scores;

@@ -740,3 +740,65 @@ fn overwriting_a_tools_run_drops_its_settings() {
     assert!(!run.join("variant.toml").exists());
     let _ = std::fs::remove_dir_all(&run);
 }
+
+/// `eval` / `render --run` on a scene whose cameras or split changed since the run was trained
+/// on it warn (the scores would be for views the model did not learn or was not held out
+/// from); the scene as trained, or another copy of it, does not.
+#[test]
+fn eval_warns_when_the_runs_scene_changed() {
+    let scene = tmp("changed-scene");
+    copy_dir(&fixture(), &scene);
+    let run = tmp("changed-run");
+    let s = scene.to_str().unwrap();
+    let r = run.to_str().unwrap();
+    let (code, err) = xscale(&[
+        "train",
+        "--scene",
+        s,
+        "--out",
+        r,
+        "--preset",
+        "tiny",
+        "--steps",
+        "5",
+        "--no-eval",
+        "-q",
+    ]);
+    assert_eq!(code, 0, "{err}");
+    let (code, err) = xscale(&["eval", "--run", r]);
+    assert_eq!(code, 0, "{err}");
+    assert!(!err.contains("warning: the scene"), "{err}");
+    let (_, err) = xscale(&["eval", "--run", r, "--scene", fixture().to_str().unwrap()]);
+    assert!(
+        !err.contains("warning: the scene"),
+        "a copy of the same scene: {err}"
+    );
+    let toml = std::fs::read_to_string(scene.join("scene.toml")).unwrap();
+    let toml: String = toml
+        .lines()
+        .filter(|l| !l.starts_with("holdout_every") && !l.starts_with("test_views"))
+        .map(|l| format!("{l}\n"))
+        .collect();
+    std::fs::write(scene.join("scene.toml"), toml + "holdout_every = 3\n").unwrap();
+    for cmd in [
+        &["eval", "--run", r][..],
+        &[
+            "render",
+            "--run",
+            r,
+            "--views",
+            "0000",
+            "--out",
+            &format!("{r}/r2"),
+        ],
+    ] {
+        let (code, err) = xscale(cmd);
+        assert_eq!(code, 0, "{err}");
+        assert!(
+            err.contains("its train/test split changed since the run") && err.contains(r),
+            "{cmd:?}: {err}"
+        );
+    }
+    let _ = std::fs::remove_dir_all(&scene);
+    let _ = std::fs::remove_dir_all(&run);
+}

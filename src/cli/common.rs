@@ -98,8 +98,49 @@ impl ModelArgs {
             self.downsample,
             self.mesh.as_deref(),
         )?;
+        // Scores on other views than the run learned would read as its quality: say so. (At
+        // another --downsample the cameras differ by design; a --mesh may differ on purpose.)
+        let same_downsample = match (self.downsample, &cfg) {
+            (Some(d), Some(c)) => d == c.train.downsample,
+            (Some(_), None) => false,
+            (None, _) => true,
+        };
+        if let (Some(run), true) = (&self.run, same_downsample) {
+            if let Some(w) = scene_changed_warning(run, &dir, &s.scene)? {
+                eprintln!("{w}");
+            }
+        }
         Ok((path, ck, s))
     }
+}
+
+/// A warning when `scene`'s cameras or train/test split are not those `run` was trained on
+/// (`RUN/scene.json`; `None` too for a run without one).
+pub fn scene_changed_warning(run: &Path, dir: &Path, scene: &Scene) -> Result<Option<String>> {
+    let Some(then) = crate::train::run_dir::SceneFingerprint::read(run)? else {
+        return Ok(None);
+    };
+    let now = crate::train::run_dir::SceneFingerprint::of(dir, scene);
+    let mut what = Vec::new();
+    if now.cameras != then.cameras {
+        what.push("cameras");
+    }
+    if now.split != then.split {
+        what.push("train/test split");
+    }
+    let what = what.join(" and ");
+    let (dir_now, run) = (now.scene.display(), run.display());
+    Ok((!what.is_empty()).then(|| {
+        let how = if now.scene == then.scene {
+            format!("its {what} changed since the run {run} was trained on it")
+        } else {
+            format!(
+                "its {what} differ from those of {}, which the run {run} was trained on",
+                then.scene.display()
+            )
+        };
+        format!("warning: the scene {dir_now}: {how}: its views are not the ones the model learned or was held out from")
+    }))
 }
 
 impl ModelArgs {

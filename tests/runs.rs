@@ -802,3 +802,56 @@ fn eval_warns_when_the_runs_scene_changed() {
     let _ = std::fs::remove_dir_all(&scene);
     let _ = std::fs::remove_dir_all(&run);
 }
+
+/// A run trained on a transforms.json with an applied_transform read as written (`"keep"`, as
+/// xscale read every such file before it undid them) and resumed with the map undone is refused
+/// as a changed scene, with the way back named.
+#[test]
+fn resuming_across_the_applied_transform_change_names_the_setting() {
+    let scene = tmp("applied-scene");
+    copy_dir(&fixture(), &scene);
+    let p = scene.join("transforms.json");
+    let mut j: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&p).unwrap()).unwrap();
+    j["applied_transform"] = serde_json::json!([[1, 0, 0, 1], [0, 1, 0, 0], [0, 0, 1, 0]]);
+    std::fs::write(&p, serde_json::to_string(&j).unwrap()).unwrap();
+    let keep = "format = \"transforms\"\napplied_transform = \"keep\"\n";
+    std::fs::write(scene.join("scene.toml"), keep).unwrap();
+    let run = tmp("applied-run");
+    let (s, r) = (scene.to_str().unwrap(), run.to_str().unwrap());
+    let (code, err) = xscale(&[
+        "train",
+        "--scene",
+        s,
+        "--out",
+        r,
+        "--preset",
+        "tiny",
+        "--steps",
+        "5",
+        "--no-eval",
+        "-q",
+    ]);
+    assert_eq!(code, 0, "{err}");
+    std::fs::write(scene.join("scene.toml"), "format = \"transforms\"\n").unwrap();
+    let (code, err) = xscale(&["train", "--out", r, "--resume", "--steps", "10", "-q"]);
+    assert_eq!(code, 2, "{err}");
+    assert!(
+        err.contains("its cameras changed") && err.contains("applied_transform = \"keep\""),
+        "{err}"
+    );
+    std::fs::write(scene.join("scene.toml"), keep).unwrap();
+    let (code, err) = xscale(&[
+        "train",
+        "--out",
+        r,
+        "--resume",
+        "--steps",
+        "10",
+        "-q",
+        "--no-eval",
+    ]);
+    assert_eq!(code, 0, "{err}");
+    let _ = std::fs::remove_dir_all(&scene);
+    let _ = std::fs::remove_dir_all(&run);
+}

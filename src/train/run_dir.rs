@@ -339,11 +339,21 @@ impl SceneFingerprint {
             diff.push("mesh");
         }
         if !diff.is_empty() {
+            // Since 2026-11-27 a transforms.json's applied_transform is undone: a run trained on
+            // one before reads its cameras in another frame now.
+            let applied = self.cameras != now.cameras
+                && std::fs::read_to_string(now.scene.join("transforms.json"))
+                    .is_ok_and(|t| t.contains("\"applied_transform\""));
             bail!(
-                "--resume: the scene {} differs from the one this run was trained on ({}): its {} changed; resume on the same scene, or start a new run",
+                "--resume: the scene {} differs from the one this run was trained on ({}): its {} changed; resume on the same scene, or start a new run{}",
                 now.scene.display(),
                 self.scene.display(),
-                diff.join(" and ")
+                diff.join(" and "),
+                if applied {
+                    " (its transforms.json has an applied_transform, which xscale undoes since 2026-11-27: for a run trained before, set applied_transform = \"keep\" in scene.toml)"
+                } else {
+                    ""
+                }
             );
         }
         Ok(())

@@ -96,18 +96,29 @@ pub fn check_views(vs: &[xscale::scene::view::View]) -> anyhow::Result<()> {
 
 /// Every parser, its seeds from `fx` (the repository's `fixtures/`), writing into `work`.
 /// A transforms.json with the keys nerfstudio adds: a top-level `applied_transform` and each
-/// frame's `mask_path` (naming the frame's own image, which exists next to the file).
+/// frame's `mask_path` (naming the frame's own image, which exists next to the file). Plain text
+/// edits, as the cargo-fuzz crate that shares this file has no JSON library.
 fn nerfstudio_keys(json: &[u8]) -> Vec<u8> {
-    let mut j: serde_json::Value = serde_json::from_slice(json).unwrap();
-    j["applied_transform"] = serde_json::json!([
-        [1.0, 0.0, 0.0, 0.0],
-        [0.0, 0.0, 1.0, 0.0],
-        [0.0, -1.0, 0.0, 0.0]
-    ]);
-    for f in j["frames"].as_array_mut().unwrap() {
-        f["mask_path"] = f["file_path"].clone();
+    let text = std::str::from_utf8(json).unwrap();
+    let open = text.find('{').unwrap() + 1;
+    let mut out = format!(
+        "{}\n  \"applied_transform\": [[1, 0, 0, 0], [0, 0, 1, 0], [0, -1, 0, 0]],{}",
+        &text[..open],
+        &text[open..]
+    );
+    // `"file_path": "P",` → `"file_path": "P", "mask_path": "P",`
+    let key = "\"file_path\": ";
+    let mut at = 0;
+    while let Some(k) = out[at..].find(key) {
+        let start = at + k + key.len();
+        let end = start + 1 + out[start + 1..].find('"').unwrap() + 1;
+        let value = out[start..end].to_string();
+        let insert = format!(", \"mask_path\": {value}");
+        out.insert_str(end, &insert);
+        at = end + insert.len();
     }
-    serde_json::to_vec_pretty(&j).unwrap()
+    assert!(out.contains("mask_path"), "no file_path in the seed");
+    out.into_bytes()
 }
 
 pub fn targets(fx: &Path, work: &Path) -> Vec<Target> {

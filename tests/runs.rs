@@ -50,6 +50,24 @@ fn train(run: &Path, extra: &[&str]) -> (i32, String) {
     xscale(&args)
 }
 
+/// `xscale train` of 5 `tiny` steps on `scene` into `run`, without evaluation; must succeed.
+fn train_tiny_5(scene: &str, run: &str) {
+    let (code, err) = xscale(&[
+        "train",
+        "--scene",
+        scene,
+        "--out",
+        run,
+        "--preset",
+        "tiny",
+        "--steps",
+        "5",
+        "--no-eval",
+        "-q",
+    ]);
+    assert_eq!(code, 0, "{err}");
+}
+
 fn step_of(run: &Path) -> u64 {
     xscale::train::trainer::TrainState::load(&run.join("checkpoint.safetensors"))
         .unwrap()
@@ -751,20 +769,7 @@ fn eval_warns_when_the_runs_scene_changed() {
     let run = tmp("changed-run");
     let s = scene.to_str().unwrap();
     let r = run.to_str().unwrap();
-    let (code, err) = xscale(&[
-        "train",
-        "--scene",
-        s,
-        "--out",
-        r,
-        "--preset",
-        "tiny",
-        "--steps",
-        "5",
-        "--no-eval",
-        "-q",
-    ]);
-    assert_eq!(code, 0, "{err}");
+    train_tiny_5(s, r);
     let (code, err) = xscale(&["eval", "--run", r]);
     assert_eq!(code, 0, "{err}");
     assert!(!err.contains("warning: the scene"), "{err}");
@@ -819,20 +824,7 @@ fn resuming_across_the_applied_transform_change_names_the_setting() {
     std::fs::write(scene.join("scene.toml"), keep).unwrap();
     let run = tmp("applied-run");
     let (s, r) = (scene.to_str().unwrap(), run.to_str().unwrap());
-    let (code, err) = xscale(&[
-        "train",
-        "--scene",
-        s,
-        "--out",
-        r,
-        "--preset",
-        "tiny",
-        "--steps",
-        "5",
-        "--no-eval",
-        "-q",
-    ]);
-    assert_eq!(code, 0, "{err}");
+    train_tiny_5(s, r);
     std::fs::write(scene.join("scene.toml"), "format = \"transforms\"\n").unwrap();
     let (code, err) = xscale(&["train", "--out", r, "--resume", "--steps", "10", "-q"]);
     assert_eq!(code, 2, "{err}");

@@ -36,7 +36,11 @@ fn xscale(args: &[&str]) -> (i32, String) {
 }
 
 fn train(run: &Path, extra: &[&str]) -> (i32, String) {
-    let scene = fixture();
+    train_on(&fixture(), run, extra)
+}
+
+/// `xscale train --scene SCENE --out RUN --no-eval -q EXTRA…`.
+fn train_on(scene: &Path, run: &Path, extra: &[&str]) -> (i32, String) {
     let mut args = vec![
         "train",
         "--scene",
@@ -51,20 +55,8 @@ fn train(run: &Path, extra: &[&str]) -> (i32, String) {
 }
 
 /// `xscale train` of 5 `tiny` steps on `scene` into `run`, without evaluation; must succeed.
-fn train_tiny_5(scene: &str, run: &str) {
-    let (code, err) = xscale(&[
-        "train",
-        "--scene",
-        scene,
-        "--out",
-        run,
-        "--preset",
-        "tiny",
-        "--steps",
-        "5",
-        "--no-eval",
-        "-q",
-    ]);
+fn train_tiny_5(scene: &Path, run: &Path) {
+    let (code, err) = train_on(scene, run, &["--preset", "tiny", "--steps", "5"]);
     assert_eq!(code, 0, "{err}");
 }
 
@@ -767,9 +759,8 @@ fn eval_warns_when_the_runs_scene_changed() {
     let scene = tmp("changed-scene");
     copy_dir(&fixture(), &scene);
     let run = tmp("changed-run");
-    let s = scene.to_str().unwrap();
     let r = run.to_str().unwrap();
-    train_tiny_5(s, r);
+    train_tiny_5(&scene, &run);
     let (code, err) = xscale(&["eval", "--run", r]);
     assert_eq!(code, 0, "{err}");
     assert!(!err.contains("warning: the scene"), "{err}");
@@ -823,8 +814,8 @@ fn resuming_across_the_applied_transform_change_names_the_setting() {
     let keep = "format = \"transforms\"\napplied_transform = \"keep\"\n";
     std::fs::write(scene.join("scene.toml"), keep).unwrap();
     let run = tmp("applied-run");
-    let (s, r) = (scene.to_str().unwrap(), run.to_str().unwrap());
-    train_tiny_5(s, r);
+    let r = run.to_str().unwrap();
+    train_tiny_5(&scene, &run);
     std::fs::write(scene.join("scene.toml"), "format = \"transforms\"\n").unwrap();
     let (code, err) = xscale(&["train", "--out", r, "--resume", "--steps", "10", "-q"]);
     assert_eq!(code, 2, "{err}");

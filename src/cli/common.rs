@@ -121,13 +121,9 @@ pub fn scene_changed_warning(run: &Path, dir: &Path, scene: &Scene) -> Result<Op
         return Ok(None);
     };
     let now = crate::train::run_dir::SceneFingerprint::of(dir, scene);
-    let mut what = Vec::new();
-    if now.cameras != then.cameras {
-        what.push("cameras");
-    }
-    if now.split != then.split {
-        what.push("train/test split");
-    }
+    // The mesh is left out: `--mesh` may differ on purpose.
+    let mut what = then.changed(&now);
+    what.retain(|w| *w != "mesh");
     let what = what.join(" and ");
     let (dir_now, run) = (now.scene.display(), run.display());
     Ok((!what.is_empty()).then(|| {

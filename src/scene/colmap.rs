@@ -319,10 +319,6 @@ pub fn load(dir: &Path, images_dir: &Path) -> Result<Vec<View>> {
 // Text
 // ---------------------------------------------------------------------------------------------
 
-fn read_text_file(path: &Path) -> Result<String> {
-    crate::io::text::read(path)
-}
-
 fn parse_num<T: std::str::FromStr>(s: &str, where_: &str, what: &str) -> Result<T> {
     s.parse()
         .map_err(|_| anyhow!("{where_}: {what} '{s}' is not a valid number"))
@@ -331,7 +327,7 @@ fn parse_num<T: std::str::FromStr>(s: &str, where_: &str, what: &str) -> Result<
 /// Read `cameras.txt` + `images.txt`.
 pub fn read_text(dir: &Path, images_dir: &Path) -> Result<Vec<View>> {
     let cpath = dir.join("cameras.txt");
-    let ctext = read_text_file(&cpath)?;
+    let ctext = crate::io::text::read(&cpath)?;
     let mut cams = HashMap::new();
     for (ln, line) in ctext.lines().enumerate() {
         let line = line.trim();
@@ -372,7 +368,7 @@ pub fn read_text(dir: &Path, images_dir: &Path) -> Result<Vec<View>> {
     }
 
     let ipath = dir.join("images.txt");
-    let itext = read_text_file(&ipath)?;
+    let itext = crate::io::text::read(&ipath)?;
     let mut imgs = Vec::new();
     // Two lines per image; the second (2D points) may be empty, so blank lines are significant
     // there. A header line is never blank, so blank lines are skipped while looking for one. If

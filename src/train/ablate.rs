@@ -326,11 +326,7 @@ pub fn run_ablation(scene: &Path, out: &Path, opts: &AblateOptions) -> Result<Ab
             }
         }
     }
-    // No periodic evaluation inside the runs: the final evaluation is the result. Checkpoints a
-    // tenth of a run apart, so a killed variant continues from one (`base_config` and the
-    // variants' settings leave the interval out, so earlier ablations still match).
-    base.train.eval_every = 0;
-    base.train.checkpoint_every = crate::train::config::tool_checkpoint_every(base.train.steps);
+    crate::train::config::set_tool_run(&mut base);
     let base_config = base.results_toml();
     let mut results: Vec<VariantResult> = Vec::new();
     if let Some(old) = earlier {

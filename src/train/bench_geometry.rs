@@ -274,11 +274,7 @@ pub fn bench_geometry(
     );
     let mut base = opts.base.clone();
     base.validate()?;
-    // No periodic evaluations inside the runs: the final evaluation is the result. Checkpoints
-    // a tenth of a run apart, so a killed run continues from one (the variant keys leave the
-    // interval out, so runs of earlier builds, which had none, are still reused).
-    base.train.eval_every = 0;
-    base.train.checkpoint_every = crate::train::config::tool_checkpoint_every(base.train.steps);
+    crate::train::config::set_tool_run(&mut base);
     let truth = load_truth(scene)?;
     let diag = diagonal(&truth);
     say(format!(

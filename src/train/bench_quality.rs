@@ -238,8 +238,9 @@ pub use crate::train::run_dir::Existing;
 /// Run the benchmark: every row (also in `OUT/bench.csv`, appended as each evaluation
 /// finishes, so an interrupted run keeps what it measured; plotted in `OUT/pareto.png`) and the
 /// configurations not finished — empty unless `stop()` (Ctrl-C) said so (checked before each
-/// training step and between the views being cast or evaluated), then the stopped one first (its rows up to its last evaluation are kept; `--append`
-/// runs it again). An existing `OUT/bench.csv` is handled as `existing` says.
+/// training step and between the views being cast or evaluated), then the stopped one first
+/// (its rows up to its last evaluation are kept; `--append` runs it again). An existing
+/// `OUT/bench.csv` is handled as `existing` says.
 #[allow(clippy::too_many_arguments)]
 pub fn bench_quality(
     scene: &Path,

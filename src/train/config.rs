@@ -421,6 +421,16 @@ pub fn line_of_key(text: &str, path: &str) -> Option<usize> {
     None
 }
 
+/// Settings for the runs a tool trains one after another (`ablate`, `bench-geometry`): no
+/// periodic evaluation (the final one is the result) and checkpoints [`tool_checkpoint_every`]
+/// apart, so a killed run continues from one. The tools compare
+/// [`RunConfig::results_toml`], which leaves the interval out, so runs of builds that saved none
+/// are still reused.
+pub fn set_tool_run(cfg: &mut RunConfig) {
+    cfg.train.eval_every = 0;
+    cfg.train.checkpoint_every = tool_checkpoint_every(cfg.train.steps);
+}
+
 /// The checkpoint interval of the runs a tool trains one after another (`ablate`,
 /// `bench-geometry`): about every tenth of the run, at least 1,000 steps apart, so a run killed
 /// outright (SIGKILL, the OOM killer, a reboot) loses at most a tenth of itself while a

@@ -194,15 +194,17 @@ pub const SETTINGS_FILE: &str = "variant.toml";
 /// only evaluates). A finished and evaluated run, or one of other settings, is not (the tool
 /// trains afresh, replacing it).
 pub fn stopped_run_of(run_dir: &Path, cfg: &crate::train::config::RunConfig) -> bool {
-    let ckpt = run_dir.join("checkpoint.safetensors");
-    let step = || -> Option<u64> {
-        let f = crate::io::tensors::TensorFile::read_only(&ckpt, |_| false).ok()?;
-        f.meta("step").ok()?.parse().ok()
-    };
     std::fs::read_to_string(run_dir.join(SETTINGS_FILE)).is_ok_and(|t| t == cfg.results_toml())
-        && step().is_some_and(|k| {
+        && checkpoint_step(&run_dir.join("checkpoint.safetensors")).is_some_and(|k| {
             k < cfg.train.steps || (k == cfg.train.steps && !run_dir.join("eval.json").is_file())
         })
+}
+
+/// The step a training checkpoint holds, from its header alone (no tensor is read); `None` when
+/// the file is missing or unreadable.
+pub fn checkpoint_step(ckpt: &Path) -> Option<u64> {
+    let f = crate::io::tensors::TensorFile::read_only(ckpt, |_| false).ok()?;
+    f.meta("step").ok()?.parse().ok()
 }
 
 /// Remove the files and folders of `dir` named in `names` that exist (what `--overwrite`
@@ -326,22 +328,26 @@ impl SceneFingerprint {
         crate::io::atomic::write_bytes(&p, serde_json::to_string_pretty(self)?)
     }
 
+    /// What differs between this fingerprint and `now`: `"cameras"`, `"train/test split"`,
+    /// `"mesh"`, in that order.
+    pub fn changed(&self, now: &SceneFingerprint) -> Vec<&'static str> {
+        [
+            (self.cameras != now.cameras, "cameras"),
+            (self.split != now.split, "train/test split"),
+            (self.mesh != now.mesh, "mesh"),
+        ]
+        .into_iter()
+        .filter_map(|(differs, what)| differs.then_some(what))
+        .collect()
+    }
+
     /// An error naming what differs when `now` is not the scene this run was trained on.
     pub fn check_same(&self, now: &SceneFingerprint) -> Result<()> {
-        let mut diff = Vec::new();
-        if self.cameras != now.cameras {
-            diff.push("cameras");
-        }
-        if self.split != now.split {
-            diff.push("train/test split");
-        }
-        if self.mesh != now.mesh {
-            diff.push("mesh");
-        }
+        let diff = self.changed(now);
         if !diff.is_empty() {
             // Since 2026-11-27 a transforms.json's applied_transform is undone: a run trained on
             // one before reads its cameras in another frame now.
-            let applied = self.cameras != now.cameras
+            let applied = diff.contains(&"cameras")
                 && std::fs::read_to_string(now.scene.join("transforms.json"))
                     .is_ok_and(|t| t.contains("\"applied_transform\""));
             bail!(

@@ -666,10 +666,7 @@ fn run_loop(
 /// has: the checkpoint file is written whole or not at all, so the previous one is intact.
 fn save_checkpoint(state: &TrainState, ckpt_path: &Path) -> Result<()> {
     state.save(ckpt_path).map_err(|e| {
-        let kept = crate::io::tensors::TensorFile::read_only(ckpt_path, |_| false)
-            .ok()
-            .and_then(|f| f.meta("step").ok().map(str::to_string));
-        let what = match kept {
+        let what = match crate::train::run_dir::checkpoint_step(ckpt_path) {
             Some(step) => format!(
                 "{} still holds step {step}; once the cause (below) is mended, e.g. room made, continue with --resume",
                 ckpt_path.display()

@@ -40,6 +40,29 @@ fn copy_dir(from: &Path, to: &Path) {
     }
 }
 
+/// The committed `tiny` scene (every layout at once).
+fn tiny() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/tiny")
+}
+
+/// A scratch copy of the `tiny` scene, for a test that edits its files.
+fn tiny_copy(name: &str) -> PathBuf {
+    let d = scratch(name);
+    copy_dir(&tiny(), &d);
+    d
+}
+
+/// `dir` loaded in the camera layout `format`, with what the loader reported.
+fn load_as(dir: &Path, format: CameraFormat) -> anyhow::Result<(Scene, xscale::scene::LoadReport)> {
+    Scene::load_report(
+        dir,
+        &LoadOptions {
+            format: Some(format),
+            ..LoadOptions::default()
+        },
+    )
+}
+
 /// Error message of a failed load, with the whole context chain.
 fn err<T: std::fmt::Debug>(r: anyhow::Result<T>) -> String {
     format!("{:#}", r.expect_err("expected an error"))
@@ -699,9 +722,7 @@ fn transforms_bad_inputs() {
 /// have one, or a path naming no file, is an error naming it.
 #[test]
 fn transforms_mask_paths_are_the_views_masks() {
-    let tiny = Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/tiny");
-    let d = scratch("mask_path");
-    copy_dir(&tiny, &d);
+    let d = tiny_copy("mask_path");
     let p = d.join("transforms.json");
     let mut j: serde_json::Value = serde_json::from_str(&fs::read_to_string(&p).unwrap()).unwrap();
     fs::create_dir_all(d.join("dyn")).unwrap();
@@ -716,15 +737,7 @@ fn transforms_mask_paths_are_the_views_masks() {
     }
     let n = frames.len();
     fs::write(&p, serde_json::to_string(&j).unwrap()).unwrap();
-    let load = || {
-        Scene::load(
-            &d,
-            &LoadOptions {
-                format: Some(CameraFormat::Transforms),
-                ..LoadOptions::default()
-            },
-        )
-    };
+    let load = || load_as(&d, CameraFormat::Transforms).map(|(s, _)| s);
     let scene = load().unwrap();
     let want: Vec<MaskSource> = (0..n)
         .map(|i| MaskSource::File(d.join(format!("dyn/m{i}.png"))))
@@ -762,9 +775,7 @@ fn transforms_mask_paths_are_the_views_masks() {
 /// ignored: with a COLMAP mesh the cameras looked past it.
 #[test]
 fn transforms_applied_transform_is_undone_unless_kept() {
-    let tiny = Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/tiny");
-    let d = scratch("applied_transform");
-    copy_dir(&tiny, &d);
+    let d = tiny_copy("applied_transform");
     let p = d.join("transforms.json");
     let mut j: serde_json::Value = serde_json::from_str(&fs::read_to_string(&p).unwrap()).unwrap();
     // A translation too, which nerfstudio does not write but the format allows.
@@ -786,16 +797,8 @@ fn transforms_applied_transform_is_undone_unless_kept() {
     }
     j["applied_transform"] = serde_json::to_value(a).unwrap();
     fs::write(&p, serde_json::to_string(&j).unwrap()).unwrap();
-    let load = |dir: &Path| {
-        Scene::load_report(
-            dir,
-            &LoadOptions {
-                format: Some(CameraFormat::Transforms),
-                ..LoadOptions::default()
-            },
-        )
-    };
-    let (plain, _) = load(&tiny).unwrap();
+    let load = |dir: &Path| load_as(dir, CameraFormat::Transforms);
+    let (plain, _) = load(&tiny()).unwrap();
     let (undone, report) = load(&d).unwrap();
     assert_cameras_close(&plain.views, &undone.views, 1e-9);
     assert!(
@@ -833,9 +836,7 @@ fn transforms_applied_transform_is_undone_unless_kept() {
 /// column 1" and COLMAP's and MVSNet's first lines unreadable).
 #[test]
 fn byte_order_marks_and_crlf_are_read_in_every_layout() {
-    let tiny = Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/tiny");
-    let d = scratch("bom_crlf");
-    copy_dir(&tiny, &d);
+    let d = tiny_copy("bom_crlf");
     let mut edited = 0;
     let mut stack = vec![d.clone()];
     while let Some(dir) = stack.pop() {
@@ -858,16 +859,11 @@ fn byte_order_marks_and_crlf_are_read_in_every_layout() {
         CameraFormat::Transforms,
     ] {
         let opts = |dir: &Path| {
-            Scene::load(
-                dir,
-                &LoadOptions {
-                    format: Some(format),
-                    ..LoadOptions::default()
-                },
-            )
-            .unwrap_or_else(|e| panic!("{format:?} in {}: {e:#}", dir.display()))
+            load_as(dir, format)
+                .unwrap_or_else(|e| panic!("{format:?} in {}: {e:#}", dir.display()))
+                .0
         };
-        let (plain, marked) = (opts(&tiny), opts(&d));
+        let (plain, marked) = (opts(&tiny()), opts(&d));
         assert_cameras_close(&plain.views, &marked.views, 0.0);
         assert_eq!(plain.test, marked.test, "{format:?}: the split");
     }
@@ -1244,7 +1240,7 @@ fn nerf_synthetic_train_test_files_give_the_split() {
 /// mix-up does) loads but is flagged; the unscaled scene and a mesh 10× off are not.
 #[test]
 fn a_mesh_in_other_units_than_the_cameras_is_flagged() {
-    let tiny = Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/tiny");
+    let tiny = tiny();
     let (m0, _) = mesh::load_mesh(&tiny.join("mesh.ply")).unwrap();
     let mut seen = Vec::new();
     for (k, scale) in [1.0, 10.0, 1e7, 1e-7].into_iter().enumerate() {

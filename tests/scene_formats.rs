@@ -830,6 +830,30 @@ fn transforms_applied_transform_is_undone_unless_kept() {
     );
 }
 
+/// `scene.toml`'s `applied_transform` takes `"undo"` or `"keep"`; anything else is an error
+/// naming the file, the line and the two values.
+#[test]
+fn scene_toml_applied_transform_takes_undo_or_keep() {
+    let d = tiny_copy("applied_transform_bad");
+    fs::write(
+        d.join("scene.toml"),
+        "format = \"transforms\"\napplied_transform = \"undo2\"\n",
+    )
+    .unwrap();
+    assert_contains(
+        &err(load_as(&d, CameraFormat::Transforms)),
+        &["scene.toml", "line 2", "undo2", "expected `undo` or `keep`"],
+    );
+    for ok in ["undo", "keep"] {
+        fs::write(
+            d.join("scene.toml"),
+            format!("applied_transform = \"{ok}\"\n"),
+        )
+        .unwrap();
+        load_as(&d, CameraFormat::Transforms).unwrap();
+    }
+}
+
 /// Text files saved by Windows editors: a UTF-8 byte-order mark and CRLF line ends in every
 /// camera file, `transforms.json`, `scene.toml` and a `--config`. Each layout loads the same
 /// cameras as the plain files (a mark made `transforms.json` "malformed JSON at line 1

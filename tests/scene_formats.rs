@@ -769,21 +769,27 @@ fn transforms_mask_paths_are_the_views_masks() {
     );
 }
 
-/// nerfstudio's `applied_transform` (`ns-process-data` from COLMAP: world (x, y, z) → (x, z, −y),
-/// applied to every pose) is undone, so the cameras stand where the COLMAP reconstruction's
-/// meshes are; `applied_transform = "keep"` in `scene.toml` keeps the file's frame. It was
-/// ignored: with a COLMAP mesh the cameras looked past it.
-#[test]
-fn transforms_applied_transform_is_undone_unless_kept() {
-    let d = tiny_copy("applied_transform");
-    let p = d.join("transforms.json");
-    let mut j: serde_json::Value = serde_json::from_str(&fs::read_to_string(&p).unwrap()).unwrap();
-    // A translation too, which nerfstudio does not write but the format allows.
-    let a = [
-        [1.0, 0.0, 0.0, 0.5],
-        [0.0, 0.0, 1.0, -2.0],
-        [0.0, -1.0, 0.0, 3.0],
-    ];
+/// The map [`nerfstudio_moved`] applies: nerfstudio's (x, y, z) → (x, z, −y), and a translation,
+/// which nerfstudio does not write but the format allows.
+const NERFSTUDIO_MAP: [[f64; 4]; 3] = [
+    [1.0, 0.0, 0.0, 0.5],
+    [0.0, 0.0, 1.0, -2.0],
+    [0.0, -1.0, 0.0, 3.0],
+];
+
+/// [`NERFSTUDIO_MAP`] applied to a point.
+fn nerfstudio_point(x: DVec3) -> DVec3 {
+    let a = NERFSTUDIO_MAP;
+    DVec3::from(std::array::from_fn::<f64, 3, _>(|r| {
+        a[r][0] * x.x + a[r][1] * x.y + a[r][2] * x.z + a[r][3]
+    }))
+}
+
+/// Rewrite the transforms file `p` as `ns-process-data` writes one: every pose moved by
+/// [`NERFSTUDIO_MAP`], which is recorded as its `applied_transform`. Returns the new JSON.
+fn nerfstudio_moved(p: &Path) -> serde_json::Value {
+    let mut j: serde_json::Value = serde_json::from_str(&fs::read_to_string(p).unwrap()).unwrap();
+    let a = NERFSTUDIO_MAP;
     for f in j["frames"].as_array_mut().unwrap() {
         let m: Vec<Vec<f64>> = serde_json::from_value(f["transform_matrix"].clone()).unwrap();
         let mut out = m.clone();
@@ -796,7 +802,19 @@ fn transforms_applied_transform_is_undone_unless_kept() {
         f["transform_matrix"] = serde_json::to_value(out).unwrap();
     }
     j["applied_transform"] = serde_json::to_value(a).unwrap();
-    fs::write(&p, serde_json::to_string(&j).unwrap()).unwrap();
+    fs::write(p, serde_json::to_string(&j).unwrap()).unwrap();
+    j
+}
+
+/// nerfstudio's `applied_transform` (`ns-process-data` from COLMAP: world (x, y, z) → (x, z, −y),
+/// applied to every pose) is undone, so the cameras stand where the COLMAP reconstruction's
+/// meshes are; `applied_transform = "keep"` in `scene.toml` keeps the file's frame. It was
+/// ignored: with a COLMAP mesh the cameras looked past it.
+#[test]
+fn transforms_applied_transform_is_undone_unless_kept() {
+    let d = tiny_copy("applied_transform");
+    let p = d.join("transforms.json");
+    let mut j = nerfstudio_moved(&p);
     let load = |dir: &Path| load_as(dir, CameraFormat::Transforms);
     let (plain, _) = load(&tiny()).unwrap();
     let (undone, report) = load(&d).unwrap();
@@ -1284,4 +1302,220 @@ fn a_mesh_in_other_units_than_the_cameras_is_flagged() {
             assert_contains(&w[0], &["mesh.ply", "different units"]);
         }
     }
+}
+
+// ---------------------------------------------------------------------------------------------
+// The reconstruction's points against the mesh (src/scene/points.rs)
+// ---------------------------------------------------------------------------------------------
+
+/// Points as a reconstruction has them: on the surface its photos see (area samples of the
+/// tiny scene's mesh), with noise of 0.1 % of the mesh's size, one in ten an outlier anywhere in
+/// twice its bounds, and tracks of 2 to 6 observations.
+fn reconstruction_points(mesh: &Mesh, n: usize) -> Vec<(DVec3, u32)> {
+    use xscale::rng::{uniform_f64, Purpose};
+    let (lo, hi) = mesh.bbox();
+    let diag = (hi - lo).length();
+    let u = |k: usize, b: u64| uniform_f64(5, Purpose::Test, k as u64, b);
+    xscale::scene::distance::area_samples(mesh, n)
+        .into_iter()
+        .enumerate()
+        .map(|(k, p)| {
+            let noise = DVec3::new(u(k, 0), u(k, 1), u(k, 2)) - 0.5;
+            let at = if k % 10 == 9 {
+                lo - 0.5 * (hi - lo) + 2.0 * (hi - lo) * (noise + 0.5)
+            } else {
+                p + noise * 2e-3 * diag
+            };
+            (at, 2 + (u(k, 3) * 5.0) as u32)
+        })
+        .collect()
+}
+
+/// COLMAP's `points3D.txt`.
+fn write_points_text(path: &Path, pts: &[(DVec3, u32)]) {
+    let mut t = String::from("# 3D point list with one line of data per point:\n#   POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[] as (IMAGE_ID, POINT2D_IDX)\n");
+    for (k, (p, track)) in pts.iter().enumerate() {
+        t += &format!("{} {:?} {:?} {:?} 120 130 140 0.7", k + 1, p.x, p.y, p.z);
+        for i in 0..*track {
+            t += &format!(" {} {}", i + 1, 10 * k as u32 + i);
+        }
+        t += "\n";
+    }
+    fs::write(path, t).unwrap();
+}
+
+/// COLMAP's `points3D.bin` (written here from the format's description, not by xscale).
+fn write_points_binary(path: &Path, pts: &[(DVec3, u32)]) {
+    let mut b = (pts.len() as u64).to_le_bytes().to_vec();
+    for (k, (p, track)) in pts.iter().enumerate() {
+        b.extend((k as u64 + 1).to_le_bytes());
+        for x in p.to_array() {
+            b.extend(x.to_le_bytes());
+        }
+        b.extend([120u8, 130, 140]);
+        b.extend(0.7f64.to_le_bytes());
+        b.extend((*track as u64).to_le_bytes());
+        for i in 0..*track {
+            b.extend((i + 1).to_le_bytes());
+            b.extend((10 * k as u32 + i).to_le_bytes());
+        }
+    }
+    fs::write(path, b).unwrap();
+}
+
+/// `points3D.txt` and `.bin` give the same points and tracks (text preferred, as for the
+/// model); bad files are errors naming the file and the line or point.
+#[test]
+fn colmap_points_text_and_binary_read_alike() {
+    let d = scratch("points3d");
+    let (mesh, _) = mesh::load_mesh(&tiny().join("mesh.ply")).unwrap();
+    let pts = reconstruction_points(&mesh, 300);
+    assert_eq!(colmap::read_points(&d).unwrap(), None, "no points file");
+    write_points_binary(&d.join("points3D.bin"), &pts);
+    let (src, bin) = colmap::read_points(&d).unwrap().unwrap();
+    assert!(src.ends_with("points3D.bin"));
+    write_points_text(&d.join("points3D.txt"), &pts);
+    let (src, text) = colmap::read_points(&d).unwrap().unwrap();
+    assert!(src.ends_with("points3D.txt"));
+    assert_eq!(text, pts, "text");
+    assert_eq!(bin, pts, "binary");
+
+    let good = fs::read_to_string(d.join("points3D.txt")).unwrap();
+    let mut lines: Vec<String> = good.lines().map(String::from).collect();
+    lines[3] += " 7"; // an odd number of track fields
+    fs::write(d.join("points3D.txt"), lines.join("\n")).unwrap();
+    assert_contains(
+        &err(colmap::read_points(&d)),
+        &["points3D.txt", "line 4", "pairs"],
+    );
+    lines[3] = "2 1.0 nan 3.0 1 2 3 0.5 1 1 2 2".into();
+    fs::write(d.join("points3D.txt"), lines.join("\n")).unwrap();
+    assert_contains(
+        &err(colmap::read_points(&d)),
+        &["points3D.txt", "line 4", "non-finite"],
+    );
+    fs::remove_file(d.join("points3D.txt")).unwrap();
+    let b = fs::read(d.join("points3D.bin")).unwrap();
+    fs::write(d.join("points3D.bin"), &b[..b.len() - 5]).unwrap();
+    assert_contains(
+        &err(colmap::read_points(&d)),
+        &["points3D.bin", "truncated", "point 299"],
+    );
+}
+
+/// The frame warning of a load report, if any.
+fn frame_warning(report: &xscale::scene::LoadReport) -> Option<&String> {
+    report.warnings.iter().find(|w| w.contains("another frame"))
+}
+
+/// A mesh turned a quarter turn, or scaled, against the COLMAP model's points is flagged; the
+/// same mesh in place, or cropped to a part of the scene, is not; an unreadable points file
+/// skips the check with a note and the scene still loads.
+#[test]
+fn a_mesh_in_another_frame_than_the_colmap_points_is_flagged() {
+    let d = tiny_copy("points_frame");
+    let (mesh, _) = mesh::load_mesh(&tiny().join("mesh.ply")).unwrap();
+    write_points_text(
+        &d.join("sparse/0/points3D.txt"),
+        &reconstruction_points(&mesh, 3000),
+    );
+    let load = || load_as(&d, CameraFormat::Colmap).unwrap().1;
+    let r = load();
+    assert_eq!(frame_warning(&r), None, "{:?}", r.warnings);
+
+    let (lo, hi) = mesh.bbox();
+    let mid = 0.5 * (lo + hi);
+    let moved = |f: &dyn Fn(DVec3) -> DVec3| Mesh {
+        vertices: mesh.vertices.iter().map(|&v| f(v)).collect(),
+        triangles: mesh.triangles.clone(),
+    };
+    // A quarter turn about x through the mesh's centre: it still fills most views.
+    let turned = moved(&|v| {
+        let q = v - mid;
+        mid + DVec3::new(q.x, q.z, -q.y)
+    });
+    mesh::write_ply(&d.join("mesh.ply"), &turned).unwrap();
+    let r = load();
+    let w = frame_warning(&r).unwrap_or_else(|| panic!("turned: {:?}", r.warnings));
+    assert_contains(
+        w,
+        &["mesh.ply", "points3D.txt", "lie on it", "applied_transform"],
+    );
+    // Millimetres against metres.
+    mesh::write_ply(&d.join("mesh.ply"), &moved(&|v| v * 1000.0)).unwrap();
+    let r = load();
+    let w = frame_warning(&r).unwrap_or_else(|| panic!("scaled: {:?}", r.warnings));
+    assert_contains(w, &["points3D.txt"]);
+    // Moved far away: the points lie outside the mesh's bounds.
+    mesh::write_ply(&d.join("mesh.ply"), &moved(&|v| v + (hi - lo) * 3.0)).unwrap();
+    let r = load();
+    let w = frame_warning(&r).unwrap_or_else(|| panic!("moved: {:?}", r.warnings));
+    assert_contains(w, &["lie inside its bounds"]);
+    // A quarter of the scene, cropped by x and y: its own points agree.
+    let keep = |i: u32| {
+        let v = mesh.vertices[i as usize];
+        v.x < mid.x && v.y < mid.y
+    };
+    let cropped = Mesh {
+        vertices: mesh.vertices.clone(),
+        triangles: (mesh.triangles.iter().copied())
+            .filter(|t| t.iter().all(|&i| keep(i)))
+            .collect(),
+    };
+    mesh::write_ply(&d.join("mesh.ply"), &cropped).unwrap();
+    let r = load();
+    assert_eq!(frame_warning(&r), None, "cropped: {:?}", r.warnings);
+    // A broken points file: the scene loads, and a note says the check was skipped and why.
+    fs::write(d.join("sparse/0/points3D.txt"), "1 2 3\n").unwrap();
+    let r = load();
+    let note = r.notes.iter().find(|n| n.contains("skipped"));
+    assert_contains(
+        note.unwrap_or_else(|| panic!("{:?}", r.notes)),
+        &["points3D.txt", "line 1"],
+    );
+}
+
+/// nerfstudio's `ply_file_path` (its `sparse_pc.ply`, moved by `applied_transform` with the
+/// poses) is checked in the frame the cameras are read in: undone, it agrees with the COLMAP
+/// mesh; with `applied_transform = "keep"` the cameras and points stay in the file's frame and
+/// the mesh does not, which is flagged.
+#[test]
+fn nerfstudio_sparse_points_check_the_frame_the_cameras_are_read_in() {
+    let d = tiny_copy("points_nerfstudio");
+    let p = d.join("transforms.json");
+    let mut j = nerfstudio_moved(&p);
+    let (mesh, _) = mesh::load_mesh(&tiny().join("mesh.ply")).unwrap();
+    // open3d's point cloud PLY, as nerfstudio writes it: binary, double x y z, uchar colours.
+    let pts = reconstruction_points(&mesh, 2000);
+    let mut ply = format!(
+        "ply\nformat binary_little_endian 1.0\nelement vertex {}\nproperty double x\nproperty double y\nproperty double z\nproperty uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n",
+        pts.len()
+    )
+    .into_bytes();
+    for (x, _) in &pts {
+        for c in nerfstudio_point(*x).to_array() {
+            ply.extend(c.to_le_bytes());
+        }
+        ply.extend([10u8, 20, 30]);
+    }
+    fs::write(d.join("sparse_pc.ply"), ply).unwrap();
+    j["ply_file_path"] = "sparse_pc.ply".into();
+    fs::write(&p, serde_json::to_string(&j).unwrap()).unwrap();
+    let load = || load_as(&d, CameraFormat::Transforms).unwrap().1;
+    let r = load();
+    assert_eq!(frame_warning(&r), None, "{:?}", r.warnings);
+    fs::write(d.join("scene.toml"), "applied_transform = \"keep\"\n").unwrap();
+    let r = load();
+    let w = frame_warning(&r).unwrap_or_else(|| panic!("kept: {:?}", r.warnings));
+    assert_contains(w, &["mesh.ply", "sparse_pc.ply"]);
+    // A missing point cloud skips the check with a note naming it.
+    fs::remove_file(d.join("sparse_pc.ply")).unwrap();
+    let r = load();
+    assert!(
+        r.notes
+            .iter()
+            .any(|n| n.contains("skipped") && n.contains("sparse_pc.ply")),
+        "{:?}",
+        r.notes
+    );
 }

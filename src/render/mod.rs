@@ -19,7 +19,7 @@ pub const RENDER_CHUNK: usize = 8192;
 /// Sub-samples cast per band of rows while rendering: a frame is cast and shaded one band of
 /// rows at a time, so a 12-megapixel frame at γ = 2 never holds more than ~90 MB of sub-samples
 /// (88 bytes each). Results do not depend on it (every pixel is independent).
-pub const RENDER_BAND_SAMPLES: usize = 1 << 20;
+pub const RENDER_BAND_SAMPLES: usize = 1 << 17;
 
 /// White: the official protocol's colour for pixels whose rays all miss.
 pub const WHITE: [f32; 3] = [1.0; 3];

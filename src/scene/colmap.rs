@@ -1,5 +1,7 @@
 //! COLMAP sparse models (SPEC §3): read `cameras` + `images` in text (`.txt`) or binary
-//! (`.bin`) form, write both forms. `points3D` is ignored on read and written empty. Newer
+//! (`.bin`) form, write both forms. `points3D` is written empty, and read only by
+//! [`read_points`] for the check that the mesh stands in the cameras' frame
+//! (`scene/points.rs`). Newer
 //! COLMAP layouts (3.12+) add `rigs.*` and `frames.*`; `images.*` keeps each image's
 //! world→camera pose, so those extra files are simply ignored.
 //!
@@ -505,6 +507,97 @@ fn check_names(views: &[View]) -> Result<()> {
         }
     }
     Ok(())
+}
+
+/// A model's 3-D point and its track length.
+pub type Point = (DVec3, u32);
+
+/// A model's 3-D points (`points3D.txt`, else `points3D.bin`: text preferred, as for the
+/// model): each point's position and track length (the number of image observations). `None`
+/// when the model has no points file.
+pub fn read_points(dir: &Path) -> Result<Option<(PathBuf, Vec<Point>)>> {
+    let text = dir.join("points3D.txt");
+    let binary = dir.join("points3D.bin");
+    if text.is_file() {
+        return Ok(Some((text.clone(), read_points_text(&text)?)));
+    }
+    if binary.is_file() {
+        return Ok(Some((binary.clone(), read_points_binary(&binary)?)));
+    }
+    Ok(None)
+}
+
+/// `points3D.txt`: `POINT3D_ID X Y Z R G B ERROR` then the track's `IMAGE_ID POINT2D_IDX` pairs.
+fn read_points_text(path: &Path) -> Result<Vec<Point>> {
+    let text = crate::io::text::read(path)?;
+    let mut out = Vec::new();
+    for (i, line) in text.lines().enumerate() {
+        let line = line.trim();
+        if line.is_empty() || line.starts_with('#') {
+            continue;
+        }
+        let wh = format!("{}: line {}", path.display(), i + 1);
+        let f: Vec<&str> = line.split_whitespace().collect();
+        if f.len() < 8 || (f.len() - 8) % 2 != 0 {
+            bail!(
+                "{wh}: expected POINT3D_ID X Y Z R G B ERROR and (IMAGE_ID, POINT2D_IDX) pairs, got {} fields",
+                f.len()
+            );
+        }
+        let mut x = [0f64; 3];
+        for (k, v) in x.iter_mut().enumerate() {
+            *v = parse_num(f[1 + k], &wh, "coordinate")?;
+        }
+        let p = DVec3::from(x);
+        if !p.is_finite() {
+            bail!("{wh}: non-finite point {p}");
+        }
+        out.push((p, ((f.len() - 8) / 2) as u32));
+    }
+    Ok(out)
+}
+
+/// `points3D.bin`: a u64 count, then per point a u64 id, 3 f64, 3 u8 colours, an f64 error, a
+/// u64 track length and that many (u32 image id, u32 point index) pairs.
+fn read_points_binary(path: &Path) -> Result<Vec<Point>> {
+    let data = fs::read(path).with_context(|| format!("{}: cannot read", path.display()))?;
+    let mut r = Reader {
+        data: &data,
+        pos: 0,
+        path,
+    };
+    let n = r.u64("the point count")?;
+    // A point takes at least 51 bytes: a count beyond the file's size is not allocated.
+    let mut out = Vec::with_capacity((n as usize).min(data.len() / 51));
+    for k in 0..n {
+        let what = format!("point {k} of {n}");
+        let id = r.u64(&what)?;
+        let p = DVec3::new(r.f64(&what)?, r.f64(&what)?, r.f64(&what)?);
+        r.take(3 + 8, &what)?;
+        let track = r.u64(&what)?;
+        let bytes = track.checked_mul(8).filter(|b| *b <= usize::MAX as u64);
+        match bytes {
+            Some(b) => {
+                r.take(
+                    b as usize,
+                    &format!("{what}: a track of {track} observations"),
+                )?;
+            }
+            None => bail!("{}: {what}: absurd track length {track}", path.display()),
+        }
+        if !p.is_finite() {
+            bail!("{}: {what} (id {id}): non-finite point {p}", path.display());
+        }
+        out.push((p, track.min(u32::MAX as u64) as u32));
+    }
+    if r.pos != data.len() {
+        bail!(
+            "{}: {} bytes after the {n} declared points (wrong count?)",
+            path.display(),
+            data.len() - r.pos
+        );
+    }
+    Ok(out)
 }
 
 // ---------------------------------------------------------------------------------------------

@@ -94,11 +94,21 @@ impl<'a> SurfaceIndex<'a> {
     pub fn new(mesh: &'a Mesh) -> SurfaceIndex<'a> {
         let (lo, hi) = mesh.bbox();
         let span = (hi - lo).max(DVec3::splat(1e-12));
-        let mut edge = 0.0;
-        for t in &mesh.triangles {
-            let [a, b, c] = t.map(|i| mesh.vertices[i as usize]);
-            edge += (b - a).length() + (c - b).length() + (a - c).length();
-        }
+        // Summed per fixed chunk, then in chunk order: the same bits on any thread count.
+        let edge: f64 = mesh
+            .triangles
+            .par_chunks(1 << 14)
+            .map(|ts| {
+                ts.iter()
+                    .map(|t| {
+                        let [a, b, c] = t.map(|i| mesh.vertices[i as usize]);
+                        (b - a).length() + (c - b).length() + (a - c).length()
+                    })
+                    .sum::<f64>()
+            })
+            .collect::<Vec<f64>>()
+            .iter()
+            .sum();
         let mean_edge = edge / (3 * mesh.triangles.len()).max(1) as f64;
         let mut cell = (2.0 * mean_edge).max(span.max_element() * 1e-6);
         // Keep the grid at most ~4M cells.
@@ -122,7 +132,7 @@ impl<'a> SurfaceIndex<'a> {
         let mut count = vec![0u32; n_cells + 1];
         let ranges: Vec<([usize; 3], [usize; 3])> = mesh
             .triangles
-            .iter()
+            .par_iter()
             .map(|t| {
                 let [a, b, c] = t.map(|i| mesh.vertices[i as usize]);
                 (s.cell_of(a.min(b).min(c)), s.cell_of(a.max(b).max(c)))
@@ -169,7 +179,17 @@ impl<'a> SurfaceIndex<'a> {
 
     /// Distance from `p` to the closest point of the mesh (+inf for a mesh without triangles).
     pub fn distance(&self, p: DVec3) -> f64 {
+        self.distance_within(p, f64::INFINITY)
+    }
+
+    /// [`SurfaceIndex::distance`] when it is at most `cap`, else +inf: the search stops at
+    /// `cap`, so a point far from the mesh costs a few cells instead of the whole grid.
+    pub fn distance_within(&self, p: DVec3, cap: f64) -> f64 {
         if self.mesh.triangles.is_empty() {
+            return f64::INFINITY;
+        }
+        let grid_hi = self.lo + DVec3::from(self.dims.map(|d| d as f64)) * self.cell;
+        if (self.lo - p).max(p - grid_hi).max(DVec3::ZERO).length() > cap {
             return f64::INFINITY;
         }
         let c = self.cell_of(p);
@@ -186,7 +206,7 @@ impl<'a> SurfaceIndex<'a> {
         for r in 0..=max_r {
             if r > 0 {
                 let reach = inside + (r - 1) as f64 * self.cell;
-                if best2 <= reach * reach {
+                if best2 <= reach * reach || reach > cap {
                     break;
                 }
             }
@@ -213,7 +233,12 @@ impl<'a> SurfaceIndex<'a> {
                 }
             }
         }
-        best2.sqrt()
+        let best = best2.sqrt();
+        if best <= cap {
+            best
+        } else {
+            f64::INFINITY
+        }
     }
 }
 
@@ -321,6 +346,18 @@ mod tests {
                 (a - b).abs() <= 1e-12 * (1.0 + b),
                 "{p}: grid {a} brute {b}"
             );
+            // Capped: the same distance up to the cap, +inf beyond it (also for points far
+            // outside the grid).
+            for cap in [0.05, 0.5, 2.0] {
+                for q in [p, p * 40.0] {
+                    let (got, b) = (idx.distance_within(q, cap), brute(&m, q));
+                    let want = if b <= cap { b } else { f64::INFINITY };
+                    assert!(
+                        got == want || (got - want).abs() <= 1e-12 * (1.0 + b),
+                        "{q} cap {cap}: grid {got} brute {b}"
+                    );
+                }
+            }
         }
         // A mesh against itself: zero; shifted by 0.25 along z on a flat mesh: 0.25.
         let s = surface_distance(&m, &idx, 2000);

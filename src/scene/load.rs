@@ -5,8 +5,8 @@
 //! expected when it fails.
 
 use super::{
-    colmap, image, mask, mesh, mvsnet, transforms, MaskSource, Normalization, NormalizeMode, Scene,
-    View,
+    colmap, image, mask, mesh, mvsnet, points, transforms, MaskSource, Normalization,
+    NormalizeMode, Scene, View,
 };
 use anyhow::{anyhow, bail, Result};
 use glam::DVec3;
@@ -264,13 +264,13 @@ impl Scene {
         let cfg = read_scene_toml(&toml_path)?;
         let format = choose_format(dir, opts, &cfg, &toml_path)?;
         let mut notes = Vec::new();
+        let applied = cfg
+            .applied_transform
+            .unwrap_or(transforms::AppliedTransform::Undo);
         let (mut views, format_test, given_masks) = match format {
             CameraFormat::Colmap => (load_colmap(dir)?, None, None),
             CameraFormat::MvsNet => (load_mvsnet(dir, opts.mvsnet_dsp)?, None, None),
             CameraFormat::Transforms => {
-                let applied = cfg
-                    .applied_transform
-                    .unwrap_or(transforms::AppliedTransform::Undo);
                 let (loaded, undone) = load_transforms(dir, applied)?;
                 if let Some(file) = undone {
                     notes.push(format!(
@@ -293,9 +293,18 @@ impl Scene {
         };
         let (mesh, mesh_stats) = mesh::load_mesh(&mesh_path)?;
         let normalization = Normalization::from_mesh(&mesh, opts.normalize);
-        let warnings: Vec<String> = scale_mismatch(&mesh, &views, &mesh_path)
+        let mut warnings: Vec<String> = scale_mismatch(&mesh, &views, &mesh_path)
             .into_iter()
             .collect();
+        // The reconstruction's own points against the mesh (`points.rs`): an auxiliary file, so
+        // one that cannot be read skips the check with a note rather than failing the scene.
+        match points::find(dir, format, applied) {
+            Ok(Some(p)) => warnings.extend(points::frame_disagreement(&mesh, &mesh_path, &p)),
+            Ok(None) => {}
+            Err(e) => notes.push(format!(
+                "the check of the mesh against the reconstruction's points is skipped: {e:#}"
+            )),
+        }
         let background = cfg.background.unwrap_or([1.0; 3]);
         if background.iter().any(|c| !(0.0..=1.0).contains(c)) {
             bail!(

@@ -539,6 +539,12 @@ fn layout(path: &Path, h: &Header) -> Result<Layout> {
     Ok(Layout { xyz, face_list })
 }
 
+/// The vertices of a PLY file, faces or none (a point cloud such as nerfstudio's
+/// `sparse_pc.ply`); the reader refuses non-finite coordinates.
+pub fn load_ply_points(path: &Path) -> Result<Vec<DVec3>> {
+    Ok(load_ply(path)?.0.vertices)
+}
+
 fn load_ply(path: &Path) -> Result<(Mesh, MeshStats)> {
     let data = fs::read(path).with_context(|| format!("{}: cannot read", path.display()))?;
     let h = parse_header(path, &data)?;

@@ -7,7 +7,9 @@
 //! mesh), `normalize.rs` ([`Normalization`]), `mesh.rs` ([`Mesh`]; OBJ/PLY load and write),
 //! `image.rs` ([`Image`]; PNG/JPEG/EXR load, downsample, write), `camera.rs` (pinhole +
 //! distortion), `colmap.rs`, `mvsnet.rs`, `transforms.rs` (the three camera layouts, load and
-//! write), `mask.rs` (object masks), `remesh.rs` (decimation and subdivision).
+//! write), `mask.rs` (object masks), `remesh.rs` (decimation and subdivision), `points.rs` (the
+//! reconstruction's 3-D points against the mesh: are they in one frame?), `distance.rs`
+//! (point-to-surface distance).
 //!
 //! Errors: every loader returns `anyhow::Result` whose message names the file, the line or
 //! element, and what was expected. No loader panics on bad input.
@@ -21,6 +23,7 @@ pub mod mask;
 pub mod mesh;
 pub mod mvsnet;
 pub mod normalize;
+pub mod points;
 pub mod remesh;
 pub mod transforms;
 pub mod view;

@@ -190,6 +190,35 @@ pub fn load_full(path: &Path, applied: AppliedTransform) -> Result<Loaded> {
     })
 }
 
+/// The point cloud a transforms file names (nerfstudio's top-level `ply_file_path`, relative to
+/// the file: the reconstruction's sparse points, which its writer moved by `applied_transform`
+/// with the poses), in the frame [`load_full`] gives the cameras; `None` without the key.
+pub fn sparse_points(
+    path: &Path,
+    applied: AppliedTransform,
+) -> Result<Option<(PathBuf, Vec<DVec3>)>> {
+    let pd = path.display().to_string();
+    let root = read_json(path)?;
+    let Some(rel) = root.get("ply_file_path") else {
+        return Ok(None);
+    };
+    let rel = rel
+        .as_str()
+        .ok_or_else(|| anyhow!("{pd}: 'ply_file_path' must be a string, got {rel}"))?;
+    let base = path.parent().unwrap_or(Path::new("."));
+    let ply = base.join(rel.strip_prefix("./").unwrap_or(rel));
+    let mut xyz = super::mesh::load_ply_points(&ply)?;
+    if let (AppliedTransform::Undo, Some(m)) = (applied, root.get("applied_transform")) {
+        // x' = r·x + t, so x = rᵀ·(x' − t).
+        let (r, t) = world_map(&pd, m)?;
+        let rt = r.transpose();
+        for p in &mut xyz {
+            *p = rt * (*p - t);
+        }
+    }
+    Ok(Some((ply, xyz)))
+}
+
 /// `applied_transform` (3×4, or 4×4 with last row [0, 0, 0, 1]) as the rigid world map
 /// `x' = r·x + t`; its 3×3 part must be a rotation to 1e-6 (nerfstudio's are axis permutations).
 fn world_map(pd: &str, m: &Value) -> Result<(DMat3, DVec3)> {

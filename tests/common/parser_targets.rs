@@ -229,6 +229,53 @@ pub fn targets(fx: &Path, work: &Path) -> Vec<Target> {
         });
     }
 
+    // COLMAP `points3D` (read for the mesh-frame check, `scene/points.rs`). Seeds written here:
+    // the fixtures' models have no points.
+    let points: Vec<([f64; 3], u32)> = vec![
+        ([1.5, -2.25, 3.0], 3),
+        ([0.0, 1e-3, -7.5], 2),
+        ([123456.789, 4512345.6, 12.0], 5),
+    ];
+    let mut text = b"# 3D point list with one line of data per point:\n".to_vec();
+    let mut binary = (points.len() as u64).to_le_bytes().to_vec();
+    for (k, (p, track)) in points.iter().enumerate() {
+        let obs: String = (0..*track)
+            .map(|i| format!(" {} {}", i + 1, 7 * i))
+            .collect();
+        text.extend(format!("{} {} {} {} 10 20 30 0.5{obs}\n", k + 1, p[0], p[1], p[2]).bytes());
+        binary.extend((k as u64 + 1).to_le_bytes());
+        p.iter().for_each(|x| binary.extend(x.to_le_bytes()));
+        binary.extend([10u8, 20, 30]);
+        binary.extend(0.5f64.to_le_bytes());
+        binary.extend((*track as u64).to_le_bytes());
+        (0..*track)
+            .for_each(|i| binary.extend([(i + 1).to_le_bytes(), (7 * i).to_le_bytes()].concat()));
+    }
+    for (name, file, seed, is_text) in [
+        ("colmap_points_text", "points3D.txt", text, true),
+        ("colmap_points_binary", "points3D.bin", binary, false),
+    ] {
+        ts.push(Target {
+            name,
+            seeds: vec![seed],
+            text: is_text,
+            quick: 2500,
+            run: Box::new(move |b, w| {
+                let p = w.join(file);
+                std::fs::write(&p, b).unwrap();
+                let r = colmap::read_points(w).and_then(|pts| {
+                    let (_, pts) = pts.ok_or_else(|| anyhow::anyhow!("ACCEPTED no file"))?;
+                    anyhow::ensure!(
+                        pts.iter().all(|(x, _)| x.is_finite()),
+                        "ACCEPTED a non-finite point"
+                    );
+                    Ok(())
+                });
+                (disp(&p), r)
+            }),
+        });
+    }
+
     // MVSNet `*_cam.txt`.
     ts.push(Target {
         name: "mvsnet_cam",

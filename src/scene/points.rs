@@ -1,0 +1,172 @@
+//! Does the mesh stand in the cameras' frame? The reconstruction the cameras come from has its
+//! own 3-D points (COLMAP's `points3D`, nerfstudio's `sparse_pc.ply`), which lie on the
+//! surfaces the photos see; a mesh in the same frame passes through most of them. A mesh from
+//! another tool's coordinate system, a rotated or rescaled export, or a transforms file read in
+//! the wrong frame does not — and nothing else catches it when the mesh still fills the views
+//! (the tiny fixture's mesh turned a quarter turn about x still meets 70 % of the training rays).
+//!
+//! [`frame_disagreement`] takes the points inside the mesh's bounding box (grown by
+//! [`BOX_MARGIN`] of its diagonal, so a mesh cropped to an object is judged on that object's
+//! points), measures each one's distance to the mesh (`distance::SurfaceIndex`, exact, stopped
+//! at the threshold) and warns when fewer than [`MIN_NEAR_SHARE`] of them lie within [`NEAR`] of
+//! the diagonal, or when almost none lie inside the box. A loader's warning, not an error: the
+//! user may know better (a mesh of one building among a city's points).
+
+use super::distance::SurfaceIndex;
+use super::{colmap, transforms, CameraFormat, Mesh};
+use anyhow::Result;
+use glam::DVec3;
+use rayon::prelude::*;
+use std::path::{Path, PathBuf};
+
+/// Observations a COLMAP point needs to be used (fewer are the model's least reliable points);
+/// all are used when fewer than [`MIN_POINTS`] have that many.
+pub const MIN_TRACK: u32 = 3;
+/// Points measured at most (an even stride through the file's order).
+pub const MAX_POINTS: usize = 20_000;
+/// Fewer points inside the box than this: no verdict from the distances.
+pub const MIN_POINTS: usize = 50;
+/// A point is on the mesh within this fraction of the mesh's bounding-box diagonal.
+pub const NEAR: f64 = 0.01;
+/// The mesh's bounding box is grown by this fraction of its diagonal on every side.
+pub const BOX_MARGIN: f64 = 0.05;
+/// Below this share of the in-box points on the mesh, the frames disagree.
+pub const MIN_NEAR_SHARE: f64 = 0.3;
+
+/// A reconstruction's points, in the frame the scene's cameras were loaded in.
+#[derive(Clone, Debug)]
+pub struct SparsePoints {
+    /// The file they were read from.
+    pub source: PathBuf,
+    pub xyz: Vec<DVec3>,
+}
+
+/// The points of the scene's camera file, if it has any: COLMAP's `points3D` (the model
+/// [`colmap::find_layout`] picks; points seen by at least [`MIN_TRACK`] images), a transforms
+/// file's `ply_file_path` (moved like its cameras); MVSNet cameras have none.
+pub fn find(
+    dir: &Path,
+    format: CameraFormat,
+    applied: transforms::AppliedTransform,
+) -> Result<Option<SparsePoints>> {
+    let found = match format {
+        CameraFormat::Colmap => match colmap::find_layout(dir) {
+            Some(layout) => colmap::read_points(&layout.model)?.map(|(source, pts)| {
+                let reliable = pts.iter().filter(|p| p.1 >= MIN_TRACK).count();
+                let keep = if reliable >= MIN_POINTS { MIN_TRACK } else { 0 };
+                let xyz = pts.iter().filter(|p| p.1 >= keep).map(|p| p.0).collect();
+                (source, xyz)
+            }),
+            None => None,
+        },
+        CameraFormat::Transforms => {
+            let file = dir.join("transforms.json");
+            if file.is_file() {
+                transforms::sparse_points(&file, applied)?
+            } else {
+                None
+            }
+        }
+        CameraFormat::MvsNet => None,
+    };
+    Ok(found.map(|(source, xyz)| SparsePoints { source, xyz }))
+}
+
+/// What [`check`] measured.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Agreement {
+    /// Points measured (after the track filter and the [`MAX_POINTS`] stride).
+    pub measured: usize,
+    /// Of those, inside the grown bounding box.
+    pub inside: usize,
+    /// Of those inside, within [`NEAR`] of the diagonal of the mesh.
+    pub near: usize,
+    /// The distance that counts as on the mesh.
+    pub tolerance: f64,
+}
+
+impl Agreement {
+    /// Share of the in-box points on the mesh (0 with none inside).
+    pub fn share(&self) -> f64 {
+        self.near as f64 / self.inside.max(1) as f64
+    }
+
+    /// Whether the frames disagree (module docs); `false` when there is too little to judge.
+    pub fn disagrees(&self) -> bool {
+        if self.measured < MIN_POINTS {
+            return false;
+        }
+        self.inside < MIN_POINTS || self.share() < MIN_NEAR_SHARE
+    }
+}
+
+/// Measure how many of `points` lie on `mesh` (module docs). Each point is measured on its own
+/// and the counts are sums, so the result does not depend on the thread count.
+pub fn check(mesh: &Mesh, points: &[DVec3]) -> Agreement {
+    // The bounds of the surface: vertices no triangle uses (a cropped export often keeps them)
+    // do not count.
+    let (lo, hi) = (mesh.triangles.iter().flatten()).fold(
+        (DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY)),
+        |(lo, hi), &i| {
+            let v = mesh.vertices[i as usize];
+            (lo.min(v), hi.max(v))
+        },
+    );
+    let diag = (hi - lo).length();
+    let tolerance = NEAR * diag;
+    let step = points.len().div_ceil(MAX_POINTS).max(1);
+    let measured: Vec<DVec3> = points.iter().step_by(step).copied().collect();
+    let grow = DVec3::splat(BOX_MARGIN * diag);
+    let (blo, bhi) = (lo - grow, hi + grow);
+    let inside: Vec<DVec3> = measured
+        .iter()
+        .copied()
+        .filter(|p| p.cmpge(blo).all() && p.cmple(bhi).all())
+        .collect();
+    let near = if inside.len() < MIN_POINTS || diag.is_nan() || diag <= 0.0 {
+        0
+    } else {
+        let index = SurfaceIndex::new(mesh);
+        inside
+            .par_iter()
+            .filter(|&&p| index.distance_within(p, tolerance) <= tolerance)
+            .count()
+    };
+    Agreement {
+        measured: measured.len(),
+        inside: inside.len(),
+        near,
+        tolerance,
+    }
+}
+
+/// The warning for a mesh whose frame disagrees with the reconstruction's points, else `None`.
+pub fn frame_disagreement(mesh: &Mesh, mesh_path: &Path, points: &SparsePoints) -> Option<String> {
+    let a = check(mesh, &points.xyz);
+    if !a.disagrees() {
+        return None;
+    }
+    let what = if a.inside < MIN_POINTS {
+        format!(
+            "only {} of {} points of {} lie inside its bounds",
+            a.inside,
+            a.measured,
+            points.source.display()
+        )
+    } else {
+        format!(
+            "only {} of the {} points of {} inside its bounds ({:.0} %) lie on it (within {:.3e}, 1 % of its size)",
+            a.near,
+            a.inside,
+            points.source.display(),
+            100.0 * a.share(),
+            a.tolerance
+        )
+    };
+    Some(format!(
+        "{}: {what}: the mesh probably stands in another frame than the cameras (another tool's \
+         coordinate system, a rotated or rescaled export, a transforms.json read in the wrong frame: \
+         see applied_transform in docs/spec.md §3); training will run but learn little where they disagree",
+        mesh_path.display()
+    ))
+}

@@ -753,7 +753,8 @@ fn overwriting_a_tools_run_drops_its_settings() {
 
 /// `eval` / `render --run` on a scene whose cameras or split changed since the run was trained
 /// on it warn (the scores would be for views the model did not learn or was not held out
-/// from); the scene as trained, or another copy of it, does not.
+/// from); the scene as trained, or another copy of it, does not. Training views among the
+/// scored ones are named (their scores measure fitting, not novel views).
 #[test]
 fn eval_warns_when_the_runs_scene_changed() {
     let scene = tmp("changed-scene");
@@ -764,6 +765,29 @@ fn eval_warns_when_the_runs_scene_changed() {
     let (code, err) = xscale(&["eval", "--run", r]);
     assert_eq!(code, 0, "{err}");
     assert!(!err.contains("warning: the scene"), "{err}");
+    assert!(
+        !err.contains("training views"),
+        "held-out views only: {err}"
+    );
+    // A training view among the scored ones is named, and listed in the JSON.
+    let json = run.join("mixed.json");
+    let (code, err) = xscale(&[
+        "eval",
+        "--run",
+        r,
+        "--views",
+        "0000,0001",
+        "--json",
+        json.to_str().unwrap(),
+    ]);
+    assert_eq!(code, 0, "{err}");
+    assert!(
+        err.contains("1 of the 2 scored views are training views (0001.png)"),
+        "{err}"
+    );
+    let j: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    assert_eq!(j["training_views"], serde_json::json!(["0001.png"]));
     let (_, err) = xscale(&["eval", "--run", r, "--scene", fixture().to_str().unwrap()]);
     assert!(
         !err.contains("warning: the scene"),

@@ -99,12 +99,67 @@ pub fn run(a: Args) -> Result<ExitCode> {
         scores.push(e.scored.score);
     }
     print!("{}{}", table(&scores), scale_table(&scores));
+    let seen = training_views(&s.scene, &views);
+    if let Some(w) = training_views_note(&seen, views.len()) {
+        eprintln!("{w}");
+    }
     if let Some(j) = &a.json {
         let json = serde_json::json!({
             "checkpoint": ck_path, "views": scores, "mean": mean_score(&scores),
-            "by_scale": scale_summary(&scores)
+            "by_scale": scale_summary(&scores), "training_views": seen
         });
         crate::io::atomic::write_bytes(j, serde_json::to_string_pretty(&json)?)?;
     }
     Ok(ExitCode::SUCCESS)
+}
+
+/// The names of the scored `views` that are training views of `scene` (not held out).
+fn training_views<'a>(scene: &'a crate::scene::Scene, views: &[usize]) -> Vec<&'a str> {
+    (views.iter())
+        .filter(|i| !scene.test.contains(i))
+        .map(|&i| scene.views[i].name.as_str())
+        .collect()
+}
+
+/// A word when training views are among the `scored` ones: the model (or ULR, which blends
+/// their own photos) has seen them, so their scores measure fitting, not novel views.
+fn training_views_note(seen: &[&str], scored: usize) -> Option<String> {
+    if seen.is_empty() {
+        return None;
+    }
+    let names = match seen {
+        [a, b, c, _, ..] => format!("{a}, {b}, {c}, …"),
+        _ => seen.join(", "),
+    };
+    let which = if seen.len() == scored {
+        format!("all {scored} scored views are training views ({names})")
+    } else {
+        format!(
+            "{} of the {scored} scored views are training views ({names}), and the mean mixes them with held-out ones",
+            seen.len()
+        )
+    };
+    Some(format!(
+        "note: {which}: the model learned from these photos, so their scores measure how well it fits them, not novel-view synthesis (--views test scores the held-out views)"
+    ))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::training_views_note;
+
+    #[test]
+    fn training_views_are_named_with_what_they_mean() {
+        assert_eq!(training_views_note(&[], 3), None);
+        let some = training_views_note(&["a.png"], 2).unwrap();
+        assert!(
+            some.contains("1 of the 2 scored views") && some.contains("mixes"),
+            "{some}"
+        );
+        let all = training_views_note(&["a", "b", "c", "d", "e"], 5).unwrap();
+        assert!(
+            all.contains("all 5 scored views") && all.contains("(a, b, c, …)"),
+            "{all}"
+        );
+    }
 }

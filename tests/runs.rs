@@ -601,7 +601,8 @@ fn a_batch_that_cannot_fit_is_refused_before_allocation() {
 }
 
 /// A scene that holds no view out trains, and says there is no final evaluation (instead of
-/// skipping it without a word).
+/// skipping it without a word); one that holds every view out is refused, saying how to hold out
+/// fewer.
 #[test]
 fn a_scene_without_held_out_views_gets_a_word() {
     let scene = tmp("noholdout-scene");
@@ -612,7 +613,11 @@ fn a_scene_without_held_out_views_gets_a_word() {
         .filter(|l| !l.starts_with("holdout_every") && !l.starts_with("test_views"))
         .map(|l| format!("{l}\n"))
         .collect();
-    std::fs::write(scene.join("scene.toml"), toml + "holdout_every = 0\n").unwrap();
+    std::fs::write(
+        scene.join("scene.toml"),
+        toml.clone() + "holdout_every = 0\n",
+    )
+    .unwrap();
     let run = tmp("noholdout-run");
     let (code, err) = xscale(&[
         "train",
@@ -628,7 +633,26 @@ fn a_scene_without_held_out_views_gets_a_word() {
     assert_eq!(code, 0, "{err}");
     assert!(err.contains("no held-out views"), "{err}");
     assert!(!run.join("eval.json").exists());
-    for d in [&scene, &run] {
+    // The other end: every view held out (a one- or two-view scene under the default split).
+    std::fs::write(scene.join("scene.toml"), toml + "holdout_every = 1\n").unwrap();
+    let run2 = tmp("allheldout-run");
+    let (code, err) = xscale(&[
+        "train",
+        "--scene",
+        scene.to_str().unwrap(),
+        "--out",
+        run2.to_str().unwrap(),
+        "--preset",
+        "tiny",
+    ]);
+    assert_eq!(code, 2, "{err}");
+    assert!(
+        err.contains("no training views (all 8 are held out")
+            && err.contains("holdout_every = N")
+            && err.contains("scene.toml"),
+        "{err}"
+    );
+    for d in [&scene, &run, &run2] {
         let _ = std::fs::remove_dir_all(d);
     }
 }

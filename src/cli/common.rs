@@ -319,10 +319,30 @@ pub fn select_views(scene: &Scene, spec: &str) -> Result<Vec<usize>> {
             .split(',')
             .map(|s| {
                 let s = s.trim();
-                if let Some(i) = scene.views.iter().position(|v| {
-                    v.name == s || Path::new(&v.name).file_stem().is_some_and(|x| x == s)
-                }) {
+                if let Some(i) = scene.views.iter().position(|v| v.name == s) {
                     return Ok(i);
+                }
+                // By file stem: `0001` for `0001.png`, or for `cam1/0001.jpg` — which must then
+                // be the only view with that stem.
+                let by_stem: Vec<usize> = (0..scene.views.len())
+                    .filter(|&i| {
+                        Path::new(&scene.views[i].name)
+                            .file_stem()
+                            .is_some_and(|x| x == s)
+                    })
+                    .collect();
+                match by_stem[..] {
+                    [i] => return Ok(i),
+                    [_, _, ..] => bail!(
+                        "--views: {s:?} names {} views ({}): give the whole name",
+                        by_stem.len(),
+                        by_stem
+                            .iter()
+                            .map(|&i| scene.views[i].name.as_str())
+                            .collect::<Vec<_>>()
+                            .join(", ")
+                    ),
+                    [] => {}
                 }
                 match s.parse::<usize>() {
                     Ok(i) if i < scene.views.len() => Ok(i),
@@ -380,4 +400,30 @@ pub fn on_interrupt(what: &'static str) -> &'static std::sync::atomic::AtomicBoo
         eprintln!("\ninterrupt: {what} (Ctrl-C again to abort)");
     });
     &INTERRUPTED
+}
+
+#[cfg(test)]
+mod tests {
+    use super::select_views;
+    use crate::scene::{LoadOptions, Scene};
+
+    /// Views are chosen by whole name, by file stem when one view has it, or by index; a stem
+    /// two views share (`cam1/0001.png`, `cam2/0001.png`) is an error naming both, not the first.
+    #[test]
+    fn views_by_name_stem_or_index() {
+        let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/tiny");
+        let mut scene = Scene::load(&dir, &LoadOptions::default()).unwrap();
+        assert_eq!(select_views(&scene, "0003.png,0004, 5").unwrap(), [3, 4, 5]);
+        assert_eq!(select_views(&scene, "test").unwrap(), scene.test);
+        scene.views[1].name = "cam1/0001.png".into();
+        scene.views[2].name = "cam2/0001.png".into();
+        assert_eq!(select_views(&scene, "cam2/0001.png").unwrap(), [2]);
+        let e = select_views(&scene, "0001").unwrap_err().to_string();
+        assert!(
+            e.contains("names 2 views (cam1/0001.png, cam2/0001.png)"),
+            "{e}"
+        );
+        let e = select_views(&scene, "0009").unwrap_err().to_string();
+        assert!(e.contains("no view named or numbered \"0009\""), "{e}");
+    }
 }

@@ -104,9 +104,10 @@ pub fn prepare_until(
     }
     if train_views.is_empty() {
         bail!(
-            "{}: no training views (all {} are held out)",
+            "{}: no training views (all {} are held out; by default every 7th view from the first is):              hold out fewer with `holdout_every = N` or `test_views = [...]` in {}",
             dir.display(),
-            scene.views.len()
+            scene.views.len(),
+            dir.join("scene.toml").display()
         );
     }
     if scene.has_masks() {

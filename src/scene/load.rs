@@ -105,6 +105,9 @@ pub struct LoadReport {
     pub notes: Vec<String>,
     /// Things that load but are probably wrong (printed by the callers as `warning: …`).
     pub warnings: Vec<String>,
+    /// The mesh against the reconstruction's points (`points.rs`): the points' file and what
+    /// was measured; `None` without points (or when they could not be read).
+    pub frame_check: Option<(PathBuf, points::Agreement)>,
 }
 
 /// How far apart the mesh's size and the cameras' layout may be before the scene is flagged as a
@@ -298,13 +301,22 @@ impl Scene {
             .collect();
         // The reconstruction's own points against the mesh (`points.rs`): an auxiliary file, so
         // one that cannot be read skips the check with a note rather than failing the scene.
-        match points::find(dir, format, applied) {
-            Ok(Some(p)) => warnings.extend(points::frame_disagreement(&mesh, &mesh_path, &p)),
-            Ok(None) => {}
-            Err(e) => notes.push(format!(
-                "the check of the mesh against the reconstruction's points is skipped: {e:#}"
-            )),
-        }
+        let frame_check = match points::find(dir, format, applied) {
+            Ok(Some(p)) => {
+                let agreement = points::check(&mesh, &p.xyz);
+                warnings.extend(points::frame_disagreement(
+                    &mesh_path, &p.source, &agreement,
+                ));
+                Some((p.source, agreement))
+            }
+            Ok(None) => None,
+            Err(e) => {
+                notes.push(format!(
+                    "the check of the mesh against the reconstruction's points is skipped: {e:#}"
+                ));
+                None
+            }
+        };
         let background = cfg.background.unwrap_or([1.0; 3]);
         if background.iter().any(|c| !(0.0..=1.0).contains(c)) {
             bail!(
@@ -332,6 +344,7 @@ impl Scene {
             mesh_stats,
             notes,
             warnings,
+            frame_check,
         };
         Ok((scene, report))
     }

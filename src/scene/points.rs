@@ -118,11 +118,24 @@ impl Agreement {
     /// Whether the frames disagree, both ways (module docs); `false` when there is too little
     /// to judge.
     pub fn disagrees(&self) -> bool {
-        if self.measured < MIN_POINTS {
-            return false;
-        }
-        (self.inside < MIN_POINTS || self.share() < MIN_NEAR_SHARE)
-            && self.cover() < MIN_COVER_SHARE
+        self.judged() && !self.agrees_somehow()
+    }
+
+    /// Whether the mesh and the points were found in one frame (`false` when there is too little
+    /// to judge).
+    pub fn agrees(&self) -> bool {
+        self.judged() && self.agrees_somehow()
+    }
+
+    /// Enough points to judge.
+    fn judged(&self) -> bool {
+        self.measured >= MIN_POINTS
+    }
+
+    /// One of the two ways passes.
+    fn agrees_somehow(&self) -> bool {
+        (self.inside >= MIN_POINTS && self.share() >= MIN_NEAR_SHARE)
+            || self.cover() >= MIN_COVER_SHARE
     }
 }
 
@@ -202,13 +215,13 @@ fn covered(samples: &[DVec3], points: &[DVec3], reach: f64) -> usize {
         .count()
 }
 
-/// The warning for a mesh whose frame disagrees with the reconstruction's points, else `None`.
-pub fn frame_disagreement(mesh: &Mesh, mesh_path: &Path, points: &SparsePoints) -> Option<String> {
-    let a = check(mesh, &points.xyz);
+/// The warning for a mesh whose frame disagrees with the reconstruction's points (read from
+/// `source`, measured by [`check`]), else `None`.
+pub fn frame_disagreement(mesh_path: &Path, source: &Path, a: &Agreement) -> Option<String> {
     if !a.disagrees() {
         return None;
     }
-    let src = points.source.display();
+    let src = source.display();
     let onto = if a.inside < MIN_POINTS {
         format!(
             "only {} of {} points of {src} lie inside its bounds",

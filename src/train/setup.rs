@@ -183,7 +183,9 @@ pub fn prepare_until(
         );
     }
     let all: u64 = sizes.iter().map(|&(w, h)| w as u64 * h as u64).sum();
-    if let Some(w) = few_hits_warning(samples.len() as u64, all) {
+    let agreed = report.frame_check.as_ref().filter(|(_, a)| a.agrees());
+    let agreed = agreed.map(|(source, _)| source.as_path());
+    if let Some(w) = few_hits_warning(samples.len() as u64, all, agreed) {
         log(w);
     }
     log(format!(
@@ -211,13 +213,20 @@ pub fn prepare_until(
 pub const FEW_HITS: f64 = 0.05;
 
 /// The warning for `hits` of `pixels` training pixels seeing the mesh, when under [`FEW_HITS`].
-pub fn few_hits_warning(hits: u64, pixels: u64) -> Option<String> {
+/// `agreed`: the reconstruction's points file the mesh was found to agree with (`scene/points.rs`),
+/// if any — then the frames are not the cause, the mesh's coverage is.
+pub fn few_hits_warning(hits: u64, pixels: u64, agreed: Option<&Path>) -> Option<String> {
     let share = hits as f64 / pixels.max(1) as f64;
-    (share < FEW_HITS).then(|| {
-        format!(
+    (share < FEW_HITS).then(|| match agreed {
+        None => format!(
             "warning: only {:.1} % of the training views' pixels see the mesh: check that the mesh and the cameras are in one frame and unit (`xscale cast` lists each view's share; a transforms.json with an applied_transform: scene.toml's applied_transform)",
             100.0 * share
-        )
+        ),
+        Some(points) => format!(
+            "warning: only {:.1} % of the training views' pixels see the mesh, which agrees with the reconstruction's points ({}): it covers little of what the photos show (a trimmed or cropped mesh?); the rest of each photo is neither learned nor scored (`xscale cast` lists each view's share)",
+            100.0 * share,
+            points.display()
+        ),
     })
 }
 
@@ -335,14 +344,22 @@ mod tests {
 
     #[test]
     fn few_hits_are_flagged() {
-        assert_eq!(few_hits_warning(18_429, 18_432), None);
-        assert_eq!(few_hits_warning(1_000, 20_000), None, "5 % is enough");
-        let w = few_hits_warning(999, 20_000).unwrap();
+        assert_eq!(few_hits_warning(18_429, 18_432, None), None);
+        assert_eq!(few_hits_warning(1_000, 20_000, None), None, "5 % is enough");
+        let w = few_hits_warning(999, 20_000, None).unwrap();
         assert!(
-            w.contains("only 5.0 % of the training views' pixels"),
+            w.contains("only 5.0 % of the training views' pixels") && w.contains("one frame"),
             "{w}"
         );
-        assert!(few_hits_warning(0, 0).is_some());
+        assert!(few_hits_warning(0, 0, None).is_some());
+        // Frames found to agree with the reconstruction's points: the mesh's coverage is named.
+        let w = few_hits_warning(999, 20_000, Some(Path::new("sparse/0/points3D.bin"))).unwrap();
+        assert!(
+            w.contains("agrees with the reconstruction's points (sparse/0/points3D.bin)")
+                && w.contains("trimmed or cropped")
+                && !w.contains("one frame"),
+            "{w}"
+        );
     }
 
     #[test]

@@ -1,10 +1,10 @@
 //! The ULR baseline (`src/render/ulr.rs`): a training view rendered from the training photos is
-//! its own photo (angle 0 dominates the blend), held-out views score finite, and the result does
-//! not depend on the thread count.
+//! its own photo (angle 0 dominates the blend), held-out views score finite, the result does not
+//! depend on the thread count, and its hit pixels and footprints are the model's.
 
 use std::path::Path;
 use xscale::eval::protocol::score_rendered;
-use xscale::raycast::Tracer;
+use xscale::raycast::{cast_rows, Tracer};
 use xscale::render::ulr::{render_ulr, Source};
 use xscale::scene::{LoadOptions, Scene};
 
@@ -25,7 +25,7 @@ fn ulr_reproduces_training_photos_and_scores_held_out_views() {
     let bg = scene.background;
     // A training view: its own photo at angle 0 takes (nearly) all the weight.
     let j = train[1];
-    let r = render_ulr(&tracer, &sources, &scene.views[j].camera, bg);
+    let r = render_ulr(&tracer, &sources, &scene.views[j].camera, 2, bg).unwrap();
     let own = score_rendered(&scene, j, r, bg).unwrap().scored.score;
     assert!(
         own.psnr_masked > 40.0,
@@ -35,10 +35,10 @@ fn ulr_reproduces_training_photos_and_scores_held_out_views() {
     // A held-out view: finite, sensible scores; the same bits with 1 and 2 threads.
     let t = scene.test[1];
     let a = in_pool(1, || {
-        render_ulr(&tracer, &sources, &scene.views[t].camera, bg)
+        render_ulr(&tracer, &sources, &scene.views[t].camera, 2, bg).unwrap()
     });
     let b = in_pool(2, || {
-        render_ulr(&tracer, &sources, &scene.views[t].camera, bg)
+        render_ulr(&tracer, &sources, &scene.views[t].camera, 2, bg).unwrap()
     });
     assert!(a
         .image
@@ -53,6 +53,17 @@ fn ulr_reproduces_training_photos_and_scores_held_out_views() {
         s.psnr_masked
     );
     assert!(s.footprint.is_some());
+    // Its pixels are the model's: a pixel is a hit when any of its γ² rays hits (the mesh ends
+    // inside some of this view's pixels), with the cast's footprint — for γ = 1 and 2.
+    let cam = &scene.views[t].camera;
+    for gamma in [1, 2] {
+        let r = render_ulr(&tracer, &sources, cam, gamma, bg).unwrap();
+        let cast = cast_rows(&tracer, cam, gamma, 0, cam.height).unwrap();
+        let hits: Vec<bool> = cast.pixels.iter().map(|p| p.valid != 0).collect();
+        assert_eq!(r.hit, hits, "γ = {gamma}");
+        let fp: Vec<f32> = cast.pixels.iter().map(|p| p.footprint as f32).collect();
+        assert_eq!(r.footprint, fp, "γ = {gamma}");
+    }
 }
 
 /// `xscale eval --method ulr --scene DIR` needs no trained model; `--method model` without one

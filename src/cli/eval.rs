@@ -89,7 +89,14 @@ pub fn run(a: Args) -> Result<ExitCode> {
                 )?
             }
             Method::Ulr => {
-                let r = render_ulr(&s.tracer, &sources, &s.scene.views[i].camera, background);
+                // Cast as the model is (its γ; without a model, the `cpu` preset's).
+                let gamma = ck
+                    .as_ref()
+                    .map_or(crate::model::ModelConfig::cpu().gamma, |c| {
+                        c.model.cfg.gamma
+                    });
+                let camera = &s.scene.views[i].camera;
+                let r = render_ulr(&s.tracer, &sources, camera, gamma, background)?;
                 score_rendered(&s.scene, i, r, background)?
             }
         };

@@ -166,7 +166,7 @@ pub fn run(a: Args) -> Result<ExitCode> {
             Method::Model => render_camera(
                 &ck.model, &ck.params, &s.tracer, cam, gamma, *row, background,
             )?,
-            Method::Ulr => render_ulr(&s.tracer, &sources, cam, background),
+            Method::Ulr => render_ulr(&s.tracer, &sources, cam, gamma, background)?,
         };
         let base = a.out.join(stem);
         if let Some(parent) = base.parent() {

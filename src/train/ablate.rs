@@ -300,6 +300,7 @@ pub fn run_ablation(scene: &Path, out: &Path, opts: &AblateOptions) -> Result<Ab
         mesh: sc.mesh,
         ratio: opts.ratio,
         subdivide: opts.subdivide,
+        gamma: base.model.gamma,
     };
     std::fs::create_dir_all(&ctx.mesh_dir)
         .with_context(|| format!("{}: cannot create", ctx.mesh_dir.display()))?;
@@ -469,6 +470,8 @@ struct Shared<'a> {
     n_train: usize,
     ratio: f64,
     subdivide: Option<u32>,
+    /// The base configuration's γ: the ULR baseline casts its pixels as the models do.
+    gamma: u32,
 }
 
 /// The mesh a variant trained on: file, faces, vertices.
@@ -708,8 +711,9 @@ fn ulr_variant(ctx: &Shared, say: &dyn Fn(String)) -> Result<VariantResult> {
     let sources = crate::render::ulr::training_sources(&sc)?;
     let mut views = Vec::new();
     for &i in &sc.test {
+        let camera = &sc.views[i].camera;
         let r =
-            crate::render::ulr::render_ulr(&tracer, &sources, &sc.views[i].camera, sc.background);
+            crate::render::ulr::render_ulr(&tracer, &sources, camera, ctx.gamma, sc.background)?;
         views.push(
             crate::eval::protocol::score_rendered(&sc, i, r, sc.background)?
                 .scored

@@ -159,12 +159,14 @@ fn bench_one(
         let t0 = Instant::now();
         let mut scores = Vec::new();
         for &i in &sc.test {
+            // Cast as the `cpu` configurations cast their pixels (γ = 2).
             let r = crate::render::ulr::render_ulr(
                 &tracer,
                 &sources,
                 &sc.views[i].camera,
+                crate::model::ModelConfig::cpu().gamma,
                 sc.background,
-            );
+            )?;
             scores.push(score_rendered(&sc, i, r, sc.background)?.scored.score);
         }
         let m = mean_score(&scores);

@@ -32,7 +32,7 @@ use std::path::{Path, PathBuf};
 pub const MIN_TRACK: u32 = 3;
 /// Points measured at most (an even stride through the file's order).
 pub const MAX_POINTS: usize = 20_000;
-/// Fewer points inside the box than this: no verdict from the distances.
+/// Fewer points than this in all: no verdict; fewer inside the box: the points miss the mesh.
 pub const MIN_POINTS: usize = 50;
 /// A point is on the mesh within this fraction of the mesh's bounding-box diagonal.
 pub const NEAR: f64 = 0.01;

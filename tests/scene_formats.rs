@@ -290,6 +290,26 @@ fn bad_meshes_name_file_and_line_or_element() {
         &err(mesh::load_mesh(&p)),
         &["trunc_bin.ply", "truncated", "face 4"],
     );
+    // A vertex count whose byte count fits a usize but not after the header: an error, not a
+    // wrapped bound (the overflow cargo-fuzz found in points3D.bin's reader, sought here too).
+    let huge = format!(
+        "ply\nformat binary_little_endian 1.0\nelement vertex {}\nproperty float x\nproperty float y\nproperty float z\nend_header\n",
+        usize::MAX / 12
+    );
+    let p = d.join("huge_count.ply");
+    fs::write(&p, [huge.as_bytes(), &[0u8; 64]].concat()).unwrap();
+    assert_contains(&err(mesh::load_mesh(&p)), &["huge_count.ply", "truncated"]);
+    // Likewise the largest list count the data can hold (a list of a vertex, not the face list;
+    // list counts are integer types of at most 32 bits, so on 64-bit machines it cannot wrap).
+    let mut huge_list = b"ply\nformat binary_little_endian 1.0\nelement vertex 1\nproperty float x\nproperty float y\nproperty float z\nproperty list uint int extra\nend_header\n".to_vec();
+    huge_list.extend([0u8; 12]);
+    huge_list.extend(u32::MAX.to_le_bytes());
+    let p = d.join("huge_list.ply");
+    fs::write(&p, &huge_list).unwrap();
+    assert_contains(
+        &err(mesh::load_mesh(&p)),
+        &["huge_list.ply", "truncated", "'extra'"],
+    );
     let mut nanb = bin.clone();
     nanb[body + 3 * 24 + 8..body + 3 * 24 + 16].copy_from_slice(&f64::NAN.to_le_bytes());
     let p = d.join("nan_bin.ply");
@@ -1400,6 +1420,18 @@ fn colmap_points_text_and_binary_read_alike() {
     assert_contains(
         &err(colmap::read_points(&d)),
         &["points3D.bin", "truncated", "point 299"],
+    );
+    // A track length whose byte count fits a usize but runs past the end of memory: an error,
+    // not an overflow (cargo-fuzz found it: `colmap_points_binary`, 2026-11-27). The same reader
+    // serves images.bin's 2D points.
+    let mut b = 1u64.to_le_bytes().to_vec();
+    b.extend(1u64.to_le_bytes());
+    b.extend([0u8; 24 + 3 + 8]);
+    b.extend((u64::MAX / 8).to_le_bytes());
+    fs::write(d.join("points3D.bin"), &b).unwrap();
+    assert_contains(
+        &err(colmap::read_points(&d)),
+        &["points3D.bin", "truncated", "track"],
     );
 }
 

@@ -612,7 +612,13 @@ struct Reader<'a> {
 
 impl Reader<'_> {
     fn take(&mut self, n: usize, what: &str) -> Result<&[u8]> {
-        if self.pos + n > self.data.len() {
+        // `pos + n` can overflow: a count read from the file times its record size may be as
+        // large as usize::MAX (cargo-fuzz, `colmap_points_binary`).
+        if self
+            .pos
+            .checked_add(n)
+            .is_none_or(|end| end > self.data.len())
+        {
             bail!(
                 "{}: truncated: file ends at byte {} while reading {what}",
                 self.path.display(),

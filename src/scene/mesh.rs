@@ -750,8 +750,9 @@ fn read_fixed_records(
         offs.push(rec);
         rec += t.size();
     }
-    let need = rec.checked_mul(el.count);
-    if need.is_none_or(|n| pos + n > data.len()) {
+    // Overflow-checked: a declared count near usize::MAX / rec must be an error, not a wrap.
+    let end = rec.checked_mul(el.count).and_then(|n| pos.checked_add(n));
+    if end.is_none_or(|e| e > data.len()) {
         let k = (data.len() - pos) / rec.max(1);
         bail!(
             "{p}: truncated: file ends inside {} {k} of {} declared",
@@ -868,16 +869,17 @@ fn load_ply_binary(
                                 )?);
                             }
                         } else {
-                            let bytes = n * item.size();
-                            if pos + bytes > data.len() {
-                                bail!(
+                            // Overflow-checked: a list count is read from the file.
+                            let end = n.checked_mul(item.size()).and_then(|b| pos.checked_add(b));
+                            match end {
+                                Some(e) if e <= data.len() => pos = e,
+                                _ => bail!(
                                     "{p}: truncated: file ends inside {} {k} of {} declared (list '{}')",
                                     el.name,
                                     el.count,
                                     prop.name
-                                );
+                                ),
                             }
-                            pos += bytes;
                         }
                     }
                 }

@@ -131,6 +131,16 @@ impl Row {
     }
 }
 
+/// The close-up / aerial split of a log line: `(near 27.50, far 35.51)`, or words when the
+/// held-out views are of one scale (NaN in `bench.csv`: no split, `scale_summary`).
+fn near_far_words(near: f64, far: f64) -> String {
+    if near.is_nan() || far.is_nan() {
+        "(held-out views of one scale: no near/far split)".into()
+    } else {
+        format!("(near {near:.2}, far {far:.2})")
+    }
+}
+
 fn near_far(scores: &[crate::eval::protocol::ViewScore]) -> (f64, f64) {
     match scale_summary(scores).near_far {
         Some((_, n, f)) => (n.mean.psnr_masked, f.mean.psnr_masked),
@@ -312,8 +322,12 @@ pub fn bench_quality(
             let _ = writeln!(csv, "{}", r.csv());
             let _ = csv.flush();
             say(format!(
-                "   {:>8.1} s  step {:>6}  masked PSNR {:.2}  SSIM {:.4}  (near {:.2}, far {:.2})",
-                r.wall_s, r.step, r.psnr_masked, r.ssim_masked, r.psnr_near, r.psnr_far
+                "   {:>8.1} s  step {:>6}  masked PSNR {:.2}  SSIM {:.4}  {}",
+                r.wall_s,
+                r.step,
+                r.psnr_masked,
+                r.ssim_masked,
+                near_far_words(r.psnr_near, r.psnr_far)
             ));
             rows.push(r);
         };
@@ -418,4 +432,18 @@ pub fn read_rows(path: &Path) -> Result<Vec<Row>> {
         });
     }
     Ok(rows)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::near_far_words;
+
+    /// A scene whose held-out views are of one scale has no near/far split: the log line says
+    /// so instead of printing `near NaN, far NaN` (a real 5-photo scene with one held-out view).
+    #[test]
+    fn near_far_without_a_split_is_words_not_nan() {
+        assert_eq!(near_far_words(27.5, 35.514), "(near 27.50, far 35.51)");
+        let w = near_far_words(f64::NAN, f64::NAN);
+        assert!(!w.contains("NaN") && w.contains("one scale"), "{w}");
+    }
 }

@@ -1474,6 +1474,18 @@ fn a_mesh_in_another_frame_than_the_colmap_points_is_flagged() {
         w,
         &["mesh.ply", "points3D.txt", "lie on it", "applied_transform"],
     );
+    // `eval` (and `render`, through the same loader) print it too, not only `train` and `cast`.
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_xscale"))
+        .args(["eval", "--method", "ulr", "--scene"])
+        .arg(&d)
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{stderr}");
+    assert!(
+        stderr.contains("warning: ") && stderr.contains("another frame"),
+        "{stderr}"
+    );
     // Millimetres against metres.
     mesh::write_ply(&d.join("mesh.ply"), &moved(&|v| v * 1000.0)).unwrap();
     let r = load();

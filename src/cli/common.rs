@@ -154,7 +154,7 @@ impl ModelArgs {
             mesh: self.mesh.clone(),
             ..LoadOptions::default()
         };
-        let scene = Scene::load(&dir, &opts)?;
+        let scene = load_warning(&dir, &opts)?;
         let tracer = Tracer::new(&scene.mesh, &scene.normalization).context("building the BVH")?;
         let rows = vec![-1; scene.views.len()];
         Ok(SceneForModel {
@@ -259,7 +259,7 @@ pub fn scene_for_model(
             );
         }
     }
-    let mut scene = Scene::load(dir, &opts)?;
+    let mut scene = load_warning(dir, &opts)?;
     if let Some(vt) = &ckpt.model.vertex {
         if scene.mesh.vertices.len() != vt.n_vertices || scene.mesh.triangles[..] != vt.faces[..] {
             bail!(
@@ -307,6 +307,17 @@ pub fn scene_for_model(
         tracer,
         rows,
     })
+}
+
+/// [`Scene::load`], printing the loader's warnings (a mesh in other units or another frame than
+/// the cameras, docs/spec.md §3.9) as `train` and `cast` do: `eval` and `render` would otherwise
+/// score or draw such a scene without a word.
+fn load_warning(dir: &Path, opts: &LoadOptions) -> Result<Scene> {
+    let (scene, report) = Scene::load_report(dir, opts)?;
+    for w in &report.warnings {
+        eprintln!("warning: {w}");
+    }
+    Ok(scene)
 }
 
 /// Views named by `test`, `all`, `train`, or a comma-separated list of names or indices.

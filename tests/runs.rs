@@ -60,6 +60,17 @@ fn train_tiny_5(scene: &Path, run: &Path) {
     assert_eq!(code, 0, "{err}");
 }
 
+/// Replace the split in `scene`'s scene.toml (`holdout_every` / `test_views` lines) by `split`.
+fn set_split(scene: &Path, split: &str) {
+    let p = scene.join("scene.toml");
+    let mut toml: String = (std::fs::read_to_string(&p).unwrap().lines())
+        .filter(|l| !l.starts_with("holdout_every") && !l.starts_with("test_views"))
+        .map(|l| format!("{l}\n"))
+        .collect();
+    toml += split;
+    std::fs::write(p, toml + "\n").unwrap();
+}
+
 fn step_of(run: &Path) -> u64 {
     xscale::train::trainer::TrainState::load(&run.join("checkpoint.safetensors"))
         .unwrap()
@@ -607,17 +618,7 @@ fn a_batch_that_cannot_fit_is_refused_before_allocation() {
 fn a_scene_without_held_out_views_gets_a_word() {
     let scene = tmp("noholdout-scene");
     copy_dir(&fixture(), &scene);
-    let toml = std::fs::read_to_string(fixture().join("scene.toml")).unwrap();
-    let toml: String = toml
-        .lines()
-        .filter(|l| !l.starts_with("holdout_every") && !l.starts_with("test_views"))
-        .map(|l| format!("{l}\n"))
-        .collect();
-    std::fs::write(
-        scene.join("scene.toml"),
-        toml.clone() + "holdout_every = 0\n",
-    )
-    .unwrap();
+    set_split(&scene, "holdout_every = 0");
     let run = tmp("noholdout-run");
     let (code, err) = xscale(&[
         "train",
@@ -634,17 +635,9 @@ fn a_scene_without_held_out_views_gets_a_word() {
     assert!(err.contains("no held-out views"), "{err}");
     assert!(!run.join("eval.json").exists());
     // The other end: every view held out (a one- or two-view scene under the default split).
-    std::fs::write(scene.join("scene.toml"), toml + "holdout_every = 1\n").unwrap();
+    set_split(&scene, "holdout_every = 1");
     let run2 = tmp("allheldout-run");
-    let (code, err) = xscale(&[
-        "train",
-        "--scene",
-        scene.to_str().unwrap(),
-        "--out",
-        run2.to_str().unwrap(),
-        "--preset",
-        "tiny",
-    ]);
+    let (code, err) = train_on(&scene, &run2, &["--preset", "tiny"]);
     assert_eq!(code, 2, "{err}");
     assert!(
         err.contains("no training views (all 8 are held out")
@@ -817,13 +810,7 @@ fn eval_warns_when_the_runs_scene_changed() {
         !err.contains("warning: the scene"),
         "a copy of the same scene: {err}"
     );
-    let toml = std::fs::read_to_string(scene.join("scene.toml")).unwrap();
-    let toml: String = toml
-        .lines()
-        .filter(|l| !l.starts_with("holdout_every") && !l.starts_with("test_views"))
-        .map(|l| format!("{l}\n"))
-        .collect();
-    std::fs::write(scene.join("scene.toml"), toml + "holdout_every = 3\n").unwrap();
+    set_split(&scene, "holdout_every = 3");
     for cmd in [
         &["eval", "--run", r][..],
         &[

@@ -1583,4 +1583,15 @@ fn nerfstudio_sparse_points_check_the_frame_the_cameras_are_read_in() {
         "{:?}",
         r.notes
     );
+    // A `ply_file_path` that is not a string: the same, naming the file and the key.
+    j["ply_file_path"] = 7.into();
+    fs::write(&p, serde_json::to_string(&j).unwrap()).unwrap();
+    let r = load();
+    assert!(
+        (r.notes.iter()).any(|n| n.contains("skipped")
+            && n.contains("transforms.json")
+            && n.contains("'ply_file_path' must be a string")),
+        "{:?}",
+        r.notes
+    );
 }

@@ -72,6 +72,12 @@ pub fn run(a: Args) -> Result<ExitCode> {
     } else {
         Vec::new()
     };
+    // ULR casts its pixels as the model does (its γ; without a model, the `cpu` preset's).
+    let ulr_gamma = ck
+        .as_ref()
+        .map_or(crate::model::ModelConfig::cpu().gamma, |c| {
+            c.model.cfg.gamma
+        });
     let mut scores = Vec::new();
     for &i in &views {
         let e = match a.method {
@@ -89,14 +95,8 @@ pub fn run(a: Args) -> Result<ExitCode> {
                 )?
             }
             Method::Ulr => {
-                // Cast as the model is (its γ; without a model, the `cpu` preset's).
-                let gamma = ck
-                    .as_ref()
-                    .map_or(crate::model::ModelConfig::cpu().gamma, |c| {
-                        c.model.cfg.gamma
-                    });
                 let camera = &s.scene.views[i].camera;
-                let r = render_ulr(&s.tracer, &sources, camera, gamma, background)?;
+                let r = render_ulr(&s.tracer, &sources, camera, ulr_gamma, background)?;
                 score_rendered(&s.scene, i, r, background)?
             }
         };

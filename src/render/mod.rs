@@ -38,11 +38,6 @@ pub struct Rendered {
     pub footprint: Vec<f32>,
 }
 
-/// Rows per band for an image `width` wide at γ (at least one row).
-pub fn band_rows(width: u32, gamma: u32) -> u32 {
-    band_rows_for(width, gamma, RENDER_BAND_SAMPLES)
-}
-
 /// Rows per band holding at most `band_samples` sub-samples (at least one row).
 fn band_rows_for(width: u32, gamma: u32, band_samples: usize) -> u32 {
     let per_row = (width as usize * (gamma * gamma) as usize).max(1);
@@ -85,8 +80,43 @@ pub fn render_camera_in_bands(
     background: [f32; 3],
     band_samples: usize,
 ) -> Result<Rendered> {
-    let (w, h) = (camera.width as usize, camera.height as usize);
     let s = (gamma * gamma) as usize;
+    render_in_bands(
+        tracer,
+        camera,
+        gamma,
+        background,
+        band_samples,
+        |cast, _, colours| {
+            let hits: Vec<usize> = (0..cast.pixels.len())
+                .filter(|&i| cast.pixels[i].valid != 0)
+                .collect();
+            for chunk in hits.chunks(RENDER_CHUNK) {
+                let b = render_batch(model, cast, chunk, s, view_row);
+                let rgb = model.infer(params, &b)?;
+                for (&i, c) in chunk.iter().zip(rgb.chunks_exact(3)) {
+                    colours[i * 3..i * 3 + 3].copy_from_slice(c);
+                }
+            }
+            Ok(())
+        },
+    )
+}
+
+/// The frame loop every renderer shares: cast `camera` with γ×γ rays per pixel in bands of rows
+/// (at most `band_samples` sub-samples each, at least one row), take each pixel's hit (any of its
+/// rays hits) and footprint from the cast, and let `shade(cast, y0, colours)` write the RGB of
+/// the band's pixels into `colours` (`[pixels·3]`, the band's rows of the frame, filled with
+/// `background` beforehand; `y0` is the band's first row).
+pub fn render_in_bands(
+    tracer: &Tracer,
+    camera: &Camera,
+    gamma: u32,
+    background: [f32; 3],
+    band_samples: usize,
+    mut shade: impl FnMut(&ViewCast, u32, &mut [f32]) -> Result<()>,
+) -> Result<Rendered> {
+    let (w, h) = (camera.width as usize, camera.height as usize);
     let mut data: Vec<f32> = background.iter().copied().cycle().take(w * h * 3).collect();
     let mut hit = vec![false; w * h];
     let mut footprint = vec![0.0f32; w * h];
@@ -100,16 +130,8 @@ pub fn render_camera_in_bands(
             hit[off + i] = p.valid != 0;
             footprint[off + i] = p.footprint as f32;
         }
-        let hits: Vec<usize> = (0..cast.pixels.len())
-            .filter(|&i| cast.pixels[i].valid != 0)
-            .collect();
-        for chunk in hits.chunks(RENDER_CHUNK) {
-            let b = render_batch(model, &cast, chunk, s, view_row);
-            let rgb = model.infer(params, &b)?;
-            for (&i, c) in chunk.iter().zip(rgb.chunks_exact(3)) {
-                data[(off + i) * 3..(off + i) * 3 + 3].copy_from_slice(c);
-            }
-        }
+        let n = cast.pixels.len();
+        shade(&cast, y0, &mut data[off * 3..(off + n) * 3])?;
     }
     Ok(Rendered {
         image: Image {

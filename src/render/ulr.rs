@@ -22,7 +22,7 @@
 //! sees, get the background colour. Deterministic (a pure function per pixel; pixels in parallel).
 
 use super::Rendered;
-use crate::raycast::{cast_rows_into, Tracer, ViewCast};
+use crate::raycast::Tracer;
 use crate::scene::{Camera, Image};
 use anyhow::Result;
 use glam::DVec3;
@@ -179,7 +179,7 @@ fn blend(
 }
 
 /// Render `camera` by ULR from `sources`, its hit pixels those of `gamma`×`gamma` rays (module
-/// docs), cast in the same bands of rows as the model's renders (`render::band_rows`).
+/// docs), cast in the same bands of rows as the model's renders (`render::render_in_bands`).
 pub fn render_ulr(
     tracer: &Tracer,
     sources: &[Source],
@@ -187,23 +187,22 @@ pub fn render_ulr(
     gamma: u32,
     background: [f32; 3],
 ) -> Result<Rendered> {
-    let (w, h) = (camera.width as usize, camera.height as usize);
-    let g2 = (gamma * gamma) as usize;
+    let (w, g2) = (camera.width as usize, (gamma * gamma) as usize);
     let eye = camera.center();
-    let mut data: Vec<f32> = background.iter().copied().cycle().take(w * h * 3).collect();
-    let mut hit = vec![false; w * h];
-    let mut footprint = vec![0.0f32; w * h];
-    let band = super::band_rows(camera.width, gamma);
-    let mut cast = ViewCast::default();
-    for y0 in (0..camera.height).step_by(band as usize) {
-        let rows = band.min(camera.height - y0);
-        cast_rows_into(tracer, camera, gamma, y0, rows, &mut cast)?;
-        let off = y0 as usize * w;
-        let colours: Vec<[f32; 3]> = (cast.subs.par_chunks(g2).enumerate())
-            .map(|(i, subs)| {
-                if !subs.iter().any(|s| s.hit()) {
-                    return background;
-                }
+    let band = super::RENDER_BAND_SAMPLES;
+    super::render_in_bands(
+        tracer,
+        camera,
+        gamma,
+        background,
+        band,
+        |cast, y0, colours| {
+            (colours
+                .par_chunks_mut(3)
+                .zip(cast.subs.par_chunks(g2))
+                .enumerate())
+            .filter(|(_, (_, subs))| subs.iter().any(|s| s.hit()))
+            .for_each(|(i, (out, subs))| {
                 // The centre ray first: a training view reproduces its own photo's pixels.
                 let (u, v) = (i % w, y0 as usize + i / w);
                 let d = camera.dir_world(u as f64 + 0.5, v as f64 + 0.5);
@@ -211,10 +210,11 @@ pub fn render_ulr(
                 if let Some(c) =
                     centre.and_then(|h| blend(tracer, sources, eye, d, eye + d * h.t, camera.fx))
                 {
-                    return c.map(|v| to_srgb(v as f32));
+                    out.copy_from_slice(&c.map(|v| to_srgb(v as f32)));
+                    return;
                 }
                 // The mesh ends inside this pixel, or no photo sees the centre's hit: the mean
-                // of the rays that hit and are seen.
+                // of the rays that hit and are seen (the background when none is).
                 let (mut acc, mut n) = ([0.0f64; 3], 0u32);
                 for s in subs.iter().filter(|s| s.hit()) {
                     if let Some(c) =
@@ -224,26 +224,11 @@ pub fn render_ulr(
                         n += 1;
                     }
                 }
-                if n == 0 {
-                    background
-                } else {
-                    acc.map(|v| to_srgb((v / n as f64) as f32))
+                if n > 0 {
+                    out.copy_from_slice(&acc.map(|v| to_srgb((v / n as f64) as f32)));
                 }
-            })
-            .collect();
-        for (i, (p, c)) in cast.pixels.iter().zip(&colours).enumerate() {
-            hit[off + i] = p.valid != 0;
-            footprint[off + i] = p.footprint as f32;
-            data[(off + i) * 3..(off + i) * 3 + 3].copy_from_slice(c);
-        }
-    }
-    Ok(Rendered {
-        image: Image {
-            width: camera.width,
-            height: camera.height,
-            data,
+            });
+            Ok(())
         },
-        hit,
-        footprint,
-    })
+    )
 }

@@ -1,9 +1,8 @@
 //! COLMAP sparse models (SPEC §3): read `cameras` + `images` in text (`.txt`) or binary
 //! (`.bin`) form, write both forms. `points3D` is written empty, and read only by
 //! [`read_points`] for the check that the mesh stands in the cameras' frame
-//! (`scene/points.rs`). Newer
-//! COLMAP layouts (3.12+) add `rigs.*` and `frames.*`; `images.*` keeps each image's
-//! world→camera pose, so those extra files are simply ignored.
+//! (`scene/points.rs`). Newer COLMAP layouts (3.12+) add `rigs.*` and `frames.*`; `images.*`
+//! keeps each image's world→camera pose, so those extra files are simply ignored.
 //!
 //! Camera models: every perspective and fisheye model of COLMAP 3.13 (mapped to [`Distortion`]:
 //! SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV, OPENCV_FISHEYE, FULL_OPENCV, FOV,

@@ -152,6 +152,8 @@ pub fn check(mesh: &Mesh, points: &[DVec3]) -> Agreement {
         },
     );
     let diag = (hi - lo).length();
+    // A mesh of one point or a non-finite one: nothing to measure against.
+    let sized = diag > 0.0 && diag.is_finite();
     let tolerance = NEAR * diag;
     let step = points.len().div_ceil(MAX_POINTS).max(1);
     let measured: Vec<DVec3> = points.iter().step_by(step).copied().collect();
@@ -162,7 +164,7 @@ pub fn check(mesh: &Mesh, points: &[DVec3]) -> Agreement {
         .copied()
         .filter(|p| p.cmpge(blo).all() && p.cmple(bhi).all())
         .collect();
-    let near = if inside.len() < MIN_POINTS || diag.is_nan() || diag <= 0.0 {
+    let near = if inside.len() < MIN_POINTS || !sized {
         0
     } else {
         let index = SurfaceIndex::new(mesh);
@@ -171,7 +173,7 @@ pub fn check(mesh: &Mesh, points: &[DVec3]) -> Agreement {
             .filter(|&&p| index.distance_within(p, tolerance) <= tolerance)
             .count()
     };
-    let samples = if diag > 0.0 {
+    let samples = if sized {
         super::distance::area_samples(mesh, MESH_SAMPLES)
     } else {
         Vec::new()
@@ -229,16 +231,18 @@ pub fn frame_disagreement(mesh_path: &Path, source: &Path, a: &Agreement) -> Opt
         )
     } else {
         format!(
-            "only {} of the {} points of {src} inside its bounds ({:.0} %) lie on it (within {:.3e}, 1 % of its size)",
+            "only {} of the {} points of {src} inside its bounds ({:.0} %) lie on it (within {:.3e}, {} % of its size)",
             a.near,
             a.inside,
             100.0 * a.share(),
-            a.tolerance
+            a.tolerance,
+            100.0 * NEAR
         )
     };
     let what = format!(
-        "{onto}, and only {:.0} % of its surface has one of them within 5 % of its size",
-        100.0 * a.cover()
+        "{onto}, and only {:.0} % of its surface has one of them within {} % of its size",
+        100.0 * a.cover(),
+        100.0 * COVER
     );
     Some(format!(
         "{}: {what}: the mesh probably stands in another frame than the cameras (another tool's \

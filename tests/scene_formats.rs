@@ -1595,3 +1595,214 @@ fn nerfstudio_sparse_points_check_the_frame_the_cameras_are_read_in() {
         r.notes
     );
 }
+
+/// A mesh `ns-export` wrote, as nerfstudio's dataparser frames it: the reconstruction's points
+/// `x` mapped by `applied` (the transforms file's world map, folded in by its dataparsers), then
+/// by an orientation-and-centring `[M | t]` and a scale `s` (`x_ns = s·(M·(A·x + a) + t)`).
+/// Returns the mesh and the `dataparser_transforms.json` text nerfstudio would write for it
+/// (f32 values, as `tensor.tolist()` gives them).
+fn ns_exported(mesh: &Mesh, applied: [[f64; 4]; 3]) -> (Mesh, String) {
+    let f32r = |x: f64| x as f32 as f64;
+    let turn = DMat3::from_axis_angle(DVec3::new(0.3, -0.5, 0.8).normalize(), 0.7);
+    let (ra, ta) = (
+        DMat3::from_cols_array_2d(&std::array::from_fn(|c| {
+            std::array::from_fn(|r| applied[r][c])
+        })),
+        DVec3::new(applied[0][3], applied[1][3], applied[2][3]),
+    );
+    // The dataparser transform, composed as nerfstudio does: [M | t] · [A | a; 0 0 0 1].
+    let m = DMat3::from_cols_array(&turn.to_cols_array().map(f32r)) * ra;
+    let m = DMat3::from_cols_array(&m.to_cols_array().map(f32r));
+    let t = (turn * ta + DVec3::new(0.31, -0.22, 0.13))
+        .to_array()
+        .map(f32r);
+    let t = DVec3::from(t);
+    let s = f32r(0.37);
+    let rows: Vec<Vec<f64>> = (0..3)
+        .map(|r| vec![m.col(0)[r], m.col(1)[r], m.col(2)[r], t[r]])
+        .collect();
+    let json = serde_json::json!({ "transform": rows, "scale": s }).to_string();
+    let moved = Mesh {
+        vertices: mesh.vertices.iter().map(|&v| s * (m * v + t)).collect(),
+        triangles: mesh.triangles.clone(),
+    };
+    (moved, json)
+}
+
+/// `xscale align-mesh` with `args`: exit code, stdout, stderr.
+fn align_mesh(args: &[&str]) -> (i32, String, String) {
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_xscale"))
+        .arg("align-mesh")
+        .args(args)
+        .output()
+        .unwrap();
+    (
+        out.status.code().unwrap_or(-1),
+        String::from_utf8_lossy(&out.stdout).into(),
+        String::from_utf8_lossy(&out.stderr).into(),
+    )
+}
+
+/// Largest distance between corresponding vertices of two meshes of the same connectivity.
+fn max_vertex_gap(a: &Mesh, b: &Mesh) -> f64 {
+    assert_eq!(a.triangles, b.triangles);
+    (a.vertices.iter().zip(&b.vertices)).fold(0f64, |m, (p, q)| m.max(p.distance(*q)))
+}
+
+/// A mesh from nerfstudio's `ns-export` stands in its dataparser's frame (oriented, centred,
+/// scaled, with the transforms file's `applied_transform` folded in). The loader's frame check
+/// flags it and names `align-mesh`; `align-mesh` with the run's `dataparser_transforms.json`
+/// brings it back onto the reconstruction's mesh (to f32 rounding) — into the transforms file's
+/// own frame when `scene.toml` keeps it, and through nerfstudio's legacy map for a file without
+/// `applied_transform` beside a `colmap/sparse/0` — and the check then passes. Bad transform files
+/// are errors naming the file and the key.
+#[test]
+fn align_mesh_brings_a_nerfstudio_export_into_the_camera_frame() {
+    let d = tiny_copy("align_mesh");
+    let p = d.join("transforms.json");
+    let mut j = nerfstudio_moved(&p);
+    let (mesh, _) = mesh::load_mesh(&tiny().join("mesh.ply")).unwrap();
+    let diag = {
+        let (lo, hi) = mesh.bbox();
+        (hi - lo).length()
+    };
+    // nerfstudio's sparse_pc.ply: the reconstruction's points moved by applied_transform.
+    let pts: Vec<DVec3> = reconstruction_points(&mesh, 2000)
+        .into_iter()
+        .map(|(x, _)| nerfstudio_point(x))
+        .collect();
+    let ply = format!(
+        "ply\nformat ascii 1.0\nelement vertex {}\nproperty double x\nproperty double y\nproperty double z\nend_header\n{}",
+        pts.len(),
+        pts.iter()
+            .map(|p| format!("{:?} {:?} {:?}\n", p.x, p.y, p.z))
+            .collect::<String>()
+    );
+    fs::write(d.join("sparse_pc.ply"), ply).unwrap();
+    j["ply_file_path"] = "sparse_pc.ply".into();
+    fs::write(&p, serde_json::to_string(&j).unwrap()).unwrap();
+    fs::write(d.join("scene.toml"), "format = \"transforms\"\n").unwrap();
+    fs::remove_file(d.join("mesh.ply")).unwrap();
+    fs::remove_file(d.join("mesh.obj")).unwrap();
+
+    let (ns, dp) = ns_exported(&mesh, NERFSTUDIO_MAP);
+    let (ns_path, dp_path) = (
+        d.join("tsdf_mesh.ply"),
+        d.join("dataparser_transforms.json"),
+    );
+    mesh::write_ply(&ns_path, &ns).unwrap();
+    fs::write(&dp_path, &dp).unwrap();
+    // As exported, the check flags it and names the command.
+    let opts = |m: &Path| LoadOptions {
+        mesh: Some(m.to_path_buf()),
+        ..LoadOptions::default()
+    };
+    let (_, r) = Scene::load_report(&d, &opts(&ns_path)).unwrap();
+    let w = frame_warning(&r).unwrap_or_else(|| panic!("as exported: {:?}", r.warnings));
+    assert_contains(w, &["tsdf_mesh.ply", "ns-export", "xscale align-mesh"]);
+
+    let out = d.join("mesh.ply");
+    let run = |out: &Path| {
+        align_mesh(&[
+            "--in",
+            ns_path.to_str().unwrap(),
+            "--dataparser-transforms",
+            dp_path.to_str().unwrap(),
+            "--scene",
+            d.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+        ])
+    };
+    let (code, stdout, stderr) = run(&out);
+    assert_eq!(code, 0, "{stdout}\n{stderr}");
+    assert_contains(&stdout, &["checked against", "sparse_pc.ply"]);
+    assert!(!stderr.contains("warning"), "{stderr}");
+    let (back, _) = mesh::load_mesh(&out).unwrap();
+    let gap = max_vertex_gap(&back, &mesh);
+    assert!(gap < 1e-6 * diag, "undone to {gap:e} of a {diag} mesh");
+    // The scene now finds it (mesh.ply) and loads without a frame warning.
+    let (_, r) = load_as(&d, CameraFormat::Transforms).unwrap();
+    assert_eq!(frame_warning(&r), None, "{:?}", r.warnings);
+
+    // Cameras kept in the file's frame: the mesh goes there too.
+    fs::write(
+        d.join("scene.toml"),
+        "format = \"transforms\"\napplied_transform = \"keep\"\n",
+    )
+    .unwrap();
+    let (code, stdout, stderr) = run(&out);
+    assert_eq!(code, 0, "{stdout}\n{stderr}");
+    assert_contains(&stdout, &["transforms file's own frame", "checked against"]);
+    let kept = Mesh {
+        vertices: mesh.vertices.iter().map(|&v| nerfstudio_point(v)).collect(),
+        triangles: mesh.triangles.clone(),
+    };
+    let gap = max_vertex_gap(&mesh::load_mesh(&out).unwrap().0, &kept);
+    assert!(gap < 1e-6 * diag, "kept: {gap:e}");
+
+    // No applied_transform, but a COLMAP model in colmap/sparse/0: nerfstudio assumed its
+    // legacy map, and the file's poses stand in that map's frame.
+    fs::write(d.join("scene.toml"), "format = \"transforms\"\n").unwrap();
+    let legacy = transforms::LEGACY_APPLIED;
+    let apply = |a: [[f64; 4]; 3], x: DVec3| {
+        DVec3::from(std::array::from_fn::<f64, 3, _>(|r| {
+            a[r][0] * x.x + a[r][1] * x.y + a[r][2] * x.z + a[r][3]
+        }))
+    };
+    let mut j = j.clone();
+    j.as_object_mut().unwrap().remove("applied_transform");
+    j.as_object_mut().unwrap().remove("ply_file_path");
+    fs::write(&p, serde_json::to_string(&j).unwrap()).unwrap();
+    fs::create_dir_all(d.join("colmap/sparse/0")).unwrap();
+    let (ns, dp) = ns_exported(&mesh, legacy);
+    mesh::write_ply(&ns_path, &ns).unwrap();
+    fs::write(&dp_path, &dp).unwrap();
+    let (code, stdout, stderr) = run(&out);
+    assert_eq!(code, 0, "{stdout}\n{stderr}");
+    assert_contains(&stdout, &["no reconstruction points"]);
+    let want = Mesh {
+        vertices: mesh.vertices.iter().map(|&v| apply(legacy, v)).collect(),
+        triangles: mesh.triangles.clone(),
+    };
+    let gap = max_vertex_gap(&mesh::load_mesh(&out).unwrap().0, &want);
+    assert!(gap < 1e-6 * diag, "legacy: {gap:e}");
+
+    // Bad input: the file and the key are named; the input is never overwritten.
+    let bad = |text: &str, parts: &[&str]| {
+        fs::write(&dp_path, text).unwrap();
+        let (code, _, stderr) = run(&d.join("never.ply"));
+        assert_eq!(code, 2, "{text}: {stderr}");
+        assert_contains(&stderr, &["dataparser_transforms.json"]);
+        assert_contains(&stderr, parts);
+        assert!(!d.join("never.ply").exists());
+    };
+    let rows = "[[1,0,0,0],[0,1,0,0],[0,0,1,0]]";
+    bad(&format!("{{\"transform\": {rows}}}"), &["'scale'"]);
+    bad(
+        &format!("{{\"transform\": {rows}, \"scale\": -2}}"),
+        &["'scale' must be a positive number"],
+    );
+    bad(
+        "{\"transform\": [[2,0,0,0],[0,1,0,0],[0,0,1,0]], \"scale\": 1}",
+        &["'transform'", "not a rotation"],
+    );
+    bad(
+        "{\"transform\": [[1,0,0],[0,1,0]], \"scale\": 1}",
+        &["'transform'", "4x4 (or 3x4)"],
+    );
+    bad("{\"transform\": ", &["line 1", "malformed JSON"]);
+    fs::write(&dp_path, &dp).unwrap();
+    let (code, _, stderr) = align_mesh(&[
+        "--in",
+        ns_path.to_str().unwrap(),
+        "--dataparser-transforms",
+        dp_path.to_str().unwrap(),
+        "--scene",
+        d.to_str().unwrap(),
+        "--out",
+        ns_path.to_str().unwrap(),
+    ]);
+    assert_eq!(code, 2, "{stderr}");
+    assert_contains(&stderr, &["--out is the input mesh"]);
+}

@@ -5,6 +5,7 @@ use clap::{Parser, Subcommand};
 use std::process::ExitCode;
 
 pub mod ablate;
+pub mod align_mesh;
 pub mod batch;
 pub mod bench_geometry;
 pub mod bench_quality;
@@ -58,6 +59,8 @@ pub enum Command {
     Decimate(decimate::Args),
     /// Subdivide a mesh (midpoint, 1→4 per level).
     Subdivide(decimate::SubdivideArgs),
+    /// Bring a mesh exported by nerfstudio (ns-export) into the scene's camera frame.
+    AlignMesh(align_mesh::Args),
     /// Geometry error of a mesh against a reference surface (mean / RMS point-to-surface distance).
     MeshDistance(mesh_distance::Args),
     /// Train the paper's ablations and the vertex-feature baseline; write a comparison table.
@@ -99,6 +102,7 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Decimate(a) => decimate::run(a),
         Command::Subdivide(a) => decimate::run_subdivide(a),
         Command::MeshDistance(a) => mesh_distance::run(a),
+        Command::AlignMesh(a) => align_mesh::run(a),
         Command::Ablate(a) => ablate::run(a),
         Command::BenchQuality(a) => bench_quality::run(a),
         Command::BenchGeometry(a) => bench_geometry::run(a),

@@ -9,7 +9,7 @@ use super::{
     NormalizeMode, Scene, View,
 };
 use anyhow::{anyhow, bail, Result};
-use glam::DVec3;
+use glam::{DMat3, DVec3};
 use std::path::{Path, PathBuf};
 
 /// Which camera layout a scene directory uses (SPEC §3).
@@ -304,9 +304,15 @@ impl Scene {
         let frame_check = match points::find(dir, format, applied) {
             Ok(Some(p)) => {
                 let agreement = points::check(&mesh, &p.xyz);
-                warnings.extend(points::frame_disagreement(
-                    &mesh_path, &p.source, &agreement,
-                ));
+                warnings.extend(
+                    points::frame_disagreement(&mesh_path, &p.source, &agreement).map(|w| {
+                        if format == CameraFormat::Transforms {
+                            format!("{w}. A mesh from nerfstudio's ns-export stands in its dataparser's frame: bring it back with `xscale align-mesh`")
+                        } else {
+                            w
+                        }
+                    }),
+                );
                 Some((p.source, agreement))
             }
             Ok(None) => None,
@@ -348,6 +354,33 @@ impl Scene {
         };
         Ok((scene, report))
     }
+}
+
+/// The map from the frame nerfstudio's `dataparser_transforms.json` leads back to (the
+/// reconstruction's: [`transforms::DataparserTransform`]) to the frame `dir`'s cameras are read
+/// in, `x' = r·x + t`; `None` when they are one frame. They differ for a transforms layout that
+/// keeps its `applied_transform` (`scene.toml`), and for one without the key while a COLMAP
+/// model in `colmap/sparse/0` beside it makes nerfstudio assume [`transforms::LEGACY_APPLIED`].
+pub fn nerfstudio_original_to_cameras(dir: &Path) -> Result<Option<(DMat3, DVec3)>> {
+    let toml_path = dir.join("scene.toml");
+    let cfg = read_scene_toml(&toml_path)?;
+    if choose_format(dir, &LoadOptions::default(), &cfg, &toml_path)? != CameraFormat::Transforms {
+        return Ok(None);
+    }
+    let Some(file) = ["transforms.json", "transforms_train.json"]
+        .iter()
+        .map(|f| dir.join(f))
+        .find(|p| p.is_file())
+    else {
+        return Ok(None);
+    };
+    let keep = cfg.applied_transform == Some(transforms::AppliedTransform::Keep);
+    Ok(match transforms::applied_map(&file)? {
+        Some(m) if keep => Some(m),
+        Some(_) => None,
+        None if dir.join("colmap/sparse/0").is_dir() => Some(transforms::legacy_applied()),
+        None => None,
+    })
 }
 
 /// The optional `scene.toml` (an empty one when the file is absent).

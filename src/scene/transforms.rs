@@ -223,17 +223,22 @@ pub fn sparse_points(
 /// `x' = r·x + t`; its 3×3 part must be a rotation to 1e-6 (nerfstudio's are axis permutations).
 fn world_map(pd: &str, m: &Value) -> Result<(DMat3, DVec3)> {
     let wh = format!("{pd}: 'applied_transform'");
-    let a = affine_rows(&wh, m)?;
-    let r = DMat3::from_cols_array_2d(&[
-        [a[0][0], a[1][0], a[2][0]],
-        [a[0][1], a[1][1], a[2][1]],
-        [a[0][2], a[1][2], a[2][2]],
-    ]);
+    let (r, t) = affine_map(&affine_rows(&wh, m)?);
     let ortho = non_orthonormality(&r);
     if ortho > 1e-6 || r.determinant() <= 0.0 {
         bail!("{wh}: its 3x3 part is not a rotation (|RᵀR − I| = {ortho:.2e}); set applied_transform = \"keep\" in scene.toml to use the poses as written");
     }
-    Ok((r, DVec3::new(a[0][3], a[1][3], a[2][3])))
+    Ok((r, t))
+}
+
+/// Rows `[A | a]` as the matrix `A` and the vector `a`.
+fn affine_map(a: &[[f64; 4]; 3]) -> (DMat3, DVec3) {
+    let m = DMat3::from_cols_array_2d(&[
+        [a[0][0], a[1][0], a[2][0]],
+        [a[0][1], a[1][1], a[2][1]],
+        [a[0][2], a[1][2], a[2][2]],
+    ]);
+    (m, DVec3::new(a[0][3], a[1][3], a[2][3]))
 }
 
 /// A frame's `mask_path`, if it has one: relative to the JSON file's folder, and an existing file.
@@ -475,4 +480,72 @@ pub fn write(path: &Path, views: &[View], image_prefix: &str) -> Result<()> {
         fs::create_dir_all(d).with_context(|| format!("{}: cannot create", d.display()))?;
     }
     fs::write(path, text).with_context(|| format!("{}: cannot write", path.display()))
+}
+
+/// `applied_transform` nerfstudio assumes for a transforms file without one when a COLMAP model
+/// stands in `colmap/sparse/0` beside it: what `ns-process-data` applied before it wrote the key
+/// (`nerfstudio_dataparser.py`).
+pub const LEGACY_APPLIED: [[f64; 4]; 3] = [[0., 1., 0., 0.], [1., 0., 0., 0.], [0., 0., -1., 0.]];
+
+/// [`LEGACY_APPLIED`] as the world map `x' = r·x + t`.
+pub fn legacy_applied() -> (DMat3, DVec3) {
+    affine_map(&LEGACY_APPLIED)
+}
+
+/// The top-level `applied_transform` of a transforms file as the world map `x' = r·x + t`, or
+/// `None` without one.
+pub fn applied_map(path: &Path) -> Result<Option<(DMat3, DVec3)>> {
+    let root = read_json(path)?;
+    match root.get("applied_transform") {
+        Some(m) => Ok(Some(world_map(&path.display().to_string(), m)?)),
+        None => Ok(None),
+    }
+}
+
+/// nerfstudio's `dataparser_transforms.json`, written beside a trained model's `config.yml`: the
+/// map its dataparser applied to the reconstruction before training, `x_ns = scale · (M·x + t)`
+/// (`"transform"`: `[M | t]`, 3×4 or 4×4; `"scale"`). Its dataparsers fold the transforms file's
+/// `applied_transform` into `M` and `t`, so `x` is the reconstruction's own frame (COLMAP's). A
+/// mesh from `ns-export` (`tsdf`, `poisson`) stands in the dataparser's frame `x_ns`.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct DataparserTransform {
+    pub matrix: DMat3,
+    pub translation: DVec3,
+    pub scale: f64,
+}
+
+impl DataparserTransform {
+    /// Read one, with errors naming the file and the key.
+    pub fn read(path: &Path) -> Result<DataparserTransform> {
+        let pd = path.display().to_string();
+        let root = read_json(path)?;
+        let (Some(m), Some(s)) = (root.get("transform"), root.get("scale")) else {
+            bail!("{pd}: expected nerfstudio's dataparser_transforms.json, an object with 'transform' (3x4) and 'scale'");
+        };
+        let (matrix, translation) = affine_map(&affine_rows(&format!("{pd}: 'transform'"), m)?);
+        // nerfstudio's orientations are rotations (written in f32); anything far from one is
+        // not a dataparser transform. Inverted in full, as nerfstudio's own
+        // `transform_poses_to_original_space` does.
+        let ortho = non_orthonormality(&matrix);
+        if ortho > 1e-4 || matrix.determinant() <= 0.0 {
+            bail!("{pd}: 'transform': its 3x3 part is not a rotation (|RᵀR − I| = {ortho:.2e})");
+        }
+        let scale = s
+            .as_f64()
+            .filter(|x| x.is_finite() && *x > 0.0)
+            .ok_or_else(|| anyhow!("{pd}: 'scale' must be a positive number, got {s}"))?;
+        Ok(DataparserTransform {
+            matrix,
+            translation,
+            scale,
+        })
+    }
+
+    /// Points of the dataparser's frame moved to the reconstruction's: `M⁻¹·(x_ns / scale − t)`.
+    pub fn to_original(&self, pts: &mut [DVec3]) {
+        let inv = self.matrix.inverse();
+        for p in pts {
+            *p = inv * (*p / self.scale - self.translation);
+        }
+    }
 }

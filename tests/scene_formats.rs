@@ -1700,6 +1700,14 @@ fn align_mesh_brings_a_nerfstudio_export_into_the_camera_frame() {
     let (_, r) = Scene::load_report(&d, &opts(&ns_path)).unwrap();
     let w = frame_warning(&r).unwrap_or_else(|| panic!("as exported: {:?}", r.warnings));
     assert_contains(w, &["tsdf_mesh.ply", "ns-export", "xscale align-mesh"]);
+    // The note on the undone applied_transform names the command too (a scene without points).
+    assert!(
+        r.notes
+            .iter()
+            .any(|n| n.contains("applied_transform is undone") && n.contains("align-mesh")),
+        "{:?}",
+        r.notes
+    );
 
     let out = d.join("mesh.ply");
     let run = |out: &Path| {

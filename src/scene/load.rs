@@ -277,7 +277,7 @@ impl Scene {
                 let (loaded, undone) = load_transforms(dir, applied)?;
                 if let Some(file) = undone {
                     notes.push(format!(
-                        "{}: its applied_transform is undone, so the cameras stand in the frame of the reconstruction it was written from (COLMAP's, Metashape's), where that reconstruction's meshes are; for a mesh in the file's own frame set applied_transform = \"keep\" in {}",
+                        "{}: its applied_transform is undone, so the cameras stand in the frame of the reconstruction it was written from (COLMAP's, Metashape's), where that reconstruction's meshes are; for a mesh in the file's own frame set applied_transform = \"keep\" in {}; a mesh from nerfstudio's ns-export stands in neither: `xscale align-mesh` brings it here",
                         file.display(),
                         toml_path.display()
                     ));

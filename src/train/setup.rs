@@ -178,7 +178,7 @@ pub fn prepare_until(
     }
     if samples.is_empty() {
         bail!(
-            "{}: no training pixel sees the mesh (check the cameras' convention)",
+            "{}: no training pixel sees the mesh: check that the mesh and the cameras are in one frame and unit (`xscale cast` lists each view's share; a mesh from nerfstudio's ns-export: `xscale align-mesh`)",
             dir.display()
         );
     }
@@ -219,7 +219,7 @@ pub fn few_hits_warning(hits: u64, pixels: u64, agreed: Option<&Path>) -> Option
     let share = hits as f64 / pixels.max(1) as f64;
     (share < FEW_HITS).then(|| match agreed {
         None => format!(
-            "warning: only {:.1} % of the training views' pixels see the mesh: check that the mesh and the cameras are in one frame and unit (`xscale cast` lists each view's share; a transforms.json with an applied_transform: scene.toml's applied_transform)",
+            "warning: only {:.1} % of the training views' pixels see the mesh: check that the mesh and the cameras are in one frame and unit (`xscale cast` lists each view's share; a transforms.json with an applied_transform: scene.toml's applied_transform; a mesh from nerfstudio's ns-export: `xscale align-mesh`)",
             100.0 * share
         ),
         Some(points) => format!(
@@ -347,6 +347,7 @@ mod tests {
         assert_eq!(few_hits_warning(18_429, 18_432, None), None);
         assert_eq!(few_hits_warning(1_000, 20_000, None), None, "5 % is enough");
         let w = few_hits_warning(999, 20_000, None).unwrap();
+        assert!(w.contains("align-mesh"), "{w}");
         assert!(
             w.contains("only 5.0 % of the training views' pixels") && w.contains("one frame"),
             "{w}"

@@ -1813,4 +1813,20 @@ fn align_mesh_brings_a_nerfstudio_export_into_the_camera_frame() {
     ]);
     assert_eq!(code, 2, "{stderr}");
     assert_contains(&stderr, &["--out is the input mesh"]);
+    // A missing scene folder and an output of another format, named before any work.
+    let (code, _, stderr) = align_mesh(&[
+        "--in",
+        ns_path.to_str().unwrap(),
+        "--dataparser-transforms",
+        dp_path.to_str().unwrap(),
+        "--scene",
+        d.join("nope").to_str().unwrap(),
+        "--out",
+        d.join("never.ply").to_str().unwrap(),
+    ]);
+    assert_eq!(code, 2, "{stderr}");
+    assert_contains(&stderr, &["nope: scene directory not found"]);
+    let (code, _, stderr) = run(&d.join("never.stl"));
+    assert_eq!(code, 2, "{stderr}");
+    assert_contains(&stderr, &["never.stl: the output must end in .ply or .obj"]);
 }

@@ -37,6 +37,14 @@ pub fn run(a: Args) -> Result<ExitCode> {
             );
         }
     }
+    let ext = a
+        .out
+        .extension()
+        .and_then(|e| e.to_str())
+        .map(str::to_ascii_lowercase);
+    if !matches!(ext.as_deref(), Some("ply" | "obj")) {
+        bail!("{}: the output must end in .ply or .obj", a.out.display());
+    }
     let t = DataparserTransform::read(&a.dataparser_transforms)?;
     let to_cameras = nerfstudio_original_to_cameras(&a.scene)?;
     let (mut mesh, _) = load_mesh(&a.input)?;

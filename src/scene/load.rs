@@ -362,6 +362,9 @@ impl Scene {
 /// keeps its `applied_transform` (`scene.toml`), and for one without the key while a COLMAP
 /// model in `colmap/sparse/0` beside it makes nerfstudio assume [`transforms::LEGACY_APPLIED`].
 pub fn nerfstudio_original_to_cameras(dir: &Path) -> Result<Option<(DMat3, DVec3)>> {
+    if !dir.is_dir() {
+        bail!("{}: scene directory not found", dir.display());
+    }
     let toml_path = dir.join("scene.toml");
     let cfg = read_scene_toml(&toml_path)?;
     if choose_format(dir, &LoadOptions::default(), &cfg, &toml_path)? != CameraFormat::Transforms {

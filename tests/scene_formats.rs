@@ -1835,7 +1835,9 @@ fn align_mesh_brings_a_nerfstudio_export_into_the_camera_frame() {
 /// (OPENCV and OPENCV_FISHEYE, per-frame intrinsics, ns-process-data's `applied_transform`),
 /// every camera's ray through a grid of pixel centres equals the one nerfstudio 1.1.5's own
 /// `Cameras.generate_rays` casts, mapped back from its dataparser's frame (`make_rays.py`).
-/// nerfstudio computes in f32: origins to 1e-5 of the scene's size, directions to 1e-6.
+/// nerfstudio computes in f32: origins to 1e-5 of the scene's size, directions to 1e-6. And the
+/// `dataparser_transforms.json` nerfstudio saved for each (what `xscale align-mesh` reads) takes
+/// its training cameras' centres back onto xscale's.
 #[test]
 fn transforms_rays_are_nerfstudios() {
     let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/nerfstudio_rays");
@@ -1845,8 +1847,28 @@ fn transforms_rays_are_nerfstudios() {
     let mut checked = 0;
     for name in ["opencv", "fisheye"] {
         let views = transforms::load(&root.join(name).join("transforms.json")).unwrap();
-        let frames = reference[name].as_object().unwrap();
+        let mut frames = reference[name].as_object().unwrap().clone();
+        let ns_centres = frames.remove("ns_centres").unwrap();
         assert_eq!(frames.len(), views.len());
+        // The run's dataparser_transforms.json takes nerfstudio's training camera centres (its
+        // dataparser's frame, where an ns-export mesh stands) back onto xscale's.
+        let t = transforms::DataparserTransform::read(
+            &root.join(name).join("dataparser_transforms.json"),
+        )
+        .unwrap();
+        for v in &views {
+            let mut c = [DVec3::from(
+                serde_json::from_value::<[f64; 3]>(ns_centres[&v.name].clone()).unwrap(),
+            )];
+            t.to_original(&mut c);
+            let gap = (c[0] - v.camera.center()).abs().max_element();
+            if gap > 5e-5 {
+                failures.push(format!(
+                    "{name} {}: dataparser centre back off by {gap:.2e}",
+                    v.name
+                ));
+            }
+        }
         for v in &views {
             for row in frames[&v.name].as_array().unwrap() {
                 let r: (u32, u32, [f64; 3], [f64; 3]) =

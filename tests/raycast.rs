@@ -660,3 +660,90 @@ fn camera_packets_match_brute_force() {
     }
     assert!(checked > 40_000);
 }
+
+/// The photo check (`raycast/consistency.rs`) on the `tiny` fixture: in place its photos agree
+/// where the mesh is (correlation ≥ 0.9); the mesh turned a quarter about x or moved up by 5 % of
+/// its size, they do not, and `train`'s setup says so; photos of one flat colour give no verdict
+/// rather than a false one; a view whose photo was not read does not count.
+#[test]
+fn photo_check_flags_a_mesh_where_the_photos_disagree() {
+    use xscale::raycast::consistency::{PhotoCheck, MIN_CORRELATION};
+    use xscale::scene::{LoadOptions, Scene};
+    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/tiny");
+    let scene = Scene::load(&dir, &LoadOptions::default()).unwrap();
+    let train = scene.train();
+    let cams: Vec<&Camera> = train.iter().map(|&i| &scene.views[i].camera).collect();
+    let photos: Vec<Image> = train
+        .iter()
+        .map(|&i| scene.load_image(i).unwrap())
+        .collect();
+    let check = |mesh: &Mesh, photos: &[Image]| {
+        let tracer = Tracer::new(mesh, &scene.normalization).unwrap();
+        let mut c = PhotoCheck::plan(mesh, &tracer, &cams);
+        for (k, img) in photos.iter().enumerate() {
+            c.add_view(k, img);
+        }
+        c.result()
+    };
+    let r = check(&scene.mesh, &photos);
+    assert!(
+        r.correlation >= 0.9 && r.pairs >= 3 && !r.disagrees(),
+        "{r:?}"
+    );
+
+    let (lo, hi) = scene.mesh.bbox();
+    let (mid, diag) = (0.5 * (lo + hi), (hi - lo).length());
+    let moved = |f: &dyn Fn(DVec3) -> DVec3| Mesh {
+        vertices: scene.mesh.vertices.iter().map(|&v| f(v)).collect(),
+        triangles: scene.mesh.triangles.clone(),
+    };
+    let turned = moved(&|v| mid + DMat3::from_rotation_x(std::f64::consts::FRAC_PI_2) * (v - mid));
+    let up = moved(&|v| v + DVec3::Z * 0.05 * diag);
+    for (what, mesh) in [("turned", &turned), ("moved up", &up)] {
+        let r = check(mesh, &photos);
+        assert!(
+            r.disagrees() && r.correlation < MIN_CORRELATION,
+            "{what}: {r:?}"
+        );
+    }
+
+    // Flat photos: nothing to correlate, no verdict.
+    let flat: Vec<Image> = photos
+        .iter()
+        .map(|p| Image {
+            width: p.width,
+            height: p.height,
+            data: vec![0.5; p.data.len()],
+        })
+        .collect();
+    let r = check(&turned, &flat);
+    assert!(r.pairs == 0 && !r.disagrees(), "{r:?}");
+    // Only one photo read: no pair.
+    let tracer = Tracer::new(&turned, &scene.normalization).unwrap();
+    let mut c = PhotoCheck::plan(&turned, &tracer, &cams);
+    c.add_view(0, &photos[0]);
+    assert_eq!(c.result().pairs, 0);
+
+    // train's setup reads the photos anyway and says it, under `warning:`.
+    let d = std::path::Path::new(env!("CARGO_TARGET_TMPDIR")).join("photo_check");
+    std::fs::create_dir_all(&d).unwrap();
+    let path = d.join("turned.ply");
+    xscale::scene::mesh::write_ply(&path, &turned).unwrap();
+    let mut cfg = xscale::train::config::RunConfig::preset("tiny").unwrap();
+    let mut said = Vec::new();
+    xscale::train::setup::prepare(&dir, &cfg, true, &mut |m| said.push(m)).unwrap();
+    assert!(
+        said.iter()
+            .any(|m| m.starts_with("photo check: ") && m.contains("correlate 0.9")),
+        "{said:?}"
+    );
+    cfg.train.mesh = Some(path);
+    said.clear();
+    xscale::train::setup::prepare(&dir, &cfg, true, &mut |m| said.push(m)).unwrap();
+    assert!(
+        said.iter()
+            .any(|m| m.starts_with("warning: ")
+                && m.contains("the photos disagree where the mesh is")),
+        "{said:?}"
+    );
+}

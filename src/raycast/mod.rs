@@ -11,6 +11,7 @@
 pub mod bvh;
 pub mod cache;
 pub mod cast;
+pub mod consistency;
 pub mod footprint;
 pub mod meshes;
 pub mod packet;

@@ -5,7 +5,9 @@
 use crate::model::config::{per_level_scale_for, GridConfig};
 use crate::model::hashgrid::tcnn_scales;
 use crate::model::ModelConfig;
+use crate::raycast::consistency::{Consistency, PhotoCheck, MIN_CORRELATION};
 use crate::raycast::{CacheEvent, RayStream, SampleCache, Targets, Tracer};
+use crate::scene::Camera;
 use crate::scene::{LoadOptions, Scene};
 use crate::train::config::{LevelRange, RunConfig};
 use crate::train::memory;
@@ -147,6 +149,14 @@ pub fn prepare_until(
             SampleCache::new(gamma)?
         })),
     };
+    // The photos against the mesh (`raycast/consistency.rs`), read as they go by.
+    let mut photo_check = with_images.then(|| {
+        let cams: Vec<&Camera> = train_views
+            .iter()
+            .map(|&i| &scene.views[i].camera)
+            .collect();
+        PhotoCheck::plan(&scene.mesh, &tracer, &cams)
+    });
     // One photo in memory at a time: load, cast, keep what the mode keeps.
     for (k, &i) in train_views.iter().enumerate() {
         if stop() {
@@ -165,6 +175,9 @@ pub fn prepare_until(
                 ));
             }
         };
+        if let (Some(c), Some(img)) = (&mut photo_check, &img) {
+            c.add_view(k, img);
+        }
         let cam = &scene.views[i].camera;
         let mask = scene.load_mask(i)?;
         let mask = mask.as_deref();
@@ -181,6 +194,9 @@ pub fn prepare_until(
             "{}: no training pixel sees the mesh: check that the mesh and the cameras are in one frame and unit (`xscale cast` lists each view's share; a mesh from nerfstudio's ns-export: `xscale align-mesh`)",
             dir.display()
         );
+    }
+    if let Some(c) = &photo_check {
+        log(photo_check_message(&c.result()));
     }
     let all: u64 = sizes.iter().map(|&(w, h)| w as u64 * h as u64).sum();
     let agreed = report.frame_check.as_ref().filter(|(_, a)| a.agrees());
@@ -228,6 +244,26 @@ pub fn few_hits_warning(hits: u64, pixels: u64, agreed: Option<&Path>) -> Option
             points.display()
         ),
     })
+}
+
+/// What `train` says of the photo check (`raycast/consistency.rs`): the correlation, and a warning
+/// when it is below [`MIN_CORRELATION`](crate::raycast::consistency::MIN_CORRELATION).
+pub fn photo_check_message(r: &Consistency) -> String {
+    if r.pairs == 0 {
+        return "photo check: no two training views share enough textured surface to compare"
+            .into();
+    }
+    let what = format!(
+        "the colours two training photos see at the same surface points correlate {:.2} ({} view pairs, {} points; in place 0.9 or more, below {} the mesh stands elsewhere)",
+        r.correlation, r.pairs, r.shared, MIN_CORRELATION
+    );
+    if r.disagrees() {
+        format!(
+            "warning: {what}: the photos disagree where the mesh is, which probably stands in another frame than the cameras (another tool's coordinate system, a turned or moved export, a transforms.json read in the wrong frame: docs/spec.md §3); training will run but learn little"
+        )
+    } else {
+        format!("photo check: {what}")
+    }
 }
 
 /// Which footprint sets the finest level in `level_range = "auto"`: the smallest over training

@@ -1710,18 +1710,19 @@ fn align_mesh_brings_a_nerfstudio_export_into_the_camera_frame() {
     );
 
     let out = d.join("mesh.ply");
-    let run = |out: &Path| {
+    let run_in = |scene: &Path, out: &Path| {
         align_mesh(&[
             "--in",
             ns_path.to_str().unwrap(),
             "--dataparser-transforms",
             dp_path.to_str().unwrap(),
             "--scene",
-            d.to_str().unwrap(),
+            scene.to_str().unwrap(),
             "--out",
             out.to_str().unwrap(),
         ])
     };
+    let run = |out: &Path| run_in(&d, out);
     let (code, stdout, stderr) = run(&out);
     assert_eq!(code, 0, "{stdout}\n{stderr}");
     assert_contains(&stdout, &["checked against", "sparse_pc.ply"]);
@@ -1801,29 +1802,11 @@ fn align_mesh_brings_a_nerfstudio_export_into_the_camera_frame() {
     );
     bad("{\"transform\": ", &["line 1", "malformed JSON"]);
     fs::write(&dp_path, &dp).unwrap();
-    let (code, _, stderr) = align_mesh(&[
-        "--in",
-        ns_path.to_str().unwrap(),
-        "--dataparser-transforms",
-        dp_path.to_str().unwrap(),
-        "--scene",
-        d.to_str().unwrap(),
-        "--out",
-        ns_path.to_str().unwrap(),
-    ]);
+    let (code, _, stderr) = run(&ns_path);
     assert_eq!(code, 2, "{stderr}");
     assert_contains(&stderr, &["--out is the input mesh"]);
     // A missing scene folder and an output of another format, named before any work.
-    let (code, _, stderr) = align_mesh(&[
-        "--in",
-        ns_path.to_str().unwrap(),
-        "--dataparser-transforms",
-        dp_path.to_str().unwrap(),
-        "--scene",
-        d.join("nope").to_str().unwrap(),
-        "--out",
-        d.join("never.ply").to_str().unwrap(),
-    ]);
+    let (code, _, stderr) = run_in(&d.join("nope"), &d.join("never.ply"));
     assert_eq!(code, 2, "{stderr}");
     assert_contains(&stderr, &["nope: scene directory not found"]);
     let (code, _, stderr) = run(&d.join("never.stl"));

@@ -1,6 +1,7 @@
 //! From a scene directory to what training needs (SPEC §1, §8): load the scene, build the BVH,
 //! check the memory budget, cast every training view once (its hit map for the ray stream, or
-//! all its samples for the cache — `train/sampler.rs`), and drop hash levels no view resolves.
+//! all its samples for the cache — `train/sampler.rs`) while checking its photo against the mesh
+//! (`raycast/consistency.rs`), and drop hash levels no view resolves.
 
 use crate::model::config::{per_level_scale_for, GridConfig};
 use crate::model::hashgrid::tcnn_scales;
@@ -254,7 +255,7 @@ pub fn photo_check_message(r: &Consistency) -> String {
             .into();
     }
     let what = format!(
-        "the colours two training photos see at the same surface points correlate {:.2} ({} view pairs, {} points; in place 0.9 or more, below {} the mesh stands elsewhere)",
+        "the colours two training photos see at the same surface points correlate {:.2} ({} view pairs, {} points; in place typically 0.9 or more, below {} the mesh stands elsewhere)",
         r.correlation, r.pairs, r.shared, MIN_CORRELATION
     );
     if r.disagrees() {

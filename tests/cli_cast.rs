@@ -40,9 +40,12 @@ fn cast_reports_the_cache() {
         .unwrap();
     assert!(kept > 0 && kept < 144, "{out}");
     assert!(err.contains("see the mesh"), "{err}");
+    // The photos are read, so they are checked against the mesh (`raycast/consistency.rs`).
+    assert!(err.contains("photo check: "), "{err}");
     // γ = 1 casts a quarter of the rays; the training split drops the held-out view 0.
-    let (code, out, _) = xscale(&["cast", "--scene", scene, "--gamma", "1", "--no-images"]);
+    let (code, out, err) = xscale(&["cast", "--scene", scene, "--gamma", "1", "--no-images"]);
     assert_eq!(code, 0);
+    assert!(!err.contains("photo check"), "no photos read: {err}");
     assert_eq!(field(&out, "views cast:"), "2");
     assert_eq!(field(&out, "rays cast:"), "96");
 }

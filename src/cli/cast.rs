@@ -3,8 +3,11 @@
 //! (kept pixels per view, dropped views, footprints, memory, speed). Progress and warnings go
 //! to stderr, the summary to stdout.
 
+use crate::raycast::consistency::PhotoCheck;
 use crate::raycast::{BuildPreset, CacheEvent, SampleCache, Tracer};
+use crate::scene::Camera;
 use crate::scene::{CameraFormat, LoadOptions, NormalizeMode, Scene};
+use crate::train::setup::photo_check_message;
 use anyhow::{bail, Context, Result};
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -154,6 +157,11 @@ fn cast_views(
 ) -> Result<(SampleCache, u64, f64)> {
     let mut cache = SampleCache::new(args.gamma)?;
     let (mut rays, mut cast_s) = (0u64, 0.0f64);
+    // The photos against the mesh, as `train` checks them (`raycast/consistency.rs`).
+    let mut photo_check = (!args.no_images).then(|| {
+        let cams: Vec<&Camera> = indices.iter().map(|&i| &scene.views[i].camera).collect();
+        PhotoCheck::plan(&scene.mesh, tracer, &cams)
+    });
     for (k, &i) in indices.iter().enumerate() {
         let view = &scene.views[i];
         let img = if args.no_images {
@@ -161,6 +169,9 @@ fn cast_views(
         } else {
             Some(scene.load_image(i)?)
         };
+        if let (Some(c), Some(img)) = (&mut photo_check, &img) {
+            c.add_view(k, img);
+        }
         let t = Instant::now();
         let mut on_event = |e: CacheEvent| match e {
             CacheEvent::ViewCast { kept, pixels, .. } => eprintln!(
@@ -186,6 +197,9 @@ fn cast_views(
         )?;
         cast_s += t.elapsed().as_secs_f64();
         rays += (view.camera.width * view.camera.height * args.gamma * args.gamma) as u64;
+    }
+    if let Some(c) = &photo_check {
+        eprintln!("{}", photo_check_message(&c.result()));
     }
     Ok((cache, rays, cast_s))
 }

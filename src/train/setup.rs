@@ -251,11 +251,10 @@ pub fn few_hits_warning(hits: u64, pixels: u64, agreed: Option<&Path>) -> Option
 /// when it is below [`MIN_CORRELATION`](crate::raycast::consistency::MIN_CORRELATION).
 pub fn photo_check_message(r: &Consistency) -> String {
     if r.pairs == 0 {
-        return "photo check: no two training views share enough textured surface to compare"
-            .into();
+        return "photo check: no two views share enough textured surface to compare".into();
     }
     let what = format!(
-        "the colours two training photos see at the same surface points correlate {:.2} ({} view pairs, {} points; in place typically 0.9 or more, below {} the mesh stands elsewhere)",
+        "the colours two photos see at the same surface points correlate {:.2} ({} view pairs, {} points; in place typically 0.9 or more, below {} the mesh stands elsewhere)",
         r.correlation, r.pairs, r.shared, MIN_CORRELATION
     );
     if r.disagrees() {

@@ -1876,3 +1876,48 @@ fn transforms_rays_are_nerfstudios() {
     assert_eq!(checked, 2 * 3 * 30);
     assert!(failures.is_empty(), "{}", failures.join("\n"));
 }
+
+/// instant-ngp's `colmap2nerf.py` (without `--keep_colmap_coords`) turns, recentres and scales
+/// COLMAP's poses to a mean camera distance of 4 without recording it: a file with its
+/// `sharpness` keys and that distance gets a note saying a COLMAP mesh will not fit and what to
+/// do; the same poses without the rescale (`--keep_colmap_coords`) or without `sharpness` do not.
+#[test]
+fn a_colmap2nerf_rescaled_transforms_file_is_named() {
+    let d = tiny_copy("colmap2nerf");
+    let p = d.join("transforms.json");
+    let orig: serde_json::Value = serde_json::from_str(&fs::read_to_string(&p).unwrap()).unwrap();
+    let write = |scale: f64, sharpness: bool| {
+        let mut j = orig.clone();
+        let frames = j["frames"].as_array_mut().unwrap();
+        let mean = frames
+            .iter()
+            .map(|f| {
+                let m: Vec<Vec<f64>> =
+                    serde_json::from_value(f["transform_matrix"].clone()).unwrap();
+                DVec3::new(m[0][3], m[1][3], m[2][3]).length()
+            })
+            .sum::<f64>()
+            / frames.len() as f64;
+        for f in frames.iter_mut() {
+            let mut m: Vec<Vec<f64>> =
+                serde_json::from_value(f["transform_matrix"].clone()).unwrap();
+            for row in m.iter_mut().take(3) {
+                row[3] *= scale / mean;
+            }
+            f["transform_matrix"] = serde_json::to_value(m).unwrap();
+            if sharpness {
+                f["sharpness"] = 312.5.into();
+            }
+        }
+        j["aabb_scale"] = 16.into();
+        fs::write(&p, serde_json::to_string(&j).unwrap()).unwrap();
+        load_as(&d, CameraFormat::Transforms).unwrap().1.notes
+    };
+    let named = |notes: &[String]| notes.iter().any(|n| n.contains("colmap2nerf.py"));
+    let notes = write(4.0, true);
+    assert!(named(&notes), "{notes:?}");
+    let n = notes.iter().find(|n| n.contains("colmap2nerf")).unwrap();
+    assert_contains(n, &["transforms.json", "--keep_colmap_coords", "sparse/0"]);
+    assert!(!named(&write(3.0, true)), "another distance");
+    assert!(!named(&write(4.0, false)), "no sharpness");
+}

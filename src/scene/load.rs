@@ -274,7 +274,7 @@ impl Scene {
             CameraFormat::Colmap => (load_colmap(dir)?, None, None),
             CameraFormat::MvsNet => (load_mvsnet(dir, opts.mvsnet_dsp)?, None, None),
             CameraFormat::Transforms => {
-                let (loaded, undone) = load_transforms(dir, applied)?;
+                let (loaded, undone) = load_transforms(dir, applied, &mut notes)?;
                 if let Some(file) = undone {
                     notes.push(format!(
                         "{}: its applied_transform is undone, so the cameras stand in the frame of the reconstruction it was written from (COLMAP's, Metashape's), where that reconstruction's meshes are; for a mesh in the file's own frame set applied_transform = \"keep\" in {}; a mesh from nerfstudio's ns-export stands in neither: `xscale align-mesh` brings it here",
@@ -485,10 +485,12 @@ type LoadedViews = (Vec<View>, Option<Vec<String>>, Option<Vec<PathBuf>>);
 
 /// `transforms.json`, or NeRF-synthetic `transforms_{train,val,test}.json` (the test file's
 /// views are returned as the format's own test split), with the frames' `mask_path` files when
-/// every frame gives one, and the first file whose `applied_transform` was undone.
+/// every frame gives one, and the first file whose `applied_transform` was undone; a file that
+/// looks written by instant-ngp's `colmap2nerf.py` is named in `notes`.
 fn load_transforms(
     dir: &Path,
     applied: transforms::AppliedTransform,
+    notes: &mut Vec<String>,
 ) -> Result<(LoadedViews, Option<PathBuf>)> {
     let single = dir.join("transforms.json");
     let nerf_synthetic = !single.is_file();
@@ -515,6 +517,13 @@ fn load_transforms(
         }
         if loaded.undone && undone.is_none() {
             undone = Some(f.clone());
+        }
+        if loaded.ngp_rescaled {
+            notes.push(format!(
+                "{}: written by instant-ngp's colmap2nerf.py, it seems (its frames have 'sharpness' and the cameras stand a mean {} from the origin): that script turns, moves and scales COLMAP's poses without recording how, so a mesh of the COLMAP reconstruction does not stand in this frame; run it with --keep_colmap_coords, or give xscale the COLMAP model itself (sparse/0 with images/)",
+                f.display(),
+                transforms::NGP_MEAN_DISTANCE
+            ));
         }
         views.extend(loaded.views);
         masks.extend(loaded.masks.into_iter().map(|m| (f, m)));

@@ -110,7 +110,16 @@ pub struct Loaded {
     pub masks: Vec<Option<PathBuf>>,
     /// Whether the file has an `applied_transform` that was undone.
     pub undone: bool,
+    /// Whether the file looks written by instant-ngp's `colmap2nerf.py` without
+    /// `--keep_colmap_coords` ([`NGP_MEAN_DISTANCE`]).
+    pub ngp_rescaled: bool,
 }
+
+/// instant-ngp's `colmap2nerf.py`, unless run with `--keep_colmap_coords`, turns the COLMAP
+/// poses up to +z, moves the point the cameras look at to the origin and scales the poses so that
+/// the cameras stand a mean of exactly this far from it — without recording the map. Its frames
+/// also carry a `sharpness` key. A file with both is taken to be its output.
+pub const NGP_MEAN_DISTANCE: f64 = 4.0;
 
 /// [`load`], with the frames' mask files (a `mask_path` naming no file is an error) and the
 /// file's `applied_transform` undone or kept.
@@ -183,10 +192,22 @@ pub fn load_full(path: &Path, applied: AppliedTransform) -> Result<Loaded> {
             image_path,
         });
     }
+    let ngp_rescaled = undo.is_none()
+        && views.len() >= 2
+        && frames.iter().all(|f| f.get("sharpness").is_some())
+        && {
+            let mean = views
+                .iter()
+                .map(|v| v.camera.center().length())
+                .sum::<f64>()
+                / views.len() as f64;
+            (mean - NGP_MEAN_DISTANCE).abs() <= 1e-5 * NGP_MEAN_DISTANCE
+        };
     Ok(Loaded {
         views,
         masks,
         undone: undo.is_some(),
+        ngp_rescaled,
     })
 }
 

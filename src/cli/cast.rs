@@ -7,7 +7,7 @@ use crate::raycast::consistency::PhotoCheck;
 use crate::raycast::{BuildPreset, CacheEvent, SampleCache, Tracer};
 use crate::scene::Camera;
 use crate::scene::{CameraFormat, LoadOptions, NormalizeMode, Scene};
-use crate::train::setup::photo_check_message;
+use crate::train::setup::photo_check_messages;
 use anyhow::{bail, Context, Result};
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -199,7 +199,10 @@ fn cast_views(
         rays += (view.camera.width * view.camera.height * args.gamma * args.gamma) as u64;
     }
     if let Some(c) = &photo_check {
-        eprintln!("{}", photo_check_message(&c.result()));
+        let name = |k: usize| scene.views[indices[k]].name.clone();
+        for m in photo_check_messages(&c.result(), &name) {
+            eprintln!("{m}");
+        }
     }
     Ok((cache, rays, cast_s))
 }

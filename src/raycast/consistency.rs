@@ -12,24 +12,27 @@
 //! takes, for every pair of views sharing at least [`MIN_SHARED`] samples with texture in both
 //! (a standard deviation of at least [`MIN_STD`]), the Pearson correlation of the two views'
 //! luminances of those samples — gain and offset do not count, so exposure changes between
-//! photos do not — and averages it weighted by the samples shared.
+//! photos do not — and averages it weighted by the samples shared. A view whose own pairs
+//! correlate [`OUTLIER_GAP`] below the rest's is named: the mesh agrees with the other photos,
+//! so that view's pose is wrong. A close-up that sees fewer than [`MIN_SHARED`] of the samples is
+//! not judged (area samples rarely meet it; comparing it with a coarser view needs its photo
+//! averaged to that view's footprint, which is not built).
 //!
-//! Measured (`raycast::photo_check_flags_a_mesh_where_the_photos_disagree`, and with `xscale
-//! batch`'s setup log on `synth` scenes and a real COLMAP workspace of 5 photos at downsample 4):
-//! in place 0.93 (the `tiny` fixture), 0.97 (`synth --preset small` and `cross`), 0.99 (`large`),
-//! 0.95 (the real workspace);
-//! the mesh turned a quarter about a horizontal axis 0.02–0.35, about the vertical 0.23 on the
-//! real scene; moved up by 5 % of its diagonal 0.21–0.49. A terrain turned within its own plane
-//! keeps 0.75–0.78 (its points still lie on the photographed surface but for its relief), turned
-//! by 10° or moved sideways by 3 % of its size 0.78–0.91: training learns from such a mesh,
-//! worse; below [`MIN_CORRELATION`] it learns little.
+//! Measured (`raycast::photo_check_*`, and with `xscale cast` / `batch` on `synth` scenes and a
+//! real COLMAP workspace of 5 photos): in place 0.92 (the `tiny` fixture), 0.97 (`synth --preset
+//! small` and `cross`), 0.99 (`large`), 0.92 (the real workspace; 0.95 at downsample 4); the mesh
+//! turned a quarter about a horizontal axis 0.06–0.35, about the vertical 0.25 on the real scene;
+//! moved up by 5 % of its diagonal 0.18–0.48. A terrain turned within its own plane keeps
+//! 0.72–0.77 (its points still lie on the photographed surface but for its relief), turned by 10°
+//! or moved sideways by 3 % of its size 0.76–0.92: training learns from such a mesh, worse; below
+//! [`MIN_CORRELATION`] it learns little.
 
 use super::Tracer;
 use crate::scene::{distance::area_samples, Camera, Image, Mesh};
 use rayon::prelude::*;
 
 /// Area samples of the mesh.
-pub const SAMPLES: usize = 2000;
+pub const SAMPLES: usize = 4000;
 /// Views planned at most (an even stride through the training views).
 pub const MAX_VIEWS: usize = 48;
 /// A sample is seen when the ray from the camera meets the mesh within this fraction of the
@@ -42,11 +45,23 @@ pub const MIN_SHARED: usize = 30;
 pub const MIN_STD: f64 = 1e-3;
 /// Below this mean correlation the photos disagree where the mesh is.
 pub const MIN_CORRELATION: f64 = 0.5;
+/// A view whose pairs correlate this much below the other views' pairs disagrees with them: its
+/// pose is wrong. In place every judged view of the scenes measured correlates 0.91 or more
+/// (within 0.06 of the rest); one `small` view turned about its axis by 5° drops to 0.72 against
+/// 0.97 (by 3°: not flagged; by 180°: 0.04).
+pub const OUTLIER_GAP: f64 = 0.2;
+/// Views are named only when the others correlate at least this well (a mesh in place) and they
+/// are at most a quarter of the judged views: a mesh out of place leaves some pairs of nearby
+/// views agreeing and the rest not, which is not one view's pose (`small` with its mesh moved
+/// sideways by 3 % of its size: 0.85 overall, three views 0.2 below).
+pub const OUTLIER_REST: f64 = 0.9;
 
 /// The plan and the luminances read so far ([module docs](self)).
 pub struct PhotoCheck {
     /// Caller's view index → planned slot.
     slot: Vec<Option<usize>>,
+    /// Planned slot → caller's view index.
+    planned: Vec<usize>,
     /// Per slot: (sample, pixel x, pixel y) of the samples the view sees, in sample order.
     seen: Vec<Vec<(u32, u32, u32)>>,
     /// Per slot: the seen samples' luminances, once [`PhotoCheck::add_view`] has read the photo.
@@ -63,6 +78,13 @@ pub struct Consistency {
     pub shared: usize,
     /// Mean correlation, weighted by the samples each pair shares (0 without pairs).
     pub correlation: f64,
+    /// Views (the caller's indices) whose own pairs correlate [`OUTLIER_GAP`] below the pairs of
+    /// the other views (which reach [`OUTLIER_REST`]), with their own mean correlation: the
+    /// photos agree where the mesh is, except through these views' poses. At most a quarter of
+    /// the judged views.
+    pub outliers: Vec<(usize, f64)>,
+    /// Mean correlation of the pairs without an outlier (`correlation` when there is none).
+    pub rest: f64,
 }
 
 impl Consistency {
@@ -77,11 +99,11 @@ impl PhotoCheck {
     pub fn plan(mesh: &Mesh, tracer: &Tracer, cameras: &[&Camera]) -> PhotoCheck {
         let (lo, hi) = mesh.bbox();
         let tol = VISIBLE * (hi - lo).length();
-        let points = area_samples(mesh, SAMPLES);
         let n = cameras.len();
         let planned: Vec<usize> = (0..n.min(MAX_VIEWS))
             .map(|k| k * n / n.min(MAX_VIEWS))
             .collect();
+        let points = area_samples(mesh, SAMPLES);
         let mut slot = vec![None; n];
         for (s, &k) in planned.iter().enumerate() {
             slot[k] = Some(s);
@@ -109,6 +131,7 @@ impl PhotoCheck {
         PhotoCheck {
             slot,
             lum: vec![None; planned.len()],
+            planned,
             seen,
             samples: points.len(),
         }
@@ -158,7 +181,8 @@ impl PhotoCheck {
         let pairs: Vec<(usize, usize)> = (read.iter().enumerate())
             .flat_map(|(i, &a)| read[i + 1..].iter().map(move |&b| (a, b)))
             .collect();
-        let (mut count, mut shared, mut sum) = (0usize, 0usize, 0f64);
+        // Each correlated pair: (slot a, slot b, samples shared, correlation).
+        let mut corr: Vec<(usize, usize, usize, f64)> = Vec::new();
         for &(a, b) in &pairs {
             let (la, lb) = (self.lum[a].as_ref().unwrap(), self.lum[b].as_ref().unwrap());
             let xy: Vec<(f64, f64)> = (0..self.samples)
@@ -168,15 +192,50 @@ impl PhotoCheck {
                 continue;
             }
             if let Some(r) = pearson(&xy) {
-                count += 1;
-                shared += xy.len();
-                sum += xy.len() as f64 * r;
+                corr.push((a, b, xy.len(), r));
             }
         }
+        let mean = |keep: &dyn Fn(usize, usize) -> bool| {
+            let (mut w, mut sum) = (0usize, 0f64);
+            for &(_, _, n, r) in corr.iter().filter(|c| keep(c.0, c.1)) {
+                w += n;
+                sum += n as f64 * r;
+            }
+            (w, if w > 0 { sum / w as f64 } else { 0.0 })
+        };
+        let (shared, correlation) = mean(&|_, _| true);
+        // A view whose own pairs correlate [`OUTLIER_GAP`] below the others': its pose, not the
+        // mesh. Candidates against all pairs, confirmed against the pairs without them.
+        let own: Vec<(usize, f64)> = (0..self.seen.len())
+            .filter_map(|s| {
+                let (w, m) = mean(&|a, b| a == s || b == s);
+                (w > 0).then_some((s, m))
+            })
+            .collect();
+        let low: Vec<(usize, f64)> = (own.iter().copied())
+            .filter(|&(_, m)| m < correlation - OUTLIER_GAP)
+            .collect();
+        let (rest_w, rest) = mean(&|a, b| low.iter().all(|&(s, _)| s != a && s != b));
+        let confirmed = !low.is_empty()
+            && 4 * low.len() <= own.len()
+            && rest_w > 0
+            && rest >= OUTLIER_REST
+            && low.iter().all(|&(_, m)| m < rest - OUTLIER_GAP);
+        let outliers = if confirmed {
+            low.iter().map(|&(s, m)| (self.planned[s], m)).collect()
+        } else {
+            Vec::new()
+        };
         Consistency {
-            pairs: count,
+            pairs: corr.len(),
             shared,
-            correlation: if shared > 0 { sum / shared as f64 } else { 0.0 },
+            correlation,
+            rest: if outliers.is_empty() {
+                correlation
+            } else {
+                rest
+            },
+            outliers,
         }
     }
 }

@@ -1540,17 +1540,15 @@ fn a_mesh_in_another_frame_than_the_colmap_points_is_flagged() {
     );
 }
 
-/// nerfstudio's `ply_file_path` (its `sparse_pc.ply`, moved by `applied_transform` with the
-/// poses) is checked in the frame the cameras are read in: undone, it agrees with the COLMAP
-/// mesh; with `applied_transform = "keep"` the cameras and points stay in the file's frame and
-/// the mesh does not, which is flagged.
-#[test]
-fn nerfstudio_sparse_points_check_the_frame_the_cameras_are_read_in() {
-    let d = tiny_copy("points_nerfstudio");
+/// A scratch copy of `tiny` as `ns-process-data` writes it: poses moved by [`NERFSTUDIO_MAP`]
+/// (its `applied_transform`) and a `sparse_pc.ply` named by `ply_file_path`, the reconstruction's
+/// points moved the same way, in open3d's point cloud PLY (binary, double x y z, uchar colours).
+/// Returns the folder, the transforms JSON written and the reconstruction's (COLMAP-frame) mesh.
+fn nerfstudio_with_points(name: &str) -> (PathBuf, serde_json::Value, Mesh) {
+    let d = tiny_copy(name);
     let p = d.join("transforms.json");
     let mut j = nerfstudio_moved(&p);
     let (mesh, _) = mesh::load_mesh(&tiny().join("mesh.ply")).unwrap();
-    // open3d's point cloud PLY, as nerfstudio writes it: binary, double x y z, uchar colours.
     let pts = reconstruction_points(&mesh, 2000);
     let mut ply = format!(
         "ply\nformat binary_little_endian 1.0\nelement vertex {}\nproperty double x\nproperty double y\nproperty double z\nproperty uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n",
@@ -1566,6 +1564,17 @@ fn nerfstudio_sparse_points_check_the_frame_the_cameras_are_read_in() {
     fs::write(d.join("sparse_pc.ply"), ply).unwrap();
     j["ply_file_path"] = "sparse_pc.ply".into();
     fs::write(&p, serde_json::to_string(&j).unwrap()).unwrap();
+    (d, j, mesh)
+}
+
+/// nerfstudio's `ply_file_path` (its `sparse_pc.ply`, moved by `applied_transform` with the
+/// poses) is checked in the frame the cameras are read in: undone, it agrees with the COLMAP
+/// mesh; with `applied_transform = "keep"` the cameras and points stay in the file's frame and
+/// the mesh does not, which is flagged.
+#[test]
+fn nerfstudio_sparse_points_check_the_frame_the_cameras_are_read_in() {
+    let (d, mut j, _) = nerfstudio_with_points("points_nerfstudio");
+    let p = d.join("transforms.json");
     let load = || load_as(&d, CameraFormat::Transforms).unwrap().1;
     let r = load();
     assert_eq!(frame_warning(&r), None, "{:?}", r.warnings);
@@ -1658,29 +1667,12 @@ fn max_vertex_gap(a: &Mesh, b: &Mesh) -> f64 {
 /// are errors naming the file and the key.
 #[test]
 fn align_mesh_brings_a_nerfstudio_export_into_the_camera_frame() {
-    let d = tiny_copy("align_mesh");
+    let (d, j, mesh) = nerfstudio_with_points("align_mesh");
     let p = d.join("transforms.json");
-    let mut j = nerfstudio_moved(&p);
-    let (mesh, _) = mesh::load_mesh(&tiny().join("mesh.ply")).unwrap();
     let diag = {
         let (lo, hi) = mesh.bbox();
         (hi - lo).length()
     };
-    // nerfstudio's sparse_pc.ply: the reconstruction's points moved by applied_transform.
-    let pts: Vec<DVec3> = reconstruction_points(&mesh, 2000)
-        .into_iter()
-        .map(|(x, _)| nerfstudio_point(x))
-        .collect();
-    let ply = format!(
-        "ply\nformat ascii 1.0\nelement vertex {}\nproperty double x\nproperty double y\nproperty double z\nend_header\n{}",
-        pts.len(),
-        pts.iter()
-            .map(|p| format!("{:?} {:?} {:?}\n", p.x, p.y, p.z))
-            .collect::<String>()
-    );
-    fs::write(d.join("sparse_pc.ply"), ply).unwrap();
-    j["ply_file_path"] = "sparse_pc.ply".into();
-    fs::write(&p, serde_json::to_string(&j).unwrap()).unwrap();
     fs::write(d.join("scene.toml"), "format = \"transforms\"\n").unwrap();
     fs::remove_file(d.join("mesh.ply")).unwrap();
     fs::remove_file(d.join("mesh.obj")).unwrap();
@@ -1759,7 +1751,7 @@ fn align_mesh_brings_a_nerfstudio_export_into_the_camera_frame() {
             a[r][0] * x.x + a[r][1] * x.y + a[r][2] * x.z + a[r][3]
         }))
     };
-    let mut j = j.clone();
+    let mut j = j;
     j.as_object_mut().unwrap().remove("applied_transform");
     j.as_object_mut().unwrap().remove("ply_file_path");
     fs::write(&p, serde_json::to_string(&j).unwrap()).unwrap();

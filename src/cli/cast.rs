@@ -7,7 +7,6 @@ use crate::raycast::consistency::PhotoCheck;
 use crate::raycast::{BuildPreset, CacheEvent, SampleCache, Tracer};
 use crate::scene::Camera;
 use crate::scene::{CameraFormat, LoadOptions, NormalizeMode, Scene};
-use crate::train::setup::photo_check_messages;
 use anyhow::{bail, Context, Result};
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -200,7 +199,7 @@ fn cast_views(
     }
     if let Some(c) = &photo_check {
         let name = |k: usize| scene.views[indices[k]].name.clone();
-        for m in photo_check_messages(&c.result(), &name) {
+        for m in c.result().messages(&name) {
             eprintln!("{m}");
         }
     }

@@ -58,9 +58,7 @@ pub const OUTLIER_REST: f64 = 0.9;
 
 /// The plan and the luminances read so far ([module docs](self)).
 pub struct PhotoCheck {
-    /// Caller's view index → planned slot.
-    slot: Vec<Option<usize>>,
-    /// Planned slot → caller's view index.
+    /// Planned slot → caller's view index (increasing).
     planned: Vec<usize>,
     /// Per slot: (sample, pixel x, pixel y) of the samples the view sees, in sample order.
     seen: Vec<Vec<(u32, u32, u32)>>,
@@ -92,6 +90,36 @@ impl Consistency {
     pub fn disagrees(&self) -> bool {
         self.pairs > 0 && self.correlation < MIN_CORRELATION
     }
+
+    /// What `train` and `cast` say of it: the correlation (a warning below [`MIN_CORRELATION`]),
+    /// and a warning per view whose pose disagrees with the others' (`name(k)`: the name of the
+    /// caller's view `k`).
+    pub fn messages(&self, name: &dyn Fn(usize) -> String) -> Vec<String> {
+        if self.pairs == 0 {
+            return vec![
+                "photo check: no two views share enough textured surface to compare".into(),
+            ];
+        }
+        let what = format!(
+            "the colours two photos see at the same surface points correlate {:.2} ({} view pairs, {} points; in place typically 0.9 or more, below {} the mesh stands elsewhere)",
+            self.correlation, self.pairs, self.shared, MIN_CORRELATION
+        );
+        let mut out = vec![if self.disagrees() {
+            format!(
+                "warning: {what}: the photos disagree where the mesh is, which probably stands in another frame than the cameras (another tool's coordinate system, a turned or moved export, a transforms.json read in the wrong frame: docs/spec.md §3); training will run but learn little"
+            )
+        } else {
+            format!("photo check: {what}")
+        }];
+        out.extend(self.outliers.iter().map(|&(k, c)| {
+            format!(
+                "warning: view {}: its photo disagrees with the others where the mesh is (correlation {c:.2} against {:.2} among the other views): its pose is probably wrong (a bad registration); hold it out with test_views in scene.toml, or fix it",
+                name(k),
+                self.rest
+            )
+        }));
+        out
+    }
 }
 
 impl PhotoCheck {
@@ -104,10 +132,6 @@ impl PhotoCheck {
             .map(|k| k * n / n.min(MAX_VIEWS))
             .collect();
         let points = area_samples(mesh, SAMPLES);
-        let mut slot = vec![None; n];
-        for (s, &k) in planned.iter().enumerate() {
-            slot[k] = Some(s);
-        }
         let seen = planned
             .par_iter()
             .map(|&k| {
@@ -129,7 +153,6 @@ impl PhotoCheck {
             })
             .collect();
         PhotoCheck {
-            slot,
             lum: vec![None; planned.len()],
             planned,
             seen,
@@ -139,7 +162,7 @@ impl PhotoCheck {
 
     /// Read the luminances of the samples view `k` sees from its photo (`img`: the camera's size).
     pub fn add_view(&mut self, k: usize, img: &Image) {
-        let Some(s) = self.slot.get(k).copied().flatten() else {
+        let Ok(s) = self.planned.binary_search(&k) else {
             return;
         };
         let (w, h) = (img.width as usize, img.height as usize);
@@ -178,12 +201,11 @@ impl PhotoCheck {
         let read: Vec<usize> = (0..self.seen.len())
             .filter(|&s| self.lum[s].is_some())
             .collect();
-        let pairs: Vec<(usize, usize)> = (read.iter().enumerate())
-            .flat_map(|(i, &a)| read[i + 1..].iter().map(move |&b| (a, b)))
-            .collect();
+        let pairs = (read.iter().enumerate())
+            .flat_map(|(i, &a)| read[i + 1..].iter().map(move |&b| (a, b)));
         // Each correlated pair: (slot a, slot b, samples shared, correlation).
         let mut corr: Vec<(usize, usize, usize, f64)> = Vec::new();
-        for &(a, b) in &pairs {
+        for (a, b) in pairs {
             let (la, lb) = (self.lum[a].as_ref().unwrap(), self.lum[b].as_ref().unwrap());
             let xy: Vec<(f64, f64)> = (0..self.samples)
                 .filter_map(|j| Some((la[pos[a][j]? as usize], lb[pos[b][j]? as usize])))

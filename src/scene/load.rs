@@ -370,15 +370,9 @@ pub fn nerfstudio_original_to_cameras(dir: &Path) -> Result<Option<(DMat3, DVec3
     if choose_format(dir, &LoadOptions::default(), &cfg, &toml_path)? != CameraFormat::Transforms {
         return Ok(None);
     }
-    let Some(file) = ["transforms.json", "transforms_train.json"]
-        .iter()
-        .map(|f| dir.join(f))
-        .find(|p| p.is_file())
-    else {
-        return Ok(None);
-    };
+    let file = &transforms_files(dir)?[0];
     let keep = cfg.applied_transform == Some(transforms::AppliedTransform::Keep);
-    Ok(match transforms::applied_map(&file)? {
+    Ok(match transforms::applied_map(file)? {
         Some(m) if keep => Some(m),
         Some(_) => None,
         None if dir.join("colmap/sparse/0").is_dir() => Some(transforms::legacy_applied()),
@@ -483,6 +477,23 @@ fn load_mvsnet(dir: &Path, dsp: Option<u32>) -> Result<Vec<View>> {
 /// frames name (one per view).
 type LoadedViews = (Vec<View>, Option<Vec<String>>, Option<Vec<PathBuf>>);
 
+/// The camera files of a transforms layout: `transforms.json`, else NeRF-synthetic
+/// `transforms_train.json` with the `_val` and `_test` files that exist (train first).
+fn transforms_files(dir: &Path) -> Result<Vec<PathBuf>> {
+    let single = dir.join("transforms.json");
+    if single.is_file() {
+        return Ok(vec![single]);
+    }
+    if !dir.join("transforms_train.json").is_file() {
+        bail!("{}: transforms.json not found", dir.display());
+    }
+    Ok(["train", "val", "test"]
+        .iter()
+        .map(|s| dir.join(format!("transforms_{s}.json")))
+        .filter(|p| p.is_file())
+        .collect())
+}
+
 /// `transforms.json`, or NeRF-synthetic `transforms_{train,val,test}.json` (the test file's
 /// views are returned as the format's own test split), with the frames' `mask_path` files when
 /// every frame gives one, and the first file whose `applied_transform` was undone; a file that
@@ -492,21 +503,8 @@ fn load_transforms(
     applied: transforms::AppliedTransform,
     notes: &mut Vec<String>,
 ) -> Result<(LoadedViews, Option<PathBuf>)> {
-    let single = dir.join("transforms.json");
-    let nerf_synthetic = !single.is_file();
-    let files: Vec<PathBuf> = if !nerf_synthetic {
-        vec![single]
-    } else {
-        let train = dir.join("transforms_train.json");
-        if !train.is_file() {
-            bail!("{}: transforms.json not found", dir.display());
-        }
-        ["train", "val", "test"]
-            .iter()
-            .map(|s| dir.join(format!("transforms_{s}.json")))
-            .filter(|p| p.is_file())
-            .collect()
-    };
+    let files = transforms_files(dir)?;
+    let nerf_synthetic = !files[0].ends_with("transforms.json");
     // NeRF-synthetic: the test file's views are the split (none without a test file).
     let mut test = nerf_synthetic.then(Vec::new);
     let (mut views, mut masks, mut undone) = (Vec::new(), Vec::new(), None);

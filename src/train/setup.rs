@@ -6,7 +6,7 @@
 use crate::model::config::{per_level_scale_for, GridConfig};
 use crate::model::hashgrid::tcnn_scales;
 use crate::model::ModelConfig;
-use crate::raycast::consistency::{Consistency, PhotoCheck, MIN_CORRELATION};
+use crate::raycast::consistency::PhotoCheck;
 use crate::raycast::{CacheEvent, RayStream, SampleCache, Targets, Tracer};
 use crate::scene::Camera;
 use crate::scene::{LoadOptions, Scene};
@@ -198,7 +198,7 @@ pub fn prepare_until(
     }
     if let Some(c) = &photo_check {
         let name = |k: usize| scene.views[train_views[k]].name.clone();
-        for m in photo_check_messages(&c.result(), &name) {
+        for m in c.result().messages(&name) {
             log(m);
         }
     }
@@ -248,34 +248,6 @@ pub fn few_hits_warning(hits: u64, pixels: u64, agreed: Option<&Path>) -> Option
             points.display()
         ),
     })
-}
-
-/// What `train` and `cast` say of the photo check (`raycast/consistency.rs`): the correlation,
-/// a warning when it is below [`MIN_CORRELATION`], and one per view whose pose disagrees with the
-/// others' (`name(k)`: the name of the caller's view `k`).
-pub fn photo_check_messages(r: &Consistency, name: &dyn Fn(usize) -> String) -> Vec<String> {
-    if r.pairs == 0 {
-        return vec!["photo check: no two views share enough textured surface to compare".into()];
-    }
-    let what = format!(
-        "the colours two photos see at the same surface points correlate {:.2} ({} view pairs, {} points; in place typically 0.9 or more, below {} the mesh stands elsewhere)",
-        r.correlation, r.pairs, r.shared, MIN_CORRELATION
-    );
-    let mut out = vec![if r.disagrees() {
-        format!(
-            "warning: {what}: the photos disagree where the mesh is, which probably stands in another frame than the cameras (another tool's coordinate system, a turned or moved export, a transforms.json read in the wrong frame: docs/spec.md §3); training will run but learn little"
-        )
-    } else {
-        format!("photo check: {what}")
-    }];
-    out.extend(r.outliers.iter().map(|&(k, c)| {
-        format!(
-            "warning: view {}: its photo disagrees with the others where the mesh is (correlation {c:.2} against {:.2} among the other views): its pose is probably wrong (a bad registration); hold it out with test_views in scene.toml, or fix it",
-            name(k),
-            r.rest
-        )
-    }));
-    out
 }
 
 /// Which footprint sets the finest level in `level_range = "auto"`: the smallest over training

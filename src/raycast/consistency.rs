@@ -6,29 +6,43 @@
 //!
 //! [`PhotoCheck::plan`] takes [`SAMPLES`] area samples of the mesh and, for an even stride of at
 //! most [`MAX_VIEWS`] training views, the samples each view sees: in front of it, inside its
-//! image, and not hidden (the ray from its centre meets the mesh within [`VISIBLE`] of the mesh's
-//! diagonal of the sample). [`PhotoCheck::add_view`] reads each seen sample's luminance from the
-//! photo (the mean of R, G, B over the 3×3 pixels around its projection). [`PhotoCheck::result`]
-//! takes, for every pair of views sharing at least [`MIN_SHARED`] samples with texture in both
-//! (a standard deviation of at least [`MIN_STD`]), the Pearson correlation of the two views'
-//! luminances of those samples — gain and offset do not count, so exposure changes between
-//! photos do not — and averages it weighted by the samples shared. A view whose own pairs
-//! correlate [`OUTLIER_GAP`] below the rest's is named: the mesh agrees with the other photos,
-//! so that view's pose is wrong. A close-up that sees fewer than [`MIN_SHARED`] of the samples is
-//! not judged (area samples rarely meet it; comparing it with a coarser view needs its photo
-//! averaged to that view's footprint, which is not built).
+//! image, not hidden (the ray from its centre meets the mesh within [`VISIBLE`] of the mesh's
+//! diagonal of the sample) and not at a grazing angle ([`MIN_COS`]). A view that sees fewer than
+//! [`LATTICE_BELOW`] of them (a close-up: area samples rarely meet its small patch) also casts a
+//! [`LATTICE`]² lattice of rays through its image; those hits are samples too, compared only in
+//! pairs with a view that cast them. Two views compare a sample at the same patch of surface:
+//! the view with the finer footprint there (distance / focal length, stretched by the obliquity)
+//! averages its photo over a window as much wider than 3 pixels as its footprint is finer, in
+//! half-octave steps up to 4× ([`SCALES`]); further apart, or where the window leaves the image,
+//! the sample is not compared. [`PhotoCheck::add_view`] reads each seen sample's luminance (the
+//! mean of R, G, B over each window it needs) from the photo. [`PhotoCheck::result`] takes, for
+//! every pair of views sharing at least [`MIN_SHARED`] samples with texture in both (a standard
+//! deviation of at least [`MIN_STD`]), the Pearson correlation of the two views' luminances of
+//! those samples — gain and offset do not count, so exposure changes between photos do not — and
+//! averages it weighted by the samples shared.
 //!
-//! Measured (`raycast::photo_check_*`, and with `xscale cast` / `batch` on `synth` scenes and a
-//! real COLMAP workspace of 5 photos): in place 0.92 (the `tiny` fixture), 0.97 (`synth --preset
-//! small` and `cross`), 0.99 (`large`), 0.92 (the real workspace; 0.95 at downsample 4); the mesh
-//! turned a quarter about a horizontal axis 0.06–0.35, about the vertical 0.25 on the real scene;
-//! moved up by 5 % of its diagonal 0.18–0.48. A terrain turned within its own plane keeps
-//! 0.72–0.77 (its points still lie on the photographed surface but for its relief), turned by 10°
-//! or moved sideways by 3 % of its size 0.76–0.92: training learns from such a mesh, worse; below
-//! [`MIN_CORRELATION`] it learns little.
+//! A view whose own pairs correlate [`OUTLIER_GAP`] below the others' is named: the mesh agrees
+//! with the other photos, so that view's pose is wrong. Views are taken worst first, each judged
+//! against the pairs without it and those named before (so a close-up's peers are not blamed for
+//! their pairs with it); only views compared with two or more others that are themselves so
+//! compared take part, and the views a named view is compared with must agree among themselves
+//! ([`OUTLIER_REST`]): where the mesh is wrong, every view of that part disagrees, not one.
+//!
+//! Measured (`raycast::photo_check_*`, the lines `xscale cast` prints, and a scratch probe that
+//! turns each training view in turn about its axis): in place 0.93 (the `tiny` fixture), 0.98
+//! (`synth --preset small`), 0.97 (`cross`), no view named; the mesh turned a quarter about a
+//! horizontal axis 0.23–0.35, moved up by 5 % of its diagonal 0.17–0.40, turned 10° about the
+//! vertical or moved sideways by 3 % 0.86–0.90, and no view named for any of them. One view
+//! turned 5° about its axis: named, alone, for 34 of 34 views of `small` and 42 of 48 of `cross`
+//! (the others: 3 aerial views that drop a little less than 0.2 below the rest, and 2 close-ups);
+//! turned 3°, 14 of 34 (the close-ups of `small`, every one: their fine texture moves further)
+//! and 24 of 48; never another view. Below [`MIN_CORRELATION`] training learns little. (Before the
+//! lattices and the footprint windows, close-ups were not judged at all and the in-place figures
+//! were 0.92 / 0.97 / 0.97; on a real COLMAP workspace of 5 photos 0.92.)
 
 use super::Tracer;
 use crate::scene::{distance::area_samples, Camera, Image, Mesh};
+use glam::DVec3;
 use rayon::prelude::*;
 
 /// Area samples of the mesh.
@@ -46,25 +60,99 @@ pub const MIN_STD: f64 = 1e-3;
 /// Below this mean correlation the photos disagree where the mesh is.
 pub const MIN_CORRELATION: f64 = 0.5;
 /// A view whose pairs correlate this much below the other views' pairs disagrees with them: its
-/// pose is wrong. In place every judged view of the scenes measured correlates 0.91 or more
-/// (within 0.06 of the rest); one `small` view turned about its axis by 5° drops to 0.72 against
-/// 0.97 (by 3°: not flagged; by 180°: 0.04).
+/// pose is wrong. In place every judged view of `small` and `cross` correlates within 0.1 of the
+/// rest; one aerial view of `small` turned about its axis by 5° drops to 0.75 against 0.98, a
+/// close-up to below 0.4.
 pub const OUTLIER_GAP: f64 = 0.2;
-/// Views are named only when the others correlate at least this well (a mesh in place) and they
-/// are at most a quarter of the judged views: a mesh out of place leaves some pairs of nearby
-/// views agreeing and the rest not, which is not one view's pose (`small` with its mesh moved
-/// sideways by 3 % of its size: 0.85 overall, three views 0.2 below).
+/// Views are named only when the others, and the views each named one is compared with, correlate
+/// at least this well (a mesh in place), and they are at most a quarter of the judged views: a
+/// mesh out of place leaves some pairs of views agreeing and the rest not, which is not one
+/// view's pose (`small` with its mesh turned 10° about the vertical: 0.90 overall, and without
+/// the second condition three close-ups named).
 pub const OUTLIER_REST: f64 = 0.9;
+
+/// Pixels across a view's lattice: each planned view also casts LATTICE × LATTICE rays through
+/// its image, and their hits join the area samples, so a close-up (which few area samples meet)
+/// shares surface points with the views around it.
+pub const LATTICE: usize = 12;
+/// Footprint ratios are matched in steps of half an octave up to 2^((SCALES − 1)/2) = 4: a sample
+/// two views see at footprints further apart than that is not compared between them. (At 28×,
+/// the aerial/close-up gap of `small`, a close-up's photo averaged to the aerial footprint is a
+/// few pixels across: such pairs correlated 0.39 in place, and the close-ups were named falsely.)
+pub const SCALES: usize = 5;
+/// Views that see fewer area samples than this cast their lattice.
+pub const LATTICE_BELOW: usize = 4 * MIN_SHARED;
+/// A view that sees the surface at a sample more obliquely than this (the cosine between its ray
+/// and the surface normal) does not compare it: its pixels stretch along the surface there, and
+/// a square window no longer covers the patch another view sees.
+pub const MIN_COS: f64 = 0.5;
+
+/// One sample as one view sees it.
+#[derive(Clone, Copy)]
+struct Seen {
+    sample: u32,
+    /// Continuous pixel position of its projection.
+    x: f32,
+    y: f32,
+    /// log2 of its footprint: the surface width one pixel covers there, distance / focal length.
+    log_fp: f32,
+    /// The window scales (bit q: 2^(q/2) times the 3-pixel window) this view must read here.
+    scales: u16,
+    /// The largest window scale that fits inside the image here.
+    fit: u8,
+}
 
 /// The plan and the luminances read so far ([module docs](self)).
 pub struct PhotoCheck {
     /// Planned slot → caller's view index (increasing).
     planned: Vec<usize>,
-    /// Per slot: (sample, pixel x, pixel y) of the samples the view sees, in sample order.
-    seen: Vec<Vec<(u32, u32, u32)>>,
-    /// Per slot: the seen samples' luminances, once [`PhotoCheck::add_view`] has read the photo.
-    lum: Vec<Option<Vec<f64>>>,
-    samples: usize,
+    /// Per slot: the samples the view sees, in sample order.
+    seen: Vec<Vec<Seen>>,
+    /// Per slot: per seen sample, its luminance averaged over each window scale it needs (other
+    /// scales 0), once [`PhotoCheck::add_view`] has read the photo.
+    lum: Vec<Option<Vec<[f32; SCALES]>>>,
+    /// Area samples (numbered first; the lattices' hits follow).
+    area: usize,
+    /// Per slot: whether the view cast its lattice. The lattices' hits count only in pairs with
+    /// such a view.
+    cast: Vec<bool>,
+}
+
+/// The window scale at which views a and b compare a sample they see at log2 footprints `fa`
+/// and `fb`: the finer view averages over 2^(q/2) times the coarser view's 3 pixels, so both
+/// cover the same patch of surface (to within 2^(1/4)). `(q_a, q_b)`, one of them 0; `None`
+/// beyond [`SCALES`].
+fn scales(a: &Seen, b: &Seen) -> Option<(usize, usize)> {
+    let q = (2.0 * (b.log_fp - a.log_fp).abs()).round() as usize;
+    let (qa, qb) = if a.log_fp < b.log_fp { (q, 0) } else { (0, q) };
+    (q < SCALES && qa <= a.fit as usize && qb <= b.fit as usize).then_some((qa, qb))
+}
+
+/// Half the width of the window at scale q, in pixels.
+fn half_width(q: usize) -> f64 {
+    1.5 * 2f64.powf(q as f64 / 2.0)
+}
+
+/// Shared samples of two views' sorted lists: (position in a, position in b).
+fn shared(a: &[Seen], b: &[Seen], area: usize, lattice: bool) -> Vec<(usize, usize)> {
+    let end = |s: &[Seen]| match lattice {
+        true => s.len(),
+        false => s.partition_point(|p| (p.sample as usize) < area),
+    };
+    let (ea, eb) = (end(a), end(b));
+    let (mut i, mut j, mut out) = (0, 0, Vec::new());
+    while i < ea && j < eb {
+        match a[i].sample.cmp(&b[j].sample) {
+            std::cmp::Ordering::Less => i += 1,
+            std::cmp::Ordering::Greater => j += 1,
+            std::cmp::Ordering::Equal => {
+                out.push((i, j));
+                i += 1;
+                j += 1;
+            }
+        }
+    }
+    out
 }
 
 /// What [`PhotoCheck::result`] measured.
@@ -131,56 +219,119 @@ impl PhotoCheck {
         let planned: Vec<usize> = (0..n.min(MAX_VIEWS))
             .map(|k| k * n / n.min(MAX_VIEWS))
             .collect();
-        let points = area_samples(mesh, SAMPLES);
-        let seen = planned
-            .par_iter()
-            .map(|&k| {
+        // Per planned view: the points of `pts` (numbered from `first`) it sees, in order.
+        let see = |pts: &[DVec3], first: usize| -> Vec<Vec<Seen>> {
+            planned
+                .par_iter()
+                .map(|&k| {
+                    let cam = cameras[k];
+                    let centre = cam.center();
+                    let log_f = 0.5 * (cam.fx * cam.fy).abs().log2();
+                    let (w, h) = (cam.width as f64, cam.height as f64);
+                    (pts.iter().enumerate())
+                        .filter_map(|(j, &p)| {
+                            let (x, y) = cam.project(p)?;
+                            if !(x >= 1.0 && y >= 1.0 && x < w - 1.0 && y < h - 1.0) {
+                                return None;
+                            }
+                            let to = p - centre;
+                            let hit = tracer.closest_hit(centre, to)?;
+                            if (hit.t - to.length()).abs() > tol {
+                                return None;
+                            }
+                            let cos =
+                                tracer.triangle_normal(hit.triangle).dot(to).abs() / to.length();
+                            if cos < MIN_COS {
+                                return None;
+                            }
+                            let margin = x.min(y).min(w - x).min(h - y);
+                            Some(Seen {
+                                sample: (first + j) as u32,
+                                x: x as f32,
+                                y: y as f32,
+                                log_fp: (to.length().log2() - log_f - 0.5 * cos.log2()) as f32,
+                                scales: 0,
+                                fit: (1..SCALES).take_while(|&q| half_width(q) <= margin).count()
+                                    as u8,
+                            })
+                        })
+                        .collect()
+                })
+                .collect()
+        };
+        let area = area_samples(mesh, SAMPLES);
+        let mut seen = see(&area, 0);
+        // The lattices of the views that see few area samples (close-ups).
+        let cast: Vec<bool> = seen.iter().map(|s| s.len() < LATTICE_BELOW).collect();
+        let lattice: Vec<DVec3> = (planned.par_iter().zip(&cast))
+            .filter(|(_, &c)| c)
+            .flat_map_iter(|(&k, _)| {
                 let cam = cameras[k];
                 let centre = cam.center();
-                let (w, h) = (cam.width as f64, cam.height as f64);
-                (points.iter().enumerate())
-                    .filter_map(|(j, &p)| {
-                        let (x, y) = cam.project(p)?;
-                        if !(x >= 1.0 && y >= 1.0 && x < w - 1.0 && y < h - 1.0) {
-                            return None;
-                        }
-                        let to = p - centre;
-                        let hit = tracer.closest_hit(centre, to)?;
-                        ((hit.t - to.length()).abs() <= tol)
-                            .then_some((j as u32, x as u32, y as u32))
-                    })
-                    .collect()
+                (0..LATTICE * LATTICE).filter_map(move |g| {
+                    let x = (((g % LATTICE) as f64 + 0.5) / LATTICE as f64) * cam.width as f64;
+                    let y = (((g / LATTICE) as f64 + 0.5) / LATTICE as f64) * cam.height as f64;
+                    let d = cam.dir_world(x, y);
+                    let hit = tracer.closest_hit(centre, d)?;
+                    Some(centre + d * hit.t)
+                })
             })
             .collect();
+        for (s, more) in seen.iter_mut().zip(see(&lattice, area.len())) {
+            s.extend(more);
+        }
+        // The window scales each view reads a sample at: one per view it shares it with.
+        for a in 0..seen.len() {
+            for b in a + 1..seen.len() {
+                for (i, j) in shared(&seen[a], &seen[b], area.len(), cast[a] || cast[b]) {
+                    if let Some((qa, qb)) = scales(&seen[a][i], &seen[b][j]) {
+                        seen[a][i].scales |= 1 << qa;
+                        seen[b][j].scales |= 1 << qb;
+                    }
+                }
+            }
+        }
         PhotoCheck {
             lum: vec![None; planned.len()],
             planned,
             seen,
-            samples: points.len(),
+            area: area.len(),
+            cast,
         }
     }
 
-    /// Read the luminances of the samples view `k` sees from its photo (`img`: the camera's size).
+    /// Read the luminances of the samples view `k` sees from its photo (`img`: the camera's size):
+    /// the mean of R, G, B over a square window around each sample's projection, 3 pixels wide
+    /// times each scale the sample needs (pixels whose centres fall inside, clipped to the image).
     pub fn add_view(&mut self, k: usize, img: &Image) {
         let Ok(s) = self.planned.binary_search(&k) else {
             return;
         };
-        let (w, h) = (img.width as usize, img.height as usize);
+        let (w, h) = (img.width as i64, img.height as i64);
+        let window = |x: f32, y: f32, half: f64| -> f32 {
+            let span = |c: f32, n: i64| {
+                let lo = ((c as f64 - half - 0.5).ceil() as i64).clamp(0, n - 1);
+                let hi = ((c as f64 + half - 0.5).floor() as i64).clamp(lo, n - 1);
+                (lo, hi)
+            };
+            let ((x0, x1), (y0, y1)) = (span(x, w), span(y, h));
+            let mut sum = 0f64;
+            for yy in y0..=y1 {
+                let row = &img.data[((yy * w + x0) * 3) as usize..((yy * w + x1 + 1) * 3) as usize];
+                sum += row.iter().map(|&v| v as f64).sum::<f64>();
+            }
+            (sum / (3 * (x1 - x0 + 1) * (y1 - y0 + 1)) as f64) as f32
+        };
         let lum = self.seen[s]
-            .iter()
-            .map(|&(_, x, y)| {
-                let (x, y) = (x as usize, y as usize);
-                let (mut sum, mut count) = (0f64, 0usize);
-                for yy in y.saturating_sub(1)..(y + 2).min(h) {
-                    for xx in x.saturating_sub(1)..(x + 2).min(w) {
-                        sum += img.data[(yy * w + xx) * 3..][..3]
-                            .iter()
-                            .map(|&v| v as f64)
-                            .sum::<f64>();
-                        count += 3;
+            .par_iter()
+            .map(|p| {
+                let mut out = [0f32; SCALES];
+                for (q, o) in out.iter_mut().enumerate() {
+                    if p.scales & (1 << q) != 0 {
+                        *o = window(p.x, p.y, half_width(q));
                     }
                 }
-                sum / count.max(1) as f64
+                out
             })
             .collect();
         self.lum[s] = Some(lum);
@@ -188,16 +339,6 @@ impl PhotoCheck {
 
     /// Correlate the views read so far ([module docs](self)).
     pub fn result(&self) -> Consistency {
-        // Per slot: sample → position in its list.
-        let pos: Vec<Vec<Option<u32>>> = (self.seen.iter())
-            .map(|list| {
-                let mut p = vec![None; self.samples];
-                for (k, &(j, _, _)) in list.iter().enumerate() {
-                    p[j as usize] = Some(k as u32);
-                }
-                p
-            })
-            .collect();
         let read: Vec<usize> = (0..self.seen.len())
             .filter(|&s| self.lum[s].is_some())
             .collect();
@@ -207,8 +348,13 @@ impl PhotoCheck {
         let mut corr: Vec<(usize, usize, usize, f64)> = Vec::new();
         for (a, b) in pairs {
             let (la, lb) = (self.lum[a].as_ref().unwrap(), self.lum[b].as_ref().unwrap());
-            let xy: Vec<(f64, f64)> = (0..self.samples)
-                .filter_map(|j| Some((la[pos[a][j]? as usize], lb[pos[b][j]? as usize])))
+            let (sa, sb) = (&self.seen[a], &self.seen[b]);
+            let lattice = self.cast[a] || self.cast[b];
+            let xy: Vec<(f64, f64)> = (shared(sa, sb, self.area, lattice).into_iter())
+                .filter_map(|(i, j)| {
+                    let (qa, qb) = scales(&sa[i], &sb[j])?;
+                    Some((la[i][qa] as f64, lb[j][qb] as f64))
+                })
                 .collect();
             if xy.len() < MIN_SHARED {
                 continue;
@@ -227,22 +373,63 @@ impl PhotoCheck {
         };
         let (shared, correlation) = mean(&|_, _| true);
         // A view whose own pairs correlate [`OUTLIER_GAP`] below the others': its pose, not the
-        // mesh. Candidates against all pairs, confirmed against the pairs without them.
-        let own: Vec<(usize, f64)> = (0..self.seen.len())
-            .filter_map(|s| {
-                let (w, m) = mean(&|a, b| a == s || b == s);
-                (w > 0).then_some((s, m))
-            })
-            .collect();
-        let low: Vec<(usize, f64)> = (own.iter().copied())
-            .filter(|&(_, m)| m < correlation - OUTLIER_GAP)
-            .collect();
-        let (rest_w, rest) = mean(&|a, b| low.iter().all(|&(s, _)| s != a && s != b));
-        let confirmed = !low.is_empty()
-            && 4 * low.len() <= own.len()
-            && rest_w > 0
-            && rest >= OUTLIER_REST
-            && low.iter().all(|&(_, m)| m < rest - OUTLIER_GAP);
+        // mesh. Taken worst first, each against the pairs of neither it nor those taken before,
+        // so a close-up's peers are not blamed for their pairs with it. Only views compared with
+        // at least two others that are themselves so compared take part (the graph's 2-core):
+        // when two views disagree and nothing else judges one of them, which is wrong is unknown.
+        let judged = (0..self.seen.len())
+            .filter(|&s| corr.iter().any(|c| c.0 == s || c.1 == s))
+            .count();
+        let mut low: Vec<(usize, f64)> = Vec::new();
+        let mut rest = correlation;
+        loop {
+            let mut live: Vec<bool> = (0..self.seen.len())
+                .map(|s| low.iter().all(|&(t, _)| t != s))
+                .collect();
+            loop {
+                let partners = |s: usize| {
+                    let with = |c: &&(usize, usize, usize, f64)| {
+                        (c.0 == s && live[c.1]) || (c.1 == s && live[c.0])
+                    };
+                    corr.iter().filter(with).count()
+                };
+                let drop: Vec<usize> = (0..live.len())
+                    .filter(|&s| live[s] && partners(s) < 2)
+                    .collect();
+                if drop.is_empty() {
+                    break;
+                }
+                drop.iter().for_each(|&s| live[s] = false);
+            }
+            let worst = (0..live.len())
+                .filter(|&s| live[s])
+                .map(|s| (s, mean(&|a, b| live[a] && live[b] && (a == s || b == s)).1))
+                .min_by(|x, y| x.1.total_cmp(&y.1));
+            let Some((s, m)) = worst else { break };
+            let (w, r) = mean(&|a, b| live[a] && live[b] && a != s && b != s);
+            // The views that judge it must agree among themselves: where the mesh is wrong,
+            // every view of that part disagrees with the others, not one.
+            let judge: Vec<bool> = (0..live.len())
+                .map(|t| {
+                    live[t]
+                        && corr
+                            .iter()
+                            .any(|c| (c.0, c.1) == (s, t) || (c.0, c.1) == (t, s))
+                })
+                .collect();
+            let (jw, local) = mean(&|a, b| judge[a] && judge[b]);
+            if w == 0
+                || m >= r - OUTLIER_GAP
+                || jw == 0
+                || local < OUTLIER_REST
+                || m >= local - OUTLIER_GAP
+            {
+                break;
+            }
+            low.push((s, m));
+            rest = r;
+        }
+        let confirmed = !low.is_empty() && 4 * low.len() <= judged && rest >= OUTLIER_REST;
         let outliers = if confirmed {
             low.iter().map(|&(s, m)| (self.planned[s], m)).collect()
         } else {

@@ -752,7 +752,8 @@ fn photo_check_flags_a_mesh_where_the_photos_disagree() {
 /// registration): the photo check names that view and no other, and the mesh is not blamed —
 /// for an aerial view and for the closest close-up (judged through its lattice and footprint
 /// windows: it shares few area samples with anything); in place no view is named, nor for a
-/// mesh turned 10° about the vertical (every close-up then disagrees a little, not one).
+/// mesh turned 10° about the vertical (every close-up then disagrees a little, not one). And the
+/// close-ups' note on a mesh off at their scale.
 #[test]
 fn photo_check_names_a_view_whose_pose_is_wrong() {
     use xscale::raycast::consistency::{Consistency, PhotoCheck, OUTLIER_GAP};
@@ -827,4 +828,34 @@ fn photo_check_names_a_view_whose_pose_is_wrong() {
         t.correlation < r.correlation - 0.05 && t.outliers.is_empty(),
         "{t:?}"
     );
+
+    // Close-ups see mesh errors the other views do not: in place they agree nearly as well as
+    // the others and nothing is said; the mesh moved sideways by 0.5 % of its diagonal, they
+    // agree far less while the others still agree, and a note says so (`cast`, `train`).
+    let name = |k: usize| format!("v{k}");
+    let note = |r: &Consistency| {
+        (r.messages(&name).iter()).any(|m| m.starts_with("note: the close-ups agree less"))
+    };
+    assert!(
+        r.close_ups.is_some() && !r.close_ups_disagree() && !note(&r),
+        "{r:?}"
+    );
+    let diag = {
+        let (lo, hi) = scene.mesh.bbox();
+        (hi - lo).length()
+    };
+    let moved = xscale::scene::Mesh {
+        vertices: (scene.mesh.vertices.iter())
+            .map(|&v| v + DVec3::X * 0.005 * diag)
+            .collect(),
+        triangles: scene.mesh.triangles.clone(),
+    };
+    let tracer = Tracer::new(&moved, &scene.normalization).unwrap();
+    let mut c = PhotoCheck::plan(&moved, &tracer, &refs);
+    for (k, img) in photos.iter().enumerate() {
+        c.add_view(k, img);
+    }
+    let m = c.result();
+    assert!(!m.disagrees() && m.outliers.is_empty(), "{m:?}");
+    assert!(m.close_ups_disagree() && note(&m), "{m:?}");
 }

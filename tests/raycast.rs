@@ -859,3 +859,59 @@ fn photo_check_names_a_view_whose_pose_is_wrong() {
     assert!(!m.disagrees() && m.outliers.is_empty(), "{m:?}");
     assert!(m.close_ups_disagree() && note(&m), "{m:?}");
 }
+
+/// `train`'s setup checks the held-out views' photos too: one of `synth --preset small`'s held-out
+/// cameras turned 5° about its axis in `images.txt` (its photo unchanged) is named, marked as held
+/// out, and no other view is; with the file as written, none is.
+#[test]
+fn setup_names_a_held_out_view_whose_pose_is_wrong() {
+    use xscale::scene::{LoadOptions, Scene};
+    use xscale::synth::{self, Preset};
+    let dir = std::path::Path::new(env!("CARGO_TARGET_TMPDIR")).join("photo_check_held_out");
+    let _ = std::fs::remove_dir_all(&dir);
+    let s = synth::build(Preset::Small, 1);
+    synth::output::write(&s, &s.render(), &s.summary(), &dir, false).unwrap();
+    let cfg = xscale::train::config::RunConfig::preset("tiny").unwrap();
+    let named = |dir: &std::path::Path| -> Vec<String> {
+        let mut said = Vec::new();
+        xscale::train::setup::prepare(dir, &cfg, true, &mut |m| said.push(m)).unwrap();
+        said.into_iter()
+            .filter(|m| m.starts_with("warning: view "))
+            .collect()
+    };
+    assert_eq!(named(&dir), Vec::<String>::new());
+
+    let scene = Scene::load(&dir, &LoadOptions::default()).unwrap();
+    let name = scene.views[scene.test[0]].name.clone();
+    let path = dir.join("sparse/0/images.txt");
+    let text = std::fs::read_to_string(&path).unwrap();
+    let turn = glam::DQuat::from_rotation_z(5f64.to_radians());
+    let mut found = false;
+    let lines: Vec<String> = (text.lines())
+        .map(|l| {
+            let f: Vec<&str> = l.split_whitespace().collect();
+            if l.starts_with('#') || f.len() != 10 || f[9] != name {
+                return l.to_string();
+            }
+            found = true;
+            let v: Vec<f64> = f[1..8].iter().map(|x| x.parse().unwrap()).collect();
+            // COLMAP: world→camera rotation as (qw, qx, qy, qz), then t.
+            let q = turn * glam::DQuat::from_xyzw(v[1], v[2], v[3], v[0]);
+            let t = turn * glam::DVec3::new(v[4], v[5], v[6]);
+            format!(
+                "{} {:.17} {:.17} {:.17} {:.17} {:.17} {:.17} {:.17} {} {}",
+                f[0], q.w, q.x, q.y, q.z, t.x, t.y, t.z, f[8], f[9]
+            )
+        })
+        .collect();
+    assert!(found, "{name} in {}", path.display());
+    std::fs::write(&path, lines.join("\n") + "\n").unwrap();
+    let said = named(&dir);
+    assert_eq!(said.len(), 1, "{said:?}");
+    assert!(
+        said[0].starts_with(&format!(
+            "warning: view {name} (held out): its photo disagrees"
+        )),
+        "{said:?}"
+    );
+}

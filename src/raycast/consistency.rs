@@ -236,7 +236,7 @@ impl Consistency {
         }];
         out.extend(self.outliers.iter().map(|&(k, c)| {
             format!(
-                "warning: view {}: its photo disagrees with the others where the mesh is (correlation {c:.2} against {:.2} among the other views): its pose is probably wrong (a bad registration); hold it out with test_views in scene.toml, or fix it",
+                "warning: view {}: its photo disagrees with the others where the mesh is (correlation {c:.2} against {:.2} among the other views): its pose is probably wrong (a bad registration): fix it, or leave the view out (test_views in scene.toml holds a training view out)",
                 name(k),
                 self.rest
             )
@@ -340,6 +340,11 @@ impl PhotoCheck {
             area: area.len(),
             cast,
         }
+    }
+
+    /// Whether view `k` is planned (its photo is worth reading).
+    pub fn wants(&self, k: usize) -> bool {
+        self.planned.binary_search(&k).is_ok()
     }
 
     /// Read the luminances of the samples view `k` sees from its photo (`img`: the camera's size):

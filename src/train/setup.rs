@@ -150,12 +150,12 @@ pub fn prepare_until(
             SampleCache::new(gamma)?
         })),
     };
-    // The photos against the mesh (`raycast/consistency.rs`), read as they go by.
+    // The photos against the mesh (`raycast/consistency.rs`): the training views, read as they go
+    // by, then the held-out views (a wrong pose there spoils only the evaluation, found here before
+    // a run is spent on it).
+    let checked: Vec<usize> = train_views.iter().chain(&scene.test).copied().collect();
     let mut photo_check = with_images.then(|| {
-        let cams: Vec<&Camera> = train_views
-            .iter()
-            .map(|&i| &scene.views[i].camera)
-            .collect();
+        let cams: Vec<&Camera> = checked.iter().map(|&i| &scene.views[i].camera).collect();
         PhotoCheck::plan(&scene.mesh, &tracer, &cams)
     });
     // One photo in memory at a time: load, cast, keep what the mode keeps.
@@ -196,8 +196,23 @@ pub fn prepare_until(
             dir.display()
         );
     }
-    if let Some(c) = &photo_check {
-        let name = |k: usize| scene.views[train_views[k]].name.clone();
+    if let Some(c) = &mut photo_check {
+        for (k, &i) in checked.iter().enumerate().skip(train_views.len()) {
+            if c.wants(k) {
+                // A held-out photo that cannot be read is the evaluation's error to report.
+                if let Ok(img) = scene.load_image(i) {
+                    c.add_view(k, &img);
+                }
+            }
+        }
+        let name = |k: usize| {
+            let held_out = if k >= train_views.len() {
+                " (held out)"
+            } else {
+                ""
+            };
+            format!("{}{held_out}", scene.views[checked[k]].name)
+        };
         for m in c.result().messages(&name) {
             log(m);
         }

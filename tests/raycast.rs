@@ -748,6 +748,16 @@ fn photo_check_flags_a_mesh_where_the_photos_disagree() {
     );
 }
 
+/// `synth --preset small --seed 1` written afresh into the test's folder `name`.
+fn synth_small(name: &str) -> std::path::PathBuf {
+    use xscale::synth::{self, Preset};
+    let dir = std::path::Path::new(env!("CARGO_TARGET_TMPDIR")).join(name);
+    let _ = std::fs::remove_dir_all(&dir);
+    let s = synth::build(Preset::Small, 1);
+    synth::output::write(&s, &s.render(), &s.summary(), &dir, false).unwrap();
+    dir
+}
+
 /// One camera of `synth --preset small` turned 5° about its axis while its photo stays (a bad
 /// registration): the photo check names that view and no other, and the mesh is not blamed —
 /// for an aerial view and for the closest close-up (judged through its lattice and footprint
@@ -758,11 +768,7 @@ fn photo_check_flags_a_mesh_where_the_photos_disagree() {
 fn photo_check_names_a_view_whose_pose_is_wrong() {
     use xscale::raycast::consistency::{Consistency, PhotoCheck, OUTLIER_GAP};
     use xscale::scene::{LoadOptions, Scene};
-    use xscale::synth::{self, Preset};
-    let dir = std::path::Path::new(env!("CARGO_TARGET_TMPDIR")).join("photo_check_small");
-    let _ = std::fs::remove_dir_all(&dir);
-    let s = synth::build(Preset::Small, 1);
-    synth::output::write(&s, &s.render(), &s.summary(), &dir, false).unwrap();
+    let dir = synth_small("photo_check_small");
     let scene = Scene::load(&dir, &LoadOptions::default()).unwrap();
     let tracer = Tracer::new(&scene.mesh, &scene.normalization).unwrap();
     let train = scene.train();
@@ -866,11 +872,7 @@ fn photo_check_names_a_view_whose_pose_is_wrong() {
 #[test]
 fn setup_names_a_held_out_view_whose_pose_is_wrong() {
     use xscale::scene::{LoadOptions, Scene};
-    use xscale::synth::{self, Preset};
-    let dir = std::path::Path::new(env!("CARGO_TARGET_TMPDIR")).join("photo_check_held_out");
-    let _ = std::fs::remove_dir_all(&dir);
-    let s = synth::build(Preset::Small, 1);
-    synth::output::write(&s, &s.render(), &s.summary(), &dir, false).unwrap();
+    let dir = synth_small("photo_check_held_out");
     let cfg = xscale::train::config::RunConfig::preset("tiny").unwrap();
     let named = |dir: &std::path::Path| -> Vec<String> {
         let mut said = Vec::new();

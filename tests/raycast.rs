@@ -864,6 +864,24 @@ fn photo_check_names_a_view_whose_pose_is_wrong() {
     let m = c.result();
     assert!(!m.disagrees() && m.outliers.is_empty(), "{m:?}");
     assert!(m.close_ups_disagree() && note(&m), "{m:?}");
+    // The note names the close-ups that agree least, each a close-up of the check.
+    assert!(
+        !m.worst_close_ups.is_empty() && m.worst_close_ups.len() <= 3,
+        "{m:?}"
+    );
+    let closest = |k: usize| {
+        let t = (cams[k].center() - mid).length();
+        (0..cams.len())
+            .filter(|&j| (cams[j].center() - mid).length() < t)
+            .count()
+    };
+    for &(k, c) in &m.worst_close_ups {
+        assert!(c < m.others.unwrap().1 - 0.1, "{k}: {m:?}");
+        assert!(
+            closest(k) < cams.len() / 2,
+            "view {k} is not among the nearer half: {m:?}"
+        );
+    }
 }
 
 /// `train`'s setup checks the held-out views' photos too: one of `synth --preset small`'s held-out

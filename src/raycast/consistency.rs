@@ -191,6 +191,9 @@ pub struct Consistency {
     /// the others: (pairs, mean correlation) of each, `None` without such pairs.
     pub close_ups: Option<(usize, f64)>,
     pub others: Option<(usize, f64)>,
+    /// The close-ups (the caller's indices) whose own pairs in `close_ups` correlate least, with
+    /// their mean: at most three, lowest first. Where they look the mesh is off the most.
+    pub worst_close_ups: Vec<(usize, f64)>,
 }
 
 impl Consistency {
@@ -244,8 +247,12 @@ impl Consistency {
         if let (true, Some((n, c)), Some((_, o))) =
             (self.close_ups_disagree(), self.close_ups, self.others)
         {
+            let worst: Vec<String> = (self.worst_close_ups.iter())
+                .map(|&(k, m)| format!("{} ({m:.2})", name(k)))
+                .collect();
             out.push(format!(
-                "note: the close-ups agree less ({c:.2} over {n} view pairs) than the other views ({o:.2}): the mesh is probably off by more than their pixels where they look, which costs most on the close-ups; mesh refinement by the photos moves it there (`xscale train --config configs/refine-photo.toml`, the repository's file; docs/geometry.md §4)"
+                "note: the close-ups agree less ({c:.2} over {n} view pairs; least where {} look) than the other views ({o:.2}): the mesh is probably off by more than their pixels where they look, which costs most on the close-ups; mesh refinement by the photos moves it there (`xscale train --config configs/refine-photo.toml`, the repository's file; docs/geometry.md §4)",
+                worst.join(", ")
             ));
         }
         out
@@ -493,10 +500,20 @@ impl PhotoCheck {
                 .count();
             (w > 0).then_some((n, m))
         };
+        let mut worst_close_ups: Vec<(usize, f64)> = (0..self.seen.len())
+            .filter(|&s| self.cast[s] && !named(s))
+            .filter_map(|s| {
+                let (w, m) = mean(&|a, b| (a == s || b == s) && !named(a) && !named(b));
+                (w > 0).then_some((self.planned[s], m))
+            })
+            .collect();
+        worst_close_ups.sort_by(|x, y| x.1.total_cmp(&y.1));
+        worst_close_ups.truncate(3);
         Consistency {
             pairs: corr.len(),
             shared,
             correlation,
+            worst_close_ups,
             close_ups: split(true),
             others: split(false),
             rest: if outliers.is_empty() {

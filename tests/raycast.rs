@@ -661,6 +661,32 @@ fn camera_packets_match_brute_force() {
     assert!(checked > 40_000);
 }
 
+/// The photo check of `mesh` over `cams`, every photo read but `skip`'s.
+fn photo_check(
+    mesh: &Mesh,
+    normalization: &Normalization,
+    cams: &[&Camera],
+    photos: &[Image],
+    skip: Option<usize>,
+) -> xscale::raycast::consistency::Consistency {
+    let tracer = Tracer::new(mesh, normalization).unwrap();
+    let mut c = xscale::raycast::consistency::PhotoCheck::plan(mesh, &tracer, cams);
+    for (k, img) in photos.iter().enumerate() {
+        if Some(k) != skip {
+            c.add_view(k, img);
+        }
+    }
+    c.result()
+}
+
+/// `mesh` with every vertex moved by `f`.
+fn mesh_moved(mesh: &Mesh, f: impl Fn(DVec3) -> DVec3) -> Mesh {
+    Mesh {
+        vertices: mesh.vertices.iter().map(|&v| f(v)).collect(),
+        triangles: mesh.triangles.clone(),
+    }
+}
+
 /// The photo check (`raycast/consistency.rs`) on the `tiny` fixture: in place its photos agree
 /// where the mesh is (correlation ≥ 0.9); the mesh turned a quarter about x or moved up by 5 % of
 /// its size, they do not, and `train`'s setup says so; photos of one flat colour give no verdict
@@ -678,12 +704,7 @@ fn photo_check_flags_a_mesh_where_the_photos_disagree() {
         .map(|&i| scene.load_image(i).unwrap())
         .collect();
     let check = |mesh: &Mesh, photos: &[Image]| {
-        let tracer = Tracer::new(mesh, &scene.normalization).unwrap();
-        let mut c = PhotoCheck::plan(mesh, &tracer, &cams);
-        for (k, img) in photos.iter().enumerate() {
-            c.add_view(k, img);
-        }
-        c.result()
+        photo_check(mesh, &scene.normalization, &cams, photos, None)
     };
     let r = check(&scene.mesh, &photos);
     assert!(
@@ -693,12 +714,10 @@ fn photo_check_flags_a_mesh_where_the_photos_disagree() {
 
     let (lo, hi) = scene.mesh.bbox();
     let (mid, diag) = (0.5 * (lo + hi), (hi - lo).length());
-    let moved = |f: &dyn Fn(DVec3) -> DVec3| Mesh {
-        vertices: scene.mesh.vertices.iter().map(|&v| f(v)).collect(),
-        triangles: scene.mesh.triangles.clone(),
-    };
-    let turned = moved(&|v| mid + DMat3::from_rotation_x(std::f64::consts::FRAC_PI_2) * (v - mid));
-    let up = moved(&|v| v + DVec3::Z * 0.05 * diag);
+    let turned = mesh_moved(&scene.mesh, |v| {
+        mid + DMat3::from_rotation_x(std::f64::consts::FRAC_PI_2) * (v - mid)
+    });
+    let up = mesh_moved(&scene.mesh, |v| v + DVec3::Z * 0.05 * diag);
     for (what, mesh) in [("turned", &turned), ("moved up", &up)] {
         let r = check(mesh, &photos);
         assert!(
@@ -766,11 +785,10 @@ fn synth_small(name: &str) -> std::path::PathBuf {
 /// close-ups' note on a mesh off at their scale.
 #[test]
 fn photo_check_names_a_view_whose_pose_is_wrong() {
-    use xscale::raycast::consistency::{Consistency, PhotoCheck, OUTLIER_GAP};
+    use xscale::raycast::consistency::{Consistency, OUTLIER_GAP};
     use xscale::scene::{LoadOptions, Scene};
     let dir = synth_small("photo_check_small");
     let scene = Scene::load(&dir, &LoadOptions::default()).unwrap();
-    let tracer = Tracer::new(&scene.mesh, &scene.normalization).unwrap();
     let train = scene.train();
     let cams: Vec<Camera> = train
         .iter()
@@ -780,21 +798,15 @@ fn photo_check_names_a_view_whose_pose_is_wrong() {
         .iter()
         .map(|&i| scene.load_image(i).unwrap())
         .collect();
-    let check = |cams: &[Camera], skip: Option<usize>| -> Consistency {
+    let check = |mesh: &Mesh, cams: &[Camera], skip: Option<usize>| -> Consistency {
         let refs: Vec<&Camera> = cams.iter().collect();
-        let mut c = PhotoCheck::plan(&scene.mesh, &tracer, &refs);
-        for (k, img) in photos.iter().enumerate() {
-            if Some(k) != skip {
-                c.add_view(k, img);
-            }
-        }
-        c.result()
+        photo_check(mesh, &scene.normalization, &refs, &photos, skip)
     };
-    let r = check(&cams, None);
+    let r = check(&scene.mesh, &cams, None);
     assert!(r.correlation > 0.9 && r.outliers.is_empty(), "{r:?}");
     // The first view that takes part in a pair, and the view closest to the mesh.
     let k = (0..cams.len())
-        .find(|&k| check(&cams, Some(k)).pairs < r.pairs)
+        .find(|&k| check(&scene.mesh, &cams, Some(k)).pairs < r.pairs)
         .expect("a judged view");
     let mid = {
         let (lo, hi) = scene.mesh.bbox();
@@ -810,26 +822,17 @@ fn photo_check_names_a_view_whose_pose_is_wrong() {
     for k in [k, near] {
         let mut bad = cams.clone();
         bad[k].rotation = DMat3::from_rotation_z(5f64.to_radians()) * bad[k].rotation;
-        let b = check(&bad, None);
+        let b = check(&scene.mesh, &bad, None);
         assert!(!b.disagrees(), "the mesh is not blamed: {b:?}");
         assert_eq!(b.outliers.len(), 1, "view {k}: {b:?}");
         assert_eq!(b.outliers[0].0, k, "{b:?}");
         assert!(b.outliers[0].1 < b.rest - OUTLIER_GAP, "{b:?}");
     }
     // The mesh turned 10° about the vertical: lower agreement, and no view to blame.
-    let turned = xscale::scene::Mesh {
-        vertices: (scene.mesh.vertices.iter())
-            .map(|&v| mid + DMat3::from_rotation_z(10f64.to_radians()) * (v - mid))
-            .collect(),
-        triangles: scene.mesh.triangles.clone(),
-    };
-    let tracer = Tracer::new(&turned, &scene.normalization).unwrap();
-    let refs: Vec<&Camera> = cams.iter().collect();
-    let mut c = PhotoCheck::plan(&turned, &tracer, &refs);
-    for (k, img) in photos.iter().enumerate() {
-        c.add_view(k, img);
-    }
-    let t = c.result();
+    let turned = mesh_moved(&scene.mesh, |v| {
+        mid + DMat3::from_rotation_z(10f64.to_radians()) * (v - mid)
+    });
+    let t = check(&turned, &cams, None);
     assert!(
         t.correlation < r.correlation - 0.05 && t.outliers.is_empty(),
         "{t:?}"
@@ -850,18 +853,8 @@ fn photo_check_names_a_view_whose_pose_is_wrong() {
         let (lo, hi) = scene.mesh.bbox();
         (hi - lo).length()
     };
-    let moved = xscale::scene::Mesh {
-        vertices: (scene.mesh.vertices.iter())
-            .map(|&v| v + DVec3::X * 0.005 * diag)
-            .collect(),
-        triangles: scene.mesh.triangles.clone(),
-    };
-    let tracer = Tracer::new(&moved, &scene.normalization).unwrap();
-    let mut c = PhotoCheck::plan(&moved, &tracer, &refs);
-    for (k, img) in photos.iter().enumerate() {
-        c.add_view(k, img);
-    }
-    let m = c.result();
+    let moved = mesh_moved(&scene.mesh, |v| v + DVec3::X * 0.005 * diag);
+    let m = check(&moved, &cams, None);
     assert!(!m.disagrees() && m.outliers.is_empty(), "{m:?}");
     assert!(m.close_ups_disagree() && note(&m), "{m:?}");
     // The note names the close-ups that agree least, each a close-up of the check.

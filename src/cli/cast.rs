@@ -60,7 +60,7 @@ pub struct Args {
     /// BVH build preset (obvhs); hits do not depend on it.
     #[arg(long, value_enum, default_value_t = Bvh::Medium)]
     pub bvh: Bvh,
-    /// Do not load the images (cast only; targets are zero).
+    /// Do not load the images (cast only; targets are zero, and the photo check is skipped).
     #[arg(long)]
     pub no_images: bool,
 }

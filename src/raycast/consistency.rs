@@ -2,7 +2,8 @@
 //! alike in every training view that sees it; a mesh in another frame puts the "same" point on
 //! unrelated pixels. The check needs no reconstruction points (`scene/points.rs`), so it also
 //! covers the layouts that have none (MVSNet, instant-ngp and NeRF-synthetic transforms), and it
-//! runs where the photos are read anyway: `train`'s setup, one photo at a time.
+//! runs where the photos are read anyway, one photo at a time: `train`'s setup (which reads the
+//! held-out photos once more for it) and `cast`.
 //!
 //! [`PhotoCheck::plan`] takes [`SAMPLES`] area samples of the mesh and, for an even stride of at
 //! most [`MAX_VIEWS`] training views, the samples each view sees: in front of it, inside its
@@ -78,18 +79,19 @@ pub const OUTLIER_GAP: f64 = 0.2;
 /// the second condition three close-ups named).
 pub const OUTLIER_REST: f64 = 0.9;
 
-/// Close-ups whose pairs correlate this much below the other pairs see a mesh that is off at their scale: a note says so. Measured on `synth
-/// --preset cross` (exact mesh): close-up pairs 0.955 in place against 0.975 for the others; the
+/// Close-ups whose pairs correlate this much below the other pairs see a mesh that is off at
+/// their scale: a note says so. Measured on `synth --preset cross` (exact mesh): close-up pairs 0.955 in place against 0.975 for the others; the
 /// mesh displaced smoothly along its normals by 0.3 % of its diagonal (RMS) 0.87 against 0.97, by
 /// 1 % 0.74 against 0.90; moved sideways by 0.5 % 0.75 against 0.96. On `small` (coarser texture)
 /// 0.945 against 0.977 in place, 0.65 against 0.97 moved by 0.5 %, 0.83 against 0.90 at 1 %.
 pub const CLOSE_UP_GAP: f64 = 0.1;
-/// ... and only while the other pairs correlate at least this well (the mesh fits their scale).
+/// The close-up note needs the other pairs to correlate at least this well (the mesh fits their
+/// scale).
 pub const CLOSE_UP_REST: f64 = 0.8;
 
-/// Pixels across a view's lattice: each planned view also casts LATTICE × LATTICE rays through
-/// its image, and their hits join the area samples, so a close-up (which few area samples meet)
-/// shares surface points with the views around it.
+/// Pixels across a view's lattice: a planned view that sees fewer than [`LATTICE_BELOW`] area
+/// samples also casts LATTICE × LATTICE rays through its image, and their hits join the samples,
+/// so a close-up (which few area samples meet) shares surface points with the views around it.
 pub const LATTICE: usize = 12;
 /// Footprint ratios are matched in steps of half an octave up to 2^((SCALES − 1)/2) = 4: a sample
 /// two views see at footprints further apart than that is not compared between them. (At 28×,
@@ -134,8 +136,8 @@ pub struct PhotoCheck {
     cast: Vec<bool>,
 }
 
-/// The window scale at which views a and b compare a sample they see at log2 footprints `fa`
-/// and `fb`: the finer view averages over 2^(q/2) times the coarser view's 3 pixels, so both
+/// The window scales at which views a and b compare a sample they see as `a` and `b`: the finer
+/// view averages over 2^(q/2) times the coarser view's 3 pixels, so both
 /// cover the same patch of surface (to within 2^(1/4)). `(q_a, q_b)`, one of them 0; `None`
 /// beyond [`SCALES`].
 fn scales(a: &Seen, b: &Seen) -> Option<(usize, usize)> {
@@ -185,7 +187,8 @@ pub struct Consistency {
     /// photos agree where the mesh is, except through these views' poses. At most a quarter of
     /// the judged views.
     pub outliers: Vec<(usize, f64)>,
-    /// Mean correlation of the pairs without an outlier (`correlation` when there is none).
+    /// With outliers, the mean correlation of the pairs among the other judged views (those
+    /// compared with two or more others); `correlation` when there is none.
     pub rest: f64,
     /// Of the pairs without an outlier, those with a close-up (a view that cast its lattice) and
     /// the others: (pairs, mean correlation) of each, `None` without such pairs.
@@ -260,7 +263,8 @@ impl Consistency {
 }
 
 impl PhotoCheck {
-    /// Plan the check for `cameras` (the training views, in the caller's order).
+    /// Plan the check for `cameras` (the views to check, in the caller's order; `train` gives its
+    /// training views, then the held-out ones).
     pub fn plan(mesh: &Mesh, tracer: &Tracer, cameras: &[&Camera]) -> PhotoCheck {
         let (lo, hi) = mesh.bbox();
         let tol = VISIBLE * (hi - lo).length();
@@ -491,13 +495,11 @@ impl PhotoCheck {
         };
         let named = |s: usize| low.iter().any(|&(t, _)| t == s) && confirmed;
         let split = |close: bool| {
-            let (w, m) =
-                mean(&|a, b| !named(a) && !named(b) && (self.cast[a] || self.cast[b]) == close);
-            let n = (corr.iter())
-                .filter(|c| {
-                    !named(c.0) && !named(c.1) && (self.cast[c.0] || self.cast[c.1]) == close
-                })
-                .count();
+            let keep = |a: usize, b: usize| {
+                !named(a) && !named(b) && (self.cast[a] || self.cast[b]) == close
+            };
+            let n = corr.iter().filter(|c| keep(c.0, c.1)).count();
+            let (w, m) = mean(&keep);
             (w > 0).then_some((n, m))
         };
         let mut worst_close_ups: Vec<(usize, f64)> = (0..self.seen.len())

@@ -198,6 +198,9 @@ pub fn prepare_until(
     }
     if let Some(c) = &mut photo_check {
         for (k, &i) in checked.iter().enumerate().skip(train_views.len()) {
+            if stop() {
+                return Err(StoppedInSetup.into());
+            }
             if c.wants(k) {
                 // A held-out photo that cannot be read is the evaluation's error to report.
                 if let Ok(img) = scene.load_image(i) {

@@ -60,3 +60,18 @@ fn cast_rejects_bad_arguments() {
     assert_eq!(code, 2);
     assert!(err.contains("/nonexistent/scene"), "{err}");
 }
+
+/// A `--format` the flag does not take is a usage error (64) naming the flag, like every other
+/// flag value (it was a load error, exit 2).
+#[test]
+fn an_unknown_format_is_a_usage_error() {
+    let scene = concat!(env!("CARGO_MANIFEST_DIR"), "/fixtures/formats/colmap");
+    let (code, _, err) = xscale(&["cast", "--scene", scene, "--format", "foo"]);
+    assert_eq!(code, 64, "{err}");
+    assert!(
+        err.contains("'--format <FORMAT>'") && err.contains("unknown camera format 'foo'"),
+        "{err}"
+    );
+    let (code, _, err) = xscale(&["cast", "--scene", scene, "--format", "colmap"]);
+    assert_eq!(code, 0, "{err}");
+}

@@ -241,6 +241,35 @@ fn masks_limit_training_and_scoring() {
     for i in 0..sa.views.len() {
         assert_eq!(sa.load_mask(i).unwrap(), scene.load_mask(i).unwrap());
     }
+    // Photos transparent everywhere: the setup says their masks are empty (it blamed the mesh).
+    for v in &sa.views {
+        let mut rgba = image::open(&v.image_path).unwrap().to_rgba8();
+        rgba.pixels_mut().for_each(|p| p[3] = 0);
+        rgba.save(&v.image_path).unwrap();
+    }
+    let mut log = Vec::new();
+    let cfg = RunConfig::preset("tiny").unwrap();
+    let e = format!(
+        "{:#}",
+        prepare(&alpha, &cfg, true, &mut |m| log.push(m))
+            .err()
+            .expect("empty masks must be refused")
+    );
+    assert!(
+        e.contains("no training pixel is inside its view's object mask"),
+        "{e}"
+    );
+    let n = sa.views.len();
+    assert!(
+        log.iter()
+            .any(|m| m.contains(&format!("object masks: {n} of {n} views"))),
+        "{log:?}"
+    );
+    assert!(
+        log.iter()
+            .any(|m| m.contains("has an object mask that excludes every pixel")),
+        "{log:?}"
+    );
 
     // A masks folder missing one view's mask is an error naming the view.
     let partial = tmp("partial");

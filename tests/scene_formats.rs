@@ -1913,3 +1913,230 @@ fn a_colmap2nerf_rescaled_transforms_file_is_named() {
     assert!(!named(&write(3.0, true)), "another distance");
     assert!(!named(&write(4.0, false)), "no sharpness");
 }
+
+/// COLMAP image names are kept exactly as written, spaces and runs of them included, whether
+/// or not the file keeps its (empty) 2D-points lines: a name of three words made a header of 12
+/// fields, which was taken for the previous image's points line and so dropped.
+#[test]
+fn colmap_image_names_with_spaces_are_kept_exactly() {
+    let d = scratch("colmap_spaces");
+    fs::copy(
+        fixture("colmap/sparse/0/cameras.txt"),
+        d.join("cameras.txt"),
+    )
+    .unwrap();
+    let text = fs::read_to_string(fixture("colmap/sparse/0/images.txt"))
+        .unwrap()
+        .replace(" b.png", " my new photo.png")
+        .replace(" c.png", " my  photo.png");
+    for (case, text) in [
+        ("with points lines", text.clone()),
+        (
+            "headers only",
+            text.lines()
+                .filter(|l| l.ends_with(".png"))
+                .collect::<Vec<_>>()
+                .join("\n"),
+        ),
+    ] {
+        fs::write(d.join("images.txt"), text).unwrap();
+        let views = colmap::read_text(&d, &d).unwrap();
+        let names: Vec<&str> = views.iter().map(|v| v.name.as_str()).collect();
+        assert_eq!(
+            names,
+            ["a.png", "my  photo.png", "my new photo.png"],
+            "{case}"
+        );
+    }
+}
+
+/// Partial or inconsistent COLMAP models say what is wrong: an image id used twice, an
+/// images.txt that lists nothing, a model folder with only one of its two files (or the two in
+/// different encodings).
+#[test]
+fn colmap_partial_models_and_repeated_ids_are_named() {
+    let d = scratch("colmap_partial");
+    fs::copy(
+        fixture("colmap/sparse/0/cameras.txt"),
+        d.join("cameras.txt"),
+    )
+    .unwrap();
+    let text = fs::read_to_string(fixture("colmap/sparse/0/images.txt")).unwrap();
+    fs::write(d.join("images.txt"), text.replace("9 0.5", "5 0.5")).unwrap();
+    assert_contains(
+        &err(colmap::read_text(&d, &d)),
+        &[
+            "images.txt",
+            "line 8",
+            "image id 5 is used twice (first on line 4)",
+        ],
+    );
+    fs::write(d.join("images.txt"), "# no images\n").unwrap();
+    assert_contains(
+        &err(colmap::read_text(&d, &d)),
+        &["images.txt", "lists no images"],
+    );
+
+    let s = scratch("colmap_partial_scene");
+    let model = s.join("sparse/0");
+    fs::create_dir_all(&model).unwrap();
+    fs::write(model.join("images.txt"), &text).unwrap();
+    let e = err(Scene::load(&s, &LoadOptions::default()));
+    assert_contains(
+        &e,
+        &[
+            "no cameras found",
+            "sparse/0 holds images.txt but no cameras.txt",
+        ],
+    );
+    colmap::write_binary(
+        &model,
+        &colmap::read_text(&fixture("colmap/sparse/0"), &s).unwrap(),
+    )
+    .unwrap();
+    fs::remove_file(model.join("images.bin")).unwrap();
+    let e = err(Scene::load(&s, &LoadOptions::default()));
+    assert_contains(
+        &e,
+        &[
+            "holds images.txt, cameras.bin but no cameras.txt",
+            "not mixed",
+        ],
+    );
+}
+
+/// transforms.json fields of the wrong kind are errors naming them, instant-ngp's `is_fisheye`
+/// selects the fisheye model its `colmap2nerf.py` means, and a mirrored pose says so.
+#[test]
+fn transforms_lens_fields_are_checked_and_is_fisheye_is_read() {
+    let d = scratch("transforms_lens");
+    copy_dir(&fixture("transforms"), &d);
+    let p = d.join("transforms.json");
+    let good: serde_json::Value = serde_json::from_str(&fs::read_to_string(&p).unwrap()).unwrap();
+    let with = |f: &dyn Fn(&mut serde_json::Value)| {
+        let mut x = good.clone();
+        f(&mut x);
+        fs::write(&p, x.to_string()).unwrap();
+        transforms::load(&p)
+    };
+    // An angle in degrees by mistake: 40 "radians" gave a focal length of 14 instead of 55.
+    let e = err(with(&|x| x["camera_angle_x"] = 40.0.into()));
+    assert_contains(&e, &["'camera_angle_x' = 40", "(0, π) radians", "degrees?"]);
+    let e = err(with(&|x| x["camera_angle_x"] = 0.0.into()));
+    assert_contains(&e, &["'camera_angle_x' = 0", "(0, π)"]);
+    let e = err(with(&|x| x["camera_model"] = 5.into()));
+    assert_contains(
+        &e,
+        &[
+            "transforms.json",
+            "'camera_model' must be a string, found 5",
+        ],
+    );
+    let e = err(with(&|x| {
+        x["frames"][1]["camera_model"] = serde_json::json!(["OPENCV"])
+    }));
+    assert_contains(&e, &["frame 1", "'camera_model' must be a string"]);
+    // colmap2nerf.py's fisheye output: k1..k4 with is_fisheye and no camera_model.
+    let fisheye = |x: &mut serde_json::Value| {
+        x["is_fisheye"] = true.into();
+        x["k1"] = 0.05.into();
+        x["k2"] = 0.01.into();
+    };
+    let v = with(&fisheye).unwrap();
+    assert!(
+        v.iter().all(|v| matches!(v.camera.distortion, Distortion::Fisheye { k } if k == [0.05, 0.01, 0.0, 0.0])),
+        "{:?}",
+        v[0].camera.distortion
+    );
+    let e = err(with(&|x| {
+        fisheye(x);
+        x["camera_model"] = "OPENCV".into();
+    }));
+    assert_contains(
+        &e,
+        &["camera_model 'OPENCV' contradicts 'is_fisheye: true'"],
+    );
+    let e = err(with(&|x| x["is_fisheye"] = "yes".into()));
+    assert_contains(&e, &["'is_fisheye' must be true or false"]);
+    // A pose whose first axis is negated: orthonormal, determinant −1.
+    let e = err(with(&|x| {
+        for r in 0..3 {
+            let v = x["frames"][0]["transform_matrix"][r][0].as_f64().unwrap();
+            x["frames"][0]["transform_matrix"][r][0] = (-v).into();
+        }
+    }));
+    assert_contains(&e, &["frame 0", "determinant -1.000", "reflection"]);
+}
+
+/// OBJ polylines (`l`) and points (`p`) are not surface: tobj turned an `l` line of three or
+/// more vertices into triangles. An `f` line of two corners is a short face, as in a PLY.
+#[test]
+fn obj_lines_are_not_triangles_and_short_faces_are_counted() {
+    let d = scratch("obj_lines");
+    let base = fs::read_to_string(fixture("mesh/cube.obj")).unwrap();
+    let (cube, _) = mesh::load_mesh(&fixture("mesh/cube.obj")).unwrap();
+    let p = d.join("m.obj");
+    fs::write(&p, format!("{base}\nl 1 2 3 4\np 5\nf 1 2\n")).unwrap();
+    let (m, stats) = mesh::load_mesh(&p).unwrap();
+    assert_eq!(soup(&m), soup(&cube));
+    assert_eq!((stats.short_faces, stats.dropped_degenerate), (1, 1));
+    let verts: String = base
+        .lines()
+        .filter(|l| l.starts_with("v "))
+        .map(|l| format!("{l}\n"))
+        .collect();
+    fs::write(&p, format!("{verts}l 1 2 3\n")).unwrap();
+    assert_contains(
+        &err(mesh::load_mesh(&p)),
+        &["m.obj", "no (non-degenerate) triangles"],
+    );
+}
+
+/// Beside transforms.json, NeRF-synthetic split files are not read: a note says so. The sparse
+/// points nerfstudio's transforms.json names (`ply_file_path`) are not a mesh candidate.
+#[test]
+fn transforms_json_beside_split_files_and_its_points_file() {
+    let d = scratch("transforms_beside");
+    copy_dir(&fixture("transforms"), &d);
+    fs::copy(fixture("mesh/cube_ascii.ply"), d.join("poisson_mesh.ply")).unwrap();
+    fs::copy(fixture("mesh/cube_ascii.ply"), d.join("sparse_pc.ply")).unwrap();
+    let p = d.join("transforms.json");
+    let mut doc: serde_json::Value =
+        serde_json::from_str(&fs::read_to_string(&p).unwrap()).unwrap();
+    assert_contains(
+        &err(Scene::load(&d, &LoadOptions::default())),
+        &["several mesh candidates (poisson_mesh.ply, sparse_pc.ply)"],
+    );
+    doc["ply_file_path"] = "sparse_pc.ply".into();
+    fs::write(&p, doc.to_string()).unwrap();
+    fs::copy(&p, d.join("transforms_test.json")).unwrap();
+    let (_, report) = Scene::load_report(&d, &LoadOptions::default()).unwrap();
+    assert!(
+        report.mesh_path.ends_with("poisson_mesh.ply"),
+        "{:?}",
+        report.mesh_path
+    );
+    assert!(
+        report
+            .notes
+            .iter()
+            .any(|n| n.contains("read alone; transforms_test.json beside it are not read")),
+        "{:?}",
+        report.notes
+    );
+}
+
+/// An image path that is a folder is named as one, not as missing.
+#[test]
+fn an_image_that_is_a_folder_is_named_as_one() {
+    let d = tiny_copy("image_is_dir");
+    let first = Scene::load(&d, &LoadOptions::default()).unwrap().views[0]
+        .image_path
+        .clone();
+    fs::remove_file(&first).unwrap();
+    fs::create_dir(&first).unwrap();
+    assert_contains(
+        &err(Scene::load(&d, &LoadOptions::default())),
+        &["is a directory, not a file"],
+    );
+}

@@ -50,7 +50,7 @@ pub struct Args {
     pub mesh: Option<PathBuf>,
     /// Camera format (default: auto-detect): colmap, mvsnet, transforms.
     #[arg(long)]
-    pub format: Option<String>,
+    pub format: Option<CameraFormat>,
     /// Normalisation of the bounding box to `[0,1]^3`.
     #[arg(long, value_enum, default_value_t = Normalize::PerAxis)]
     pub normalize: Normalize,
@@ -69,11 +69,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
     crate::raycast::cast::check_gamma(args.gamma)?;
     let t0 = Instant::now();
     let opts = LoadOptions {
-        format: args
-            .format
-            .as_deref()
-            .map(str::parse::<CameraFormat>)
-            .transpose()?,
+        format: args.format,
         downsample: args.downsample,
         normalize: match args.normalize {
             Normalize::PerAxis => NormalizeMode::PerAxis,
@@ -172,6 +168,8 @@ fn cast_views(
             c.add_view(k, img);
         }
         let t = Instant::now();
+        let mask = scene.load_mask(i)?;
+        let masked_out = mask.as_ref().is_some_and(|m| !m.contains(&true));
         let mut on_event = |e: CacheEvent| match e {
             CacheEvent::ViewCast { kept, pixels, .. } => eprintln!(
                 "[{}/{}] view {i} '{}': {kept} of {pixels} pixels see the mesh ({:.1}%)",
@@ -181,11 +179,15 @@ fn cast_views(
                 100.0 * kept as f64 / pixels.max(1) as f64
             ),
             CacheEvent::ViewDropped { .. } => eprintln!(
-                "warning: view {i} '{}' sees no part of the mesh; dropped",
-                view.name
+                "warning: view {i} '{}' {}; dropped",
+                view.name,
+                if masked_out {
+                    "has an object mask that excludes every pixel"
+                } else {
+                    "sees no part of the mesh"
+                }
             ),
         };
-        let mask = scene.load_mask(i)?;
         cache.add_view(
             tracer,
             i,

@@ -250,6 +250,52 @@ pub fn is_model_dir(dir: &Path) -> bool {
         || (dir.join("cameras.bin").is_file() && dir.join("images.bin").is_file())
 }
 
+/// A model directory among the places [`find_layout`] looks that holds part of a model but not
+/// a whole one (`cameras` and `images` both .txt or both .bin): what is there and what is missing.
+pub fn incomplete_model(scene: &Path) -> Option<String> {
+    let places = [
+        scene.join("dense").join("0").join("sparse"),
+        scene.join("dense").join("sparse"),
+        scene.join("0").join("sparse"),
+        scene.join("sparse").join("0"),
+        scene.join("sparse"),
+        scene.to_path_buf(),
+    ];
+    places.iter().find_map(|d| {
+        let has = |f: &str| d.join(f).is_file();
+        let found: Vec<&str> = ["cameras.txt", "images.txt", "cameras.bin", "images.bin"]
+            .into_iter()
+            .filter(|f| has(f))
+            .collect();
+        if found.is_empty() || is_model_dir(d) {
+            return None;
+        }
+        let missing = if has("cameras.txt") || has("images.txt") {
+            if has("cameras.txt") {
+                "images.txt"
+            } else {
+                "cameras.txt"
+            }
+        } else if has("cameras.bin") {
+            "images.bin"
+        } else {
+            "cameras.bin"
+        };
+        let mixed = if (has("cameras.txt") || has("images.txt"))
+            && (has("cameras.bin") || has("images.bin"))
+        {
+            " (a model is read whole from .txt or whole from .bin, not mixed)"
+        } else {
+            ""
+        };
+        Some(format!(
+            "{} holds {} but no {missing}{mixed}",
+            d.display(),
+            found.join(", ")
+        ))
+    })
+}
+
 /// Find the model in a scene dir: `sparse/0/`, `sparse/`, or the dir itself.
 pub fn find_model_dir(scene: &Path) -> Option<PathBuf> {
     find_layout(scene).map(|l| l.model)
@@ -373,14 +419,16 @@ pub fn read_text(dir: &Path, images_dir: &Path) -> Result<Vec<View>> {
     let mut imgs = Vec::new();
     // Two lines per image; the second (2D points) may be empty, so blank lines are significant
     // there. A header line is never blank, so blank lines are skipped while looking for one. If
-    // the expected points line looks like a header (token count not a multiple of 3), it is
-    // taken as the next header (some tools drop empty points lines).
+    // the expected points line is not one (numbers in threes), it is taken as the next header
+    // (some tools drop empty points lines); a header always ends in a name, which is not a
+    // number.
     let lines: Vec<(usize, &str)> = itext
         .lines()
         .enumerate()
         .filter(|(_, l)| !l.trim_start().starts_with('#'))
         .map(|(i, l)| (i + 1, l.trim()))
         .collect();
+    let mut ids = HashMap::new();
     let mut i = 0;
     while i < lines.len() {
         let (ln, line) = lines[i];
@@ -396,28 +444,48 @@ pub fn read_text(dir: &Path, images_dir: &Path) -> Result<Vec<View>> {
                 tok.len()
             );
         }
-        let _id: u64 = parse_num(tok[0], &wh, "image id")?;
+        let id: u64 = parse_num(tok[0], &wh, "image id")?;
+        if let Some(first) = ids.insert(id, ln) {
+            bail!("{wh}: image id {id} is used twice (first on line {first})");
+        }
         let mut v = [0f64; 7];
         for k in 0..7 {
             v[k] = parse_num(tok[1 + k], &wh, "pose value")?;
         }
         let camera_id: u64 = parse_num(tok[8], &wh, "camera id")?;
         imgs.push(RawImage {
-            name: tok[9..].join(" "),
+            name: name_after(line, 9).to_string(),
             q: [v[0], v[1], v[2], v[3]],
             t: [v[4], v[5], v[6]],
             camera_id,
             origin: wh,
         });
         // The points line.
-        if i < lines.len() {
-            let n = lines[i].1.split_whitespace().count();
-            if n % 3 == 0 {
-                i += 1;
-            }
+        if i < lines.len() && is_points_line(lines[i].1) {
+            i += 1;
         }
     }
+    if imgs.is_empty() {
+        bail!("{}: lists no images", ipath.display());
+    }
     assemble(dir, cams, imgs, images_dir)
+}
+
+/// A 2D-points line: `X Y POINT3D_ID` triples, every token a number (an empty line included).
+fn is_points_line(line: &str) -> bool {
+    let tok: Vec<&str> = line.split_whitespace().collect();
+    tok.len() % 3 == 0 && tok.iter().all(|t| t.parse::<f64>().is_ok())
+}
+
+/// The rest of `line` after its first `n` whitespace-separated fields, exactly as written (an
+/// image name may hold spaces, runs of them included).
+fn name_after(line: &str, n: usize) -> &str {
+    let mut rest = line.trim_start();
+    for _ in 0..n {
+        let end = rest.find(char::is_whitespace).unwrap_or(rest.len());
+        rest = rest[end..].trim_start();
+    }
+    rest
 }
 
 fn fmt_params(p: &[f64]) -> String {
@@ -703,9 +771,16 @@ pub fn read_binary(dir: &Path, images_dir: &Path) -> Result<Vec<View>> {
     };
     let n = r.u64("the image count")?;
     let mut imgs = Vec::new();
+    let mut ids = HashMap::new();
     for k in 0..n {
         let what = format!("image {k} of {n}");
         let id = r.u32(&what)?;
+        if let Some(first) = ids.insert(id, k) {
+            bail!(
+                "{}: {what}: image id {id} is used twice (first by image {first})",
+                ipath.display()
+            );
+        }
         let mut v = [0f64; 7];
         for x in v.iter_mut() {
             *x = r.f64(&what)?;
@@ -735,6 +810,9 @@ pub fn read_binary(dir: &Path, images_dir: &Path) -> Result<Vec<View>> {
             ipath.display(),
             idata.len() - r.pos
         );
+    }
+    if imgs.is_empty() {
+        bail!("{}: lists no images", ipath.display());
     }
     assemble(dir, cams, imgs, images_dir)
 }

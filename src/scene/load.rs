@@ -186,6 +186,8 @@ pub fn find_mesh(dir: &Path) -> anyhow::Result<PathBuf> {
     if let Some(p) = named.iter().find(|p| p.is_file()) {
         return Ok(p.clone());
     }
+    // nerfstudio's sparse points (`ply_file_path`, e.g. sparse_pc.ply) are not a mesh.
+    let points = transforms::declared_point_cloud(dir).and_then(|p| p.canonicalize().ok());
     let mut cands: Vec<PathBuf> = std::fs::read_dir(dir)
         .map_err(|e| anyhow::anyhow!("{}: cannot list scene directory: {e}", dir.display()))?
         .flatten()
@@ -195,6 +197,7 @@ pub fn find_mesh(dir: &Path) -> anyhow::Result<PathBuf> {
                 && p.extension()
                     .and_then(|e| e.to_str())
                     .is_some_and(|e| e.eq_ignore_ascii_case("ply") || e.eq_ignore_ascii_case("obj"))
+                && (points.is_none() || p.canonicalize().ok() != points)
         })
         .collect();
     cands.sort();
@@ -416,13 +419,14 @@ fn choose_format(
                 .map(|d| dir.join(d))
                 .filter(|d| d.is_dir() && !detect_formats(d).is_empty())
                 .collect();
-            let hint = match inner.first() {
-                Some(d) => format!(
+            let hint = match (inner.first(), colmap::incomplete_model(dir)) {
+                (Some(d), _) => format!(
                     "; {} holds a scene (a COLMAP dense workspace?): use --scene {}",
                     d.display(),
                     d.display()
                 ),
-                None => String::new(),
+                (None, Some(part)) => format!("; {part}"),
+                (None, None) => String::new(),
             };
             bail!(
                 "{}: no cameras found (looked for transforms.json, a COLMAP model in sparse/0/, sparse/ or the dir itself, and MVSNet cams_<dsp>/*_cam.txt){hint}",
@@ -505,6 +509,18 @@ fn load_transforms(
 ) -> Result<(LoadedViews, Option<PathBuf>)> {
     let files = transforms_files(dir)?;
     let nerf_synthetic = !files[0].ends_with("transforms.json");
+    let split_files: Vec<String> = ["train", "val", "test"]
+        .iter()
+        .map(|s| format!("transforms_{s}.json"))
+        .filter(|f| dir.join(f).is_file())
+        .collect();
+    if !nerf_synthetic && !split_files.is_empty() {
+        notes.push(format!(
+            "{}: read alone; {} beside it are not read (their split neither): to use them, move transforms.json away",
+            files[0].display(),
+            split_files.join(", ")
+        ));
+    }
     // NeRF-synthetic: the test file's views are the split (none without a test file).
     let mut test = nerf_synthetic.then(Vec::new);
     let (mut views, mut masks, mut undone) = (Vec::new(), Vec::new(), None);
@@ -562,9 +578,14 @@ fn check_images(views: &[View], check_sizes: bool) -> Result<()> {
     for v in views {
         if !v.image_path.is_file() {
             bail!(
-                "{}: image of view '{}' not found",
+                "{}: image of view '{}' {}",
                 v.image_path.display(),
-                v.name
+                v.name,
+                if v.image_path.is_dir() {
+                    "is a directory, not a file"
+                } else {
+                    "not found"
+                }
             );
         }
         if !check_sizes {

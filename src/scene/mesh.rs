@@ -112,13 +112,24 @@ fn push_face(vertices: &[DVec3], face: &[u32], out: &mut Vec<[u32; 3]>, stats: &
 // OBJ
 // ---------------------------------------------------------------------------------------------
 
-/// Load an OBJ with `tobj` (GPU_LOAD_OPTIONS: triangulated, single index; a missing .mtl is not
-/// fatal). All models are merged. tobj is built with `use_f64`, so coordinates are exact.
+/// Load an OBJ with `tobj` (GPU_LOAD_OPTIONS: triangulated, single index; materials are not
+/// read). All models are merged. tobj is built with `use_f64`, so coordinates are exact.
 /// Note: tobj re-indexes vertices in order of first use by a face and drops unreferenced ones.
+/// Polylines (`l`) and points (`p`) are not surface and are left out (tobj would make triangles
+/// of an `l` line with three or more vertices); `f` lines with fewer than three corners are
+/// counted as short faces, as in a PLY.
 fn load_obj(path: &Path) -> Result<(Mesh, MeshStats)> {
+    let bytes = fs::read(path).with_context(|| format!("{}: cannot read", path.display()))?;
+    let mut stats = MeshStats::default();
+    let text = obj_surface_lines(&String::from_utf8_lossy(&bytes), &mut stats);
     // tobj's own errors carry no line number: on any failure, re-scan the file ourselves to
     // name the line (bad numbers, non-finite coordinates, indices out of range).
-    let (models, _materials) = match tobj::load_obj(path, &tobj::GPU_LOAD_OPTIONS) {
+    let loaded = tobj::load_obj_buf(
+        &mut std::io::Cursor::new(text.as_bytes()),
+        &tobj::GPU_LOAD_OPTIONS,
+        |_| Ok(Default::default()),
+    );
+    let (models, _materials) = match loaded {
         Ok(x) => x,
         Err(e) => {
             obj_diagnose(path)?;
@@ -132,7 +143,6 @@ fn load_obj(path: &Path) -> Result<(Mesh, MeshStats)> {
         obj_diagnose(path)?;
     }
     let mut mesh = Mesh::default();
-    let mut stats = MeshStats::default();
     for m in &models {
         let base = mesh.vertices.len();
         let p = &m.mesh.positions;
@@ -168,6 +178,30 @@ fn load_obj(path: &Path) -> Result<(Mesh, MeshStats)> {
         }
     }
     Ok((mesh, stats))
+}
+
+/// The OBJ text with its `l` and `p` lines, and `f` lines of fewer than three corners (counted
+/// in `stats`), blanked; the line count stays, so tobj's and our line numbers agree.
+fn obj_surface_lines(text: &str, stats: &mut MeshStats) -> String {
+    let mut out = String::with_capacity(text.len());
+    for line in text.lines() {
+        let mut tok = line.split_whitespace();
+        let keep = match tok.next() {
+            Some("l") | Some("p") => false,
+            Some("f") if tok.count() < 3 => {
+                stats.faces += 1;
+                stats.short_faces += 1;
+                stats.dropped_degenerate += 1;
+                false
+            }
+            _ => true,
+        };
+        if keep {
+            out.push_str(line);
+        }
+        out.push('\n');
+    }
+    out
 }
 
 /// Scan an OBJ for `v` lines with missing/non-numeric/non-finite coordinates and `f` lines with

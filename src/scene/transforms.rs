@@ -66,6 +66,26 @@ fn num(
     }
 }
 
+/// A field of view in radians (`camera_angle_x` / `_y`), which must lie in (0, π).
+fn field_of_view(
+    p: &str,
+    frame: &Map<String, Value>,
+    top: &Map<String, Value>,
+    key: &str,
+) -> Result<Option<f64>> {
+    match num(p, frame, top, key)? {
+        Some(a) if !(a > 0.0 && a < std::f64::consts::PI) => bail!(
+            "{p}: '{key}' = {a} must be an angle in (0, π) radians{}",
+            if (std::f64::consts::PI..360.0).contains(&a) {
+                " (given in degrees?)"
+            } else {
+                ""
+            }
+        ),
+        a => Ok(a),
+    }
+}
+
 /// Resolve a frame's image path relative to `base`; returns (path, view name).
 fn resolve_image(base: &Path, file_path: &str) -> Option<(PathBuf, String)> {
     let rel = file_path.strip_prefix("./").unwrap_or(file_path);
@@ -134,19 +154,14 @@ pub fn load_full(path: &Path, applied: AppliedTransform) -> Result<Loaded> {
         _ => None,
     };
     let base = path.parent().unwrap_or(Path::new("."));
-    let top_model = top.get("camera_model").and_then(|v| v.as_str());
-    if let Some(m) = top_model {
-        if !MODELS.contains(&m) {
-            bail!(
-                "{pd}: camera_model '{m}' is not supported ({})",
-                MODELS.join(", ")
-            );
-        }
-    }
+    let top_model = camera_model(&pd, top, None)?;
     let frames = top
         .get("frames")
         .and_then(|f| f.as_array())
         .ok_or_else(|| anyhow!("{pd}: no 'frames' array"))?;
+    if frames.is_empty() {
+        bail!("{pd}: 'frames' is empty");
+    }
     let mut views = Vec::with_capacity(frames.len());
     let mut masks = Vec::with_capacity(frames.len());
     for (i, f) in frames.iter().enumerate() {
@@ -159,17 +174,7 @@ pub fn load_full(path: &Path, applied: AppliedTransform) -> Result<Loaded> {
             .and_then(|v| v.as_str())
             .ok_or_else(|| anyhow!("{wh}: missing string 'file_path'"))?;
         let wh = format!("{wh} ('{file_path}')");
-        let model = fr
-            .get("camera_model")
-            .and_then(|v| v.as_str())
-            .or(top_model)
-            .unwrap_or("OPENCV");
-        if !MODELS.contains(&model) {
-            bail!(
-                "{wh}: camera_model '{model}' is not supported ({})",
-                MODELS.join(", ")
-            );
-        }
+        let model = camera_model(&wh, fr, top_model)?.unwrap_or("OPENCV");
         let (image_path, name) = resolve_image(base, file_path).ok_or_else(|| {
             anyhow!(
                 "{wh}: image not found: tried {} and with extensions {}",
@@ -211,6 +216,29 @@ pub fn load_full(path: &Path, applied: AppliedTransform) -> Result<Loaded> {
     })
 }
 
+/// The file a transforms file's `ply_file_path` names (relative to the file), if any.
+fn ply_path(path: &Path, root: &Value) -> Result<Option<PathBuf>> {
+    let Some(rel) = root.get("ply_file_path") else {
+        return Ok(None);
+    };
+    let rel = rel.as_str().ok_or_else(|| {
+        anyhow!(
+            "{}: 'ply_file_path' must be a string, got {rel}",
+            path.display()
+        )
+    })?;
+    let base = path.parent().unwrap_or(Path::new("."));
+    Ok(Some(base.join(rel.strip_prefix("./").unwrap_or(rel))))
+}
+
+/// The point cloud `dir/transforms.json` declares (`ply_file_path`), if the file reads and names
+/// one: not a mesh candidate.
+pub fn declared_point_cloud(dir: &Path) -> Option<PathBuf> {
+    let path = dir.join("transforms.json");
+    let root = read_json(&path).ok()?;
+    ply_path(&path, &root).ok().flatten()
+}
+
 /// The point cloud a transforms file names (nerfstudio's top-level `ply_file_path`, relative to
 /// the file: the reconstruction's sparse points, which its writer moved by `applied_transform`
 /// with the poses), in the frame [`load_full`] gives the cameras; `None` without the key.
@@ -220,14 +248,9 @@ pub fn sparse_points(
 ) -> Result<Option<(PathBuf, Vec<DVec3>)>> {
     let pd = path.display().to_string();
     let root = read_json(path)?;
-    let Some(rel) = root.get("ply_file_path") else {
+    let Some(ply) = ply_path(path, &root)? else {
         return Ok(None);
     };
-    let rel = rel
-        .as_str()
-        .ok_or_else(|| anyhow!("{pd}: 'ply_file_path' must be a string, got {rel}"))?;
-    let base = path.parent().unwrap_or(Path::new("."));
-    let ply = base.join(rel.strip_prefix("./").unwrap_or(rel));
     let mut xyz = super::mesh::load_ply_points(&ply)?;
     if let (AppliedTransform::Undo, Some(m)) = (applied, root.get("applied_transform")) {
         // x' = r·x + t, so x = rᵀ·(x' − t).
@@ -277,6 +300,41 @@ fn mask_path(wh: &str, base: &Path, fr: &Map<String, Value>) -> Result<Option<Pa
     Ok(Some(p))
 }
 
+/// The lens model an object (a frame, or the top level) names, else `inherited` (the top
+/// level's, for a frame): its `camera_model` string, or instant-ngp's `is_fisheye: true`
+/// (`colmap2nerf.py`: its `k1 … k4` are OpenCV fisheye terms), which means OPENCV_FISHEYE.
+fn camera_model<'a>(
+    wh: &str,
+    obj: &'a Map<String, Value>,
+    inherited: Option<&'a str>,
+) -> Result<Option<&'a str>> {
+    let named = match obj.get("camera_model") {
+        None | Some(Value::Null) => None,
+        Some(Value::String(m)) if MODELS.contains(&m.as_str()) => Some(m.as_str()),
+        Some(Value::String(m)) => bail!(
+            "{wh}: camera_model '{m}' is not supported ({})",
+            MODELS.join(", ")
+        ),
+        Some(other) => bail!("{wh}: 'camera_model' must be a string, found {other}"),
+    };
+    let fisheye = match obj.get("is_fisheye") {
+        None | Some(Value::Null) => None,
+        Some(Value::Bool(b)) => Some(*b),
+        Some(other) => bail!("{wh}: 'is_fisheye' must be true or false, found {other}"),
+    };
+    match (named, fisheye) {
+        (Some(m), Some(true)) if m != "OPENCV_FISHEYE" => {
+            bail!("{wh}: camera_model '{m}' contradicts 'is_fisheye: true'")
+        }
+        (Some(m), _) => Ok(Some(m)),
+        (None, Some(true)) => Ok(Some("OPENCV_FISHEYE")),
+        (None, Some(false)) => Ok(inherited
+            .filter(|m| *m != "OPENCV_FISHEYE")
+            .or(Some("OPENCV"))),
+        (None, None) => Ok(inherited),
+    }
+}
+
 /// A frame's `transform_matrix` (4x4, or 3x4; camera→world, OpenGL axes) as the world→camera
 /// rotation and translation in OpenCV axes.
 fn pose(wh: &str, fr: &Map<String, Value>) -> Result<(DMat3, DVec3)> {
@@ -288,8 +346,12 @@ fn pose(wh: &str, fr: &Map<String, Value>) -> Result<(DMat3, DVec3)> {
     let col = |c: usize, s: f64| DVec3::new(s * a[0][c], s * a[1][c], s * a[2][c]);
     let c2w = DMat3::from_cols(col(0, 1.0), col(1, -1.0), col(2, -1.0));
     let ortho = non_orthonormality(&c2w);
-    if ortho > 1e-3 || c2w.determinant() <= 0.0 {
+    if ortho > 1e-3 {
         bail!("{wh}: the rotation part of 'transform_matrix' is not a rotation (|RᵀR − I| = {ortho:.2e})");
+    }
+    let det = c2w.determinant();
+    if det <= 0.0 {
+        bail!("{wh}: the rotation part of 'transform_matrix' has determinant {det:.3}: a reflection (a left-handed frame), not a rotation");
     }
     let center = DVec3::new(a[0][3], a[1][3], a[2][3]);
     let rotation = c2w.transpose();
@@ -360,14 +422,14 @@ fn intrinsics(
     }
     let fx = match num(wh, fr, top, "fl_x")? {
         Some(f) => f,
-        None => match num(wh, fr, top, "camera_angle_x")? {
+        None => match field_of_view(wh, fr, top, "camera_angle_x")? {
             Some(ax) => 0.5 * w / (0.5 * ax).tan(),
             None => bail!("{wh}: no focal length: neither 'fl_x' nor 'camera_angle_x' given"),
         },
     };
     let fy = match num(wh, fr, top, "fl_y")? {
         Some(f) => f,
-        None => match num(wh, fr, top, "camera_angle_y")? {
+        None => match field_of_view(wh, fr, top, "camera_angle_y")? {
             Some(ay) => 0.5 * h / (0.5 * ay).tan(),
             None => fx,
         },

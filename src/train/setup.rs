@@ -9,7 +9,7 @@ use crate::model::ModelConfig;
 use crate::raycast::consistency::PhotoCheck;
 use crate::raycast::{CacheEvent, RayStream, SampleCache, Targets, Tracer};
 use crate::scene::Camera;
-use crate::scene::{LoadOptions, Scene};
+use crate::scene::{LoadOptions, MaskSource, Scene};
 use crate::train::config::{LevelRange, RunConfig};
 use crate::train::memory;
 use crate::train::sampler::{SampleMode, Samples};
@@ -121,7 +121,12 @@ pub fn prepare_until(
             _ => None,
         });
         log(format!(
-            "object masks: {} views from {}; training and scores use only pixels inside them",
+            "object masks: {} of {} views from {}; training and scores use only pixels inside them",
+            scene
+                .masks
+                .iter()
+                .filter(|m| **m != MaskSource::None)
+                .count(),
             scene.masks.len(),
             match folder {
                 Some(f) => format!("mask files (in {})", f.display()),
@@ -159,6 +164,7 @@ pub fn prepare_until(
         PhotoCheck::plan(&scene.mesh, &tracer, &cams)
     });
     // One photo in memory at a time: load, cast, keep what the mode keeps.
+    let mut empty_masks = 0;
     for (k, &i) in train_views.iter().enumerate() {
         if stop() {
             return Err(StoppedInSetup.into());
@@ -168,11 +174,20 @@ pub fn prepare_until(
         } else {
             None
         };
+        let mask = scene.load_mask(i)?;
+        let mask = mask.as_deref();
+        let masked_out = mask.is_some_and(|m| !m.contains(&true));
+        empty_masks += masked_out as usize;
         let mut on_event = |e| {
             if let CacheEvent::ViewDropped { .. } = e {
                 log(format!(
-                    "warning: view {i} ({}) sees no part of the mesh: dropped",
-                    scene.views[i].name
+                    "warning: view {i} ({}) {}: dropped",
+                    scene.views[i].name,
+                    if masked_out {
+                        "has an object mask that excludes every pixel"
+                    } else {
+                        "sees no part of the mesh"
+                    }
                 ));
             }
         };
@@ -180,8 +195,6 @@ pub fn prepare_until(
             c.add_view(k, img);
         }
         let cam = &scene.views[i].camera;
-        let mask = scene.load_mask(i)?;
-        let mask = mask.as_deref();
         match &mut samples {
             Samples::Stream(s) => {
                 let t = img.as_ref().map_or(Targets::None, Targets::from_image);
@@ -189,6 +202,12 @@ pub fn prepare_until(
             }
             Samples::Cache(c) => c.add_view(&tracer, k, cam, img.as_ref(), mask, &mut on_event)?,
         };
+    }
+    if samples.is_empty() && empty_masks == train_views.len() {
+        bail!(
+            "{}: no training pixel is inside its view's object mask (every mask, from the photos' alpha channels or masks/, is empty)",
+            dir.display()
+        );
     }
     if samples.is_empty() {
         bail!(

@@ -16,9 +16,13 @@ fn main() -> std::process::ExitCode {
     match xscale::cli::run(cli) {
         Ok(code) => code,
         Err(e) => {
-            eprintln!("error: {e:#}");
+            // Not `eprintln!`, which panics when stderr is a closed pipe.
+            use std::io::Write;
+            let mut err = std::io::stderr();
+            let _ = writeln!(err, "error: {e:#}");
             if hit_file_size_limit(&e) {
-                eprintln!(
+                let _ = writeln!(
+                    err,
                     "hint: the process has a file-size limit (`ulimit -f` shows it); raise it or write \
                      to a folder without one"
                 );

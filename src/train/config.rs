@@ -312,9 +312,22 @@ impl RunConfig {
             return Ok(());
         }
         crate::model::hashgrid::validate_config(&self.model.grid_h).context("model.grid_h")?;
+        let mut grids = vec![("model.grid_h", &self.model.grid_h)];
         if self.model.deform.enabled {
             crate::model::hashgrid::validate_config(&self.model.deform.grid)
                 .context("model.deform.grid")?;
+            grids.push(("model.deform.grid", &self.model.deform.grid));
+        }
+        // Checked here, before a scene is loaded (it used to surface only when the model was
+        // built, as `config: grid_h: grid: scale of level 3 is -0.5`, naming no key).
+        for (key, g) in grids {
+            if let Some((l, s)) = crate::model::hashgrid::first_bad_scale(g) {
+                bail!(
+                    "{key}.per_level_scale = {} gives level {l} a scale of {s} (base_resolution {} × per_level_scale^{l} − 1 must be in [0, 1e9]): use a per_level_scale of at least 1",
+                    g.per_level_scale,
+                    g.base_resolution
+                );
+            }
         }
         Ok(())
     }

@@ -16,6 +16,30 @@
 //! | counter-based random numbers (SPEC §5) | [`rng`] |
 //! | command-line front end | [`cli`] |
 
+// Output to a closed pipe (`xscale train … 2>&1 | head -2`) is dropped, not a panic: std's
+// `println!`/`eprintln!` panic when the write fails ("failed printing to stderr: Broken pipe",
+// exit 101, the run lost mid-step). These shadow them in every module below (macro_rules are
+// in scope textually), so the work goes on to its end and the command exits as it would have.
+// `print!`/`eprint!` likewise.
+macro_rules! println {
+    ($($t:tt)*) => {{
+        use std::io::Write as _;
+        let _ = writeln!(std::io::stdout(), $($t)*);
+    }};
+}
+macro_rules! eprintln {
+    ($($t:tt)*) => {{
+        use std::io::Write as _;
+        let _ = writeln!(std::io::stderr(), $($t)*);
+    }};
+}
+macro_rules! print {
+    ($($t:tt)*) => {{
+        use std::io::Write as _;
+        let _ = write!(std::io::stdout(), $($t)*);
+    }};
+}
+
 pub mod cli;
 pub mod eval;
 pub mod io;

@@ -2,7 +2,8 @@ use clap::Parser;
 
 /// Exit codes (docs/runs.md): 0 done, 1 a check failed, 2 an error at run time (bad input, I/O,
 /// a refused run folder, divergence), 64 a usage error (unknown flag, bad value: sysexits'
-/// EX_USAGE), 130 stopped by a signal with a checkpoint written.
+/// EX_USAGE), 130 stopped by a signal with a checkpoint written, 3 stopped by a signal with nothing
+/// saved.
 fn main() -> std::process::ExitCode {
     ignore_file_size_signal();
     let cli = match xscale::cli::Cli::try_parse() {
@@ -16,9 +17,13 @@ fn main() -> std::process::ExitCode {
     match xscale::cli::run(cli) {
         Ok(code) => code,
         Err(e) => {
-            eprintln!("error: {e:#}");
+            // Not `eprintln!`, which panics when stderr is a closed pipe.
+            use std::io::Write;
+            let mut err = std::io::stderr();
+            let _ = writeln!(err, "error: {e:#}");
             if hit_file_size_limit(&e) {
-                eprintln!(
+                let _ = writeln!(
+                    err,
                     "hint: the process has a file-size limit (`ulimit -f` shows it); raise it or write \
                      to a folder without one"
                 );

@@ -203,3 +203,40 @@ fn a_stopped_run_keeps_its_rows_and_names_what_is_left() {
         out.with_file_name(format!("xscale-bq-stop-{}", std::process::id())),
     );
 }
+
+/// `timeout`'s SIGTERM reaches the process twice (the process, then its group): one stop, which
+/// keeps and plots the rows measured and names the command that finishes the run, exit 130. (The
+/// copy used to abort it at once: no pareto.png, no `--append` command.)
+#[test]
+fn a_signal_delivered_twice_stops_the_cli_once() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let out = fresh_out("-sig2");
+    let child = std::process::Command::new(env!("CARGO_BIN_EXE_xscale"))
+        .args(["bench-quality", "--scene"])
+        .arg(root.join("fixtures/tiny"))
+        .arg("--out")
+        .arg(&out)
+        .args(["--configs", "tiny", "--minutes", "0.5"])
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let t0 = std::time::Instant::now();
+    let csv = out.join("bench.csv");
+    while !std::fs::read_to_string(&csv).is_ok_and(|t| t.lines().count() >= 2) {
+        assert!(t0.elapsed().as_secs() < 60, "no row measured");
+        std::thread::sleep(std::time::Duration::from_millis(20));
+    }
+    for _ in 0..2 {
+        let st = std::process::Command::new("kill")
+            .args(["-TERM", &child.id().to_string()])
+            .status()
+            .unwrap();
+        assert!(st.success());
+    }
+    let o = child.wait_with_output().unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(130), "{err}");
+    assert!(err.contains("--append --configs tiny"), "{err}");
+    assert!(out.join("pareto.png").is_file(), "{err}");
+    let _ = std::fs::remove_dir_all(&out);
+}

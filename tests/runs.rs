@@ -41,6 +41,12 @@ fn train(run: &Path, extra: &[&str]) -> (i32, String) {
 
 /// `xscale train --scene SCENE --out RUN --no-eval -q EXTRA…`.
 fn train_on(scene: &Path, run: &Path, extra: &[&str]) -> (i32, String) {
+    let args = train_args(scene, run, extra);
+    xscale(&args.iter().map(String::as_str).collect::<Vec<_>>())
+}
+
+/// The arguments of [`train_on`].
+fn train_args(scene: &Path, run: &Path, extra: &[&str]) -> Vec<String> {
     let mut args = vec![
         "train",
         "--scene",
@@ -51,13 +57,20 @@ fn train_on(scene: &Path, run: &Path, extra: &[&str]) -> (i32, String) {
         "-q",
     ];
     args.extend_from_slice(extra);
-    xscale(&args)
+    args.into_iter().map(String::from).collect()
 }
 
 /// `xscale train` of 5 `tiny` steps on `scene` into `run`, without evaluation; must succeed.
 fn train_tiny_5(scene: &Path, run: &Path) {
     let (code, err) = train_on(scene, run, &["--preset", "tiny", "--steps", "5"]);
     assert_eq!(code, 0, "{err}");
+}
+
+/// A fresh run folder `tmp(name)` holding [`train_tiny_5`]'s run on the fixture.
+fn tiny_run(name: &str) -> PathBuf {
+    let run = tmp(name);
+    train_tiny_5(&fixture(), &run);
+    run
 }
 
 /// Replace the split in `scene`'s scene.toml (`holdout_every` / `test_views` lines) by `split`.
@@ -107,17 +120,102 @@ fn a_folder_holding_a_run_is_refused_unless_resumed_or_overwritten() {
 fn a_live_lock_refuses_a_second_run_and_a_stale_one_is_taken_over() {
     let run = tmp("lock");
     std::fs::create_dir_all(&run).unwrap();
-    // This test process is alive: its pid in the lock stands for a concurrent run.
-    std::fs::write(run.join(".lock"), format!("{}\n", std::process::id())).unwrap();
+    // This test process holds the lock, as a concurrent run would.
+    let lock = xscale::train::run_dir::RunLock::acquire(&run).unwrap();
     let (code, err) = train(&run, &["--preset", "tiny", "--steps", "5"]);
     assert_ne!(code, 0);
-    assert!(err.contains("another xscale process"), "{err}");
+    assert!(
+        err.contains(&format!(
+            "another xscale process (pid {})",
+            std::process::id()
+        )) && err.contains("remove"),
+        "{err}"
+    );
     assert!(!run.join("checkpoint.safetensors").exists());
-    // A pid that does not exist: the lock is stale.
-    std::fs::write(run.join(".lock"), "4000000000\n").unwrap();
-    let (code, err) = train(&run, &["--preset", "tiny", "--steps", "5"]);
+    drop(lock);
+    // A pid that does not exist, or a live process that is no xscale (pid 1, once a killed
+    // run's pid reused): the lock is stale. (Pid 1 used to block the folder for good.)
+    for stale in ["4000000000", "1"] {
+        std::fs::write(run.join(".lock"), format!("{stale}\n")).unwrap();
+        let (code, err) = train(&run, &["--preset", "tiny", "--steps", "5", "--overwrite"]);
+        assert_eq!(code, 0, "lock of pid {stale}: {err}");
+        assert!(!run.join(".lock").exists(), "the lock is released at exit");
+    }
+    let _ = std::fs::remove_dir_all(&run);
+}
+
+/// `--overwrite` removes the earlier run only once the new one is ready to start: a scene that
+/// is not there, a bad configuration value or a batch that cannot fit leave it whole (they used
+/// to find the folder emptied). It removes what a run writes, not a user's files in `render/`.
+#[test]
+fn overwrite_keeps_the_old_run_until_the_new_one_can_start() {
+    let run = tiny_run("overwrite-late");
+    let ckpt = std::fs::read(run.join("checkpoint.safetensors")).unwrap();
+    std::fs::create_dir_all(run.join("render/sub")).unwrap();
+    std::fs::write(run.join("render/mine.txt"), "notes").unwrap();
+    std::fs::write(run.join("render/sub/0001.png"), "an old render").unwrap();
+    // A user's file in the run folder, kept by --overwrite.
+    let bad = run.join("bad.toml");
+    std::fs::write(&bad, "[model.grid_h]\nper_level_scale = 0.5\n").unwrap();
+    let missing = fixture().with_file_name("tinyy");
+    let failures: [(&Path, &[&str], &str); 3] = [
+        (&missing, &[], "not found"),
+        (
+            &fixture(),
+            &["--config", bad.to_str().unwrap()],
+            "model.grid_h.per_level_scale = 0.5",
+        ),
+        (&fixture(), &["--batch", "100000000"], "a smaller batch"),
+    ];
+    for (scene, extra, says) in failures {
+        let mut args = vec!["--preset", "tiny", "--steps", "5", "--overwrite"];
+        args.extend_from_slice(extra);
+        let (code, err) = train_on(scene, &run, &args);
+        assert_eq!(code, 2, "{err}");
+        assert!(err.contains(says), "{err}");
+        assert_eq!(
+            std::fs::read(run.join("checkpoint.safetensors")).unwrap(),
+            ckpt
+        );
+        assert!(run.join("metrics.jsonl").is_file() && run.join("config.toml").is_file());
+    }
+    // The bad value is named with its file and line.
+    let (_, err) = train_on(
+        &fixture(),
+        &run,
+        &["--config", bad.to_str().unwrap(), "--overwrite"],
+    );
+    assert!(err.contains(&format!("{}:2", bad.display())), "{err}");
+    let (code, err) = train(&run, &["--preset", "tiny", "--steps", "7", "--overwrite"]);
     assert_eq!(code, 0, "{err}");
-    assert!(!run.join(".lock").exists(), "the lock is released at exit");
+    assert_eq!(step_of(&run), 7);
+    let kept = ["render/mine.txt", "bad.toml"].map(|f| run.join(f).is_file());
+    assert_eq!(kept, [true; 2], "a user's files are kept");
+    assert!(!run.join("render/sub").exists(), "the run's images go");
+    let _ = std::fs::remove_dir_all(&run);
+}
+
+/// A folder whose run wrote no checkpoint (killed before its first) is started afresh by the
+/// plain command, saying so; `--resume` says to run it without `--resume`. (The plain command
+/// used to send the user to --resume, which sent them back.)
+#[test]
+fn a_folder_without_a_checkpoint_starts_afresh() {
+    let run = tiny_run("nockpt");
+    std::fs::remove_file(run.join("checkpoint.safetensors")).unwrap();
+    let (code, err) = train(&run, &["--preset", "tiny", "--steps", "5", "--resume"]);
+    assert_eq!(code, 2, "{err}");
+    assert!(
+        err.contains("nothing to resume") && err.contains("without --resume"),
+        "{err}"
+    );
+    let (code, err) = train(&run, &["--preset", "tiny", "--steps", "6"]);
+    assert_eq!(code, 0, "{err}");
+    assert!(
+        err.contains("wrote no checkpoint") && err.contains("afresh"),
+        "{err}"
+    );
+    assert_eq!(step_of(&run), 6);
+    assert_eq!(metrics::checkpoints(&run), [6], "the old metrics are gone");
     let _ = std::fs::remove_dir_all(&run);
 }
 
@@ -272,35 +370,7 @@ fn copy_dir(from: &Path, to: &Path) {
 #[test]
 fn sigterm_stops_with_a_checkpoint_that_resumes() {
     let run = tmp("sigterm");
-    let scene = fixture();
-    let child = Command::new(env!("CARGO_BIN_EXE_xscale"))
-        .args([
-            "train",
-            "--scene",
-            scene.to_str().unwrap(),
-            "--out",
-            run.to_str().unwrap(),
-            "--preset",
-            "tiny",
-            "--steps",
-            "1000000",
-            "--no-eval",
-            "-q",
-        ])
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
-    // Wait until it is training (its first metrics line), then SIGTERM it.
-    let t0 = Instant::now();
-    while !std::fs::read_to_string(run.join("metrics.jsonl")).is_ok_and(|t| t.lines().count() > 1) {
-        assert!(
-            t0.elapsed() < Duration::from_secs(60),
-            "the run never started"
-        );
-        std::thread::sleep(Duration::from_millis(50));
-    }
-    signal::terminate(&child);
-    let out = child.wait_with_output().unwrap();
+    let out = terminated_in_training(&run, 1);
     let err = String::from_utf8_lossy(&out.stderr);
     assert_eq!(out.status.code(), Some(130), "{err}");
     let k = step_of(&run);
@@ -310,6 +380,186 @@ fn sigterm_stops_with_a_checkpoint_that_resumes() {
     assert_eq!(code, 0, "{err}");
     assert_eq!(step_of(&run), k + 5);
     let _ = std::fs::remove_dir_all(&run);
+}
+
+/// A long `tiny` run into `run` (`--steps 1000000 --no-eval -q`), sent SIGTERM `copies` times at
+/// once after its first step (its first metrics line), to its end.
+fn terminated_in_training(run: &Path, copies: usize) -> std::process::Output {
+    let child = Command::new(env!("CARGO_BIN_EXE_xscale"))
+        .args(long_run_args(run))
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let t0 = Instant::now();
+    while !std::fs::read_to_string(run.join("metrics.jsonl")).is_ok_and(|t| t.lines().count() > 1) {
+        assert!(
+            t0.elapsed() < Duration::from_secs(60),
+            "the run never started"
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    for _ in 0..copies {
+        signal::terminate(&child);
+    }
+    child.wait_with_output().unwrap()
+}
+
+fn long_run_args(run: &Path) -> Vec<String> {
+    train_args(&fixture(), run, &["--preset", "tiny", "--steps", "1000000"])
+}
+
+/// A signal delivered twice at once (`timeout` signals the process, then its process group) is
+/// one stop, not "a second Ctrl-C: abort": the run stops with a checkpoint, exit 130, no
+/// `.lock` left. (It used to abort: exit 130 with no checkpoint and a stale `.lock`.) Stopped
+/// before training began, nothing is saved: exit 3, and the same command starts again.
+#[test]
+fn copies_of_a_signal_stop_once() {
+    let run = tmp("sigcopies");
+    let out = terminated_in_training(&run, 2);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(130), "{err}");
+    assert!(step_of(&run) > 0, "{err}");
+    assert!(!run.join(".lock").exists());
+    // As timeout(1) does it, during the setup: nothing saved, a distinct code.
+    let _ = std::fs::remove_dir_all(&run);
+    let out = Command::new("timeout")
+        .args(["--preserve-status", "-s", "TERM", "0.05"])
+        .arg(env!("CARGO_BIN_EXE_xscale"))
+        .args(long_run_args(&run))
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    match out.status.code() {
+        // Stopped in the setup, or before the handler was installed (a plain kill).
+        Some(3) => assert!(err.contains("nothing new to save"), "{err}"),
+        Some(130) => assert!(step_of(&run) > 0, "{err}"),
+        c => assert!(out.status.code().is_none(), "exit {c:?}: {err}"),
+    }
+    assert!(!run.join(".lock").exists(), "{err}");
+    let (code, err) = train(&run, &["--preset", "tiny", "--steps", "5", "--overwrite"]);
+    assert_eq!(code, 0, "{err}");
+    let _ = std::fs::remove_dir_all(&run);
+}
+
+/// Output to a closed pipe (`xscale train … 2>&1 | head -2`) is dropped: the command finishes its
+/// work and exits as it would have (it used to panic, exit 101, mid-run).
+#[test]
+fn a_closed_pipe_drops_output_and_the_work_finishes() {
+    let run = tmp("closedpipe");
+    let (r, scene) = (run.to_str().unwrap(), fixture());
+    let train = ["train", "--scene", scene.to_str().unwrap(), "--out", r];
+    let (render, eval) = (run.join("render.out"), run.join("eval.out"));
+    for args in [
+        &[&train[..], &["--preset", "tiny", "--steps", "60"]].concat(),
+        &[
+            "render",
+            "--run",
+            r,
+            "--views",
+            "all",
+            "--out",
+            render.to_str().unwrap(),
+        ][..],
+        &["eval", "--run", r, "--out", eval.to_str().unwrap()],
+    ] {
+        // Both pipes closed before the command writes a byte.
+        let mut child = Command::new(env!("CARGO_BIN_EXE_xscale"))
+            .args(args)
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap();
+        drop((child.stdout.take(), child.stderr.take()));
+        assert_eq!(child.wait().unwrap().code(), Some(0), "{args:?}");
+    }
+    assert_eq!(step_of(&run), 60);
+    assert!(run.join("eval.json").is_file() && render.join("0007.png").is_file());
+    let _ = std::fs::remove_dir_all(&run);
+}
+
+/// Resuming a finished run only evaluates it: the checkpoint is not rewritten, and
+/// `metrics.jsonl` gets no second final-evaluation or checkpoint line for a step, nor an
+/// `elapsed_s` that goes back; a periodic checkpoint at the step the run stops at is written
+/// once. (Each used to be written again.)
+#[test]
+fn resuming_a_finished_run_writes_nothing_twice() {
+    let (run, scene) = (tmp("nodupes"), fixture());
+    let (out, scene) = (run.to_str().unwrap(), scene.to_str().unwrap());
+    // With the final evaluation (`train_on` has none).
+    let with = |extra: &[&str]| {
+        let mut a = vec!["train", "-q", "--scene", scene, "--out", out];
+        a.extend_from_slice(extra);
+        let (code, err) = xscale(&a);
+        assert_eq!(code, 0, "{extra:?}: {err}");
+    };
+    // tiny checkpoints every 100 steps.
+    with(&["--preset", "tiny", "--steps", "120", "--stop-at", "100"]);
+    assert_eq!(metrics::checkpoints(&run), [100]);
+    with(&["--resume"]);
+    let ckpt = run.join("checkpoint.safetensors");
+    let inode = |p: &Path| {
+        use std::os::unix::fs::MetadataExt;
+        std::fs::metadata(p).unwrap().ino()
+    };
+    let before = inode(&ckpt);
+    with(&["--resume"]);
+    assert_eq!(
+        inode(&ckpt),
+        before,
+        "an evaluation-only resume rewrote the checkpoint"
+    );
+    with(&["--resume", "--steps", "130"]);
+    assert_eq!(metrics::checkpoints(&run), [100, 120, 130]);
+    let finals: Vec<u64> = metrics::lines(&run)
+        .iter()
+        .filter(|j| j["final"] == true)
+        .map(|j| j["step"].as_u64().unwrap())
+        .collect();
+    assert_eq!(
+        finals,
+        [130],
+        "the final evaluation of a run continued is redone"
+    );
+    assert!(metrics::elapsed_runs_on(&run, 10));
+    let _ = std::fs::remove_dir_all(&run);
+}
+
+/// With `--resume`, `[train] steps` in a `--config` file is the new total, as `--steps` (it was
+/// ignored silently); a hand-edited `RUN/config.toml` is warned about (it was ignored silently).
+#[test]
+fn resume_takes_a_config_files_steps_and_warns_of_an_edited_config_toml() {
+    let run = tiny_run("cfgsteps");
+    let cfg = run.with_extension("toml");
+    std::fs::write(&cfg, "[train]\nsteps = 9\n").unwrap();
+    let (code, err) = train(&run, &["--resume", "--config", cfg.to_str().unwrap()]);
+    assert_eq!(code, 0, "{err}");
+    assert_eq!(step_of(&run), 9);
+    let (code, err) = train(
+        &run,
+        &[
+            "--resume",
+            "--config",
+            cfg.to_str().unwrap(),
+            "--steps",
+            "11",
+        ],
+    );
+    assert_eq!(code, 0, "{err}");
+    assert_eq!(step_of(&run), 11, "--steps wins over the file");
+    let c = run.join("config.toml");
+    let text = std::fs::read_to_string(&c).unwrap();
+    assert!(text.contains("\ngamma = 2\n"), "{text}");
+    std::fs::write(&c, text.replace("\ngamma = 2\n", "\ngamma = 3\n")).unwrap();
+    let (code, err) = train(&run, &["--resume", "--steps", "12"]);
+    assert_eq!(code, 0, "{err}");
+    assert!(
+        err.contains("warning:") && err.contains("model.gamma = 3 (the checkpoint has 2)"),
+        "{err}"
+    );
+    let now = std::fs::read_to_string(&c).unwrap();
+    assert!(now.contains("\ngamma = 2\n"), "rewritten: {now}");
+    let _ = std::fs::remove_dir_all(&run);
+    let _ = std::fs::remove_file(&cfg);
 }
 
 #[test]

@@ -92,7 +92,7 @@ pub fn run(a: Args) -> Result<ExitCode> {
             first.name(),
             rest.join(",")
         );
-        return Ok(ExitCode::from(130));
+        return Ok(ExitCode::from(super::common::EXIT_STOPPED));
     }
     print!("{}", crate::train::ablate::markdown(&rep));
     eprintln!(

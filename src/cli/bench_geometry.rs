@@ -142,7 +142,7 @@ pub fn run(a: Args) -> Result<ExitCode> {
         eprintln!(
             "stopped; run the same command again to continue (finished runs are reused, the stopped one continues from its checkpoint)"
         );
-        return Ok(ExitCode::from(130));
+        return Ok(ExitCode::from(super::common::EXIT_STOPPED));
     };
     print!("{}", crate::train::bench_geometry::markdown(&rep));
     eprintln!(

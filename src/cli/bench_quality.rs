@@ -99,7 +99,7 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
             "interrupted during {first}; finish with the same options and --append --configs {}",
             stopped.join(",")
         );
-        return Ok(ExitCode::from(130));
+        return Ok(ExitCode::from(super::common::EXIT_STOPPED));
     }
     Ok(ExitCode::SUCCESS)
 }

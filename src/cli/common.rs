@@ -400,15 +400,38 @@ pub fn parse_background(s: &str) -> std::result::Result<[f32; 3], String> {
 /// [`on_interrupt`] installed the handler.
 static INTERRUPTED: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
 
+/// Exit status of a command stopped by a signal that saved its work (a run's checkpoint).
+pub const EXIT_STOPPED: u8 = 130;
+
+/// Exit status of a command stopped by a signal with nothing saved: before training began, or
+/// aborted by a second signal (docs/runs.md, "Exit codes").
+pub const EXIT_STOPPED_UNSAVED: u8 = 3;
+
+/// Signals this close after the first are copies of it, not a second one: `timeout` sends its
+/// signal to the process and then to its process group, a terminal's Ctrl-C reaches every
+/// process of the job, a batch scheduler may repeat it.
+const COPY_WINDOW: std::time::Duration = std::time::Duration::from_secs(1);
+
 /// Install the process's interrupt handler and return its flag: the first signal sets it and
-/// says `interrupt: WHAT (Ctrl-C again to abort)`; a second exits at once with status 130.
+/// says `interrupt: WHAT`; copies of it within [`COPY_WINDOW`] are ignored; a later one aborts
+/// at once: the run locks this process holds are removed, and it exits with
+/// [`EXIT_STOPPED_UNSAVED`] saying nothing more was saved.
 pub fn on_interrupt(what: &'static str) -> &'static std::sync::atomic::AtomicBool {
     use std::sync::atomic::Ordering;
+    static FIRST: std::sync::OnceLock<std::time::Instant> = std::sync::OnceLock::new();
     let _ = ctrlc::set_handler(move || {
+        let first = *FIRST.get_or_init(std::time::Instant::now);
         if INTERRUPTED.swap(true, Ordering::SeqCst) {
-            std::process::exit(130);
+            if first.elapsed() < COPY_WINDOW {
+                return;
+            }
+            crate::train::run_dir::release_locks();
+            eprintln!(
+                "\naborted: nothing more was saved (a run folder keeps its last checkpoint, if it has one: --resume continues from it)"
+            );
+            std::process::exit(EXIT_STOPPED_UNSAVED.into());
         }
-        eprintln!("\ninterrupt: {what} (Ctrl-C again to abort)");
+        eprintln!("\ninterrupt: {what} (Ctrl-C again, a second later, to abort)");
     });
     &INTERRUPTED
 }

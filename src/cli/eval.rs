@@ -33,6 +33,9 @@ pub struct Args {
     /// no model: `--scene DIR` alone, or a run for its scene, split and mesh).
     #[arg(long, value_enum, default_value = "model")]
     pub method: Method,
+    /// No progress lines (one per view scored, on stderr); the table, notes and errors remain.
+    #[arg(long, short)]
+    pub quiet: bool,
 }
 
 /// What renders the evaluated views.
@@ -63,11 +66,13 @@ pub fn run(a: Args) -> Result<ExitCode> {
     }
     let background = a.background.unwrap_or(s.scene.background);
     let sources: Vec<Source> = if a.method == Method::Ulr {
-        eprintln!(
-            "ULR baseline: blending the {} training photos (k = {})",
-            s.scene.train().len(),
-            crate::render::ulr::K
-        );
+        if !a.quiet {
+            eprintln!(
+                "ULR baseline: blending the {} training photos (k = {})",
+                s.scene.train().len(),
+                crate::render::ulr::K
+            );
+        }
         training_sources(&s.scene)?
     } else {
         Vec::new()
@@ -79,7 +84,7 @@ pub fn run(a: Args) -> Result<ExitCode> {
             c.model.cfg.gamma
         });
     let mut scores = Vec::new();
-    for &i in &views {
+    for (k, &i) in views.iter().enumerate() {
         let e = match a.method {
             Method::Model => {
                 let ck = ck.as_ref().expect("a model is loaded for --method model");
@@ -102,6 +107,15 @@ pub fn run(a: Args) -> Result<ExitCode> {
         };
         if let Some(d) = &a.out {
             write_evaluated(&e, &s.scene.views[i].name, None, Some(d))?;
+        }
+        if !a.quiet {
+            eprintln!(
+                "scored {}/{}: {} (PSNR {:.2})",
+                k + 1,
+                views.len(),
+                s.scene.views[i].name,
+                e.scored.score.psnr
+            );
         }
         scores.push(e.scored.score);
     }

@@ -3,7 +3,7 @@
 use super::common::RunArgs;
 use crate::train::config::RunConfig;
 use crate::train::trainer::{train, TrainOptions};
-use anyhow::{bail, Context};
+use anyhow::bail;
 use std::path::PathBuf;
 use std::process::ExitCode;
 use std::sync::atomic::Ordering;
@@ -45,10 +45,7 @@ pub struct Args {
 
 pub fn run(a: Args) -> anyhow::Result<ExitCode> {
     if let Some(pid) = crate::train::run_dir::RunLock::holder(&a.out) {
-        bail!(
-            "{}: another xscale process (pid {pid}) is training into this run folder; wait for it, stop it, or choose another --out",
-            a.out.display()
-        );
+        bail!("{}", crate::train::run_dir::held_by(&a.out, pid));
     }
     let (cfg, scene) = if a.resume {
         resume_config(&a)?
@@ -79,11 +76,13 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
         settings: None,
     };
     let s = train(&scene, &a.out, cfg, &opts)?;
-    Ok(if s.interrupted && interrupted.load(Ordering::SeqCst) {
-        ExitCode::from(130)
-    } else {
-        ExitCode::SUCCESS
-    })
+    Ok(
+        match (s.interrupted && interrupted.load(Ordering::SeqCst), s.saved) {
+            (false, _) => ExitCode::SUCCESS,
+            (true, true) => ExitCode::from(super::common::EXIT_STOPPED),
+            (true, false) => ExitCode::from(super::common::EXIT_STOPPED_UNSAVED),
+        },
+    )
 }
 
 /// For `--resume`: `--scene`, else the scene the run records in `RUN/scene.json` (the
@@ -114,8 +113,9 @@ fn resume_config(a: &Args) -> anyhow::Result<(RunConfig, PathBuf)> {
     let ckpt = crate::train::trainer::run_checkpoint(&a.out);
     if !ckpt.is_file() {
         bail!(
-            "--resume: {} does not exist (nothing to resume; drop --resume to start a run)",
-            ckpt.display()
+            "--resume: {} does not exist: nothing to resume (a run stopped before its first checkpoint leaves none); start the run without --resume (`xscale train --scene DIR --out {}`): in a folder without a checkpoint it starts afresh",
+            ckpt.display(),
+            a.out.display()
         );
     }
     let (_, stored) = super::common::load_model(&ckpt)?;
@@ -176,8 +176,12 @@ fn resume_config(a: &Args) -> anyhow::Result<(RunConfig, PathBuf)> {
             ));
         }
     }
+    // `[train] steps` in a --config file is the total asked for, as --steps (which wins).
+    let mut steps = r.steps;
     if let Some(file) = &r.config {
-        diffs.extend(config_differences(file, &stored)?);
+        let (d, total) = config_differences(file, &stored)?;
+        diffs.extend(d);
+        steps = steps.or(total);
     }
     if !diffs.is_empty() {
         bail!(
@@ -185,23 +189,38 @@ fn resume_config(a: &Args) -> anyhow::Result<(RunConfig, PathBuf)> {
             diffs.join("\n  ")
         );
     }
-    if let Some(n) = r.steps {
+    if let Some(n) = steps {
         stored.train.steps = n;
     }
     Ok((stored, scene))
 }
 
-/// Every key a `--config` file sets whose value differs from the stored configuration's
-/// (`train.steps` aside: it is the total asked for).
-fn config_differences(file: &std::path::Path, stored: &RunConfig) -> anyhow::Result<Vec<String>> {
+/// Every key a `--config` file sets whose value differs from the stored configuration's, and the
+/// file's `[train] steps` (not a difference: it is the total asked for, as `--steps`).
+fn config_differences(
+    file: &std::path::Path,
+    stored: &RunConfig,
+) -> anyhow::Result<(Vec<String>, Option<u64>)> {
     let text = crate::io::text::read(file)?;
-    let given: toml::Value =
-        toml::from_str(&text).with_context(|| format!("{}: not valid TOML", file.display()))?;
-    let have: toml::Value = toml::from_str(&stored.to_toml()).expect("a RunConfig serialises");
-    let mut out = crate::train::config::toml_differences(&given, &have, "the run");
-    out.retain(|d| !d.starts_with("train.steps "));
-    Ok(out
+    let origin = file.display().to_string();
+    let (given, out) =
+        crate::train::config::differences_but_steps(&text, &origin, stored, "the run")?;
+    let steps = match given.get("train").and_then(|t| t.get("steps")) {
+        None => None,
+        Some(v) => Some(
+            v.as_integer()
+                .and_then(|n| u64::try_from(n).ok())
+                .ok_or_else(|| {
+                    anyhow::anyhow!(
+                        "{}: [train] steps = {v}: expected a whole number ≥ 0",
+                        file.display()
+                    )
+                })?,
+        ),
+    };
+    let out = out
         .into_iter()
         .map(|d| format!("{d} (in {})", file.display()))
-        .collect())
+        .collect();
+    Ok((out, steps))
 }

@@ -89,6 +89,33 @@ pub fn is_temp_name(name: &str) -> bool {
     name.starts_with('.') && name.contains(".tmp.")
 }
 
+/// Remove the temp files [`write_atomic`] left in `dir` — and with `deep` in every folder below it —
+/// for which `stale` holds (given the pid in the name, `.NAME.tmp.PID.N`, if it has one); their
+/// bytes. A folder that cannot be listed (or does not exist) holds none.
+pub fn remove_temp_files(dir: &Path, deep: bool, stale: &dyn Fn(Option<u32>) -> bool) -> u64 {
+    let Ok(list) = std::fs::read_dir(dir) else {
+        return 0;
+    };
+    let mut bytes = 0;
+    for e in list.flatten() {
+        let Ok(kind) = e.file_type() else { continue };
+        let name = e.file_name().to_string_lossy().to_string();
+        if kind.is_dir() && deep {
+            bytes += remove_temp_files(&e.path(), deep, stale);
+        } else if kind.is_file() && is_temp_name(&name) && stale(temp_pid(&name)) {
+            bytes += e.metadata().map(|m| m.len()).unwrap_or(0);
+            let _ = std::fs::remove_file(e.path());
+        }
+    }
+    bytes
+}
+
+/// The pid of the process that made the temp file `name` (`.NAME.tmp.PID.N`).
+fn temp_pid(name: &str) -> Option<u32> {
+    let rest = &name[name.rfind(".tmp.")? + 5..];
+    rest.split('.').next()?.parse().ok()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -114,6 +141,7 @@ mod tests {
             .collect();
         assert_eq!(names, vec!["0000.png".to_string()]);
         assert!(is_temp_name(".0000.png.tmp.12.0") && !is_temp_name("0000.png"));
+        assert_eq!(temp_pid(".a.tmp.b.png.tmp.12.0"), Some(12));
         let absent = dir.join("no-such-folder").join("dump.safetensors");
         let err = format!("{:#}", write_bytes(&absent, b"x").unwrap_err());
         assert!(

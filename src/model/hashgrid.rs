@@ -140,6 +140,16 @@ pub fn validate_config(cfg: &GridConfig) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// The first level (and its scale) whose scale [`tcnn_scales`] makes one a grid cannot hold
+/// (outside [0, 1e9], as [`HashGrid::with_scales`] requires): a `per_level_scale` below 1 makes
+/// the finer levels' negative.
+pub fn first_bad_scale(cfg: &GridConfig) -> Option<(usize, f32)> {
+    tcnn_scales(cfg)
+        .into_iter()
+        .enumerate()
+        .find(|(_, s)| !(s.is_finite() && (0.0..=1.0e9).contains(s)))
+}
+
 /// The per-level scales exactly as tiny-cuda-nn computes them on the host:
 /// `log2b = log2f((float)b)`, `scale_l = exp2f(l * log2b) * N0 - 1.0f`, all in f32.
 /// (On the device nvcc may fuse `* N0 - 1` into an FMA; for power-of-two N0, as in every preset,

@@ -49,7 +49,9 @@ pub struct TrainConfig {
     pub eval_max_views: usize,
     /// Write a checkpoint every N steps (0 = only at the end).
     pub checkpoint_every: u64,
-    /// Append to `metrics.jsonl` (and print when not on a terminal) every N steps.
+    /// Append to `metrics.jsonl` (and print when not on a terminal) every N steps and at the last.
+    /// 0 counts as 1 (every step) — unlike `eval_every` and `checkpoint_every`, whose 0 means
+    /// none before the end (docs/runs.md).
     pub log_every: u64,
     /// Integer image downsample factor.
     pub downsample: u32,
@@ -312,9 +314,22 @@ impl RunConfig {
             return Ok(());
         }
         crate::model::hashgrid::validate_config(&self.model.grid_h).context("model.grid_h")?;
+        let mut grids = vec![("model.grid_h", &self.model.grid_h)];
         if self.model.deform.enabled {
             crate::model::hashgrid::validate_config(&self.model.deform.grid)
                 .context("model.deform.grid")?;
+            grids.push(("model.deform.grid", &self.model.deform.grid));
+        }
+        // Checked here, before a scene is loaded (it used to surface only when the model was
+        // built, as `config: grid_h: grid: scale of level 3 is -0.5`, naming no key).
+        for (key, g) in grids {
+            if let Some((l, s)) = crate::model::hashgrid::first_bad_scale(g) {
+                bail!(
+                    "{key}.per_level_scale = {} gives level {l} a scale of {s} (base_resolution {} × per_level_scale^{l} − 1 must be in [0, 1e9]): use a per_level_scale of at least 1",
+                    g.per_level_scale,
+                    g.base_resolution
+                );
+            }
         }
         Ok(())
     }
@@ -438,6 +453,23 @@ pub fn set_tool_run(cfg: &mut RunConfig) {
 /// "Checkpoints") and counts in the run's training time.
 pub fn tool_checkpoint_every(steps: u64) -> u64 {
     steps.div_ceil(10).max(1000)
+}
+
+/// The TOML `text` (read from `origin`) and every key it sets to another value than `cfg` has
+/// ([`toml_differences`], `have_name` naming `cfg`), `train.steps` aside: a run's total, which a
+/// resume may change.
+pub fn differences_but_steps(
+    text: &str,
+    origin: &str,
+    cfg: &RunConfig,
+    have_name: &str,
+) -> Result<(toml::Value, Vec<String>)> {
+    let given: toml::Value =
+        toml::from_str(text).with_context(|| format!("{origin}: not valid TOML"))?;
+    let have: toml::Value = toml::from_str(&cfg.to_toml()).expect("a RunConfig serialises");
+    let mut out = toml_differences(&given, &have, have_name);
+    out.retain(|d| !d.starts_with("train.steps "));
+    Ok((given, out))
 }
 
 /// Every key `given` sets whose value differs from `have`'s, as `key.path = value (HAVE has

@@ -56,61 +56,213 @@ impl Existing {
     }
 }
 
-/// Holds `RUN/.lock` (our pid) until dropped.
+/// Holds `RUN/.lock` until dropped: the file holds our pid, and we hold an exclusive `flock` on
+/// it, which the kernel releases when the process ends however it ends (so a lock nobody holds
+/// is stale, whatever pid it names: a killed run's, or one since reused by another program).
 pub struct RunLock {
     path: PathBuf,
+    /// The lock file, open: its `flock` lasts as long as this does.
+    _file: std::fs::File,
+}
+
+/// The locks this process holds, for [`release_locks`] (an abort exits without dropping them).
+static HELD: std::sync::Mutex<Vec<PathBuf>> = std::sync::Mutex::new(Vec::new());
+
+/// Remove the `.lock` files this process holds: for an exit that skips destructors (a second
+/// Ctrl-C aborting at once), so it never leaves a `.lock` behind.
+pub fn release_locks() {
+    if let Ok(held) = HELD.lock() {
+        for p in held.iter() {
+            let _ = std::fs::remove_file(p);
+        }
+    }
 }
 
 impl RunLock {
     /// The pid of a live process holding `run_dir`'s lock, if any.
     pub fn holder(run_dir: &Path) -> Option<u32> {
-        let text = std::fs::read_to_string(run_dir.join(".lock")).ok()?;
-        text.trim()
-            .parse()
-            .ok()
-            .filter(|&p| p != std::process::id() && process_alive(p))
+        let path = run_dir.join(".lock");
+        let file = std::fs::File::open(&path).ok()?;
+        live_holder(&file, &path)
     }
 
-    /// Take the lock of `run_dir` (which must exist).
+    /// Take the lock of `run_dir` (which must exist). Race-free: the lock file appears whole
+    /// (written and locked under a temporary name, then hard-linked into place, which fails if
+    /// a `.lock` exists), and a stale one is replaced by renaming ours over it while holding its
+    /// `flock`, after checking it is still the file at `.lock` (so of two processes taking over
+    /// the same stale lock, one wins and the other finds the winner's lock live).
     pub fn acquire(run_dir: &Path) -> Result<RunLock> {
         let path = run_dir.join(".lock");
-        for _ in 0..2 {
-            match std::fs::OpenOptions::new()
-                .write(true)
-                .create_new(true)
-                .open(&path)
-            {
-                Ok(mut f) => {
-                    use std::io::Write;
-                    writeln!(f, "{}", std::process::id())
-                        .with_context(|| format!("{}: cannot write", path.display()))?;
-                    return Ok(RunLock { path });
+        let cannot = |what: &str| format!("{}: cannot {what}", path.display());
+        for _ in 0..20 {
+            let (tmp, ours) = new_lock_file(run_dir)?;
+            match std::fs::hard_link(&tmp, &path) {
+                Ok(()) => {
+                    let _ = std::fs::remove_file(&tmp);
+                    return Ok(RunLock::held(path, ours));
                 }
-                Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {
-                    let text = std::fs::read_to_string(&path).unwrap_or_default();
-                    let pid: Option<u32> = text.trim().parse().ok();
-                    if let Some(p) = pid.filter(|&p| process_alive(p)) {
-                        bail!(
-                            "{}: another xscale process (pid {p}) is training into this run folder; wait for it, stop it, or choose another --out",
-                            run_dir.display()
-                        );
-                    }
-                    // Stale: its process is gone (killed). Take it over.
-                    std::fs::remove_file(&path)
-                        .with_context(|| format!("{}: cannot remove stale lock", path.display()))?;
+                // Removed by a run cleaning the folder's temp files: try again.
+                Err(e) if e.kind() == std::io::ErrorKind::NotFound => continue,
+                Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {}
+                Err(e) => {
+                    let _ = std::fs::remove_file(&tmp);
+                    return Err(e).with_context(|| cannot("create"));
+                }
+            }
+            let theirs = match std::fs::File::open(&path) {
+                Ok(f) => f,
+                // Released meanwhile: try again.
+                Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+                    let _ = std::fs::remove_file(&tmp);
+                    continue;
                 }
                 Err(e) => {
-                    return Err(e).with_context(|| format!("{}: cannot create", path.display()))
+                    let _ = std::fs::remove_file(&tmp);
+                    return Err(e).with_context(|| cannot("open"));
                 }
+            };
+            if let Some(p) = live_holder(&theirs, &path) {
+                let _ = std::fs::remove_file(&tmp);
+                bail!("{}", held_by(run_dir, p));
+            }
+            // Stale, and we hold its flock: replace it, unless it was replaced meanwhile.
+            if !same_file(&theirs, &path) {
+                let _ = std::fs::remove_file(&tmp);
+                continue;
+            }
+            let renamed = std::fs::rename(&tmp, &path);
+            drop(theirs);
+            match renamed {
+                Ok(()) => return Ok(RunLock::held(path, ours)),
+                Err(e) if e.kind() == std::io::ErrorKind::NotFound => continue,
+                Err(e) => return Err(e).with_context(|| cannot("replace the stale lock")),
             }
         }
         bail!("{}: could not take the run lock", path.display())
+    }
+
+    fn held(path: PathBuf, file: std::fs::File) -> RunLock {
+        if let Ok(mut held) = HELD.lock() {
+            held.push(path.clone());
+        }
+        RunLock { path, _file: file }
     }
 }
 
 impl Drop for RunLock {
     fn drop(&mut self) {
+        if let Ok(mut held) = HELD.lock() {
+            held.retain(|p| *p != self.path);
+        }
         let _ = std::fs::remove_file(&self.path);
+    }
+}
+
+/// The error of a run folder whose lock `pid` holds.
+pub fn held_by(run_dir: &Path, pid: u32) -> String {
+    format!(
+        "{}: another xscale process (pid {pid}) is training into this run folder; wait for it, stop it, or choose another --out (if you are sure no xscale process trains there, remove {})",
+        run_dir.display(),
+        run_dir.join(".lock").display()
+    )
+}
+
+/// A lock file for this process under a temporary name in `run_dir` (`.lock.tmp.PID.N`, a name
+/// a run's start cleans up after a kill): our pid written, its `flock` held.
+fn new_lock_file(run_dir: &Path) -> Result<(PathBuf, std::fs::File)> {
+    use std::io::Write;
+    static COUNTER: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+    let n = COUNTER.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    let tmp = run_dir.join(format!(".lock.tmp.{}.{n}", std::process::id()));
+    let written = (|| {
+        let mut f = std::fs::File::create(&tmp)?;
+        writeln!(f, "{}", std::process::id())?;
+        f.flush()?;
+        if try_flock(&f)? {
+            Ok(f)
+        } else {
+            Err(std::io::Error::other("a new file is locked"))
+        }
+    })();
+    match written {
+        Ok(f) => Ok((tmp, f)),
+        Err(e) => {
+            let _ = std::fs::remove_file(&tmp);
+            Err(e).with_context(|| format!("{}: cannot write", tmp.display()))
+        }
+    }
+}
+
+/// The pid of a live process holding the lock file `file` (open at `path`): one holding its
+/// `flock`, or — for a lock without one (written by an xscale from before locks were
+/// `flock`ed) — the live xscale process it names. A `None` leaves us holding the `flock`.
+fn live_holder(file: &std::fs::File, path: &Path) -> Option<u32> {
+    let pid: Option<u32> = std::fs::read_to_string(path)
+        .ok()
+        .and_then(|t| t.trim().parse().ok());
+    let mine = |p: &u32| *p == std::process::id();
+    match try_flock(file) {
+        // Held (by another process, or by this one through another open file).
+        Ok(false) => Some(pid.unwrap_or(0)),
+        _ => pid.filter(|p| !mine(p) && process_alive(*p) && is_xscale(*p)),
+    }
+}
+
+/// Take `f`'s exclusive `flock` without waiting: `Ok(false)` when another open file holds it.
+/// (Without `flock`, not unix: always taken; liveness then rests on the pid alone.)
+fn try_flock(f: &std::fs::File) -> std::io::Result<bool> {
+    #[cfg(unix)]
+    {
+        use std::os::unix::io::AsRawFd;
+        // SAFETY: flock on a file descriptor we own for the duration of the call.
+        let r = unsafe { libc::flock(f.as_raw_fd(), libc::LOCK_EX | libc::LOCK_NB) };
+        if r == 0 {
+            return Ok(true);
+        }
+        let e = std::io::Error::last_os_error();
+        if e.raw_os_error() == Some(libc::EWOULDBLOCK) {
+            return Ok(false);
+        }
+        Err(e)
+    }
+    #[cfg(not(unix))]
+    {
+        let _ = f;
+        Ok(true)
+    }
+}
+
+/// Whether the open `file` is the file now at `path` (not replaced or removed since it was
+/// opened).
+fn same_file(file: &std::fs::File, path: &Path) -> bool {
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::MetadataExt;
+        match (file.metadata(), std::fs::metadata(path)) {
+            (Ok(a), Ok(b)) => a.dev() == b.dev() && a.ino() == b.ino(),
+            _ => false,
+        }
+    }
+    #[cfg(not(unix))]
+    {
+        let _ = file;
+        path.exists()
+    }
+}
+
+/// Whether process `pid` runs xscale (its command's file name starts with `xscale`, from
+/// `/proc/<pid>/cmdline`). Where that cannot be read: no on unix, where the `flock` tells a live
+/// run (so only a lock of an older build without one could be missed); yes elsewhere, where the
+/// pid is all there is (a stale lock is then removed by hand, as the refusal says).
+fn is_xscale(pid: u32) -> bool {
+    match std::fs::read(Path::new("/proc").join(pid.to_string()).join("cmdline")) {
+        Ok(cmd) => {
+            let argv0 = cmd.split(|&b| b == 0).next().unwrap_or_default();
+            Path::new(&*String::from_utf8_lossy(argv0))
+                .file_name()
+                .is_some_and(|n| n.to_string_lossy().starts_with("xscale"))
+        }
+        Err(_) => cfg!(not(unix)),
     }
 }
 
@@ -119,7 +271,7 @@ impl Drop for RunLock {
 /// until its parent reaps it, which can take a while when the parent is a shell that has
 /// moved on: it counts as gone, or a run killed by SIGKILL would block the command that
 /// continues it ("another xscale process (pid N) is training into this run folder").
-fn process_alive(pid: u32) -> bool {
+pub fn process_alive(pid: u32) -> bool {
     let proc = Path::new("/proc");
     if !proc.is_dir() {
         return true;
@@ -139,27 +291,31 @@ fn stat_state(stat: &str) -> Option<char> {
     stat[stat.rfind(')')? + 1..].trim_start().chars().next()
 }
 
-/// Make `run_dir` ready for a run: create it; refuse one that holds a run unless `resume`
-/// (then it must hold a checkpoint) or `overwrite` (then the run's files are removed); remove
-/// temporary checkpoint files left by killed runs. Call with the lock held.
-pub fn prepare_run_dir(run_dir: &Path, resume: bool, overwrite: bool) -> Result<()> {
+/// The folders of a run's images (`render/`, `eval/`): `--overwrite` removes the images in them
+/// (and temp files), not other files a user put there.
+const IMAGE_DIRS: [&str; 2] = ["render", "eval"];
+
+/// Make `run_dir` ready for a run (call with the lock held): remove temp files left by killed
+/// writes (also in `render/` and `eval/`), and refuse a folder that holds a run unless `resume`
+/// (the caller then needs its checkpoint) or `overwrite`. Returns the earlier run's files that
+/// the new run replaces — for [`remove_run`] once it is ready to start, so an error before that
+/// (a bad scene, config or batch, a Ctrl-C during setup) leaves them as they were. A folder
+/// whose run wrote no checkpoint (killed before its first) holds nothing worth keeping: it is
+/// started afresh without `--overwrite`, with a line saying so.
+pub fn prepare_run_dir(run_dir: &Path, resume: bool, overwrite: bool) -> Result<Vec<&'static str>> {
     if resume && overwrite {
         bail!("give either --resume or --overwrite, not both");
     }
-    let mut leftovers = 0u64;
-    for e in std::fs::read_dir(run_dir)
-        .with_context(|| format!("{}: cannot list", run_dir.display()))?
-        .flatten()
-    {
-        let name = e.file_name().to_string_lossy().to_string();
-        if crate::io::atomic::is_temp_name(&name) {
-            leftovers += e.metadata().map(|m| m.len()).unwrap_or(0);
-            let _ = std::fs::remove_file(e.path());
-        }
-    }
+    // Under the lock: every temp file here is a killed writer's.
+    let all = |_: Option<u32>| true;
+    let leftovers = crate::io::atomic::remove_temp_files(run_dir, false, &all)
+        + IMAGE_DIRS
+            .iter()
+            .map(|d| crate::io::atomic::remove_temp_files(&run_dir.join(d), true, &all))
+            .sum::<u64>();
     if leftovers > 0 {
         eprintln!(
-            "removed temporary checkpoint files left by an interrupted write ({:.1} MB)",
+            "removed temporary files left by an interrupted write ({:.1} MB)",
             leftovers as f64 / 1e6
         );
     }
@@ -169,16 +325,62 @@ pub fn prepare_run_dir(run_dir: &Path, resume: bool, overwrite: bool) -> Result<
         .filter(|f| run_dir.join(f).exists())
         .collect();
     if resume || existing.is_empty() {
-        return Ok(());
+        return Ok(Vec::new());
     }
-    if !overwrite {
-        bail!(
-            "{}: this folder already holds a run ({}); continue it with --resume, replace it with --overwrite, or choose another --out",
-            run_dir.display(),
-            existing.join(", ")
+    if overwrite {
+        return Ok(existing);
+    }
+    let resumable = run_dir.join("checkpoint.safetensors").is_file();
+    // A diverged run's state is kept for a look, though it cannot be resumed.
+    if !resumable && !run_dir.join("checkpoint-diverged.safetensors").is_file() {
+        eprintln!(
+            "{}: the run there wrote no checkpoint (it was stopped before its first): starting afresh in its place",
+            run_dir.display()
         );
+        return Ok(existing);
     }
-    remove_listed(run_dir, &existing)
+    bail!(
+        "{}: this folder already holds a run ({}); {}replace it with --overwrite, or choose another --out",
+        run_dir.display(),
+        existing.join(", "),
+        if resumable {
+            "continue it with --resume, "
+        } else {
+            ""
+        }
+    )
+}
+
+/// Remove an earlier run's files `names` from `run_dir` (what [`prepare_run_dir`] returned):
+/// files and folders as [`remove_listed`], except `render/` and `eval/`, of which only the images
+/// go (and the folders, when that empties them).
+pub fn remove_run(run_dir: &Path, names: &[&str]) -> Result<()> {
+    let (images, rest): (Vec<&str>, Vec<&str>) = names.iter().partition(|n| IMAGE_DIRS.contains(n));
+    remove_listed(run_dir, &rest)?;
+    for d in images {
+        remove_images(&run_dir.join(d))?;
+    }
+    Ok(())
+}
+
+/// Remove the images (`.png`, `.exr`) in `dir` and below, then the folders left empty.
+fn remove_images(dir: &Path) -> Result<()> {
+    let list = std::fs::read_dir(dir).with_context(|| format!("{}: cannot list", dir.display()))?;
+    for e in list.flatten() {
+        let p = e.path();
+        let image = p
+            .extension()
+            .is_some_and(|x| x.eq_ignore_ascii_case("png") || x.eq_ignore_ascii_case("exr"));
+        if e.file_type().is_ok_and(|t| t.is_dir()) {
+            remove_images(&p)?;
+        } else if image {
+            std::fs::remove_file(&p)
+                .with_context(|| format!("{}: cannot remove (--overwrite)", p.display()))?;
+        }
+    }
+    // Kept when it holds other files.
+    let _ = std::fs::remove_dir(dir);
+    Ok(())
 }
 
 /// The settings a tool that trains run folders itself (`ablate`, `bench-geometry`) started a
@@ -377,24 +579,39 @@ mod tests {
         assert_eq!(stat_state("42 (xscale"), None);
     }
 
-    /// A lock held by a live process is refused; one held by a killed process that its parent
-    /// has not reaped yet (a zombie, as after `kill -9` of a job a shell started with `&`) is
-    /// taken over.
+    /// A lock held by a live run (here: this process, through another open file) is refused
+    /// and named; one whose pid is a live process that is no xscale (`sleep`, standing for a
+    /// killed run's pid reused), or a killed process its parent has not reaped yet (a zombie,
+    /// as after `kill -9` of a job a shell started with `&`), is taken over. (A live pid used
+    /// to hold the folder whatever it ran.)
     #[cfg(target_os = "linux")]
     #[test]
-    fn a_zombie_does_not_hold_the_lock() {
+    fn only_a_live_xscale_run_holds_the_lock() {
         let dir = std::env::temp_dir().join(format!("xscale-lock-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
+        let held = RunLock::acquire(&dir).unwrap();
+        let e = RunLock::acquire(&dir)
+            .err()
+            .expect("a live holder is refused");
+        let e = format!("{e:#}");
+        assert!(
+            e.contains(&format!(
+                "another xscale process (pid {})",
+                std::process::id()
+            )),
+            "{e}"
+        );
+        assert_eq!(RunLock::holder(&dir), Some(std::process::id()));
+        drop(held);
+        assert!(!dir.join(".lock").exists() && RunLock::holder(&dir).is_none());
         let lock_of = |pid: u32| std::fs::write(dir.join(".lock"), format!("{pid}\n")).unwrap();
         let mut live = std::process::Command::new("sleep")
             .arg("30")
             .spawn()
             .unwrap();
         lock_of(live.id());
-        let e = RunLock::acquire(&dir)
-            .err()
-            .expect("a live holder is refused");
-        assert!(format!("{e:#}").contains("another xscale process"), "{e:#}");
+        drop(RunLock::acquire(&dir).expect("a live process that is no xscale holds no lock"));
+        lock_of(live.id());
         live.kill().unwrap();
         // Not reaped yet: a zombie.
         let t0 = std::time::Instant::now();
@@ -410,6 +627,45 @@ mod tests {
         );
         drop(lock);
         live.wait().unwrap();
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    /// Takers racing for a free folder, or for one whose lock is stale, never both get it, and
+    /// never see a lock file without its pid. (Creating the file and writing the pid afterwards
+    /// let a second process read it empty, call it stale and take it too.)
+    #[cfg(unix)]
+    #[test]
+    fn racing_takers_never_share_the_lock() {
+        let dir = std::env::temp_dir().join(format!("xscale-lock-race-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        for round in 0..40 {
+            if round % 2 == 1 {
+                std::fs::write(dir.join(".lock"), "4000000000\n").unwrap();
+            }
+            let barrier = std::sync::Barrier::new(6);
+            let won = std::sync::atomic::AtomicUsize::new(0);
+            std::thread::scope(|s| {
+                for _ in 0..6 {
+                    s.spawn(|| {
+                        barrier.wait();
+                        if let Ok(lock) = RunLock::acquire(&dir) {
+                            won.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
+                            let pid = std::fs::read_to_string(dir.join(".lock")).unwrap();
+                            assert_eq!(pid.trim(), std::process::id().to_string());
+                            // Held until every taker has tried.
+                            barrier.wait();
+                            drop(lock);
+                        } else {
+                            barrier.wait();
+                        }
+                    });
+                }
+            });
+            assert_eq!(won.into_inner(), 1, "round {round}");
+            assert!(!dir.join(".lock").exists());
+        }
+        let left: Vec<_> = std::fs::read_dir(&dir).unwrap().flatten().collect();
+        assert!(left.is_empty(), "{left:?}");
         let _ = std::fs::remove_dir_all(&dir);
     }
 }

@@ -21,10 +21,12 @@ use crate::model::batch::Batch;
 use crate::model::checkpoint::{init_checkpoint_for_mesh, Checkpoint};
 use crate::model::params::{Grads, Group};
 use crate::train::adam::AdamState;
-use crate::train::config::RunConfig;
+use crate::train::config::{differences_but_steps, RunConfig};
 use crate::train::divergence::Guard;
 use crate::train::report::Reporter;
-use crate::train::run_dir::{prepare_run_dir, RunLock, SceneFingerprint, SETTINGS_FILE};
+use crate::train::run_dir::{
+    prepare_run_dir, remove_run, RunLock, SceneFingerprint, SETTINGS_FILE,
+};
 use crate::train::sampler::sample_batch;
 use crate::train::setup::{prepare_until, resolve_levels, Prepared};
 use anyhow::{bail, Context, Result};
@@ -289,6 +291,9 @@ impl TrainOptions {
 pub struct TrainSummary {
     pub steps: u64,
     pub interrupted: bool,
+    /// Whether the run's checkpoint holds its work (false only when it was stopped before
+    /// training began: nothing was saved, the folder holds what it held).
+    pub saved: bool,
     /// The mean over the held-out views (`None` without a final evaluation).
     pub final_scores: Option<ViewScore>,
     /// Each held-out view's scores, as in `eval.json` (empty without a final evaluation).
@@ -302,6 +307,7 @@ impl TrainSummary {
         TrainSummary {
             steps,
             interrupted: true,
+            saved: true,
             final_scores: None,
             views: Vec::new(),
             seconds,
@@ -309,7 +315,10 @@ impl TrainSummary {
     }
 }
 
-/// Keep only the metrics lines of steps ≤ `step` (resume rewrites history from there on).
+/// Keep only the metrics lines of steps ≤ `step` (resume rewrites history from there on), without
+/// the closing lines of a run that finished at `step` (its final evaluation and peak memory): the
+/// resume writes its own, so a resumed finished run has one of each, and no `elapsed_s` of an
+/// evaluation before the time it continues from.
 fn truncate_metrics(path: &Path, step: u64) -> Result<()> {
     let Ok(text) = std::fs::read_to_string(path) else {
         return Ok(());
@@ -317,10 +326,13 @@ fn truncate_metrics(path: &Path, step: u64) -> Result<()> {
     let kept: String = text
         .lines()
         .filter(|l| {
-            serde_json::from_str::<serde_json::Value>(l)
-                .ok()
-                .and_then(|v| v.get("step").and_then(|s| s.as_u64()))
-                .is_some_and(|s| s <= step)
+            let Ok(v) = serde_json::from_str::<serde_json::Value>(l) else {
+                return false;
+            };
+            let closing = v.get("final").is_some() || v.get("peak_rss_bytes").is_some();
+            v.get("step")
+                .and_then(|s| s.as_u64())
+                .is_some_and(|s| s < step || (s == step && !closing))
         })
         .map(|l| format!("{l}\n"))
         .collect();
@@ -399,13 +411,10 @@ pub fn train(
     std::fs::create_dir_all(run_dir)
         .with_context(|| format!("{}: cannot create the run folder", run_dir.display()))?;
     let _lock = RunLock::acquire(run_dir)?;
-    prepare_run_dir(run_dir, opts.resume, opts.overwrite)?;
-    if let (false, Some(settings)) = (opts.resume, &opts.settings) {
-        crate::io::atomic::write_bytes(&run_dir.join(SETTINGS_FILE), settings)?;
-    }
+    let replaced = prepare_run_dir(run_dir, opts.resume, opts.overwrite)?;
     let ckpt_path = run_checkpoint(run_dir);
     let metrics_path = run_dir.join("metrics.jsonl");
-    let (mut state, prepared) = match open_run(scene_dir, run_dir, cfg, opts) {
+    let (mut state, prepared) = match open_run(scene_dir, run_dir, cfg, opts, &replaced) {
         Err(e)
             if e.downcast_ref::<crate::train::setup::StoppedInSetup>()
                 .is_some() =>
@@ -413,7 +422,10 @@ pub fn train(
             // Nothing trained, nothing to save: the folder holds what it held (a resumed
             // run's checkpoint untouched), so the same command starts again.
             eprintln!("{e}; nothing new to save: run the same command again");
-            return Ok(TrainSummary::stopped(0, 0.0));
+            return Ok(TrainSummary {
+                saved: false,
+                ..TrainSummary::stopped(0, 0.0)
+            });
         }
         r => r?,
     };
@@ -433,10 +445,18 @@ pub fn train(
         before,
     )?;
     rep.model(&state);
-    let interrupted = run_loop(&mut state, &prepared, &ckpt_path, opts, &mut rep)?;
+    // The step the run's checkpoint holds: a resumed run's is on disk already.
+    let mut saved = opts.resume.then_some(state.step);
+    let interrupted = run_loop(
+        &mut state, &prepared, &ckpt_path, opts, &mut rep, &mut saved,
+    )?;
     rep.loop_done();
-    save_checkpoint(&state, &ckpt_path)?;
-    rep.checkpointed(state.step)?;
+    // Not again when it holds this step (nothing trained since a resume, or a periodic
+    // checkpoint just before an interrupt).
+    if saved != Some(state.step) {
+        save_checkpoint(&state, &ckpt_path)?;
+        rep.checkpointed(state.step)?;
+    }
     crate::train::refine::write_refined(&state, &prepared, run_dir)?;
     let seconds = rep.elapsed();
     if interrupted || state.step < tc.steps {
@@ -471,6 +491,7 @@ pub fn train(
     Ok(TrainSummary {
         steps: state.step,
         interrupted: false,
+        saved: true,
         final_scores,
         views,
         seconds,
@@ -479,12 +500,16 @@ pub fn train(
 
 /// The run's state and prepared scene: resumed from `RUN/checkpoint.safetensors` (its stored
 /// configuration wins; `metrics.jsonl` is cut back to its step) or freshly initialised (the
-/// level range resolved for the scene, an old `metrics.jsonl` removed). Writes `config.toml`.
+/// level range resolved for the scene). Only once the scene is prepared and the state made — no
+/// error left that would stop the run — does it touch the folder: the earlier run's files
+/// `replaced` are removed ([`prepare_run_dir`]) and `scene.json`, `config.toml` (and a tool's
+/// settings) written.
 fn open_run(
     scene_dir: &Path,
     run_dir: &Path,
     cfg: RunConfig,
     opts: &TrainOptions,
+    replaced: &[&str],
 ) -> Result<(TrainState, Prepared)> {
     // `-q` silences progress, never a warning.
     let say = |s: String| {
@@ -499,6 +524,21 @@ fn open_run(
             bail!("--resume: {} does not exist", ckpt_path.display());
         }
         let mut st = TrainState::load(&ckpt_path)?;
+        // A hand-edited config.toml is not what the run trains with: say so (it is rewritten
+        // from the checkpoint's below).
+        let config_file = run_dir.join("config.toml");
+        if let Ok(text) = std::fs::read_to_string(&config_file) {
+            let origin = config_file.display().to_string();
+            let edited = match differences_but_steps(&text, &origin, &st.cfg, "the checkpoint") {
+                Ok((_, d)) => d.join(", "),
+                Err(e) => format!("{e:#}"),
+            };
+            if !edited.is_empty() {
+                say(format!(
+                    "warning: {origin} differs from the run's checkpoint ({edited}): a resume trains with the checkpoint's configuration and rewrites config.toml from it; for other settings start a new run"
+                ));
+            }
+        }
         // A resumed run keeps its configuration; `cfg.train.steps` is the total asked for.
         if cfg.train.steps < st.step {
             bail!(
@@ -521,7 +561,6 @@ fn open_run(
             st.step,
             st.cfg.train.steps
         ));
-        truncate_metrics(&metrics_path, st.step)?;
         Some(st)
     } else {
         None
@@ -536,33 +575,38 @@ fn open_run(
             stored.check_same(&fingerprint)?;
         }
     }
-    fingerprint.write(run_dir)?;
     let state = match resumed {
-        Some(s) => s,
+        Some(s) => {
+            truncate_metrics(&metrics_path, s.step)?;
+            s
+        }
         None => {
             let mut cfg = run_cfg;
             for msg in resolve_levels(&mut cfg, &prepared.samples) {
                 say(msg);
             }
-            if metrics_path.is_file() {
-                std::fs::remove_file(&metrics_path)
-                    .with_context(|| format!("{}: cannot remove", metrics_path.display()))?;
+            let state = TrainState::init(cfg, &prepared)?;
+            remove_run(run_dir, replaced)?;
+            if let Some(settings) = &opts.settings {
+                crate::io::atomic::write_bytes(&run_dir.join(SETTINGS_FILE), settings)?;
             }
-            TrainState::init(cfg, &prepared)?
+            state
         }
     };
+    fingerprint.write(run_dir)?;
     crate::io::atomic::write_bytes(&run_dir.join("config.toml"), state.cfg.to_toml())?;
     Ok((state, prepared))
 }
 
 /// Steps until the configured count, `opts.stop_at` or an interrupt (then `Ok(true)`), with
-/// periodic evaluations and checkpoints. A non-finite loss saves the state aside and fails.
+/// periodic evaluations and checkpoints (`saved`: the step of the last). A non-finite loss saves the state aside and fails.
 fn run_loop(
     state: &mut TrainState,
     prepared: &Prepared,
     ckpt_path: &Path,
     opts: &TrainOptions,
     rep: &mut Reporter,
+    saved: &mut Option<u64>,
 ) -> Result<bool> {
     let tc = state.cfg.train.clone();
     let mut grads = Grads::new(&state.ckpt.model.layout);
@@ -654,6 +698,7 @@ fn run_loop(
         if tc.checkpoint_every > 0 && k % tc.checkpoint_every == 0 && k < tc.steps {
             save_checkpoint(state, ckpt_path)?;
             rep.checkpointed(k)?;
+            *saved = Some(k);
         }
         if opts.stopped() {
             return Ok(true);

@@ -1640,8 +1640,13 @@ fn ns_exported(mesh: &Mesh, applied: [[f64; 4]; 3]) -> (Mesh, String) {
 
 /// `xscale align-mesh` with `args`: exit code, stdout, stderr.
 fn align_mesh(args: &[&str]) -> (i32, String, String) {
+    xscale_cli("align-mesh", args)
+}
+
+/// `xscale COMMAND ARGS…`: exit code, stdout, stderr.
+fn xscale_cli(command: &str, args: &[&str]) -> (i32, String, String) {
     let out = std::process::Command::new(env!("CARGO_BIN_EXE_xscale"))
-        .arg("align-mesh")
+        .arg(command)
         .args(args)
         .output()
         .unwrap();
@@ -2086,10 +2091,48 @@ fn obj_lines_are_not_triangles_and_short_faces_are_counted() {
         .map(|l| format!("{l}\n"))
         .collect();
     fs::write(&p, format!("{verts}l 1 2 3\n")).unwrap();
+    let nv = verts.lines().count();
     assert_contains(
         &err(mesh::load_mesh(&p)),
-        &["m.obj", "no (non-degenerate) triangles"],
+        &[
+            "m.obj",
+            "no (non-degenerate) triangles",
+            &format!("({nv} vertices"),
+        ],
     );
+}
+
+/// A textured OBJ (`f v/vt`, each corner with its own texture coordinate, as textured MVS
+/// exports are) is one welded surface, not a soup of a vertex per corner: the same mesh as
+/// without texture coordinates.
+#[test]
+fn obj_texture_coordinates_do_not_split_vertices() {
+    let d = scratch("obj_uv");
+    let base = fs::read_to_string(fixture("mesh/cube.obj")).unwrap();
+    let (plain, _) = mesh::load_mesh(&fixture("mesh/cube.obj")).unwrap();
+    let mut k = 0;
+    let mut text = String::new();
+    for line in base.lines() {
+        if let Some(rest) = line.strip_prefix("f ") {
+            let corners: Vec<String> = rest
+                .split_whitespace()
+                .map(|c| {
+                    k += 1;
+                    text.push_str(&format!("vt {} 0.5\n", k as f64 / 100.0));
+                    format!("{c}/{k}")
+                })
+                .collect();
+            text.push_str(&format!("f {}\n", corners.join(" ")));
+        } else {
+            text.push_str(line);
+            text.push('\n');
+        }
+    }
+    let p = d.join("uv.obj");
+    fs::write(&p, text).unwrap();
+    let (m, _) = mesh::load_mesh(&p).unwrap();
+    assert_eq!(m.vertices, plain.vertices);
+    assert_eq!(m.triangles, plain.triangles);
 }
 
 /// Beside transforms.json, NeRF-synthetic split files are not read: a note says so. The sparse
@@ -2139,4 +2182,40 @@ fn an_image_that_is_a_folder_is_named_as_one() {
         &err(Scene::load(&d, &LoadOptions::default())),
         &["is a directory, not a file"],
     );
+}
+
+/// `mesh-distance` between meshes in different units (a mesh in mm against one in m) warns
+/// instead of printing a distance of 27,000 % of the diagonal as if it were an answer.
+#[test]
+fn mesh_distance_warns_of_meshes_in_other_units() {
+    let d = scratch("distance_units");
+    let cube = fixture("mesh/cube_ascii.ply");
+    let (m, _) = mesh::load_mesh(&cube).unwrap();
+    let big = Mesh {
+        vertices: m.vertices.iter().map(|v| *v * 1000.0).collect(),
+        triangles: m.triangles.clone(),
+    };
+    let big_path = d.join("mm.ply");
+    mesh::write_ply(&big_path, &big).unwrap();
+    let cube = cube.to_str().unwrap();
+    let run = |a: &Path| {
+        xscale_cli(
+            "mesh-distance",
+            &[
+                "--mesh",
+                a.to_str().unwrap(),
+                "--truth",
+                cube,
+                "--samples",
+                "1",
+            ],
+        )
+    };
+    let (code, out, err) = run(&big_path);
+    assert_eq!(code, 0, "{err}");
+    assert_contains(&err, &["1.000e3 times the size", "same units"]);
+    assert_contains(&out, &["(1 sample)"]);
+    let (code, _, err) = run(Path::new(cube));
+    assert_eq!(code, 0, "{err}");
+    assert!(!err.contains("warning"), "{err}");
 }

@@ -23,16 +23,23 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
     let (m, _) = load_mesh(&a.mesh)?;
     let (t, _) = load_mesh(&a.truth)?;
     let diag = crate::synth::perturb::diagonal(&t);
+    let ratio = crate::synth::perturb::diagonal(&m) / diag;
+    if !(0.1..=10.0).contains(&ratio) {
+        eprintln!(
+            "warning: the mesh's bounding box is {ratio:.3e} times the size of the truth's: are the two in the same units and frame?"
+        );
+    }
     let to = surface_distance(&m, &SurfaceIndex::new(&t), a.samples);
     let from = surface_distance(&t, &SurfaceIndex::new(&m), a.samples);
     for (what, d) in [("mesh → truth", to), ("truth → mesh", from)] {
         println!(
-            "{what}: mean {:.5}  RMS {:.5} ({:.4} % of the truth's diagonal {diag:.3})  max {:.5}  ({} samples)",
+            "{what}: mean {:.5}  RMS {:.5} ({:.4} % of the truth's diagonal {diag:.3})  max {:.5}  ({} sample{})",
             d.mean,
             d.rms,
             100.0 * d.rms / diag,
             d.max,
-            d.samples
+            d.samples,
+            if d.samples == 1 { "" } else { "s" }
         );
     }
     Ok(ExitCode::SUCCESS)

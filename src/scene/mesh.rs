@@ -47,6 +47,8 @@ pub struct MeshStats {
     pub polygons_triangulated: usize,
     /// Faces with fewer than 3 corners (also counted in `dropped_degenerate`).
     pub short_faces: usize,
+    /// OBJ: `v` lines in the file (tobj keeps only the vertices a face uses).
+    pub vertex_lines: usize,
 }
 
 /// Load a mesh, dispatching on the extension (`.ply`, `.obj`, case-insensitive).
@@ -67,7 +69,7 @@ pub fn load_mesh(path: &Path) -> Result<(Mesh, MeshStats)> {
         bail!(
             "{}: the mesh has no (non-degenerate) triangles ({} vertices, {} faces read, {} degenerate dropped){}",
             path.display(),
-            mesh.vertices.len(),
+            mesh.vertices.len().max(stats.vertex_lines),
             stats.faces,
             stats.dropped_degenerate,
             if stats.faces == 0 { "; is it a point cloud?" } else { "" }
@@ -112,8 +114,8 @@ fn push_face(vertices: &[DVec3], face: &[u32], out: &mut Vec<[u32; 3]>, stats: &
 // OBJ
 // ---------------------------------------------------------------------------------------------
 
-/// Load an OBJ with `tobj` (GPU_LOAD_OPTIONS: triangulated, single index; materials are not
-/// read). All models are merged. tobj is built with `use_f64`, so coordinates are exact.
+/// Load an OBJ with `tobj` (triangulated, faces indexing positions only, so texture coordinates
+/// and normals do not split vertices; materials are not read). All models are merged. tobj is built with `use_f64`, so coordinates are exact.
 /// Note: tobj re-indexes vertices in order of first use by a face and drops unreferenced ones.
 /// Polylines (`l`) and points (`p`) are not surface and are left out (tobj would make triangles
 /// of an `l` line with three or more vertices); `f` lines with fewer than three corners are
@@ -124,11 +126,16 @@ fn load_obj(path: &Path) -> Result<(Mesh, MeshStats)> {
     let text = obj_surface_lines(&String::from_utf8_lossy(&bytes), &mut stats);
     // tobj's own errors carry no line number: on any failure, re-scan the file ourselves to
     // name the line (bad numbers, non-finite coordinates, indices out of range).
-    let loaded = tobj::load_obj_buf(
-        &mut std::io::Cursor::new(text.as_bytes()),
-        &tobj::GPU_LOAD_OPTIONS,
-        |_| Ok(Default::default()),
-    );
+    // One index per corner into the positions (not GPU_LOAD_OPTIONS's single index, which makes
+    // a vertex per (position, texture coordinate, normal) triple: a textured export's corners
+    // each have their own `vt`, and the mesh came apart into a triangle soup).
+    let options = tobj::LoadOptions {
+        single_index: false,
+        ..tobj::GPU_LOAD_OPTIONS
+    };
+    let loaded = tobj::load_obj_buf(&mut std::io::Cursor::new(text.as_bytes()), &options, |_| {
+        Ok(Default::default())
+    });
     let (models, _materials) = match loaded {
         Ok(x) => x,
         Err(e) => {
@@ -188,6 +195,10 @@ fn obj_surface_lines(text: &str, stats: &mut MeshStats) -> String {
         let mut tok = line.split_whitespace();
         let keep = match tok.next() {
             Some("l") | Some("p") => false,
+            Some("v") => {
+                stats.vertex_lines += 1;
+                true
+            }
             Some("f") if tok.count() < 3 => {
                 stats.faces += 1;
                 stats.short_faces += 1;

@@ -268,9 +268,8 @@ pub fn sparse_points(
 fn world_map(pd: &str, m: &Value) -> Result<(DMat3, DVec3)> {
     let wh = format!("{pd}: 'applied_transform'");
     let (r, t) = affine_map(&affine_rows(&wh, m)?);
-    let ortho = non_orthonormality(&r);
-    if ortho > 1e-6 || r.determinant() <= 0.0 {
-        bail!("{wh}: its 3x3 part is not a rotation (|RᵀR − I| = {ortho:.2e}); set applied_transform = \"keep\" in scene.toml to use the poses as written");
+    if let Some(why) = not_a_rotation(&r, 1e-6) {
+        bail!("{wh}: its 3x3 part {why}; set applied_transform = \"keep\" in scene.toml to use the poses as written");
     }
     Ok((r, t))
 }
@@ -345,13 +344,8 @@ fn pose(wh: &str, fr: &Map<String, Value>) -> Result<(DMat3, DVec3)> {
     // Columns of the camera→world rotation in OpenCV axes: x, -y, -z of the GL one.
     let col = |c: usize, s: f64| DVec3::new(s * a[0][c], s * a[1][c], s * a[2][c]);
     let c2w = DMat3::from_cols(col(0, 1.0), col(1, -1.0), col(2, -1.0));
-    let ortho = non_orthonormality(&c2w);
-    if ortho > 1e-3 {
-        bail!("{wh}: the rotation part of 'transform_matrix' is not a rotation (|RᵀR − I| = {ortho:.2e})");
-    }
-    let det = c2w.determinant();
-    if det <= 0.0 {
-        bail!("{wh}: the rotation part of 'transform_matrix' has determinant {det:.3}: a reflection (a left-handed frame), not a rotation");
+    if let Some(why) = not_a_rotation(&c2w, 1e-3) {
+        bail!("{wh}: the rotation part of 'transform_matrix' {why}");
     }
     let center = DVec3::new(a[0][3], a[1][3], a[2][3]);
     let rotation = c2w.transpose();
@@ -385,6 +379,21 @@ fn affine_rows(wh: &str, m: &Value) -> Result<[[f64; 4]; 3]> {
 }
 
 /// max |RᵀR − I|: how far a matrix is from orthonormal.
+/// Why `r` is not a rotation (orthonormal to `tol`, determinant +1), or `None` if it is one.
+fn not_a_rotation(r: &DMat3, tol: f64) -> Option<String> {
+    let ortho = non_orthonormality(r);
+    let det = r.determinant();
+    if ortho > tol {
+        Some(format!("is not a rotation (|RᵀR − I| = {ortho:.2e})"))
+    } else if det <= 0.0 {
+        Some(format!(
+            "has determinant {det:.3}: a reflection (a left-handed frame), not a rotation"
+        ))
+    } else {
+        None
+    }
+}
+
 fn non_orthonormality(r: &DMat3) -> f64 {
     (r.transpose() * *r - DMat3::IDENTITY)
         .to_cols_array()
@@ -609,9 +618,8 @@ impl DataparserTransform {
         // nerfstudio's orientations are rotations (written in f32); anything far from one is
         // not a dataparser transform. Inverted in full, as nerfstudio's own
         // `transform_poses_to_original_space` does.
-        let ortho = non_orthonormality(&matrix);
-        if ortho > 1e-4 || matrix.determinant() <= 0.0 {
-            bail!("{pd}: 'transform': its 3x3 part is not a rotation (|RᵀR − I| = {ortho:.2e})");
+        if let Some(why) = not_a_rotation(&matrix, 1e-4) {
+            bail!("{pd}: 'transform': its 3x3 part {why}");
         }
         let scale = s
             .as_f64()

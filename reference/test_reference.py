@@ -565,6 +565,35 @@ def test_kink_margin_matches_rust(tmp_path, case_dir):
     assert np.max(np.abs(rust - ours)) < 1e-14, np.max(np.abs(rust - ours))
 
 
+def test_unimplemented_config_is_refused(tmp_path):
+    """A checkpoint whose config asks for what this reference does not implement (the footprint level
+    weighting, the cpu preset's default; the vertex featurization; a key it does not know) is refused with
+    exit 2 instead of giving a wrong dump with exit 0; the golden cases' configs all load."""
+    t, meta, b = make_case.build_case(seed=1)
+    bp = tmp_path / "b.safetensors"
+    save_file(b, str(bp))
+    for extra, match in [
+        ('level_weight = "footprint"\n', "level_weight = 'footprint': the footprint level weighting"),
+        ('featurization = "vertex"\n', "featurization = 'vertex': the vertex featurization"),
+        ('new_option = 1\n', "new_option is not implemented"),
+    ]:
+        p = tmp_path / "ck.safetensors"
+        save_file(t, str(p), metadata={**meta, "config": extra + meta["config"]})
+        with pytest.raises(xr.RefError, match=match):
+            xr.load_checkpoint(p)
+        assert xr.main(["--checkpoint", str(p), "--batch", str(bp), "--out", str(tmp_path / "o")]) == 2
+        assert not (tmp_path / "o").exists()
+    p = tmp_path / "ck.safetensors"
+    save_file(t, str(p), metadata={**meta, "config": meta["config"].replace("[grid_h]", "[grid_h]\nsmooth = 1", 1)})
+    with pytest.raises(xr.RefError, match="grid_h.smooth is not implemented"):
+        xr.load_checkpoint(p)
+    # What it implements, spelled out, is accepted.
+    save_file(t, str(p), metadata={**meta, "config": 'level_weight = "none"\nfeaturization = "hash"\n' + meta["config"]})
+    xr.load_checkpoint(p)
+    for case_dir in GOLDEN_CASES:
+        xr.load_checkpoint(case_dir / "checkpoint.safetensors")
+
+
 def test_bad_inputs(tmp_path):
     t, meta, b = make_case.build_case(seed=1)
     ok_ck, ok_b = tmp_path / "ck.safetensors", tmp_path / "b.safetensors"

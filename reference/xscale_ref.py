@@ -109,6 +109,48 @@ def _grid_config(d: dict, where: str) -> GridConfig:
     return g
 
 
+# The model config keys (SPEC §9, `ModelConfig`) this reference implements, by table. Any other key, or
+# a value of one it does not implement, is refused: ignoring it would give a wrong reference with exit 0
+# (it used to ignore `level_weight = "footprint"`, the cpu preset's default). `finest_resolution` only
+# records how per_level_scale was chosen; `gamma` is the batch's S = gamma^2; `[refine]` moves the mesh
+# batches are drawn from, not the evaluation of a batch.
+_GRID_KEYS = {"levels", "features", "log2_table_size", "base_resolution", "per_level_scale", "interpolation",
+              "finest_resolution"}
+_KEYS = {
+    "": {"grid_h", "deform", "shader", "appearance_dim", "appearance_views", "gamma", "positions", "loss",
+         "smooth_l1_delta", "level_weight", "featurization", "refine"},
+    "grid_h": _GRID_KEYS,
+    "deform": {"enabled", "hidden", "bias", "grid"},
+    "deform.grid": _GRID_KEYS,
+    "shader": {"hidden_layers", "width", "bias"},
+}
+# Values of implemented keys that select something this reference does not implement.
+_UNSUPPORTED = {
+    "level_weight": ("none", "the footprint level weighting (SPEC §4.10)"),
+    "featurization": ("hash", "the vertex featurization (SPEC §4.9)"),
+}
+
+
+def check_implemented(raw: dict, where: str) -> None:
+    """Refuse a model config with a key or value this reference does not implement (RefError)."""
+    for table, keys in _KEYS.items():
+        d = raw
+        for part in table.split(".") if table else []:
+            d = d.get(part, {})
+        if not isinstance(d, dict):
+            continue
+        for k in d:
+            if k not in keys:
+                name = f"{table}.{k}" if table else k
+                raise RefError(f"{where}: {name} is not implemented by this reference (a config it does not know "
+                               f"cannot be evaluated faithfully); use `xscale dump` for this checkpoint")
+    for k, (only, what) in _UNSUPPORTED.items():
+        v = raw.get(k, only)
+        if v != only:
+            raise RefError(f"{where}: {k} = {v!r}: {what} is not implemented by this reference (only {k} = "
+                           f"{only!r}); use `xscale dump --precision f64` of this checkpoint as the oracle (docs/oracle.md §5)")
+
+
 def parse_config(text: str, where: str = "config") -> ModelConfig:
     try:
         raw = tomllib.loads(text)
@@ -116,6 +158,7 @@ def parse_config(text: str, where: str = "config") -> ModelConfig:
         raise RefError(f"{where}: TOML: {e}") from None
     if "grid_h" not in raw:
         raise RefError(f"{where}: missing [grid_h]")
+    check_implemented(raw, where)
     deform = raw.get("deform", {})
     enabled = bool(deform.get("enabled", False))
     shader = raw.get("shader", {})

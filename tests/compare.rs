@@ -378,6 +378,47 @@ fn mixed_f64_f32_compares_in_f32_ulps() {
     );
 }
 
+/// An exact rule (no limits: `batch.*` in the tolerance files, and the strict default) asks for
+/// equal values: an F64 tensor rounded to F32 is 0 f32 ulps from it but not equal, and fails
+/// (it passed, so a backend that evaluated an f32-rounded batch passed "batch.* exact"). An F64
+/// value that is an f32 value exactly still equals its F32 copy.
+#[test]
+fn exact_rules_fail_f64_values_rounded_to_f32() {
+    let (mut fa, mut fb) = (TensorFile::new(), TensorFile::new());
+    let pos = [0.1f64, 0.5, -2.7];
+    fa.insert("batch.positions", Tensor::f64(vec![3], &pos).unwrap());
+    let rounded: Vec<f32> = pos.iter().map(|&x| x as f32).collect();
+    fb.insert("batch.positions", Tensor::f32(vec![3], &rounded).unwrap());
+    let exact =
+        Tolerances::from_toml("[[rule]]\npattern = \"batch.*\"\nrequired = true\n", "t").unwrap();
+    let strict = Tolerances {
+        strict: true,
+        ..Default::default()
+    };
+    for tol in [&exact, &strict] {
+        let r = compare(&fa, &fb, tol);
+        assert_eq!(r.exit_code(), 1, "{}", r.to_table());
+        let st = r.tensors[0].stats.as_ref().unwrap();
+        // 0.1 and -2.7 are not f32 values; 0.5 is.
+        assert_eq!((st.n_fail, st.max_ulp), (2, 0), "{}", r.to_table());
+    }
+    // Widened exactly, the F32 file's values pass against it.
+    let widened: Vec<f64> = rounded.iter().map(|&x| x as f64).collect();
+    fa.insert("batch.positions", Tensor::f64(vec![3], &widened).unwrap());
+    assert_eq!(compare(&fa, &fb, &exact).exit_code(), 0);
+    assert_eq!(compare(&fa, &fb, &strict).exit_code(), 0);
+    // The command line's default (strict, exact) says so too.
+    let d = tmpdir("exact32");
+    let (a, b) = (d.join("a.st"), d.join("b.st"));
+    fa.insert("batch.positions", Tensor::f64(vec![3], &pos).unwrap());
+    write(&fa, &a);
+    write(&fb, &b);
+    let (code, out) = run_cli(&[a.to_str().unwrap(), b.to_str().unwrap()]);
+    assert_eq!(code, 1, "{out}");
+    assert!(out.contains("FAIL batch.positions: 2 of 3"), "{out}");
+    std::fs::remove_dir_all(&d).unwrap();
+}
+
 #[test]
 fn bad_tolerance_files_are_errors() {
     assert!(Tolerances::from_toml("[[rule]]\nmax_abs = 1\n", "t.toml")
@@ -389,5 +430,135 @@ fn bad_tolerance_files_are_errors() {
         Tolerances::from_toml("[[rule]]\npattern = \"x\"\nmax_abss = 1\n", "t.toml").unwrap_err()
     );
     assert!(e.contains("t.toml") && e.contains("max_abss"), "{e}");
-    assert!(Tolerances::from_toml("[[rule]]\npattern = \"x\"\nmax_abs = -1\n", "t").is_err());
+    let e = Tolerances::from_toml("[[rule]]\npattern = \"x\"\nmax_abs = -1\n", "t")
+        .unwrap_err()
+        .to_string();
+    assert_eq!(e, "t: rule \"x\": max_abs = -1 must be a number >= 0");
+    let e = Tolerances::from_toml("[default]\nmax_rel = nan\n", "t")
+        .unwrap_err()
+        .to_string();
+    assert_eq!(e, "t: [default]: max_rel = NaN must be a number >= 0");
+}
+
+/// The same limits on the command line are usage errors (exit 64), worded as the file's check;
+/// they used to be taken, and then failed identical files with exit 1.
+#[test]
+fn bad_command_line_limits_are_usage_errors() {
+    let d = tmpdir("badlimits");
+    let a = d.join("a.st");
+    write(&base_file(), &a);
+    let a = a.to_str().unwrap();
+    for (arg, shown) in [
+        ("--max-abs=-1", "-1 must be a number >= 0"),
+        ("--max-abs=nan", "NaN must be a number >= 0"),
+        ("--max-rel-peak=-0.5", "-0.5 must be a number >= 0"),
+        ("--max-rel=-inf", "-inf must be a number >= 0"),
+        ("--max-rel=x", "expected a number >= 0"),
+    ] {
+        let (code, out) = run_cli(&[a, a, arg]);
+        assert_eq!(code, 64, "{arg}: {out}");
+        let flag = arg.split('=').next().unwrap();
+        assert!(out.contains(flag) && out.contains(shown), "{arg}: {out}");
+    }
+    let (code, out) = run_cli(&[a, a, "--max-abs=inf", "--max-rel=0"]);
+    assert_eq!(code, 0, "{out}");
+    std::fs::remove_dir_all(&d).unwrap();
+}
+
+/// Report wording: a kink slack of the wrong dtype says so (it said "416 elements where ... has
+/// 416"); a tensor the `[default]` rule requires names `[default]` (it said `rule ""`).
+#[test]
+fn report_names_a_bad_slack_dtype_and_the_default_rule() {
+    let mut fa = base_file();
+    fa.insert(
+        "kink.slack.fwd.rgb",
+        Tensor::u8(vec![2, 3], &[0; 6]).unwrap(),
+    );
+    let r = compare(&fa, &base_file(), &Tolerances::default());
+    assert_eq!(r.exit_code(), 2);
+    assert_eq!(
+        r.missing_required,
+        ["kink.slack.fwd.rgb in A: dtype U8, expected F32 or F64 (a slack is a float)"]
+    );
+    let mut fb = base_file();
+    fb.tensors.remove("loss");
+    let tol = Tolerances::from_toml("[default]\nrequired = true\n", "t").unwrap();
+    let r = compare(&base_file(), &fb, &tol);
+    assert_eq!(r.exit_code(), 2);
+    assert_eq!(
+        r.missing_required,
+        ["loss: required by [default] but missing from B"]
+    );
+    assert!(r.to_table().contains("MISSING loss: required by [default]"));
+}
+
+/// `--json`: NaN, +inf and -inf are told apart (strings "NaN", "inf", "-inf"; all three used to
+/// be `null`), finite values are numbers.
+#[test]
+fn json_report_tells_nan_and_infinities_apart() {
+    let (mut fa, mut fb) = (TensorFile::new(), TensorFile::new());
+    fa.insert(
+        "x",
+        Tensor::f32(vec![3], &[f32::NAN, f32::INFINITY, 1.0]).unwrap(),
+    );
+    fb.insert(
+        "x",
+        Tensor::f32(vec![3], &[1.0, f32::NEG_INFINITY, 1.0]).unwrap(),
+    );
+    let r = compare(&fa, &fb, &Tolerances::default());
+    let j: serde_json::Value =
+        serde_json::from_str(&xscale::io::compare::report_json(&r).unwrap()).unwrap();
+    let st = &j["tensors"][0]["stats"];
+    assert_eq!(st["max_abs"], "inf");
+    assert_eq!(st["peak"], 1.0);
+    let worst = |k: &str| st["worst_abs"][k].clone();
+    // The first element with the largest error: NaN against 1.
+    assert_eq!((worst("a"), worst("b")), ("NaN".into(), 1.0.into()));
+    // Element 1: +inf against -inf, written apart.
+    let mut fa1 = TensorFile::new();
+    fa1.insert("x", Tensor::f32(vec![1], &[f32::INFINITY]).unwrap());
+    let mut fb1 = TensorFile::new();
+    fb1.insert("x", Tensor::f32(vec![1], &[f32::NEG_INFINITY]).unwrap());
+    let r = compare(&fa1, &fb1, &Tolerances::default());
+    let j: serde_json::Value =
+        serde_json::from_str(&xscale::io::compare::report_json(&r).unwrap()).unwrap();
+    let e = &j["tensors"][0]["stats"]["worst_abs"];
+    assert_eq!(
+        (e["a"].clone(), e["b"].clone()),
+        ("inf".into(), "-inf".into())
+    );
+}
+
+/// Files that are not safetensors are described in words, not by the parser's internal error
+/// names (`MetadataIncompleteBuffer`, `HeaderTooLarge`).
+#[test]
+fn unreadable_files_say_what_is_wrong() {
+    let d = tmpdir("words");
+    let good = d.join("good.st");
+    write(&base_file(), &good);
+    let bytes = std::fs::read(&good).unwrap();
+    let trunc = d.join("trunc.st");
+    std::fs::write(&trunc, &bytes[..bytes.len() - 5]).unwrap();
+    let text = d.join("text.st");
+    std::fs::write(&text, "this is a text file, not tensors\n").unwrap();
+    let header = d.join("header.st");
+    std::fs::write(&header, &bytes[..40]).unwrap();
+    let extra = d.join("extra.st");
+    std::fs::write(&extra, [&bytes[..], b"xyz"].concat()).unwrap();
+    let g = good.to_str().unwrap();
+    for (file, want) in [
+        (&trunc, "truncated: its header declares"),
+        (&text, "not a valid safetensors file: its first 8 bytes give a header length of"),
+        (&header, "not a valid safetensors file: truncated header: its first 8 bytes give a header length of"),
+        (&extra, "3 bytes of extra data after the"),
+    ] {
+        let (code, out) = run_cli(&[g, file.to_str().unwrap()]);
+        assert_eq!(code, 2, "{out}");
+        assert!(out.contains(file.to_str().unwrap()) && out.contains(want), "{out}");
+        assert!(
+            !out.contains("MetadataIncompleteBuffer") && !out.contains("HeaderTooLarge") && !out.contains("InvalidHeaderLength"),
+            "{out}"
+        );
+    }
+    std::fs::remove_dir_all(&d).unwrap();
 }

@@ -6,7 +6,10 @@
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use xscale::train::config::RunConfig;
-use xscale::train::memory::{check_budget, estimate, resolve_samples, AUTO_CACHE_MAX_BYTES};
+use xscale::train::memory::{
+    check_budget, check_dump, estimate, resolve_samples, AUTO_CACHE_MAX_BYTES,
+    DUMP_BYTES_PER_PIXEL, DUMP_BYTES_PER_SAMPLE_FEATURE,
+};
 use xscale::train::sampler::SampleMode;
 
 fn fixture() -> PathBuf {
@@ -212,4 +215,30 @@ fn auto_samples_cache_what_fits_and_stream_the_rest() {
     cfg.model.refine.enabled = false;
     cfg.train.samples = SampleMode::Stream;
     assert_eq!(resolve_samples(&cfg, &small, 1).0, SampleMode::Stream);
+}
+
+/// `xscale dump` is sized the same way before it reads the batch: a batch far beyond the memory
+/// (or beyond what a process can address) is refused with the estimate and a `--size` that
+/// fits; a golden-sized one passes.
+#[test]
+fn a_dump_that_cannot_fit_is_refused_with_the_estimate() {
+    // The cpu-t10 golden model's 112 features per sub-sample, γ = 2.
+    check_dump(64, 4, 112, 100_000, true).unwrap();
+    check_dump(4096, 4, 112, 1 << 20, false).unwrap();
+    for pixels in [1usize << 40, usize::MAX] {
+        let err = check_dump(pixels, 4, 112, 100_000, true)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.contains("this dump needs about")
+                && err.contains(&format!("a batch of {pixels} pixels × 4 sub-samples"))
+                && err.contains("a smaller batch (xscale batch --size "),
+            "{err}"
+        );
+    }
+    // f64: 40 bytes per sub-sample and feature, plus 2 KB per pixel.
+    assert_eq!(
+        DUMP_BYTES_PER_SAMPLE_FEATURE * 4 * 112 + DUMP_BYTES_PER_PIXEL,
+        19_968
+    );
 }

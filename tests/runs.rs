@@ -60,6 +60,19 @@ fn train_args(scene: &Path, run: &Path, extra: &[&str]) -> Vec<String> {
     args.into_iter().map(String::from).collect()
 }
 
+/// `xscale batch --scene fixtures/tiny --out OUT EXTRA…`.
+fn batch_file(out: &Path, extra: &[&str]) -> (i32, String) {
+    let scene = fixture();
+    let args = [
+        "batch",
+        "--scene",
+        scene.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ];
+    xscale(&[&args[..], extra].concat())
+}
+
 /// `xscale train` of 5 `tiny` steps on `scene` into `run`, without evaluation; must succeed.
 fn train_tiny_5(scene: &Path, run: &Path) {
     let (code, err) = train_on(scene, run, &["--preset", "tiny", "--steps", "5"]);
@@ -778,6 +791,29 @@ fn limits_and_bad_settings_get_clear_messages() {
     );
     assert_eq!(code, 2);
     assert!(err.contains("conflicts with"), "{err}");
+    // `init` and `batch` check it the same way (they used to take the file's preset silently);
+    // the same preset in both places, or none on the command line, is accepted.
+    let ck = run.join("ck.safetensors");
+    let scene_s = scene.to_str().unwrap();
+    let cfg_s = cfg.to_str().unwrap();
+    let ck_s = ck.to_str().unwrap();
+    for cmd in [
+        &["init", "--scene", scene_s, "--out", ck_s][..],
+        &["batch", "--scene", scene_s, "--size", "4", "--out", ck_s][..],
+    ] {
+        let (code, err) = xscale(&[cmd, &["--config", cfg_s, "--preset", "tiny"]].concat());
+        assert_eq!(code, 2, "{cmd:?}: {err}");
+        assert!(
+            err.contains("--preset tiny conflicts with `preset = \"cpu\"` in"),
+            "{cmd:?}: {err}"
+        );
+        assert!(!ck.exists(), "{cmd:?}: nothing written");
+    }
+    std::fs::write(&cfg, "preset = \"tiny\"\n").unwrap();
+    let (code, err) = batch_file(&ck, &["--size", "4", "--config", cfg_s, "--preset", "tiny"]);
+    assert_eq!(code, 0, "{err}");
+    let (code, err) = xscale(&["init", "--scene", scene_s, "--out", ck_s, "--config", cfg_s]);
+    assert_eq!(code, 0, "{err}");
     let _ = std::fs::remove_dir_all(&run);
 }
 
@@ -861,6 +897,33 @@ fn a_batch_that_cannot_fit_is_refused_before_allocation() {
     let _ = std::fs::remove_dir_all(&run);
 }
 
+/// `xscale batch` checks its batch against the memory as `train` does (it used to be killed by
+/// the kernel at `--size 100000000`, and to panic with "capacity overflow" at `--size` 2^64 − 1):
+/// refused before the batch is drawn, exit 2, naming `--size` and nothing written.
+#[test]
+fn a_batch_file_that_cannot_fit_is_refused_before_allocation() {
+    let out = tmp("hugebatchfile");
+    std::fs::create_dir_all(&out).unwrap();
+    let file = out.join("b.safetensors");
+    for size in ["1000000000", "18446744073709551615"] {
+        let (code, err) = batch_file(&file, &["--preset", "tiny", "--size", size]);
+        assert_eq!(code, 2, "{size}: {err}");
+        assert!(
+            err.contains("this batch needs about") && err.contains("a smaller batch (--size "),
+            "{size}: {err}"
+        );
+        assert!(!file.exists(), "{size}: nothing written");
+        // The size it suggests is at most a quarter of the one refused (for 2^64 − 1: what fits,
+        // not a quarter of it).
+        let suggested: u64 = err.split("--size ").nth(1).unwrap()[..]
+            .trim_end_matches(|c: char| !c.is_ascii_digit())
+            .parse()
+            .unwrap();
+        assert!(suggested <= 250_000_000, "{size}: {err}");
+    }
+    let _ = std::fs::remove_dir_all(&out);
+}
+
 /// A scene that holds no view out trains, and says there is no final evaluation (instead of
 /// skipping it without a word); one that holds every view out is refused, saying how to hold out
 /// fewer.
@@ -929,6 +992,14 @@ fn zero_frames_or_batch_is_a_usage_error() {
     assert_eq!(code, 64, "{err}");
     assert!(
         err.contains("--batch") && err.contains("at least 1"),
+        "{err}"
+    );
+    assert!(!out.exists(), "nothing written");
+    // `xscale batch --size 0` too (it exited 2 after loading the scene).
+    let (code, err) = batch_file(&out, &["--size", "0"]);
+    assert_eq!(code, 64, "{err}");
+    assert!(
+        err.contains("--size") && err.contains("at least 1"),
         "{err}"
     );
     assert!(!out.exists(), "nothing written");

@@ -32,18 +32,7 @@ pub struct RunArgs {
 impl RunArgs {
     /// The preset, the file's overrides, then the flags (not yet validated).
     pub fn resolve(&self) -> Result<RunConfig> {
-        if let (Some(p), Some(file)) = (&self.preset, &self.config) {
-            if let Some(q) = config_file_preset(file)? {
-                if &q != p {
-                    bail!(
-                        "--preset {p} conflicts with `preset = \"{q}\"` in {}: give the preset in one place",
-                        file.display()
-                    );
-                }
-            }
-        }
-        let preset = self.preset.as_deref().unwrap_or("cpu");
-        let mut cfg = RunConfig::resolve(preset, self.config.as_deref())?;
+        let mut cfg = resolve_config(self.preset.as_deref(), self.config.as_deref())?;
         if let Some(s) = self.steps {
             cfg.train.steps = s;
         }
@@ -55,6 +44,23 @@ impl RunArgs {
         }
         Ok(cfg)
     }
+}
+
+/// `--preset` (default `cpu`) with a `--config` file's overrides (`train`, `init`, `batch`). A
+/// `--preset` given that the file's `preset = "..."` contradicts is an error: which one was
+/// meant cannot be told.
+pub fn resolve_config(preset: Option<&str>, config: Option<&Path>) -> Result<RunConfig> {
+    if let (Some(p), Some(file)) = (preset, config) {
+        if let Some(q) = config_file_preset(file)? {
+            if q != p {
+                bail!(
+                    "--preset {p} conflicts with `preset = \"{q}\"` in {}: give the preset in one place",
+                    file.display()
+                );
+            }
+        }
+    }
+    RunConfig::resolve(preset.unwrap_or("cpu"), config)
 }
 
 /// The `preset` key of a `--config` file, if it has one.

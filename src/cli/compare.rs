@@ -3,7 +3,7 @@
 //! Exit code 0 = all within limits, 1 = a limit exceeded, 2 = bad input. With no tolerance file and
 //! no `--max-*` limit the comparison is exact (strict); a NaN fails unless `--allow-nan`.
 
-use crate::io::compare::{compare_files, report_json, Rule, Tolerances};
+use crate::io::compare::{compare_files, parse_limit, report_json, Rule, Tolerances};
 use anyhow::Context;
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -24,17 +24,18 @@ pub struct Args {
     /// Strict: tensors without a rule must be exactly equal; tensors in only one file are errors.
     #[arg(long)]
     pub strict: bool,
-    /// Default rule's abs limit (replaces the file's `[default]` when any --max-* is given).
-    #[arg(long)]
+    /// Default rule's abs limit (replaces the file's `[default]` when any --max-* is given; the
+    /// float limits take a number >= 0).
+    #[arg(long, value_parser = parse_limit)]
     pub max_abs: Option<f64>,
     /// Default rule's rel limit.
-    #[arg(long)]
+    #[arg(long, value_parser = parse_limit)]
     pub max_rel: Option<f64>,
     /// Default rule's ULP limit.
     #[arg(long)]
     pub max_ulp: Option<u64>,
     /// Default rule's limit on abs error / the tensor's largest |value|.
-    #[arg(long)]
+    #[arg(long, value_parser = parse_limit)]
     pub max_rel_peak: Option<f64>,
     /// Accept NaN where both files have it (by default any NaN fails its tensor).
     #[arg(long)]

@@ -37,6 +37,7 @@ pub fn write_mesh(path: &Path, mesh: &Mesh) -> Result<()> {
 }
 
 pub fn run(a: Args) -> Result<ExitCode> {
+    crate::io::atomic::not_an_input(&a.out, "--out", &[("input mesh", "--in", &a.input)])?;
     let (mesh, _) = load_mesh(&a.input)?;
     let (out, r) = decimate_report(&mesh, a.ratio)?;
     write_mesh(&a.out, &out)?;
@@ -68,6 +69,7 @@ pub struct SubdivideArgs {
 }
 
 pub fn run_subdivide(a: SubdivideArgs) -> Result<ExitCode> {
+    crate::io::atomic::not_an_input(&a.out, "--out", &[("input mesh", "--in", &a.input)])?;
     let (mesh, _) = load_mesh(&a.input)?;
     let out = subdivide(&mesh, a.levels)?;
     write_mesh(&a.out, &out)?;

@@ -1,8 +1,8 @@
 //! `xscale init --scene DIR --preset P --seed S --out FILE`: a freshly initialised checkpoint for a
 //! scene (appearance rows = its training views, hash levels dropped as SPEC §8 says).
 
+use super::common::resolve_config;
 use crate::model::checkpoint::init_checkpoint_for_mesh;
-use crate::train::config::RunConfig;
 use crate::train::setup::{prepare, resolve_levels};
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -13,9 +13,9 @@ pub struct Args {
     /// appearance codes).
     #[arg(long)]
     pub scene: PathBuf,
-    /// Preset (docs/spec.md §9).
-    #[arg(long, default_value = "cpu", value_parser = ["tiny", "cpu", "paper"])]
-    pub preset: String,
+    /// Preset (docs/spec.md §9) [default: cpu]; must agree with a `preset` the --config file gives.
+    #[arg(long, value_parser = ["tiny", "cpu", "paper"])]
+    pub preset: Option<String>,
     /// TOML overrides (as `xscale train --config`).
     #[arg(long)]
     pub config: Option<PathBuf>,
@@ -29,7 +29,7 @@ pub struct Args {
 
 pub fn run(a: Args) -> anyhow::Result<ExitCode> {
     crate::io::atomic::writable_folder(&a.out)?;
-    let mut cfg = RunConfig::resolve(&a.preset, a.config.as_deref())?;
+    let mut cfg = resolve_config(a.preset.as_deref(), a.config.as_deref())?;
     cfg.train.seed = a.seed;
     let p = prepare(&a.scene, &cfg, false, &mut |m| eprintln!("{m}"))?;
     for msg in resolve_levels(&mut cfg, &p.samples) {

@@ -26,6 +26,39 @@ pub fn writable_folder(path: &Path) -> Result<PathBuf> {
     Ok(dir)
 }
 
+/// Refuse an output path that is one of the command's inputs (the same file: by device and
+/// inode on Unix, so a hard link or another spelling of the path counts too): writing it would
+/// replace the input the command read. `inputs` are `(what, flag, path)`, e.g.
+/// `("checkpoint", "--checkpoint", path)`; `out_flag` names the output's flag.
+pub fn not_an_input(out: &Path, out_flag: &str, inputs: &[(&str, &str, &Path)]) -> Result<()> {
+    for (what, flag, input) in inputs {
+        if same_file(out, input) {
+            bail!(
+                "{}: {out_flag} is the {what} ({flag}, the same file): writing it would replace the command's own input; write to another file",
+                out.display()
+            );
+        }
+    }
+    Ok(())
+}
+
+/// Whether `a` and `b` name one existing file.
+fn same_file(a: &Path, b: &Path) -> bool {
+    let (Ok(ma), Ok(mb)) = (std::fs::metadata(a), std::fs::metadata(b)) else {
+        return false;
+    };
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::MetadataExt;
+        ma.dev() == mb.dev() && ma.ino() == mb.ino()
+    }
+    #[cfg(not(unix))]
+    {
+        let _ = (ma, mb);
+        matches!((a.canonicalize(), b.canonicalize()), (Ok(x), Ok(y)) if x == y)
+    }
+}
+
 /// Write `path` through `write`, which must write the whole file at the temp path it is given:
 /// on success the temp file (`.NAME.tmp.PID.N` in the same directory, so the rename stays on one
 /// file system) is renamed over `path`; on error it is removed and `path` is untouched. `durable`

@@ -17,7 +17,7 @@
 //!   with a float takes the float's rules.
 //! - **NaN / Inf**: as error measures, NaN vs NaN and equal infinities give 0, and NaN vs anything
 //!   else, or an infinity vs anything different, is infinitely wrong (abs = rel = ∞, ULP = u64::MAX;
-//!   in JSON ∞ is written as `null`). So an infinity passes only against the same infinity, in the
+//!   in JSON a NaN, +∞ or −∞ value or error is written as the string `"NaN"`, `"inf"` or `"-inf"`). So an infinity passes only against the same infinity, in the
 //!   same place. **A NaN in either file fails its tensor under every rule** (and even without a
 //!   rule), unless the rule or the whole file says `allow_nan = true` (`--allow-nan`): an all-NaN
 //!   gradient must never pass.
@@ -90,6 +90,20 @@ impl Rule {
             || self.max_rel_peak.is_some()
     }
 
+    /// Every float limit given is a number ≥ 0 ([`check_limit`]); `what` names the rule.
+    fn check_limits(&self, what: &str) -> Result<()> {
+        for (key, v) in [
+            ("max_abs", self.max_abs),
+            ("max_rel", self.max_rel),
+            ("max_rel_peak", self.max_rel_peak),
+        ] {
+            if let Some(x) = v {
+                check_limit(x).map_err(|e| anyhow::anyhow!("{what}: {key} = {e}"))?;
+            }
+        }
+        Ok(())
+    }
+
     /// `abs 1e-6 | rel 1e-5 | ulp 4`
     pub fn describe_limits(&self) -> String {
         let mut parts = Vec::new();
@@ -113,7 +127,7 @@ impl Rule {
     }
 
     /// Whether one element's errors are within this rule (any given limit suffices; a rule
-    /// without limits demands exact equality). Without the tensor's peak a `max_rel_peak` limit
+    /// without limits demands exact equality of the values, `abs == 0`). Without the tensor's peak a `max_rel_peak` limit
     /// is never met: use [`Rule::accepts_with_peak`].
     pub fn accepts(&self, e: &ElementError) -> bool {
         self.accepts_with_peak(e, f64::NAN)
@@ -123,13 +137,36 @@ impl Rule {
     /// tensor) for `max_rel_peak`.
     pub fn accepts_with_peak(&self, e: &ElementError, peak: f64) -> bool {
         if !self.has_limits() {
-            return e.ulp == 0;
+            // Exact: equal values, as the wider dtype (an F64 value against an F32 one must be
+            // that f32 value exactly: one rounded to f32 is 0 f32 ulps away, but not equal).
+            return e.abs == 0.0;
         }
         self.max_abs.is_some_and(|l| e.abs <= l)
             || self.max_rel.is_some_and(|l| e.rel <= l)
             || self.max_ulp.is_some_and(|l| e.ulp <= l)
             || self.max_rel_peak.is_some_and(|l| e.abs <= l * peak)
     }
+}
+
+/// A float limit (`max_abs`, `max_rel`, `max_rel_peak`, in a tolerance file or on the command
+/// line): a number ≥ 0 (`inf` is no limit); NaN or a negative number is an error
+/// (`-1 must be a number >= 0`), since no element could meet it.
+pub fn check_limit(x: f64) -> std::result::Result<f64, String> {
+    if x.is_nan() || x < 0.0 {
+        Err(format!("{x} must be a number >= 0"))
+    } else {
+        Ok(x)
+    }
+}
+
+/// `xscale compare --max-abs / --max-rel / --max-rel-peak`: a number, then [`check_limit`] (a
+/// bad value is a usage error, worded as the tolerance file's).
+pub fn parse_limit(s: &str) -> std::result::Result<f64, String> {
+    let x: f64 = s
+        .trim()
+        .parse()
+        .map_err(|e| format!("expected a number >= 0 ({e})"))?;
+    check_limit(x)
 }
 
 /// A tolerance file.
@@ -201,22 +238,11 @@ impl Tolerances {
                 bail!("{label}: rule {} has no pattern", i + 1);
             }
         }
-        let all = t.rules.iter().chain(t.default.iter());
-        for r in all {
-            for (what, v) in [
-                ("max_abs", r.max_abs),
-                ("max_rel", r.max_rel),
-                ("max_rel_peak", r.max_rel_peak),
-            ] {
-                if let Some(x) = v {
-                    if x.is_nan() || x < 0.0 {
-                        bail!(
-                            "{label}: rule \"{}\": {what} = {x} must be a number >= 0",
-                            r.pattern
-                        );
-                    }
-                }
-            }
+        for r in &t.rules {
+            r.check_limits(&format!("{label}: rule \"{}\"", r.pattern))?;
+        }
+        if let Some(d) = &t.default {
+            d.check_limits(&format!("{label}: [default]"))?;
         }
         Ok(t)
     }
@@ -235,6 +261,15 @@ impl Tolerances {
             .iter()
             .find(|r| glob_match(&r.pattern, name))
             .or(self.default.as_ref())
+    }
+
+    /// How a report names rule `r` of this file: its pattern, or `[default]`.
+    fn rule_name(&self, r: &Rule) -> String {
+        if self.default.as_ref().is_some_and(|d| std::ptr::eq(d, r)) {
+            "[default]".to_string()
+        } else {
+            r.pattern.clone()
+        }
     }
 }
 
@@ -401,9 +436,13 @@ pub fn unravel(mut flat: usize, shape: &[usize]) -> Vec<usize> {
 #[derive(Clone, Debug, Serialize, PartialEq)]
 pub struct Element {
     pub index: Vec<usize>,
+    #[serde(serialize_with = "json_f64")]
     pub a: f64,
+    #[serde(serialize_with = "json_f64")]
     pub b: f64,
+    #[serde(serialize_with = "json_f64")]
     pub abs: f64,
+    #[serde(serialize_with = "json_f64")]
     pub rel: f64,
     pub ulp: u64,
 }
@@ -413,12 +452,16 @@ pub struct Element {
 pub struct Stats {
     pub numel: usize,
     pub compare_in: CompareIn,
+    #[serde(serialize_with = "json_f64")]
     pub max_abs: f64,
+    #[serde(serialize_with = "json_f64")]
     pub max_rel: f64,
     pub max_ulp: u64,
     /// Largest finite |value| in either tensor.
+    #[serde(serialize_with = "json_f64")]
     pub peak: f64,
     /// `max_abs / peak` (0 when equal; ∞ if peak is 0 and the tensors differ).
+    #[serde(serialize_with = "json_f64")]
     pub max_rel_peak: f64,
     /// The element with the largest abs error (first one on ties).
     pub worst_abs: Option<Element>,
@@ -483,6 +526,7 @@ pub struct Report {
     /// Kink pixels the files report (`kink.pixels`; the larger count if both do), with the
     /// threshold that made them; `None` if neither file has kink tensors.
     pub kink_pixels: Option<usize>,
+    #[serde(serialize_with = "json_opt_f64")]
     pub kink_threshold: Option<f64>,
     /// Whether `kink.slack.*` widened the limits (module doc).
     pub kink_slack: bool,
@@ -870,10 +914,13 @@ pub fn compare(a: &TensorFile, b: &TensorFile, tol: &Tolerances) -> Report {
                 } else {
                     "A"
                 };
-                report.missing_required.push(format!(
-                    "{name}: required by rule \"{}\" but missing from {which}",
-                    r.pattern
-                ));
+                let by = match tol.rule_name(r) {
+                    d if d == "[default]" => d,
+                    p => format!("rule \"{p}\""),
+                };
+                report
+                    .missing_required
+                    .push(format!("{name}: required by {by} but missing from {which}"));
             }
         }
     }
@@ -897,8 +944,6 @@ pub fn compare(a: &TensorFile, b: &TensorFile, tol: &Tolerances) -> Report {
             continue;
         }
         let rule = tol.rule_for(name);
-        let is_default = rule.is_some()
-            && tol.default.as_ref().map(|d| d as *const Rule) == rule.map(|r| r as *const Rule);
         let mut tr = TensorReport {
             name: name.clone(),
             dtype_a: ta.dtype.name().into(),
@@ -906,13 +951,7 @@ pub fn compare(a: &TensorFile, b: &TensorFile, tol: &Tolerances) -> Report {
             shape_a: ta.shape.clone(),
             shape_b: tb.shape.clone(),
             status: Status::Pass,
-            rule: rule.map(|r| {
-                if is_default {
-                    "[default]".to_string()
-                } else {
-                    r.pattern.clone()
-                }
-            }),
+            rule: rule.map(|r| tol.rule_name(r)),
             limits: rule.filter(|r| !r.ignore).map(Rule::describe_limits),
             reason: rule.and_then(|r| r.reason.clone()),
             stats: None,
@@ -989,6 +1028,13 @@ fn kink_slack(
 ) -> Option<Vec<f64>> {
     let key = format!("kink.slack.{name}");
     let t = a.tensors.get(&key)?;
+    if !matches!(t.dtype, DType::F32 | DType::F64) {
+        problems.push(format!(
+            "{key} in A: dtype {}, expected F32 or F64 (a slack is a float)",
+            t.dtype.name()
+        ));
+        return None;
+    }
     match t.to_f64() {
         Ok(v) if v.len() == numel => {
             if let Some(i) = v.iter().position(|x| !(x.is_finite() && *x >= 0.0)) {
@@ -1018,9 +1064,32 @@ pub fn compare_files(a: impl AsRef<Path>, b: impl AsRef<Path>, tol: &Tolerances)
     Ok(compare(&fa, &fb, tol))
 }
 
-/// JSON form of a report (∞ becomes `null`).
+/// JSON form of a report. JSON has no NaN or infinity: those values are written as the strings
+/// `"NaN"`, `"inf"` and `"-inf"` (Python's `float()` reads them back), every other float as a
+/// number; a ULP distance that is infinite is `u64::MAX` (18446744073709551615).
 pub fn report_json(r: &Report) -> Result<String> {
     Ok(serde_json::to_string_pretty(r)?)
+}
+
+/// A float in a JSON report: a number, or `"NaN"` / `"inf"` / `"-inf"` ([`report_json`]).
+fn json_f64<S: serde::Serializer>(x: &f64, s: S) -> std::result::Result<S::Ok, S::Error> {
+    if x.is_nan() {
+        s.serialize_str("NaN")
+    } else if x.is_infinite() {
+        s.serialize_str(if *x > 0.0 { "inf" } else { "-inf" })
+    } else {
+        s.serialize_f64(*x)
+    }
+}
+
+fn json_opt_f64<S: serde::Serializer>(
+    x: &Option<f64>,
+    s: S,
+) -> std::result::Result<S::Ok, S::Error> {
+    match x {
+        Some(x) => json_f64(x, s),
+        None => s.serialize_none(),
+    }
 }
 
 #[cfg(test)]

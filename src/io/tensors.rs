@@ -247,6 +247,82 @@ impl Tensor {
     }
 }
 
+/// What is wrong with `bytes`, in words, for the `safetensors` crate's error `e` (its names, such
+/// as `MetadataIncompleteBuffer`, say nothing to a user).
+fn explain(e: &safetensors::SafeTensorError, bytes: &[u8]) -> String {
+    use safetensors::SafeTensorError as E;
+    let len = bytes.len();
+    let header = bytes
+        .get(..8)
+        .map(|b| u64::from_le_bytes(b.try_into().unwrap()));
+    let too_long = |n: u64| {
+        format!(
+            "its first 8 bytes give a header length of {n} bytes, larger than the file ({len} bytes)"
+        )
+    };
+    match e {
+        E::HeaderTooSmall => format!(
+            "the file is {len} bytes long, too short for the 8-byte header length a safetensors file starts with"
+        ),
+        E::HeaderTooLarge | E::InvalidHeaderLength => match header {
+            // Text or another format: its first bytes read as an absurd length.
+            Some(n) if n > len as u64 - 8 && n > 100_000_000 => too_long(n),
+            Some(n) if n > len as u64 - 8 => format!("truncated header: {}", too_long(n)),
+            Some(n) => format!(
+                "its first 8 bytes give a header length of {n} bytes, more than the 100 MB safetensors allows"
+            ),
+            None => e.to_string(),
+        },
+        E::InvalidHeader(u) => format!("its header is not UTF-8 text ({u})"),
+        E::InvalidHeaderStart => "its header does not start with `{`".to_string(),
+        E::InvalidHeaderDeserialization(j) | E::JsonError(j) => {
+            format!("its header is not a safetensors JSON header: {j}")
+        }
+        E::MetadataIncompleteBuffer => {
+            let n = header.unwrap_or(0);
+            let data = len as u64 - 8 - n;
+            match declared_data_bytes(bytes, n) {
+                Some(d) if d > data => format!(
+                    "truncated: its header declares {d} bytes of tensor data, but only {data} bytes follow the header"
+                ),
+                Some(d) => format!(
+                    "{} bytes of extra data after the {d} bytes of tensor data its header declares",
+                    data - d
+                ),
+                None => "the tensor data does not match the size its header declares".to_string(),
+            }
+        }
+        E::InvalidOffset(name) => format!(
+            "tensor {name}: its data_offsets do not start where the previous tensor's data ends (they must cover the data in order, without gaps)"
+        ),
+        E::TensorInvalidInfo => {
+            "a tensor's data_offsets do not span its shape times its dtype's size".to_string()
+        }
+        E::ValidationOverflow => {
+            "a tensor's shape has more elements than can be addressed (overflow)".to_string()
+        }
+        E::TensorNotFound(name) => format!("no tensor {name}"),
+        E::InvalidTensorView(d, shape, n) => {
+            format!("a {d} tensor of shape {shape:?} cannot hold {n} bytes")
+        }
+        E::MisalignedSlice => "a tensor does not end on a byte boundary".to_string(),
+        E::IoError(io) => io.to_string(),
+    }
+}
+
+/// The bytes of tensor data the JSON header of `bytes` (of length `n`) declares: the largest
+/// end offset.
+fn declared_data_bytes(bytes: &[u8], n: u64) -> Option<u64> {
+    let text = std::str::from_utf8(bytes.get(8..8 + n as usize)?).ok()?;
+    let v: serde_json::Value = serde_json::from_str(text).ok()?;
+    v.as_object()?
+        .iter()
+        .filter(|(k, _)| *k != "__metadata__")
+        .filter_map(|(_, t)| t.get("data_offsets")?.get(1)?.as_u64())
+        .max()
+        .or(Some(0))
+}
+
 /// A safetensors file in memory: string metadata (`__metadata__`) and named tensors.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct TensorFile {
@@ -314,10 +390,14 @@ impl TensorFile {
         label: &str,
         keep: impl Fn(&str) -> bool,
     ) -> Result<TensorFile> {
-        let (_, meta) = safetensors::SafeTensors::read_metadata(bytes)
-            .map_err(|e| anyhow!("{label}: not a valid safetensors file: {e:?}"))?;
-        let st = safetensors::SafeTensors::deserialize(bytes)
-            .map_err(|e| anyhow!("{label}: not a valid safetensors file: {e:?}"))?;
+        let invalid = |e| {
+            anyhow!(
+                "{label}: not a valid safetensors file: {}",
+                explain(&e, bytes)
+            )
+        };
+        let (_, meta) = safetensors::SafeTensors::read_metadata(bytes).map_err(invalid)?;
+        let st = safetensors::SafeTensors::deserialize(bytes).map_err(invalid)?;
         let metadata: BTreeMap<String, String> = meta
             .metadata()
             .as_ref()

@@ -221,15 +221,15 @@ impl Checkpoint {
         let cfg: ModelConfig = toml::from_str(file.meta("config")?).with_context(|| {
             format!("{label}: header metadata \"config\" is not a model config")
         })?;
-        let normalization: Normalization = serde_json::from_str(file.meta("normalization")?)
-            .with_context(|| {
-                format!("{label}: header metadata \"normalization\" is not {{\"center\":[x,y,z],\"extent\":[x,y,z]}}")
-            })?;
+        let norm_text = file.meta("normalization")?;
+        let normalization: Normalization = serde_json::from_str(norm_text).with_context(|| {
+            format!("{label}: header metadata \"normalization\" is not {{\"center\":[x,y,z],\"extent\":[x,y,z]}}")
+        })?;
+        let [c, e] = [normalization.center, normalization.extent];
         ensure!(
-            normalization.center.is_finite()
-                && normalization.extent.is_finite()
-                && normalization.extent.min_element() > 0.0,
-            "{label}: normalization {normalization:?} must be finite with positive extents"
+            c.is_finite() && e.is_finite() && e.min_element() > 0.0,
+            "{label}: normalization (header metadata) has center [{}, {}, {}] and extent [{}, {}, {}]: every value must be finite and every extent > 0",
+            c.x, c.y, c.z, e.x, e.y, e.z
         );
         let model = if cfg.featurization.is_hash() {
             let grid_h = grid_from(file, "grid_h", &cfg.grid_h).with_context(|| label.clone())?;

@@ -12,6 +12,7 @@ use crate::eval::plot::{pareto_front, pareto_png, Curve};
 use crate::eval::protocol::{mean_score, scale_summary, score_rendered};
 use crate::model::params::Grads;
 use crate::train::config::RunConfig;
+use crate::train::memory::Job;
 use crate::train::sampler::sample_batch;
 use crate::train::setup::{prepare_until, resolve_levels, StoppedInSetup};
 use crate::train::trainer::{evaluate_until, TrainState};
@@ -193,7 +194,7 @@ fn bench_one(
         });
         return Ok(true);
     };
-    let prepared = match prepare_until(scene, &cfg, true, &mut |_| {}, stop) {
+    let prepared = match prepare_until(scene, &cfg, true, &mut |_| {}, stop, Job::Train) {
         Err(e) if e.downcast_ref::<StoppedInSetup>().is_some() => return Ok(false),
         r => r?,
     };

@@ -23,7 +23,7 @@
 use crate::model::hfm::Hfm;
 use crate::train::config::RunConfig;
 use crate::train::sampler::SampleMode;
-use anyhow::{bail, Result};
+use anyhow::Result;
 
 /// Step scratch per sub-sample of a batch. Measured: peak RSS of `xscale train --preset cpu` on the
 /// `small` scene at batch 4,096 and 65,536 pixels (γ = 2), difference / (61,440 · 4) ≈ 1.1 kB,
@@ -44,7 +44,10 @@ pub struct Estimate {
 
 impl Estimate {
     pub fn total(&self) -> u64 {
-        self.samples + self.model + self.photo + self.step + self.base
+        // Saturating: a batch size near usize::MAX must read as too large, not wrap.
+        [self.samples, self.model, self.photo, self.step, self.base]
+            .into_iter()
+            .fold(0, u64::saturating_add)
     }
 }
 
@@ -224,6 +227,30 @@ fn size(b: u64) -> String {
     }
 }
 
+/// What the memory check sizes: a training run, or the one batch `xscale batch` writes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Job {
+    /// Training (and `init`): the model with Adam, and steps of `train.batch_pixels` pixels.
+    Train,
+    /// `xscale batch --size PIXELS`: the samples and one batch of `PIXELS` pixels as tensors,
+    /// [`BATCH_BYTES_PER_SAMPLE`] per sub-sample plus [`BATCH_BYTES_PER_PIXEL`]; no model.
+    Batch { pixels: usize },
+}
+
+/// `xscale batch`: bytes per sub-sample of the batch it writes (position f64 ×3, valid flag) and
+/// per pixel (direction, target, view, footprint, the drawn pixel's index), each held about three
+/// times: the batch, its tensors, the written bytes. Measured: peak RSS of `xscale batch --preset
+/// tiny` on `fixtures/tiny` (γ = 2) at 1 M and 4 M pixels, 388 MB and 1,513 MB: 384 bytes per
+/// pixel (the file holds 132), against 4 · 80 + 112 = 432 here.
+pub const BATCH_BYTES_PER_SAMPLE: u64 = 80;
+pub const BATCH_BYTES_PER_PIXEL: u64 = 112;
+
+/// `xscale dump`: bytes per sub-sample and feature (grid H's `L·F`, plus, with the deformation,
+/// grid D's `L·F`, ξ's hidden width and its output `L·F`) at f64 (half that at f32), and per
+/// pixel: forward activations, gradients and the dump's tensors. Measured: see [`check_dump`].
+pub const DUMP_BYTES_PER_SAMPLE_FEATURE: u64 = 40;
+pub const DUMP_BYTES_PER_PIXEL: u64 = 2048;
+
 /// Fail, before anything large is allocated, when the estimate exceeds the budget:
 /// `train.memory_gb` when > 0, else the available memory (when the system reports it).
 /// Returns the sample source the run is to use and why ([`resolve_samples`], decided against
@@ -233,16 +260,42 @@ pub fn check_budget(
     sizes: &[(u32, u32)],
     downsample: u32,
 ) -> Result<(SampleMode, String)> {
+    check_job(cfg, sizes, downsample, Job::Train)
+}
+
+/// [`check_budget`] for `job`.
+pub fn check_job(
+    cfg: &RunConfig,
+    sizes: &[(u32, u32)],
+    downsample: u32,
+    job: Job,
+) -> Result<(SampleMode, String)> {
     let budget = budget(cfg);
     let (mode, why) = resolve_within(cfg, sizes, downsample, budget.as_ref().map(|(b, _)| *b));
-    let e = estimate_for(cfg, mode, sizes, downsample)?;
-    let Some((budget, what)) = budget else {
+    let mut e = estimate_for(cfg, mode, sizes, downsample)?;
+    let g2 = cfg.model.gamma * cfg.model.gamma;
+    let (what, pixels, flag, per_pixel) = match job {
+        Job::Train => (
+            "this run",
+            cfg.train.batch_pixels,
+            "--batch",
+            g2 as u64 * STEP_BYTES_PER_SAMPLE,
+        ),
+        Job::Batch { pixels } => {
+            let per_pixel = g2 as u64 * BATCH_BYTES_PER_SAMPLE + BATCH_BYTES_PER_PIXEL;
+            e.model = 0;
+            e.photo = 0;
+            e.step = (pixels as u64).saturating_mul(per_pixel);
+            ("this batch", pixels, "--size", per_pixel)
+        }
+    };
+    let Some((budget, budget_words)) = budget.or_else(|| beyond_addressing(&e)) else {
         return Ok((mode, why));
     };
     if e.total() <= budget {
         return Ok((mode, why));
     }
-    let pixels: u64 = sizes.iter().map(|&(w, h)| w as u64 * h as u64).sum();
+    let pixels_in_views: u64 = sizes.iter().map(|&(w, h)| w as u64 * h as u64).sum();
     let mut hints = Vec::new();
     if e.samples > budget / 3 {
         if mode == SampleMode::Cache {
@@ -257,10 +310,13 @@ pub fn check_budget(
         hints.push("hold out or remove views (scene.toml test_views / holdout_every)".into());
     }
     if e.step > budget / 3 {
-        hints.push(format!(
-            "a smaller batch (--batch {})",
-            (cfg.train.batch_pixels / 4).max(1)
-        ));
+        let mut smaller = pixels / 4;
+        if let Job::Batch { .. } = job {
+            // A quarter of an absurd size is still absurd: at most what fits.
+            let room = budget.saturating_sub(e.total().saturating_sub(e.step));
+            smaller = smaller.min((room / per_pixel.max(1)) as usize);
+        }
+        hints.push(format!("a smaller batch ({flag} {})", smaller.max(1)));
     }
     if e.model > budget / 3 {
         hints.push("a smaller hash table ([model.grid_h] log2_table_size)".into());
@@ -273,26 +329,121 @@ pub fn check_budget(
             lo.max(1)
         ));
     }
-    bail!(
-        "this run needs about {:.2} GB but {what} is {:.2} GB: {} training views ({:.1} Mpixels) take {:.2} GB as {}, the model and Adam {:.2} GB,{} a step of {} pixels × γ²={} {:.2} GB, fixed {:.2} GB. To fit: {}",
-        gb(e.total()),
-        gb(budget),
+    let mut parts = vec![format!(
+        "{} training views ({:.1} Mpixels) take {:.2} GB as {}",
         sizes.len(),
-        pixels as f64 / 1e6,
+        pixels_in_views as f64 / 1e6,
         gb(e.samples),
         match mode {
             SampleMode::Cache => "the sample cache",
             _ => "hit maps + photos",
-        },
-        gb(e.model),
-        if e.photo > 0 {
-            format!(" the photo-consistency term's image levels {:.2} GB,", gb(e.photo))
+        }
+    )];
+    if job == Job::Train {
+        parts.push(format!("the model and Adam {:.2} GB", gb(e.model)));
+    }
+    if e.photo > 0 {
+        parts.push(format!(
+            "the photo-consistency term's image levels {:.2} GB",
+            gb(e.photo)
+        ));
+    }
+    parts.push(format!(
+        "{} of {pixels} pixels × γ²={g2} {:.2} GB",
+        if job == Job::Train {
+            "a step"
         } else {
-            String::new()
+            "a batch"
         },
-        cfg.train.batch_pixels,
-        cfg.model.gamma * cfg.model.gamma,
-        gb(e.step),
+        gb(e.step)
+    ));
+    Err(refusal(what, &e, budget, &budget_words, parts, hints))
+}
+
+/// `xscale dump`: fail before evaluating when a dump of `pixels` pixels × `samples` sub-samples
+/// of a model of `params` parameters and `features` values per sub-sample
+/// ([`DUMP_BYTES_PER_SAMPLE_FEATURE`]) in f64 (`f64_dump`, else f32) cannot fit in the available
+/// memory: [`DUMP_BYTES_PER_SAMPLE_FEATURE`] per sub-sample and feature (half in f32),
+/// [`DUMP_BYTES_PER_PIXEL`] per pixel, the model 24 bytes per parameter. Measured: peak RSS of
+/// `xscale dump` on `xscale batch --preset cpu` batches of `fixtures/tiny` (γ = 2) of 20,000 and
+/// 100,000 pixels; per pixel, f64 with the kink analysis: golden `cpu-t10` (112 features)
+/// 15.1 KB, `tiny-f64-linear` (28 features) 5.2 KB, i.e. 30 bytes per sub-sample and feature
+/// plus 1.8 KB; f32 `cpu-t10` 8.0 KB. The constants (40 and 2,048) err on the high side:
+/// 20.0 KB and 6.5 KB per pixel for those two models.
+pub fn check_dump(
+    pixels: usize,
+    samples: usize,
+    features: usize,
+    params: usize,
+    f64_dump: bool,
+) -> Result<()> {
+    let per_feature = if f64_dump {
+        DUMP_BYTES_PER_SAMPLE_FEATURE
+    } else {
+        DUMP_BYTES_PER_SAMPLE_FEATURE / 2
+    };
+    let per_pixel = (samples as u64)
+        .saturating_mul(features as u64)
+        .saturating_mul(per_feature)
+        .saturating_add(DUMP_BYTES_PER_PIXEL);
+    let e = Estimate {
+        samples: 0,
+        model: 24 * params as u64,
+        photo: 0,
+        step: (pixels as u64).saturating_mul(per_pixel),
+        base: BASE_BYTES,
+    };
+    let available = available_bytes().map(|a| (a, "the memory available on this machine".into()));
+    let Some((budget, budget_words)) = available.or_else(|| beyond_addressing(&e)) else {
+        return Ok(());
+    };
+    if e.total() <= budget {
+        return Ok(());
+    }
+    let parts = vec![
+        format!("the model {:.2} GB", gb(e.model)),
+        format!(
+            "a batch of {pixels} pixels × {samples} sub-samples {:.2} GB",
+            gb(e.step)
+        ),
+    ];
+    let room = budget.saturating_sub(e.total().saturating_sub(e.step));
+    let hints = vec![format!(
+        "a smaller batch (xscale batch --size {})",
+        (pixels / 4).min((room / per_pixel.max(1)) as usize).max(1)
+    )];
+    Err(refusal(
+        "this dump",
+        &e,
+        budget,
+        &budget_words,
+        parts,
+        hints,
+    ))
+}
+
+/// Without a reading of the memory: a budget only an estimate beyond what a process can address
+/// exceeds (so a batch size near `usize::MAX` is still refused, not a capacity overflow).
+fn beyond_addressing(e: &Estimate) -> Option<(u64, String)> {
+    let max = isize::MAX as u64;
+    (e.total() > max).then(|| (max, "the most a process can address".to_string()))
+}
+
+/// The error of a job (`what`: "this run") whose estimate `e` exceeds `budget` (named by
+/// `budget_words`): its parts, the fixed overhead, and what to change (`hints`).
+fn refusal(
+    what: &str,
+    e: &Estimate,
+    budget: u64,
+    budget_words: &str,
+    parts: Vec<String>,
+    hints: Vec<String>,
+) -> anyhow::Error {
+    anyhow::anyhow!(
+        "{what} needs about {:.2} GB but {budget_words} is {:.2} GB: {}, fixed {:.2} GB. To fit: {}",
+        gb(e.total()),
+        gb(budget),
+        parts.join(", "),
         gb(e.base),
         if hints.is_empty() {
             "raise train.memory_gb".to_string()

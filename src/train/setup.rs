@@ -53,7 +53,7 @@ pub fn prepare(
     with_images: bool,
     log: &mut dyn FnMut(String),
 ) -> Result<Prepared> {
-    prepare_until(dir, cfg, with_images, log, &|| false)
+    prepare_until(dir, cfg, with_images, log, &|| false, memory::Job::Train)
 }
 
 /// The error [`prepare_until`] returns when `stop()` said so (Ctrl-C, SIGTERM) before it was
@@ -72,13 +72,16 @@ impl std::error::Error for StoppedInSetup {}
 
 /// [`prepare`], giving up with [`StoppedInSetup`] between views once `stop()` says so: casting
 /// a large scene's views takes seconds to minutes (`synth --preset large`: 12 s), which a
-/// Ctrl-C used to sit through before training one step and writing a checkpoint of it.
+/// Ctrl-C used to sit through before training one step and writing a checkpoint of it. The
+/// memory check is made for `job` (`xscale batch` sizes its one batch, not training steps:
+/// [`memory::check_job`]).
 pub fn prepare_until(
     dir: &Path,
     cfg: &RunConfig,
     with_images: bool,
     log: &mut dyn FnMut(String),
     stop: &dyn Fn() -> bool,
+    job: memory::Job,
 ) -> Result<Prepared> {
     let opts = LoadOptions {
         downsample: cfg.train.downsample,
@@ -139,7 +142,7 @@ pub fn prepare_until(
         .iter()
         .map(|&i| (scene.views[i].camera.width, scene.views[i].camera.height))
         .collect();
-    let (mode, why) = memory::check_budget(cfg, &sizes, scene.downsample)?;
+    let (mode, why) = memory::check_job(cfg, &sizes, scene.downsample, job)?;
     let t0 = std::time::Instant::now();
     let gamma = cfg.model.gamma;
     // The vertex featurization needs each sub-sample's triangle and barycentrics, the mesh

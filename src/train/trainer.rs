@@ -23,6 +23,7 @@ use crate::model::params::{Grads, Group};
 use crate::train::adam::AdamState;
 use crate::train::config::{differences_but_steps, RunConfig};
 use crate::train::divergence::Guard;
+use crate::train::memory::Job;
 use crate::train::report::Reporter;
 use crate::train::run_dir::{
     prepare_run_dir, remove_run, RunLock, SceneFingerprint, SETTINGS_FILE,
@@ -566,9 +567,15 @@ fn open_run(
         None
     };
     let run_cfg = resumed.as_ref().map_or(cfg, |s| s.cfg.clone());
-    let prepared = prepare_until(scene_dir, &run_cfg, true, &mut |m| say(m), &|| {
-        opts.stopped()
-    })?;
+    let stop = || opts.stopped();
+    let prepared = prepare_until(
+        scene_dir,
+        &run_cfg,
+        true,
+        &mut |m| say(m),
+        &stop,
+        Job::Train,
+    )?;
     let fingerprint = SceneFingerprint::of(scene_dir, &prepared.scene);
     if resumed.is_some() {
         if let Some(stored) = SceneFingerprint::read(run_dir)? {

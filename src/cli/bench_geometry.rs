@@ -93,7 +93,7 @@ fn synth_scene(preset: Preset, seed: u64, dir: &Path, say: &mut dyn FnMut(String
         preset.name(),
         dir.display()
     ));
-    super::synth::generate(preset, seed, dir, true, &mut |_, _| {})?;
+    super::synth::generate(preset, seed, dir, true, &mut |_, _| Ok(()))?;
     Ok(())
 }
 

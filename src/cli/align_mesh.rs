@@ -29,14 +29,7 @@ pub struct Args {
 }
 
 pub fn run(a: Args) -> Result<ExitCode> {
-    if let (Ok(o), Ok(i)) = (a.out.canonicalize(), a.input.canonicalize()) {
-        if o == i {
-            bail!(
-                "{}: --out is the input mesh; write the aligned one to another file",
-                a.out.display()
-            );
-        }
-    }
+    crate::io::atomic::refuse_input_as_output(&a.out, "--out", &a.input, "the input mesh (--in)")?;
     let ext = a
         .out
         .extension()

@@ -119,5 +119,32 @@ fn render_scale_writes_the_larger_frame() {
         );
         assert!(err.contains("--scale") || err.contains("scale"), "{err}");
     }
+    // Outputs that are inputs are refused before anything is written (`render --out
+    // SCENE/images` replaced the photos by renders; `eval --json` could replace the checkpoint).
+    let scene = dir.join("scene");
+    let cp = std::process::Command::new("cp")
+        .args(["-r", root.to_str().unwrap(), scene.to_str().unwrap()])
+        .status()
+        .unwrap();
+    assert!(cp.success());
+    let photo = scene.join("images/0000.png");
+    let before = std::fs::read(&photo).unwrap();
+    let (s, images) = (scene.to_str().unwrap(), scene.join("images"));
+    let o = images.to_str().unwrap();
+    for cmd in ["render", "eval"] {
+        let (code, err) = xs(&[cmd, "--run", r, "--scene", s, "--out", o, "--views", "0"]);
+        assert_eq!(code, Some(2), "{cmd}: {err}");
+        assert!(
+            err.contains("--out is the photo of view 0000.png"),
+            "{cmd}: {err}"
+        );
+    }
+    assert_eq!(std::fs::read(&photo).unwrap(), before);
+    let ck = run.join("checkpoint.safetensors");
+    let ck_before = std::fs::read(&ck).unwrap();
+    let (code, err) = xs(&["eval", "--run", r, "--json", ck.to_str().unwrap()]);
+    assert_eq!(code, Some(2), "{err}");
+    assert!(err.contains("--json is the checkpoint"), "{err}");
+    assert_eq!(std::fs::read(&ck).unwrap(), ck_before);
     let _ = std::fs::remove_dir_all(&dir);
 }

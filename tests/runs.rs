@@ -665,18 +665,30 @@ fn usage_errors_and_runtime_errors_have_distinct_exit_codes() {
     // read as a perfect 0).
     let mesh = fixture().join("mesh.ply");
     let mesh = mesh.to_str().unwrap();
-    let (code, err) = xscale(&[
-        "mesh-distance",
-        "--mesh",
-        mesh,
-        "--truth",
-        mesh,
-        "--samples",
-        "0",
-    ]);
+    let distance = |n| {
+        xscale(&[
+            "mesh-distance",
+            "--mesh",
+            mesh,
+            "--truth",
+            mesh,
+            "--samples",
+            n,
+        ])
+    };
+    let (code, err) = distance("0");
     assert_eq!(code, 64, "{err}");
     assert!(
         err.contains("--samples") && err.contains("at least 1"),
+        "{err}"
+    );
+    // More samples than memory holds: refused with the estimate before allocating (it used to
+    // abort: `memory allocation of … bytes failed`, exit 134).
+    let (code, err) = distance("100000000000");
+    assert_eq!(code, 2, "{err}");
+    assert!(
+        err.contains("--samples 100000000000 would take about 3200.00 GB")
+            && err.contains("use fewer --samples"),
         "{err}"
     );
     // A missing scene: a runtime error, exit 2, naming it.
@@ -1002,6 +1014,63 @@ fn zero_frames_or_batch_is_a_usage_error() {
         err.contains("--size") && err.contains("at least 1"),
         "{err}"
     );
+    assert!(!out.exists(), "nothing written");
+}
+
+/// A value a flag does not take is a usage error (exit 64) before anything is read, for every
+/// flag whose value alone decides (they used to exit 2, some only after loading the scene); the
+/// message names the flag. Values that need the scene to judge stay run-time errors (exit 2).
+#[test]
+fn flag_values_a_flag_does_not_take_are_usage_errors() {
+    let out = tmp("flag-values");
+    let o = out.to_str().unwrap();
+    let (scene, ck) = (fixture(), "/nonexistent/checkpoint.safetensors");
+    let scene = scene.to_str().unwrap();
+    let mesh = fixture().join("mesh.ply");
+    let m = mesh.to_str().unwrap();
+    let render = ["render", "--checkpoint", ck, "--scene", scene, "--out", o];
+    let ablate = ["ablate", "--scene", scene, "--out", o];
+    let bench_q = ["bench-quality", "--scene", scene, "--out", o];
+    let bench_g = ["bench-geometry", "--scene", scene, "--out", o];
+    let cases: Vec<(Vec<&str>, &str)> = vec![
+        (
+            vec!["decimate", "--in", m, "--out", o, "--ratio", "0"],
+            "--ratio",
+        ),
+        (
+            vec!["decimate", "--in", m, "--out", o, "--ratio", "1.5"],
+            "--ratio",
+        ),
+        (
+            vec!["decimate", "--in", m, "--out", o, "--ratio", "nan"],
+            "--ratio",
+        ),
+        (
+            vec!["subdivide", "--in", m, "--out", o, "--levels", "7"],
+            "--levels",
+        ),
+        ([&render[..], &["--gamma", "0"]].concat(), "--gamma"),
+        ([&render[..], &["--gamma", "9"]].concat(), "--gamma"),
+        (
+            [&render[..], &["--downsample", "0"]].concat(),
+            "--downsample",
+        ),
+        ([&render[..], &["--path", "0"]].concat(), "--path"),
+        ([&render[..], &["--scale", "0"]].concat(), "--scale"),
+        (vec!["cast", "--scene", scene, "--gamma", "5"], "--gamma"),
+        ([&bench_q[..], &["--minutes", "0"]].concat(), "--minutes"),
+        ([&bench_q[..], &["--configs", "foo"]].concat(), "--configs"),
+        ([&ablate[..], &["--ratio", "2"]].concat(), "--ratio"),
+        ([&ablate[..], &["--minutes=-1"]].concat(), "--minutes"),
+        ([&ablate[..], &["--subdivide", "7"]].concat(), "--subdivide"),
+        ([&bench_g[..], &["--decimate", "2"]].concat(), "--decimate"),
+        ([&bench_g[..], &["--rms=0.1,-1"]].concat(), "--rms"),
+    ];
+    for (args, flag) in cases {
+        let (code, err) = xscale(&args);
+        assert_eq!(code, 64, "{args:?}: {err}");
+        assert!(err.contains(flag), "{args:?}: {err}");
+    }
     assert!(!out.exists(), "nothing written");
 }
 

@@ -1,13 +1,17 @@
 //! Tests of `xscale synth` (src/synth/): determinism, cross-scale footprints, albedo octaves,
 //! proxy error, the committed fixture, and the three camera layouts agreeing.
 //!
-//! All tests are fast (the tiny preset renders in well under a second in release).
+//! All tests are fast (the tiny preset renders in well under a second in release), but the
+//! interrupt test's few seconds of `small`.
 
 use glam::DVec3;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use xscale::scene::{self, Camera};
 use xscale::synth::{self, cameras::ViewKind, Preset};
+
+#[path = "common/signal.rs"]
+mod signal;
 
 /// The seed of the committed `fixtures/tiny/` (see `fixtures/tiny/synth.toml`).
 const FIXTURE_SEED: u64 = 1;
@@ -647,5 +651,38 @@ fn synth_into_a_used_folder_is_refused_unless_the_same_scene_or_overwrite() {
     let (ok, err) = synth(&["--seed", "1", "--overwrite"]);
     assert!(ok, "{err}");
     assert!(dir.join("notes.txt").exists() && !dir.join("images/IMG_0001.jpg").exists());
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// `xscale synth` says how far it is at least every few seconds, and a signal stops it after the
+/// view being rendered, saying what the folder holds and that the same command finishes it, with
+/// exit status 3 (nothing a rerun continues from: it writes the scene again). It used to print
+/// nothing for `small` (40 views) and die on the signal without a word.
+#[test]
+fn synth_says_its_progress_and_what_a_signal_left() {
+    use std::io::BufRead;
+    let dir = temp_dir("cli-stop");
+    let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_xscale"))
+        .args(["synth", "--preset", "small", "--out", dir.to_str().unwrap()])
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut lines = std::io::BufReader::new(child.stderr.take().unwrap()).lines();
+    let first = lines.next().unwrap().unwrap();
+    assert!(
+        first.starts_with("rendered ") && first.contains(" of 40 views ("),
+        "{first}"
+    );
+    signal::terminate(&child);
+    let rest: Vec<String> = lines.map(|l| l.unwrap()).collect();
+    let status = child.wait().unwrap();
+    let err = rest.join("\n");
+    assert_eq!(status.code(), Some(3), "{err}");
+    assert!(
+        err.contains("interrupted: stopped after")
+            && err.contains("run the same command again to finish it"),
+        "{err}"
+    );
+    assert!(dir.join("synth.toml").exists() && !dir.join("transforms.json").exists());
     let _ = std::fs::remove_dir_all(&dir);
 }

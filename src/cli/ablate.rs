@@ -25,16 +25,16 @@ pub struct Args {
     pub run: RunArgs,
     /// Instead of --steps: pick the step count so the full model trains about this many minutes
     /// (from a 20-step timing probe); every variant then uses that step count.
-    #[arg(long, conflicts_with = "steps")]
+    #[arg(long, conflicts_with = "steps", value_parser = super::common::parse_positive_number)]
     pub minutes: Option<f64>,
     /// Comma-separated subset of the variants, run in table order (default: all).
     #[arg(long, value_enum, value_delimiter = ',', default_values_t = Variant::ALL)]
     pub variants: Vec<Variant>,
     /// Fraction of faces kept by the decimated-mesh variant.
-    #[arg(long, default_value_t = 0.1)]
+    #[arg(long, default_value_t = 0.1, value_parser = super::common::parse_fraction)]
     pub ratio: f64,
-    /// Subdivision levels of the vertex_subdiv variant (default: automatic).
-    #[arg(long)]
+    /// Subdivision levels of the vertex_subdiv variant, at most 6 (default: automatic).
+    #[arg(long, value_parser = super::common::parse_levels)]
     pub subdivide: Option<u32>,
     /// Keep the earlier ablation in OUT (its variants not run again stay in the table; a variant
     /// run again replaces its result, and one stopped by Ctrl-C continues from its checkpoint).

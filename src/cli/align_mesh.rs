@@ -29,7 +29,7 @@ pub struct Args {
 }
 
 pub fn run(a: Args) -> Result<ExitCode> {
-    crate::io::atomic::not_an_input(&a.out, "--out", &[("input mesh", "--in", &a.input)])?;
+    crate::io::atomic::not_an_input(&a.out, "--out", &[("the input mesh (--in)", &a.input)])?;
     let ext = a
         .out
         .extension()

@@ -31,10 +31,10 @@ pub struct Args {
     #[command(flatten)]
     pub run: RunArgs,
     /// RMS displacements of the proxies, in % of the bounding-box diagonal (0 = the exact mesh).
-    #[arg(long, value_delimiter = ',', num_args = 1.., default_values_t = [0.0, 0.1, 0.3, 1.0])]
+    #[arg(long, value_delimiter = ',', num_args = 1.., default_values_t = [0.0, 0.1, 0.3, 1.0], value_parser = super::common::parse_non_negative)]
     pub rms: Vec<f64>,
     /// Fraction of faces kept by the decimated proxy (0: no decimated proxy).
-    #[arg(long, default_value_t = 0.1)]
+    #[arg(long, default_value_t = 0.1, value_parser = super::common::parse_fraction_or_zero)]
     pub decimate: f64,
     /// ξ settings to train each proxy with.
     #[arg(long, value_delimiter = ',', num_args = 1.., default_values_t = [Switch::On, Switch::Off])]
@@ -93,7 +93,7 @@ fn synth_scene(preset: Preset, seed: u64, dir: &Path, say: &mut dyn FnMut(String
         preset.name(),
         dir.display()
     ));
-    super::synth::generate(preset, seed, dir, true, &mut |_, _| {})?;
+    super::synth::generate(preset, seed, dir, true, &mut |_, _| Ok(()))?;
     Ok(())
 }
 

@@ -15,10 +15,10 @@ pub struct Args {
     #[arg(long, required_unless_present = "list")]
     pub out: Option<PathBuf>,
     /// Training wall-clock budget per configuration, in minutes.
-    #[arg(long, default_value_t = 1.0)]
+    #[arg(long, default_value_t = 1.0, value_parser = super::common::parse_positive_number)]
     pub minutes: f64,
     /// Comma-separated configurations (default: all; see --list).
-    #[arg(long, value_delimiter = ',')]
+    #[arg(long, value_delimiter = ',', value_parser = config_names())]
     pub configs: Vec<String>,
     /// List the configurations and exit.
     #[arg(long)]
@@ -34,6 +34,11 @@ pub struct Args {
     /// Train nothing: redraw OUT/pareto.png from OUT/bench.csv (e.g. after merging runs).
     #[arg(long, conflicts_with_all = ["configs", "list"])]
     pub replot: bool,
+}
+
+/// `--configs` takes the names of [`CONFIGS`] and `ulr`.
+fn config_names() -> clap::builder::PossibleValuesParser {
+    clap::builder::PossibleValuesParser::new(CONFIGS.iter().map(|c| c.0).chain(["ulr"]))
 }
 
 pub fn run(a: Args) -> anyhow::Result<ExitCode> {

@@ -40,10 +40,10 @@ pub struct Args {
     #[arg(long)]
     pub scene: PathBuf,
     /// Multisampling factor γ: γ×γ rays per pixel (1..=4).
-    #[arg(long, default_value_t = 2)]
+    #[arg(long, default_value_t = 2, value_parser = super::common::parse_gamma)]
     pub gamma: u32,
     /// Integer image downsample factor.
-    #[arg(long, default_value_t = 1)]
+    #[arg(long, default_value_t = 1, value_parser = super::common::parse_downsample)]
     pub downsample: u32,
     /// Mesh file (default: found in the scene directory).
     #[arg(long)]

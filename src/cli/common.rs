@@ -84,7 +84,7 @@ pub struct ModelArgs {
     #[arg(long)]
     pub scene: Option<PathBuf>,
     /// Integer image downsample factor (default: the run's).
-    #[arg(long)]
+    #[arg(long, value_parser = parse_downsample)]
     pub downsample: Option<u32>,
     /// Mesh file instead of the scene's (default: the run's `train.mesh`, else the scene's own).
     #[arg(long)]
@@ -315,6 +315,37 @@ pub fn scene_for_model(
     })
 }
 
+/// An error when one of `outputs` (written under `flag`) is a file the command reads: a view's
+/// photo or mask file, or the checkpoint (`render --views all --out SCENE/images` used to replace
+/// the photos by renders). Checked before the work, so nothing is written.
+pub fn refuse_overwriting_inputs(
+    outputs: &[PathBuf],
+    flag: &str,
+    scene: &Scene,
+    checkpoint: Option<&Path>,
+) -> Result<()> {
+    // Only an output that exists can be an input: most are new, and cost one failed stat.
+    let existing: Vec<&PathBuf> = outputs.iter().filter(|o| o.exists()).collect();
+    if existing.is_empty() {
+        return Ok(());
+    }
+    let mut inputs: Vec<(&Path, String)> = Vec::new();
+    for (v, m) in scene.views.iter().zip(&scene.masks) {
+        inputs.push((&v.image_path, format!("the photo of view {}", v.name)));
+        if let crate::scene::mask::MaskSource::File(f) = m {
+            inputs.push((f, format!("the mask of view {}", v.name)));
+        }
+    }
+    if let Some(c) = checkpoint {
+        inputs.push((c, "the checkpoint".to_string()));
+    }
+    let inputs: Vec<(&str, &Path)> = inputs.iter().map(|(p, w)| (w.as_str(), *p)).collect();
+    for out in existing {
+        crate::io::atomic::not_an_input(out, flag, &inputs)?;
+    }
+    Ok(())
+}
+
 /// [`Scene::load`], printing the loader's warnings (a mesh in other units or another frame than
 /// the cameras, docs/spec.md §3.9) as `train` and `cast` do: `eval` and `render` would otherwise
 /// score or draw such a scene without a word.
@@ -375,10 +406,73 @@ pub fn select_views(scene: &Scene, spec: &str) -> Result<Vec<usize>> {
 
 /// A count that must be at least 1 (`--batch`, `--frames`, `--samples`): 0 is a usage error (exit 64).
 pub fn parse_positive(s: &str) -> std::result::Result<usize, String> {
-    match s.trim().parse::<usize>() {
-        Ok(0) => Err("must be at least 1".into()),
-        Ok(n) => Ok(n),
-        Err(e) => Err(format!("expected a whole number ≥ 1 ({e})")),
+    parse_whole_in(s, 1, usize::MAX as u64, "").map(|n| n as usize)
+}
+
+/// An integer downsample factor (`--downsample`): at least 1.
+pub fn parse_downsample(s: &str) -> std::result::Result<u32, String> {
+    parse_whole_in(s, 1, u32::MAX.into(), "").map(|n| n as u32)
+}
+
+/// A multisampling factor γ (`--gamma`: γ×γ rays per pixel), 1 to 4 as `model.gamma`.
+pub fn parse_gamma(s: &str) -> std::result::Result<u32, String> {
+    let max = crate::raycast::cast::MAX_GAMMA.into();
+    parse_whole_in(s, 1, max, " (γ×γ rays per pixel)").map(|n| n as u32)
+}
+
+/// Rounds of 1→4 subdivision (`subdivide --levels`, `ablate --subdivide`): at most 6.
+pub fn parse_levels(s: &str) -> std::result::Result<u32, String> {
+    parse_whole_in(s, 0, 6, " (× 4^levels faces: 6 is × 4096)").map(|n| n as u32)
+}
+
+/// A whole number in `lo..=hi` (`why` follows a range with an upper end in the error).
+fn parse_whole_in(s: &str, lo: u64, hi: u64, why: &str) -> std::result::Result<u64, String> {
+    let bounded = hi < u32::MAX.into();
+    match s.trim().parse::<u64>() {
+        Ok(n) if (lo..=hi).contains(&n) => Ok(n),
+        Ok(_) if bounded => Err(format!("must be {lo} to {hi}{why}")),
+        Ok(n) if n < lo => Err(format!("must be at least {lo}")),
+        Ok(_) => Err(format!("must be at most {hi}")),
+        Err(e) if bounded => Err(format!("expected a whole number from {lo} to {hi} ({e})")),
+        Err(e) => Err(format!("expected a whole number ≥ {lo} ({e})")),
+    }
+}
+
+/// A positive finite number (`--minutes`, `render --scale`).
+pub fn parse_positive_number(s: &str) -> std::result::Result<f64, String> {
+    parse_number(s, |x| x > 0.0 && x.is_finite(), "a positive number")
+}
+
+/// A number ≥ 0 (`bench-geometry --rms`).
+pub fn parse_non_negative(s: &str) -> std::result::Result<f64, String> {
+    parse_number(s, |x| x >= 0.0 && x.is_finite(), "a number ≥ 0")
+}
+
+/// A fraction of faces to keep, in (0, 1] (`decimate --ratio`, `ablate --ratio`).
+pub fn parse_fraction(s: &str) -> std::result::Result<f64, String> {
+    parse_number(s, |x| x > 0.0 && x <= 1.0, "a fraction in (0, 1]")
+}
+
+/// [`parse_fraction`] or 0 for none (`bench-geometry --decimate`).
+pub fn parse_fraction_or_zero(s: &str) -> std::result::Result<f64, String> {
+    parse_number(s, |x| (0.0..=1.0).contains(&x), "in [0, 1] (0: none)")
+}
+
+/// A number for which `ok` holds (NaN never does), else an error saying it must be `need`.
+fn parse_number(s: &str, ok: fn(f64) -> bool, need: &str) -> std::result::Result<f64, String> {
+    match s.trim().parse::<f64>() {
+        Ok(x) if ok(x) => Ok(x),
+        Ok(_) => Err(format!("must be {need}")),
+        Err(e) => Err(format!("expected {need} ({e})")),
+    }
+}
+
+/// `--path A,B`: two views (names or indices; whether the scene has them is checked once it is
+/// loaded).
+pub fn parse_view_pair(s: &str) -> std::result::Result<String, String> {
+    match s.split(',').map(str::trim).collect::<Vec<_>>()[..] {
+        [a, b] if !a.is_empty() && !b.is_empty() => Ok(s.to_string()),
+        _ => Err("expected two views A,B (names or indices)".into()),
     }
 }
 
@@ -444,7 +538,39 @@ pub fn on_interrupt(what: &'static str) -> &'static std::sync::atomic::AtomicBoo
 
 #[cfg(test)]
 mod tests {
-    use super::select_views;
+    use super::*;
+
+    /// The flag value parsers take what the flag takes and name what it needs otherwise.
+    #[test]
+    fn flag_value_parsers() {
+        assert_eq!(parse_positive("3"), Ok(3));
+        assert_eq!(parse_positive("0").unwrap_err(), "must be at least 1");
+        assert_eq!(parse_downsample("2"), Ok(2));
+        assert!(parse_downsample("0").is_err() && parse_downsample("5000000000").is_err());
+        assert_eq!(parse_gamma("4"), Ok(4));
+        assert_eq!(
+            parse_gamma("9").unwrap_err(),
+            "must be 1 to 4 (γ×γ rays per pixel)"
+        );
+        assert_eq!(parse_levels("0"), Ok(0));
+        assert!(parse_levels("7").unwrap_err().starts_with("must be 0 to 6"));
+        assert_eq!(parse_fraction("1"), Ok(1.0));
+        for bad in ["0", "1.5", "nan", "-0.1", "x"] {
+            assert!(parse_fraction(bad).is_err(), "{bad}");
+        }
+        assert_eq!(parse_fraction_or_zero("0"), Ok(0.0));
+        assert!(parse_fraction_or_zero("2").is_err());
+        assert_eq!(parse_non_negative("0"), Ok(0.0));
+        assert!(parse_non_negative("-1").is_err() && parse_non_negative("inf").is_err());
+        assert_eq!(parse_positive_number("0.5"), Ok(0.5));
+        for bad in ["0", "-2", "inf", "nan"] {
+            assert!(parse_positive_number(bad).is_err(), "{bad}");
+        }
+        assert_eq!(parse_view_pair("0, b.png").as_deref(), Ok("0, b.png"));
+        for bad in ["0", "0,", "a,b,c"] {
+            assert!(parse_view_pair(bad).is_err(), "{bad}");
+        }
+    }
     use crate::scene::{LoadOptions, Scene};
 
     /// Views are chosen by whole name, by file stem when one view has it, or by index; a stem

@@ -4,6 +4,7 @@
 //! (`.ply` binary double, `.obj`).
 
 use crate::scene::mesh::{decimate_report, load_mesh, subdivide, write_obj, write_ply};
+use crate::scene::remesh::subdivide_bytes;
 use crate::scene::Mesh;
 use anyhow::{bail, Result};
 use std::path::{Path, PathBuf};
@@ -15,7 +16,7 @@ pub struct Args {
     #[arg(long = "in")]
     pub input: PathBuf,
     /// Fraction of the faces to keep, in (0, 1].
-    #[arg(long)]
+    #[arg(long, value_parser = super::common::parse_fraction)]
     pub ratio: f64,
     /// Output mesh (.ply or .obj).
     #[arg(long)]
@@ -37,7 +38,7 @@ pub fn write_mesh(path: &Path, mesh: &Mesh) -> Result<()> {
 }
 
 pub fn run(a: Args) -> Result<ExitCode> {
-    crate::io::atomic::not_an_input(&a.out, "--out", &[("input mesh", "--in", &a.input)])?;
+    crate::io::atomic::not_an_input(&a.out, "--out", &[("the input mesh (--in)", &a.input)])?;
     let (mesh, _) = load_mesh(&a.input)?;
     let (out, r) = decimate_report(&mesh, a.ratio)?;
     write_mesh(&a.out, &out)?;
@@ -60,8 +61,8 @@ pub struct SubdivideArgs {
     /// Input mesh (PLY or OBJ).
     #[arg(long = "in")]
     pub input: PathBuf,
-    /// Rounds of 1→4 midpoint subdivision (faces × 4^N).
-    #[arg(long)]
+    /// Rounds of 1→4 midpoint subdivision (faces × 4^N; at most 6).
+    #[arg(long, value_parser = super::common::parse_levels)]
     pub levels: u32,
     /// Output mesh (.ply or .obj).
     #[arg(long)]
@@ -69,8 +70,17 @@ pub struct SubdivideArgs {
 }
 
 pub fn run_subdivide(a: SubdivideArgs) -> Result<ExitCode> {
-    crate::io::atomic::not_an_input(&a.out, "--out", &[("input mesh", "--in", &a.input)])?;
+    crate::io::atomic::not_an_input(&a.out, "--out", &[("the input mesh (--in)", &a.input)])?;
     let (mesh, _) = load_mesh(&a.input)?;
+    crate::train::memory::check_fits(
+        subdivide_bytes(&mesh, a.levels),
+        &format!(
+            "subdivide --levels {}: {} faces",
+            a.levels,
+            mesh.triangles.len() as u64 * 4u64.pow(a.levels)
+        ),
+        "use fewer --levels",
+    )?;
     let out = subdivide(&mesh, a.levels)?;
     write_mesh(&a.out, &out)?;
     println!(

@@ -55,8 +55,8 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         &args.out,
         "--out",
         &[
-            ("checkpoint", "--checkpoint", &args.checkpoint),
-            ("batch", "--batch", &args.batch),
+            ("the checkpoint (--checkpoint)", &args.checkpoint),
+            ("the batch (--batch)", &args.batch),
         ],
     )?;
     if args.kink_threshold.is_some() {

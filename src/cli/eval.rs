@@ -4,7 +4,8 @@
 
 use super::common::{select_views, ModelArgs};
 use crate::eval::protocol::{
-    evaluate_view, mean_score, scale_summary, scale_table, score_rendered, table, write_evaluated,
+    evaluate_view, mean_score, output_name, scale_summary, scale_table, score_rendered, table,
+    write_evaluated,
 };
 use crate::render::ulr::{render_ulr, training_sources, Source};
 use anyhow::{Context, Result};
@@ -61,6 +62,16 @@ pub fn run(a: Args) -> Result<ExitCode> {
         !views.is_empty(),
         "no views to evaluate (the scene has no held-out views; use --views)"
     );
+    // None of the files written may be one this command reads (a photo, a mask, the checkpoint).
+    let (ck_read, refuse) = (ck_path.as_deref(), super::common::refuse_overwriting_inputs);
+    if let Some(j) = &a.json {
+        refuse(std::slice::from_ref(j), "--json", &s.scene, ck_read)?;
+    }
+    if let Some(d) = &a.out {
+        let names = views.iter().map(|&i| &s.scene.views[i].name);
+        let pngs: Vec<PathBuf> = names.map(|n| d.join(output_name(n, "png"))).collect();
+        refuse(&pngs, "--out", &s.scene, ck_read)?;
+    }
     if let Some(d) = &a.out {
         std::fs::create_dir_all(d).with_context(|| format!("{}: cannot create", d.display()))?;
     }

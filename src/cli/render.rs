@@ -32,7 +32,7 @@ pub struct Args {
     #[arg(long, default_value = "test")]
     pub views: String,
     /// Render a camera path from view A to view B instead (names or indices).
-    #[arg(long)]
+    #[arg(long, value_parser = super::common::parse_view_pair)]
     pub path: Option<String>,
     /// Frames on the path (both ends included; at least 1).
     #[arg(long, default_value_t = 30, value_parser = super::common::parse_positive)]
@@ -44,13 +44,13 @@ pub struct Args {
     /// Image format: 8-bit PNG, or 32-bit float EXR (the same values, not quantised).
     #[arg(long, value_enum, default_value = "png")]
     pub format: Format,
-    /// Multisampling factor for rendering (default: the model's γ).
-    #[arg(long)]
+    /// Multisampling factor for rendering, 1 to 4 (default: the model's γ).
+    #[arg(long, value_parser = super::common::parse_gamma)]
     pub gamma: Option<u32>,
     /// Render at this multiple of each view's resolution (e.g. 4: a 1024×768 view as
     /// 4096×3072; the field of view is unchanged). Frames are cast and shaded in bands of rows,
     /// so large frames need no more memory than the image itself.
-    #[arg(long, default_value_t = 1.0)]
+    #[arg(long, default_value_t = 1.0, value_parser = super::common::parse_positive_number)]
     pub scale: f64,
     /// Also write NAME_mask.png (white where the rays hit the mesh).
     #[arg(long)]
@@ -67,23 +67,34 @@ pub struct Args {
     pub background: Option<[f32; 3]>,
 }
 
-/// Write `img` at `base` + `.png` / `.exr` (appended: a base such as `img.v2` keeps its dot).
-fn write(base: &Path, img: &Image, format: Format) -> Result<()> {
+/// `base` + `suffix` (appended: a base such as `img.v2` keeps its dot).
+fn suffixed(base: &Path, suffix: &str) -> PathBuf {
     let mut p = base.as_os_str().to_owned();
-    match format {
-        Format::Png => {
-            p.push(".png");
-            write_png8(Path::new(&p), img)
-        }
-        Format::Exr => {
-            p.push(".exr");
-            write_exr(Path::new(&p), img)
+    p.push(suffix);
+    PathBuf::from(p)
+}
+
+impl Format {
+    /// The file name suffix of a frame.
+    fn suffix(self) -> &'static str {
+        match self {
+            Format::Png => ".png",
+            Format::Exr => ".exr",
         }
     }
 }
 
+/// Write `img` at `base` + `.png` / `.exr`.
+fn write(base: &Path, img: &Image, format: Format) -> Result<()> {
+    let p = suffixed(base, format.suffix());
+    match format {
+        Format::Png => write_png8(&p, img),
+        Format::Exr => write_exr(&p, img),
+    }
+}
+
 pub fn run(a: Args) -> Result<ExitCode> {
-    let (_, ck, s) = a.model.load()?;
+    let (ck_path, ck, s) = a.model.load()?;
     let gamma = a.gamma.unwrap_or(ck.model.cfg.gamma);
     std::fs::create_dir_all(&a.out)
         .with_context(|| format!("{}: cannot create", a.out.display()))?;
@@ -122,9 +133,6 @@ pub fn run(a: Args) -> Result<ExitCode> {
             })
             .collect(),
     };
-    if !(a.scale > 0.0 && a.scale.is_finite()) {
-        bail!("--scale {}: expected a positive number", a.scale);
-    }
     let jobs: Vec<(PathBuf, Camera, i32)> = jobs
         .into_iter()
         .map(|(p, c, r)| (p, c.scaled(a.scale), r))
@@ -141,24 +149,32 @@ pub fn run(a: Args) -> Result<ExitCode> {
     // 32 bytes per pixel. Refuse a frame that cannot fit before allocating it (an allocation
     // failure aborts the process with no word about --scale).
     const FRAME_BYTES_PER_PIXEL: u64 = 32;
-    if let (Some((p, c, _)), Some(avail)) = (
-        jobs.iter()
-            .max_by_key(|(_, c, _)| c.width as u64 * c.height as u64),
-        crate::train::memory::available_bytes(),
-    ) {
-        let need = c.width as u64 * c.height as u64 * FRAME_BYTES_PER_PIXEL;
-        if need > avail {
-            bail!(
-                "--scale {}: {} would be {}×{} pixels, about {:.1} GB in memory, and {:.1} GB are available; use a smaller --scale",
+    if let Some((p, c, _)) = (jobs.iter()).max_by_key(|(_, c, _)| c.width as u64 * c.height as u64)
+    {
+        crate::train::memory::check_fits(
+            c.width as u64 * c.height as u64 * FRAME_BYTES_PER_PIXEL,
+            &format!(
+                "--scale {}: {}, {}×{} pixels,",
                 a.scale,
                 p.display(),
                 c.width,
-                c.height,
-                need as f64 / 1e9,
-                avail as f64 / 1e9
-            );
-        }
+                c.height
+            ),
+            "use a smaller --scale",
+        )?;
     }
+    // Every file this command will write, none of which may be one it reads.
+    let suffixes = [
+        Some(a.format.suffix()),
+        a.mask.then_some("_mask.png"),
+        a.footprint.then_some("_footprint.png"),
+    ];
+    let mut outputs: Vec<PathBuf> = Vec::new();
+    for (stem, _, _) in &jobs {
+        let base = a.out.join(stem);
+        outputs.extend(suffixes.iter().flatten().map(|x| suffixed(&base, x)));
+    }
+    super::common::refuse_overwriting_inputs(&outputs, "--out", &s.scene, Some(&ck_path))?;
     let sources: Vec<Source> = if a.method == Method::Ulr {
         training_sources(&s.scene)?
     } else {
@@ -177,21 +193,16 @@ pub fn run(a: Args) -> Result<ExitCode> {
             std::fs::create_dir_all(parent)
                 .with_context(|| format!("{}: cannot create", parent.display()))?;
         }
-        let with_suffix = |suffix: &str| {
-            let mut p = base.clone().into_os_string();
-            p.push(suffix);
-            PathBuf::from(p)
-        };
         write(&base, &r.image, a.format)?;
         if a.mask {
             write_png8(
-                &with_suffix("_mask.png"),
+                &suffixed(&base, "_mask.png"),
                 &mask_image(&r.hit, cam.width, cam.height),
             )?;
         }
         if a.footprint {
             write_png8(
-                &with_suffix("_footprint.png"),
+                &suffixed(&base, "_footprint.png"),
                 &footprint_image(&r.footprint, cam.width, cam.height),
             )?;
         }

@@ -29,13 +29,13 @@ pub struct Args {
 }
 
 /// Build, render and write scene (`preset`, `seed`) into `dir` (`truth.ply` too with
-/// `write_truth`); `progress(i, n)` after view i of n is written.
+/// `write_truth`); `progress(i, n)` after view i of n is written (an error from it stops there).
 pub fn generate(
     preset: Preset,
     seed: u64,
     dir: &std::path::Path,
     write_truth: bool,
-    progress: &mut dyn FnMut(usize, usize),
+    progress: &mut dyn FnMut(usize, usize) -> anyhow::Result<()>,
 ) -> anyhow::Result<synth::Summary> {
     let s = synth::build(preset, seed);
     let summary = s.summary();
@@ -109,20 +109,58 @@ fn check_out(args: &Args) -> anyhow::Result<()> {
     crate::train::run_dir::remove_listed(dir, &SYNTH_FILES)
 }
 
+/// Seconds between progress lines (the last view is always said).
+const PROGRESS_EVERY_S: f64 = 2.0;
+
+/// Views written when a signal stopped `xscale synth`, of how many.
+#[derive(Debug)]
+struct Stopped(usize, usize);
+
+impl std::fmt::Display for Stopped {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "stopped after {} of {} views", self.0, self.1)
+    }
+}
+
+impl std::error::Error for Stopped {}
+
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     check_out(&args)?;
+    let stop = super::common::on_interrupt("stopping after the view being rendered");
     let t0 = std::time::Instant::now();
-    let summary = generate(
+    let mut said = 0.0;
+    let generated = generate(
         args.preset,
         args.seed,
         &args.out,
         args.write_truth,
         &mut |i, n| {
-            if n > 40 && (i + 1) % 10 == 0 {
-                eprintln!("rendered {} of {n} views", i + 1);
+            let t = t0.elapsed().as_secs_f64();
+            if t - said >= PROGRESS_EVERY_S || i + 1 == n {
+                eprintln!("rendered {} of {n} views ({t:.1} s)", i + 1);
+                said = t;
             }
+            if stop.load(std::sync::atomic::Ordering::SeqCst) && i + 1 < n {
+                return Err(Stopped(i + 1, n).into());
+            }
+            Ok(())
         },
-    )?;
+    );
+    let summary = match generated {
+        Err(e) => match e.downcast_ref::<Stopped>() {
+            Some(s) => {
+                eprintln!(
+                    "interrupted: {s}; {} holds an unfinished scene (synth.toml, the meshes and {} of the {} images; the camera files come last): run the same command again to finish it (it writes the same scene, byte for byte)",
+                    args.out.display(),
+                    s.0,
+                    s.1
+                );
+                return Ok(ExitCode::from(super::common::EXIT_STOPPED_UNSAVED));
+            }
+            None => return Err(e),
+        },
+        Ok(s) => s,
+    };
     println!(
         "synth: preset {} seed {} → {} ({:.1} s)",
         args.preset.name(),

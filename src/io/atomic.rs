@@ -1,18 +1,77 @@
 //! Files that are whole or absent: written to a temp file next to the target, then renamed over it,
 //! so a crash, a kill or a full disk mid-write never leaves a truncated checkpoint, render or dump.
+//!
+//! What the user named is what gets written: a symlink is followed and the file it points to is
+//! replaced (the link stays a link); a FIFO, a character or block device or any other file that
+//! is not a regular file is written through directly (no temp file, no rename: renaming over it
+//! would replace the pipe or device by a regular file), and a failed write there is an error.
 
 use anyhow::{bail, Context, Result};
 use std::path::{Path, PathBuf};
 
+/// Where a write to a path lands.
+#[derive(Debug, PartialEq)]
+enum Target {
+    /// A regular file, or none yet: written to a temp file in its folder and renamed over it.
+    Replace(PathBuf),
+    /// A FIFO, a device, a socket: opened and written in place.
+    Through(PathBuf),
+}
+
+/// Where writing `path` lands: symlinks followed to the file they name (which need not exist
+/// yet), then [`Target::Replace`] for a regular file or nothing, [`Target::Through`] for anything
+/// else but a folder (an error).
+fn target(path: &Path) -> Result<Target> {
+    let mut p = path.to_path_buf();
+    // As the kernel's own limit on links followed in one lookup (ELOOP).
+    for _ in 0..40 {
+        let meta = match std::fs::symlink_metadata(&p) {
+            Ok(m) => m,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(Target::Replace(p)),
+            Err(e) => return Err(e).with_context(|| format!("{}: cannot write", path.display())),
+        };
+        let kind = meta.file_type();
+        if kind.is_symlink() {
+            let to = std::fs::read_link(&p)
+                .with_context(|| format!("{}: cannot read the link", p.display()))?;
+            p = match p.parent() {
+                Some(d) if to.is_relative() => d.join(to),
+                _ => to,
+            };
+        } else if kind.is_file() {
+            return Ok(Target::Replace(p));
+        } else if kind.is_dir() {
+            bail!("{}: is a folder, not a file", path.display());
+        } else {
+            return Ok(Target::Through(p));
+        }
+    }
+    bail!(
+        "{}: cannot write: too many levels of symbolic links",
+        path.display()
+    )
+}
+
 /// The folder a file `path` will be written into, if it exists (an error naming the user's
-/// path otherwise). Commands call it before their work, so a typo in an output path costs no
-/// computation; [`write_atomic`] calls it again.
+/// path otherwise); for a symlink, the folder of the file it points to. Commands call it before
+/// their work, so a typo in an output path costs no computation; [`write_atomic`] calls it again.
 pub fn writable_folder(path: &Path) -> Result<PathBuf> {
-    let dir = match path.parent() {
+    if path.file_name().is_none() {
+        bail!("{}: not a file path", path.display());
+    }
+    match target(path)? {
+        Target::Replace(p) => folder_of(path, &p),
+        Target::Through(p) => Ok(p.parent().map_or(PathBuf::from("."), Path::to_path_buf)),
+    }
+}
+
+/// The folder `file` (`path`, or the file its links point to) is in, which must exist.
+fn folder_of(path: &Path, file: &Path) -> Result<PathBuf> {
+    let dir = match file.parent() {
         Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
         _ => PathBuf::from("."),
     };
-    if path.file_name().is_none() {
+    if file.file_name().is_none() {
         bail!("{}: not a file path", path.display());
     }
     // Said here, naming the user's path: the temp file's "cannot create" would name only itself.
@@ -27,30 +86,34 @@ pub fn writable_folder(path: &Path) -> Result<PathBuf> {
 }
 
 /// Refuse an output path that is one of the command's inputs (the same file: by device and
-/// inode on Unix, so a hard link or another spelling of the path counts too): writing it would
-/// replace the input the command read. `inputs` are `(what, flag, path)`, e.g.
-/// `("checkpoint", "--checkpoint", path)`; `out_flag` names the output's flag.
-pub fn not_an_input(out: &Path, out_flag: &str, inputs: &[(&str, &str, &Path)]) -> Result<()> {
-    for (what, flag, input) in inputs {
+/// inode on Unix, so a link, a hard link or another spelling of the path counts too): writing it
+/// would replace the input the command read. Checked before the work, so nothing is written.
+/// `inputs` are `(what, path)`, `what` a phrase such as `the input mesh (--in)`; `out_flag` names
+/// the output's flag. (`decimate --in m.ply --out m.ply` and `dump --out` onto its checkpoint
+/// used to replace their input silently.)
+pub fn not_an_input(out: &Path, out_flag: &str, inputs: &[(&str, &Path)]) -> Result<()> {
+    for (what, input) in inputs {
         if same_file(out, input) {
             bail!(
-                "{}: {out_flag} is the {what} ({flag}, the same file): writing it would replace the command's own input; write to another file",
-                out.display()
+                "{}: {out_flag} is {what} (the same file as {}): writing it would replace the command's own input; write to another file",
+                out.display(),
+                input.display()
             );
         }
     }
     Ok(())
 }
 
-/// Whether `a` and `b` name one existing file.
-fn same_file(a: &Path, b: &Path) -> bool {
+/// Whether `a` and `b` name one existing file (through links, other spellings of the path, hard
+/// links).
+pub fn same_file(a: &Path, b: &Path) -> bool {
     let (Ok(ma), Ok(mb)) = (std::fs::metadata(a), std::fs::metadata(b)) else {
         return false;
     };
     #[cfg(unix)]
     {
         use std::os::unix::fs::MetadataExt;
-        ma.dev() == mb.dev() && ma.ino() == mb.ino()
+        (ma.dev(), ma.ino()) == (mb.dev(), mb.ino())
     }
     #[cfg(not(unix))]
     {
@@ -64,14 +127,23 @@ fn same_file(a: &Path, b: &Path) -> bool {
 /// file system) is renamed over `path`; on error it is removed and `path` is untouched. `durable`
 /// also fsyncs the file before the rename and the directory after it (checkpoints); without it
 /// the file is still whole or absent, but may be lost by a power cut (images, which a rerun
-/// recreates).
+/// recreates). A symlink `path` is followed: the file it points to is replaced, the link kept; a
+/// FIFO or device is written through by `write` itself (module docs).
 pub fn write_atomic(
     path: &Path,
     durable: bool,
     write: impl FnOnce(&Path) -> Result<()>,
 ) -> Result<()> {
-    let dir = writable_folder(path)?;
-    let fname = path.file_name().expect("checked by writable_folder");
+    if path.file_name().is_none() {
+        bail!("{}: not a file path", path.display());
+    }
+    let file = match target(path)? {
+        Target::Replace(file) => file,
+        // Nothing to rename over and nothing to fsync (a pipe cannot be; a device need not).
+        Target::Through(file) => return write(&file),
+    };
+    let dir = folder_of(path, &file)?;
+    let fname = file.file_name().expect("checked by folder_of");
     // Unique per process and per call, so concurrent writers never share a temp file.
     static COUNTER: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
     let tmp = dir.join(format!(
@@ -87,7 +159,7 @@ pub fn write_atomic(
                 .and_then(|f| f.sync_all())
                 .with_context(|| format!("{}: fsync failed", tmp.display()))?;
         }
-        std::fs::rename(&tmp, path).with_context(|| {
+        std::fs::rename(&tmp, &file).with_context(|| {
             format!(
                 "{}: cannot rename {} over it",
                 path.display(),
@@ -182,6 +254,70 @@ mod tests {
                 && err.contains("does not exist"),
             "{err}"
         );
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    /// A symlink is followed (the file it points to replaced, also one not there yet, the link
+    /// kept); a FIFO is written through, not replaced by a regular file, and a write it refuses
+    /// is an error. (Each used to be replaced by a regular file at the link's or FIFO's path.)
+    #[cfg(unix)]
+    #[test]
+    fn links_are_followed_and_fifos_written_through() {
+        let dir = std::env::temp_dir().join(format!("xscale-atomic-link-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(dir.join("sub")).unwrap();
+        let (file, link) = (dir.join("sub/target.json"), dir.join("link.json"));
+        std::fs::write(&file, b"old").unwrap();
+        std::os::unix::fs::symlink("sub/target.json", &link).unwrap();
+        write_bytes(&link, b"new").unwrap();
+        assert!(std::fs::symlink_metadata(&link)
+            .unwrap()
+            .file_type()
+            .is_symlink());
+        assert_eq!(std::fs::read(&file).unwrap(), b"new");
+        // A link to a link to a file not there yet: the file is made where the links end.
+        let link2 = dir.join("link2.json");
+        std::os::unix::fs::symlink(dir.join("sub/dangling.json"), dir.join("sub/dangling"))
+            .unwrap();
+        std::os::unix::fs::symlink("sub/dangling", &link2).unwrap();
+        write_bytes(&link2, b"x").unwrap();
+        assert_eq!(std::fs::read(dir.join("sub/dangling.json")).unwrap(), b"x");
+        // A link into a folder that does not exist names the user's path.
+        let bad = dir.join("bad.json");
+        std::os::unix::fs::symlink("no-such/t.json", &bad).unwrap();
+        let err = format!("{:#}", writable_folder(&bad).unwrap_err());
+        assert!(err.contains("bad.json: cannot write: the folder"), "{err}");
+        // A FIFO: its reader gets the bytes; it stays a FIFO.
+        let fifo = dir.join("fifo");
+        let c = std::ffi::CString::new(fifo.to_str().unwrap()).unwrap();
+        // SAFETY: a valid NUL-terminated path.
+        assert_eq!(unsafe { libc::mkfifo(c.as_ptr(), 0o600) }, 0);
+        let reader = {
+            let fifo = fifo.clone();
+            std::thread::spawn(move || std::fs::read(fifo).unwrap())
+        };
+        write_bytes(&fifo, b"through").unwrap();
+        assert_eq!(reader.join().unwrap(), b"through");
+        use std::os::unix::fs::FileTypeExt;
+        assert!(std::fs::symlink_metadata(&fifo)
+            .unwrap()
+            .file_type()
+            .is_fifo());
+        // A reader that goes away: the write fails (EPIPE), an error, not a silent success.
+        let reader = {
+            let fifo = fifo.clone();
+            std::thread::spawn(move || drop(std::fs::File::open(fifo).unwrap()))
+        };
+        let err = write_bytes(&fifo, vec![0u8; 4 << 20]).unwrap_err();
+        reader.join().unwrap();
+        assert!(format!("{err:#}").contains("fifo: cannot write"), "{err:#}");
+        assert!(std::fs::symlink_metadata(&fifo)
+            .unwrap()
+            .file_type()
+            .is_fifo());
+        // A folder is not a file.
+        let err = format!("{:#}", write_bytes(&dir.join("sub"), b"x").unwrap_err());
+        assert!(err.contains("is a folder"), "{err}");
         std::fs::remove_dir_all(&dir).unwrap();
     }
 }

@@ -159,6 +159,55 @@ pub fn subdivide(mesh: &Mesh, levels: u32) -> Result<Mesh> {
     Ok(m)
 }
 
+/// The most memory [`subdivide`] holds at once for `levels` rounds (bytes): during the last
+/// round, the previous mesh, the new vertex array as it grows (its last reallocation holds the
+/// old and the new buffer), the new triangles and the midpoint map (`HashMap` buckets of 13
+/// bytes, doubled — old and new — when the edges outgrow it). Exact counts, not bounds: the
+/// input's distinct edges E, then per round V += E, E = 2E + 3T, T ×= 4. An upper bound of the
+/// peak when the allocator adds nothing; the input mesh, which the caller keeps, is not counted.
+pub fn subdivide_bytes(mesh: &Mesh, levels: u32) -> u64 {
+    if levels == 0 {
+        return 0;
+    }
+    let mut edges: Vec<u64> = (mesh.triangles.iter())
+        .flat_map(|&[a, b, c]| [(a, b), (b, c), (c, a)])
+        .map(|(a, b)| (a.min(b) as u64) << 32 | a.max(b) as u64)
+        .collect();
+    edges.sort_unstable();
+    edges.dedup();
+    let (mut v, mut e, mut t) = (
+        mesh.vertices.len() as u64,
+        edges.len() as u64,
+        mesh.triangles.len() as u64,
+    );
+    let (vert, tri) = (
+        std::mem::size_of::<DVec3>() as u64,
+        std::mem::size_of::<[u32; 3]>() as u64,
+    );
+    let mut peak = 0u64;
+    for _ in 0..levels {
+        // The vertex array: cloned at capacity v, doubled until it holds v + e.
+        let (mut cap, mut verts) = (v, v);
+        while cap < v + e {
+            verts = verts.max(cap + 2 * cap);
+            cap *= 2;
+        }
+        verts = verts.max(cap);
+        // hashbrown's buckets for a capacity: the next power of two of 8/7 of it (≥ 4).
+        let mut buckets = (2 * t * 8 / 7).next_power_of_two().max(4);
+        let mut map = buckets;
+        while buckets * 7 / 8 < e {
+            map = map.max(buckets + 2 * buckets);
+            buckets *= 2;
+        }
+        map = map.max(buckets);
+        let round = v * vert + t * tri + verts * vert + 4 * t * tri + map * 13;
+        peak = peak.max(round);
+        (v, e, t) = (v + e, 2 * e + 3 * t, 4 * t);
+    }
+    peak
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -305,5 +354,18 @@ mod tests {
         };
         assert!((area(&s) - area(&m)).abs() < 1e-9 * area(&m));
         assert!(subdivide(&m, 7).is_err());
+    }
+
+    /// [`subdivide_bytes`] covers what the subdivided mesh holds, without being far above it.
+    #[test]
+    fn subdivide_bytes_bounds_the_result() {
+        let m = terrain(20);
+        assert_eq!(subdivide_bytes(&m, 0), 0);
+        for levels in 1..=3 {
+            let s = subdivide(&m, levels).unwrap();
+            let held = (s.vertices.capacity() * 24 + s.triangles.capacity() * 12) as u64;
+            let est = subdivide_bytes(&m, levels);
+            assert!(est > held && est < 4 * held, "{levels}: {est} for {held}");
+        }
     }
 }

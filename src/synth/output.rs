@@ -68,20 +68,20 @@ pub fn write(
         summary,
         dir,
         write_truth,
-        &mut |_| {},
+        &mut |_| Ok(()),
     )
 }
 
 /// [`write()`] with each view rendered by `image(i)` just before it is written (one image in
-/// memory at a time); `progress(i)` after view i is written. The `large` preset writes no MVSNet
-/// copy of its images.
+/// memory at a time); `progress(i)` after view i is written (an error from it stops the writing
+/// there and is returned). The `large` preset writes no MVSNet copy of its images.
 pub fn write_with(
     s: &Synth,
     image: &mut dyn FnMut(usize) -> Image,
     summary: &Summary,
     dir: &Path,
     write_truth: bool,
-    progress: &mut dyn FnMut(usize),
+    progress: &mut dyn FnMut(usize) -> Result<()>,
 ) -> Result<()> {
     fs::create_dir_all(dir.join("images"))
         .with_context(|| format!("{}: cannot create", dir.display()))?;
@@ -117,7 +117,7 @@ pub fn write_with(
     }
     for (i, v) in vs.iter().enumerate() {
         scene::image::write_png8(&v.image_path, &image(i))?;
-        progress(i);
+        progress(i)?;
     }
     scene::colmap::write_text(&dir.join("sparse").join("0"), &vs)?;
     if s.preset != Preset::Large {

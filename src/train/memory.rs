@@ -23,7 +23,7 @@
 use crate::model::hfm::Hfm;
 use crate::train::config::RunConfig;
 use crate::train::sampler::SampleMode;
-use anyhow::Result;
+use anyhow::{bail, Result};
 
 /// Step scratch per sub-sample of a batch. Measured: peak RSS of `xscale train --preset cpu` on the
 /// `small` scene at batch 4,096 and 65,536 pixels (γ = 2), difference / (61,440 · 4) ≈ 1.1 kB,
@@ -198,20 +198,64 @@ fn estimate_for(
     })
 }
 
-/// Memory the system reports as available (Linux `MemAvailable`), if known.
+/// Memory the system reports as available (Linux `MemAvailable`), if known; less when the
+/// process's address space is limited (`ulimit -v`, RLIMIT_AS): what the limit leaves of it.
 pub fn available_bytes() -> Option<u64> {
     let text = std::fs::read_to_string("/proc/meminfo").ok()?;
     let line = text.lines().find(|l| l.starts_with("MemAvailable:"))?;
     let kb: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
-    Some(kb * 1024)
+    Some(address_space_left().map_or(kb * 1024, |left| left.min(kb * 1024)))
+}
+
+/// What the address-space limit (`ulimit -v`) leaves this process (the limit less its `VmSize`),
+/// when there is a limit.
+fn address_space_left() -> Option<u64> {
+    #[cfg(unix)]
+    {
+        let mut lim = libc::rlimit {
+            rlim_cur: 0,
+            rlim_max: 0,
+        };
+        // SAFETY: getrlimit writes the struct it is given.
+        if unsafe { libc::getrlimit(libc::RLIMIT_AS, &mut lim) } != 0
+            || lim.rlim_cur == libc::RLIM_INFINITY
+        {
+            return None;
+        }
+        // `rlim_t` is u64 on Linux, not on every Unix.
+        #[allow(clippy::unnecessary_cast)]
+        let limit = lim.rlim_cur as u64;
+        Some(limit.saturating_sub(status_kb("VmSize:").unwrap_or(0) * 1024))
+    }
+    #[cfg(not(unix))]
+    None
+}
+
+/// A `KEY: N kB` line of `/proc/self/status`.
+fn status_kb(key: &str) -> Option<u64> {
+    let text = std::fs::read_to_string("/proc/self/status").ok()?;
+    let line = text.lines().find(|l| l.starts_with(key))?;
+    line.split_whitespace().nth(1)?.parse().ok()
+}
+
+/// Refuse, before allocating, `need` bytes that `what` would take when more than the memory
+/// available ([`available_bytes`]; nothing is refused where the system does not say): an
+/// allocation that fails aborts the process without a word (`memory allocation of N bytes
+/// failed`, exit 134). `fix` says what to change.
+pub fn check_fits(need: u64, what: &str, fix: &str) -> Result<()> {
+    match available_bytes() {
+        Some(avail) if need > avail => bail!(
+            "{what} would take about {} in memory, and {} are available; {fix}",
+            size(need),
+            size(avail)
+        ),
+        _ => Ok(()),
+    }
 }
 
 /// Peak resident memory of this process so far (Linux `VmHWM`), if known.
 pub fn peak_rss_bytes() -> Option<u64> {
-    let text = std::fs::read_to_string("/proc/self/status").ok()?;
-    let line = text.lines().find(|l| l.starts_with("VmHWM:"))?;
-    let kb: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
-    Some(kb * 1024)
+    Some(status_kb("VmHWM:")? * 1024)
 }
 
 fn gb(b: u64) -> f64 {

@@ -166,6 +166,16 @@ fn an_earlier_ablation_is_refused_kept_or_replaced() {
     assert!(!ok && err.contains("train.seed = 9"), "{err}");
     let (ok, _, err) = run_ablate(&out, "5", &["--variants", "ulr", "--append"]);
     assert!(!ok && err.contains("ran 4 steps"), "{err}");
+    // Nor another --ratio: mesh10 would be a 50 % mesh judged by the Table 5 (10 %) claim.
+    let (ok, _, err) = ablate(&["--variants", "mesh10", "--append", "--ratio", "0.5"]);
+    assert!(
+        !ok && err.contains("--ratio 0.1") && err.contains("share it"),
+        "{err}"
+    );
+    assert!(!out.join("mesh10").exists());
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("ablation.json")).unwrap()).unwrap();
+    assert_eq!(json["ratio"], 0.1);
     // A bad option of a later variant stops the ablation before the first variant trains.
     let (ok, _, err) = ablate(&["--variants", "full,mesh10", "--ratio", "0", "--overwrite"]);
     assert!(!ok && err.contains("--ratio 0"), "{err}");

@@ -320,6 +320,51 @@ fn decimate_and_subdivide_commands() {
     let _ = std::fs::remove_dir_all(&out);
 }
 
+/// `bench-geometry`'s values are checked before the scene is synthesised or a proxy built: a
+/// value out of range is a usage error (exit 64), a proxy listed twice (`--rms 0,0`, which
+/// trained and listed exact_xi/exact_noxi twice) a run-time one (exit 2), nothing written.
+#[test]
+fn bench_geometry_checks_its_values_up_front() {
+    let out = tmp("geo-bad");
+    let o = out.to_str().unwrap();
+    let run = |extra: &[&str]| {
+        let args = ["bench-geometry", "--scene-preset", "tiny", "--out", o, "-q"];
+        let r = Command::new(env!("CARGO_BIN_EXE_xscale"))
+            .args(args)
+            .args(extra)
+            .output()
+            .unwrap();
+        (
+            r.status.code(),
+            String::from_utf8_lossy(&r.stderr).into_owned(),
+        )
+    };
+    for (extra, code, says) in [
+        (
+            &["--rms", "0,0"][..],
+            2,
+            "proxy exact (the exact true surface) is listed twice",
+        ),
+        (&["--rms", "0.1,0.3,0.10"][..], 2, "proxy rms0.1"),
+        (
+            &["--decimate", "2"][..],
+            64,
+            "decimation ratio 2 is not in (0, 1]",
+        ),
+        (
+            &["--rms=-1"][..],
+            64,
+            "displacement RMS -1 % is not a number ≥ 0",
+        ),
+        (&["--rms", "0,nan"][..], 64, "--rms"),
+    ] {
+        let (c, err) = run(extra);
+        assert_eq!(c, Some(code), "{extra:?}: {err}");
+        assert!(err.contains(says), "{extra:?}: {err}");
+        assert!(!out.exists(), "{extra:?}: wrote {}", out.display());
+    }
+}
+
 #[test]
 fn bench_geometry_trains_refined_and_fixed_variants_and_reuses_them() {
     let out = tmp("geo");

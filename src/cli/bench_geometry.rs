@@ -4,7 +4,9 @@
 
 use super::common::RunArgs;
 use crate::synth::Preset;
-use crate::train::bench_geometry::{bench_geometry, GeometryOptions, ProxySpec, DISTANCE_SAMPLES};
+use crate::train::bench_geometry::{
+    bench_geometry, check_proxies, GeometryOptions, ProxySpec, DISTANCE_SAMPLES,
+};
 use anyhow::{bail, Context, Result};
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
@@ -30,11 +32,13 @@ pub struct Args {
     /// Training configuration shared by every run (`--steps` = steps per run).
     #[command(flatten)]
     pub run: RunArgs,
-    /// RMS displacements of the proxies, in % of the bounding-box diagonal (0 = the exact mesh).
-    #[arg(long, value_delimiter = ',', num_args = 1.., default_values_t = [0.0, 0.1, 0.3, 1.0])]
+    /// RMS displacements of the proxies, in % of the bounding-box diagonal (0 = the exact mesh;
+    /// each value ≥ 0, once).
+    #[arg(long, value_delimiter = ',', num_args = 1.., default_values_t = [0.0, 0.1, 0.3, 1.0],
+          value_parser = parse_rms)]
     pub rms: Vec<f64>,
-    /// Fraction of faces kept by the decimated proxy (0: no decimated proxy).
-    #[arg(long, default_value_t = 0.1)]
+    /// Fraction of faces kept by the decimated proxy, in (0, 1] (0: no decimated proxy).
+    #[arg(long, default_value_t = 0.1, value_parser = parse_decimate)]
     pub decimate: f64,
     /// ξ settings to train each proxy with.
     #[arg(long, value_delimiter = ',', num_args = 1.., default_values_t = [Switch::On, Switch::Off])]
@@ -49,6 +53,21 @@ pub struct Args {
     /// Only errors and the final table.
     #[arg(long, short)]
     pub quiet: bool,
+}
+
+/// A `--rms` value: a number ≥ 0 (a usage error otherwise, exit 64).
+fn parse_rms(s: &str) -> std::result::Result<f64, String> {
+    let p: f64 = (s.trim().parse()).map_err(|e| format!("expected a number ≥ 0 ({e})"))?;
+    ProxySpec::Displaced(p).check().map(|()| p)
+}
+
+/// `--decimate`: 0 (no decimated proxy) or a fraction in (0, 1] (a usage error otherwise).
+fn parse_decimate(s: &str) -> std::result::Result<f64, String> {
+    let r: f64 = (s.trim().parse()).map_err(|e| format!("expected a number in [0, 1] ({e})"))?;
+    if r == 0.0 {
+        return Ok(0.0);
+    }
+    ProxySpec::Decimated(r).check().map(|()| r)
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
@@ -108,6 +127,8 @@ pub fn run(a: Args) -> Result<ExitCode> {
     if a.decimate > 0.0 {
         proxies.push(ProxySpec::Decimated(a.decimate));
     }
+    // Before the scene is synthesised or anything built: a proxy listed twice.
+    check_proxies(&proxies)?;
     let dedup = |v: &[Switch]| {
         let mut out: Vec<bool> = Vec::new();
         for s in v {

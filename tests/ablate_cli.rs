@@ -166,6 +166,16 @@ fn an_earlier_ablation_is_refused_kept_or_replaced() {
     assert!(!ok && err.contains("train.seed = 9"), "{err}");
     let (ok, _, err) = run_ablate(&out, "5", &["--variants", "ulr", "--append"]);
     assert!(!ok && err.contains("ran 4 steps"), "{err}");
+    // Nor another --ratio: mesh10 would be a 50 % mesh judged by the Table 5 (10 %) claim.
+    let (ok, _, err) = ablate(&["--variants", "mesh10", "--append", "--ratio", "0.5"]);
+    assert!(
+        !ok && err.contains("--ratio 0.1") && err.contains("share it"),
+        "{err}"
+    );
+    assert!(!out.join("mesh10").exists());
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("ablation.json")).unwrap()).unwrap();
+    assert_eq!(json["ratio"], 0.1);
     // A bad option of a later variant is a usage error: nothing trains.
     let (ok, _, err) = ablate(&["--variants", "full,mesh10", "--ratio", "0", "--overwrite"]);
     assert!(!ok && err.contains("'0' for '--ratio"), "{err}");
@@ -382,6 +392,51 @@ fn mesh_outputs_follow_links_and_never_replace_their_input() {
     );
     assert!(!sub.exists());
     let _ = std::fs::remove_dir_all(&out);
+}
+
+/// `bench-geometry`'s values are checked before the scene is synthesised or a proxy built: a
+/// value out of range is a usage error (exit 64), a proxy listed twice (`--rms 0,0`, which
+/// trained and listed exact_xi/exact_noxi twice) a run-time one (exit 2), nothing written.
+#[test]
+fn bench_geometry_checks_its_values_up_front() {
+    let out = tmp("geo-bad");
+    let o = out.to_str().unwrap();
+    let run = |extra: &[&str]| {
+        let args = ["bench-geometry", "--scene-preset", "tiny", "--out", o, "-q"];
+        let r = Command::new(env!("CARGO_BIN_EXE_xscale"))
+            .args(args)
+            .args(extra)
+            .output()
+            .unwrap();
+        (
+            r.status.code(),
+            String::from_utf8_lossy(&r.stderr).into_owned(),
+        )
+    };
+    for (extra, code, says) in [
+        (
+            &["--rms", "0,0"][..],
+            2,
+            "proxy exact (the exact true surface) is listed twice",
+        ),
+        (&["--rms", "0.1,0.3,0.10"][..], 2, "proxy rms0.1"),
+        (
+            &["--decimate", "2"][..],
+            64,
+            "'2' for '--decimate <DECIMATE>': must be in [0, 1] (0: none)",
+        ),
+        (
+            &["--rms=-1"][..],
+            64,
+            "'-1' for '--rms <RMS>...': must be a number ≥ 0",
+        ),
+        (&["--rms", "0,nan"][..], 64, "--rms"),
+    ] {
+        let (c, err) = run(extra);
+        assert_eq!(c, Some(code), "{extra:?}: {err}");
+        assert!(err.contains(says), "{extra:?}: {err}");
+        assert!(!out.exists(), "{extra:?}: wrote {}", out.display());
+    }
 }
 
 #[test]

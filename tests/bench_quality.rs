@@ -43,7 +43,11 @@ fn bench_quality_writes_rows_and_the_plot() {
     assert!(tiny
         .iter()
         .all(|r| r.psnr_masked.is_finite() && r.psnr_masked > 10.0));
-    assert_eq!(rows.iter().filter(|r| r.config == "ulr").count(), 1);
+    let ulr: Vec<_> = rows.iter().filter(|r| r.config == "ulr").collect();
+    assert_eq!(ulr.len(), 1);
+    // ULR trains nothing: 0 training seconds (its render and scores are evaluation, not counted,
+    // as for the learned configurations; it used to hold them).
+    assert_eq!((ulr[0].wall_s, ulr[0].step), (0.0, 0));
     let csv = std::fs::read_to_string(out.join("bench.csv")).unwrap();
     assert_eq!(csv.lines().count(), 1 + 7);
     assert!(csv.starts_with("config,setup_s,wall_s,step,psnr_masked,ssim_masked"));
@@ -134,6 +138,20 @@ fn an_earlier_bench_csv_is_refused_kept_or_replaced() {
 
     let e = format!("{:#}", run(&["ulr", "ulr"], Existing::Append).unwrap_err());
     assert!(e.contains("\"ulr\" is listed twice"), "{e}");
+
+    // Rows written without a record of their scene and budget (an older xscale's) cannot be
+    // checked: --append refuses them, naming the way out.
+    let e = format!("{:#}", run(&["ulr"], Existing::Append).unwrap_err());
+    assert!(
+        e.contains("older xscale") && e.contains("bench.json") && e.contains("--overwrite"),
+        "{e}"
+    );
+    assert_eq!(std::fs::read_to_string(&csv).unwrap(), earlier);
+    let record = format!(
+        "{{\"scene\": {:?}, \"minutes\": 0.01}}",
+        std::fs::canonicalize(&scene).unwrap()
+    );
+    std::fs::write(out.join("bench.json"), &record).unwrap();
 
     let rows = run(&["ulr"], Existing::Append).unwrap();
     let configs: Vec<&str> = rows.iter().map(|r| r.config.as_str()).collect();
@@ -238,5 +256,52 @@ fn a_signal_delivered_twice_stops_the_cli_once() {
     assert_eq!(o.status.code(), Some(130), "{err}");
     assert!(err.contains("--append --configs tiny"), "{err}");
     assert!(out.join("pareto.png").is_file(), "{err}");
+    let _ = std::fs::remove_dir_all(&out);
+}
+
+/// `--append` adds rows only to a bench of the same scene and budget (recorded in bench.json):
+/// another scene or another `--minutes` is refused, every difference named, before anything is
+/// written (rows of another scene used to be plotted beside the first's).
+#[test]
+fn append_refuses_another_scene_or_budget() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let scene = root.join("fixtures/tiny");
+    let out = fresh_out("-mix");
+    let run = |scene: &Path, minutes: f64, existing| {
+        bench_quality(
+            scene,
+            &out,
+            &["ulr".to_string()],
+            minutes,
+            existing,
+            &mut |_| {},
+            &|| false,
+        )
+    };
+    run(&scene, 0.01, Existing::Refuse).unwrap();
+    let record: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("bench.json")).unwrap()).unwrap();
+    assert_eq!(record["minutes"], 0.01);
+    let csv = std::fs::read_to_string(out.join("bench.csv")).unwrap();
+    // Another scene (the check comes before the scene is read) and another budget, together.
+    let other = root.join("fixtures");
+    let e = format!("{:#}", run(&other, 0.02, Existing::Append).unwrap_err());
+    assert!(
+        e.contains("\n  scene ") && e.contains("fixtures/tiny)"),
+        "{e}"
+    );
+    assert!(
+        e.contains("--minutes 0.02 (the earlier run's is 0.01)"),
+        "{e}"
+    );
+    let e = format!("{:#}", run(&scene, 0.02, Existing::Append).unwrap_err());
+    assert!(
+        e.contains("\n  --minutes 0.02") && !e.contains("\n  scene"),
+        "{e}"
+    );
+    assert_eq!(std::fs::read_to_string(out.join("bench.csv")).unwrap(), csv);
+    // The same scene, given another way (a path with `..`), and budget: appended.
+    let same = root.join("fixtures/../fixtures/tiny");
+    assert_eq!(run(&same, 0.01, Existing::Append).unwrap().0.len(), 1);
     let _ = std::fs::remove_dir_all(&out);
 }

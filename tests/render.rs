@@ -148,3 +148,84 @@ fn render_scale_writes_the_larger_frame() {
     assert_eq!(std::fs::read(&ck).unwrap(), ck_before);
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// `render --method ulr` needs no model: `--scene DIR` alone, as for `eval` (it used to say
+/// `give --run RUN or --checkpoint FILE`). Its `--footprint` image paints misses in a colour off
+/// the grey ramp, so they are not taken for the finest footprint (black; both were 0). `--path`
+/// names itself in its errors and cannot be given with `--views` (exit 64: it ignored them).
+#[test]
+fn render_ulr_from_a_scene_alone_and_footprint_misses_apart() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/tiny");
+    let dir = std::env::temp_dir().join(format!("xscale-test-render-ulr-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let (scene, o) = (root.to_str().unwrap(), dir.to_str().unwrap());
+    let xs = |args: &[&str]| {
+        let out = std::process::Command::new(env!("CARGO_BIN_EXE_xscale"))
+            .args(["render", "--scene", scene, "--out", o])
+            .args(args)
+            .output()
+            .unwrap();
+        (
+            out.status.code(),
+            String::from_utf8_lossy(&out.stderr).into_owned(),
+        )
+    };
+    let (code, err) = xs(&["--method", "ulr", "--views", "4", "--footprint", "--mask"]);
+    assert_eq!(code, Some(0), "{err}");
+    let img = image::open(dir.join("0004.png")).unwrap().to_rgb8();
+    let mask = image::open(dir.join("0004_mask.png")).unwrap().to_rgb8();
+    let fp = image::open(dir.join("0004_footprint.png"))
+        .unwrap()
+        .to_rgb8();
+    assert_eq!(img.dimensions(), fp.dimensions());
+    let (mut misses, mut hits, mut finest) = (0, 0, 0);
+    for (m, f) in mask.pixels().zip(fp.pixels()) {
+        if m[0] == 0 {
+            misses += 1;
+            assert_eq!(f.0, [255, 0, 0], "a miss is red");
+        } else {
+            hits += 1;
+            assert!(f[0] == f[1] && f[1] == f[2], "a hit is grey: {f:?}");
+            finest += (f.0 == [0, 0, 0]) as usize;
+        }
+    }
+    assert!(
+        misses > 0 && hits > 0 && finest > 0,
+        "{misses} {hits} {finest}"
+    );
+    // The model still needs one.
+    let (code, err) = xs(&["--views", "0"]);
+    assert!(code == Some(2) && err.contains("--run"), "{code:?} {err}");
+    let (code, err) = xs(&["--method", "ulr", "--path", "0,99", "--frames", "2"]);
+    assert!(
+        code == Some(2) && err.contains("--path: no view named or numbered \"99\""),
+        "{code:?} {err}"
+    );
+    let (code, err) = xs(&["--method", "ulr", "--path", "0,1", "--views", "all"]);
+    assert!(
+        code == Some(64) && err.contains("--views"),
+        "{code:?} {err}"
+    );
+    let (code, err) = xs(&["--method", "ulr", "--views", "1,0001"]);
+    assert!(
+        code == Some(2) && err.contains("named twice"),
+        "{code:?} {err}"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// `footprint_image` on its own: the finest hit pixel black, the coarsest white, misses
+/// `FOOTPRINT_MISS` whatever their footprint value.
+#[test]
+fn footprint_image_keeps_misses_off_the_ramp() {
+    use xscale::render::{footprint_image, FOOTPRINT_MISS};
+    let fp = [0.5f32, 2.0, 0.0, 8.0];
+    let hit = [true, true, false, true];
+    let img = footprint_image(&fp, &hit, 4, 1);
+    let px = |i: usize| [img.data[3 * i], img.data[3 * i + 1], img.data[3 * i + 2]];
+    assert_eq!(px(0), [0.0; 3]);
+    assert_eq!(px(1), [0.5; 3]);
+    assert_eq!(px(2), FOOTPRINT_MISS);
+    assert_eq!(px(3), [1.0; 3]);
+    assert!(FOOTPRINT_MISS.iter().any(|&c| c != FOOTPRINT_MISS[0]));
+}

@@ -90,6 +90,9 @@ fn ulr_eval_needs_only_a_scene() {
         serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
     assert!(!v["views"].as_array().unwrap().is_empty());
     assert!(v["mean"]["psnr_masked"].as_f64().unwrap() > 10.0, "{v}");
+    // The JSON says what rendered, and names no checkpoint (none was used).
+    assert_eq!(v["method"], "ulr", "{v}");
+    assert!(v.get("checkpoint").is_none(), "{v}");
     let _ = std::fs::remove_file(&json);
     let out = std::process::Command::new(exe)
         .args(["eval", "--scene"])
@@ -98,4 +101,61 @@ fn ulr_eval_needs_only_a_scene() {
         .unwrap();
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("--run"));
+}
+
+/// With a run, ULR uses its scene, split, mesh and γ but not its checkpoint: the `--json` file
+/// says `"method": "ulr"` and names no checkpoint (it named the run's, as the model's does);
+/// the model's names its checkpoint and `"method": "model"`. A view named twice is refused
+/// (`--views 0,0` scored it twice and counted it twice in the mean).
+#[test]
+fn eval_json_records_the_method_and_only_a_used_checkpoint() {
+    let exe = env!("CARGO_BIN_EXE_xscale");
+    let scene = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/tiny");
+    let dir = std::env::temp_dir().join(format!("xscale-ulr-json-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let run = dir.join("run");
+    let xs = |args: &[&str]| {
+        let o = std::process::Command::new(exe).args(args).output().unwrap();
+        (
+            o.status.code(),
+            String::from_utf8_lossy(&o.stderr).into_owned(),
+        )
+    };
+    // A 3-step run of the tiny preset (the scores do not matter here).
+    let mut cfg = xscale::train::config::RunConfig::preset("tiny").unwrap();
+    cfg.train.steps = 3;
+    let opts = xscale::train::trainer::TrainOptions {
+        no_final_eval: true,
+        quiet: true,
+        ..Default::default()
+    };
+    xscale::train::trainer::train(&scene, &run, cfg, &opts).unwrap();
+    let r = run.to_str().unwrap();
+    let json = dir.join("e.json");
+    let j = json.to_str().unwrap();
+    let read = || -> serde_json::Value {
+        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap()
+    };
+    let (code, err) = xs(&["eval", "--run", r, "--method", "ulr", "--json", j, "-q"]);
+    assert_eq!(code, Some(0), "{err}");
+    let v = read();
+    assert_eq!(v["method"], "ulr", "{v}");
+    assert!(v.get("checkpoint").is_none(), "{v}");
+    let (code, err) = xs(&["eval", "--run", r, "--json", j, "-q"]);
+    assert_eq!(code, Some(0), "{err}");
+    let v = read();
+    assert_eq!(v["method"], "model", "{v}");
+    assert!(
+        v["checkpoint"]
+            .as_str()
+            .unwrap()
+            .ends_with("checkpoint.safetensors"),
+        "{v}"
+    );
+    let (code, err) = xs(&["eval", "--run", r, "--views", "0,0", "-q"]);
+    assert!(
+        code == Some(2) && err.contains("--views: view 0000.png is named twice"),
+        "{code:?} {err}"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
 }

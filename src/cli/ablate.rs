@@ -30,15 +30,16 @@ pub struct Args {
     /// Comma-separated subset of the variants, run in table order (default: all).
     #[arg(long, value_enum, value_delimiter = ',', default_values_t = Variant::ALL)]
     pub variants: Vec<Variant>,
-    /// Fraction of faces kept by the decimated-mesh variant.
-    #[arg(long, default_value_t = 0.1, value_parser = super::common::parse_fraction)]
-    pub ratio: f64,
+    /// Fraction of faces kept by the decimated-mesh variant [default: 0.1; with --append, the
+    /// earlier ablation's, which a different value cannot change].
+    #[arg(long, value_parser = super::common::parse_fraction)]
+    pub ratio: Option<f64>,
     /// Subdivision levels of the vertex_subdiv variant, at most 6 (default: automatic).
     #[arg(long, value_parser = super::common::parse_levels)]
     pub subdivide: Option<u32>,
     /// Keep the earlier ablation in OUT (its variants not run again stay in the table; a variant
     /// run again replaces its result, and one stopped by Ctrl-C continues from its checkpoint).
-    /// The step count and base configuration must be the same.
+    /// The step count, --ratio and base configuration must be the same.
     #[arg(long, conflicts_with = "overwrite")]
     pub append: bool,
     /// Replace the earlier ablation in OUT (without --append or --overwrite, a folder holding

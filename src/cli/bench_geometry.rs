@@ -4,7 +4,9 @@
 
 use super::common::RunArgs;
 use crate::synth::Preset;
-use crate::train::bench_geometry::{bench_geometry, GeometryOptions, ProxySpec, DISTANCE_SAMPLES};
+use crate::train::bench_geometry::{
+    bench_geometry, check_proxies, GeometryOptions, ProxySpec, DISTANCE_SAMPLES,
+};
 use anyhow::{bail, Context, Result};
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
@@ -30,10 +32,11 @@ pub struct Args {
     /// Training configuration shared by every run (`--steps` = steps per run).
     #[command(flatten)]
     pub run: RunArgs,
-    /// RMS displacements of the proxies, in % of the bounding-box diagonal (0 = the exact mesh).
+    /// RMS displacements of the proxies, in % of the bounding-box diagonal (0 = the exact mesh;
+    /// each value ≥ 0, once).
     #[arg(long, value_delimiter = ',', num_args = 1.., default_values_t = [0.0, 0.1, 0.3, 1.0], value_parser = super::common::parse_non_negative)]
     pub rms: Vec<f64>,
-    /// Fraction of faces kept by the decimated proxy (0: no decimated proxy).
+    /// Fraction of faces kept by the decimated proxy, in (0, 1] (0: no decimated proxy).
     #[arg(long, default_value_t = 0.1, value_parser = super::common::parse_fraction_or_zero)]
     pub decimate: f64,
     /// ξ settings to train each proxy with.
@@ -108,6 +111,8 @@ pub fn run(a: Args) -> Result<ExitCode> {
     if a.decimate > 0.0 {
         proxies.push(ProxySpec::Decimated(a.decimate));
     }
+    // Before the scene is synthesised or anything built: a proxy listed twice.
+    check_proxies(&proxies)?;
     let dedup = |v: &[Switch]| {
         let mut out: Vec<bool> = Vec::new();
         for s in v {

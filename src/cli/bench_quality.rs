@@ -24,7 +24,8 @@ pub struct Args {
     #[arg(long)]
     pub list: bool,
     /// Keep the rows of OUT/bench.csv from an earlier run and add this run's (a configuration
-    /// run again replaces its earlier rows); the plot shows them all.
+    /// run again replaces its earlier rows); the plot shows them all. The scene and --minutes
+    /// must be those recorded in OUT/bench.json.
     #[arg(long, conflicts_with_all = ["overwrite", "replot"])]
     pub append: bool,
     /// Replace OUT/bench.csv if an earlier run left one (without --append or --overwrite, such
@@ -47,7 +48,7 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
             println!("{n:<14} {d}");
         }
         println!(
-            "{:<14} the no-learning ULR baseline (nothing trained)",
+            "{:<14} the no-learning ULR baseline (nothing trained: 0 s of training)",
             "ulr"
         );
         return Ok(ExitCode::SUCCESS);

@@ -145,10 +145,65 @@ pub fn scene_changed_warning(run: &Path, dir: &Path, scene: &Scene) -> Result<Op
     }))
 }
 
+/// What renders the views of `eval` and `render`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum Method {
+    Model,
+    Ulr,
+}
+
+impl Method {
+    /// The name on the command line (and in `eval --json`'s `method`).
+    pub fn name(self) -> &'static str {
+        match self {
+            Method::Model => "model",
+            Method::Ulr => "ulr",
+        }
+    }
+}
+
+/// What `eval` and `render` work with: the model (its checkpoint path and checkpoint; `None` for
+/// ULR given only `--scene`) and the scene.
+pub struct Loaded {
+    pub checkpoint: Option<PathBuf>,
+    pub ck: Option<Checkpoint>,
+    pub s: SceneForModel,
+}
+
+impl Loaded {
+    /// The multisampling factor the views are cast with: the model's γ, else (ULR without a
+    /// model) the `cpu` preset's, as ULR casts its pixels as the model does.
+    pub fn gamma(&self) -> u32 {
+        self.ck
+            .as_ref()
+            .map_or(crate::model::ModelConfig::cpu().gamma, |c| {
+                c.model.cfg.gamma
+            })
+    }
+}
+
 impl ModelArgs {
     /// Whether a model was given (`--run` or `--checkpoint`).
     pub fn has_model(&self) -> bool {
         self.run.is_some() || self.checkpoint.is_some()
+    }
+
+    /// The model and scene `method` needs: ULR needs no model, so `--scene DIR` alone is enough
+    /// (a run still gives its scene, split, mesh and γ); the model needs `--run` or `--checkpoint`.
+    pub fn load_for(&self, method: Method) -> Result<Loaded> {
+        if method == Method::Ulr && !self.has_model() {
+            return Ok(Loaded {
+                checkpoint: None,
+                ck: None,
+                s: self.scene_only()?,
+            });
+        }
+        let (p, ck, s) = self.load()?;
+        Ok(Loaded {
+            checkpoint: Some(p),
+            ck: Some(ck),
+            s,
+        })
     }
 
     /// The scene alone, for renderers that need no model (ULR): `--scene` with its own
@@ -357,50 +412,64 @@ fn load_warning(dir: &Path, opts: &LoadOptions) -> Result<Scene> {
     Ok(scene)
 }
 
-/// Views named by `test`, `all`, `train`, or a comma-separated list of names or indices.
-pub fn select_views(scene: &Scene, spec: &str) -> Result<Vec<usize>> {
+/// Views named by `test`, `all`, `train`, or a comma-separated list of names or indices; `flag`
+/// (`--views`, `--path`) names the option in errors. A view named twice (`0,0`, or `0` and
+/// `0000.png`) is an error: it would be rendered twice and counted twice in a mean.
+pub fn select_views(scene: &Scene, spec: &str, flag: &str) -> Result<Vec<usize>> {
     match spec {
         "test" => Ok(scene.test.clone()),
         "train" => Ok(scene.train()),
         "all" => Ok((0..scene.views.len()).collect()),
-        list => list
-            .split(',')
-            .map(|s| {
-                let s = s.trim();
-                if let Some(i) = scene.views.iter().position(|v| v.name == s) {
-                    return Ok(i);
+        list => {
+            let mut out: Vec<(usize, &str)> = Vec::new();
+            for s in list.split(',').map(str::trim) {
+                let i = select_view(scene, s, flag)?;
+                if let Some((_, first)) = out.iter().find(|(j, _)| *j == i) {
+                    bail!(
+                        "{flag}: view {} is named twice ({first:?} and {s:?}): give each view once",
+                        scene.views[i].name
+                    );
                 }
-                // By file stem: `0001` for `0001.png`, or for `cam1/0001.jpg` — which must then
-                // be the only view with that stem.
-                let by_stem: Vec<usize> = (0..scene.views.len())
-                    .filter(|&i| {
-                        Path::new(&scene.views[i].name)
-                            .file_stem()
-                            .is_some_and(|x| x == s)
-                    })
-                    .collect();
-                match by_stem[..] {
-                    [i] => return Ok(i),
-                    [_, _, ..] => bail!(
-                        "--views: {s:?} names {} views ({}): give the whole name",
-                        by_stem.len(),
-                        by_stem
-                            .iter()
-                            .map(|&i| scene.views[i].name.as_str())
-                            .collect::<Vec<_>>()
-                            .join(", ")
-                    ),
-                    [] => {}
-                }
-                match s.parse::<usize>() {
-                    Ok(i) if i < scene.views.len() => Ok(i),
-                    _ => bail!(
-                        "--views: no view named or numbered {s:?} (the scene has {} views)",
-                        scene.views.len()
-                    ),
-                }
-            })
-            .collect(),
+                out.push((i, s));
+            }
+            Ok(out.into_iter().map(|(i, _)| i).collect())
+        }
+    }
+}
+
+/// The view `s` names: its whole name, its file stem (when one view has it) or its index.
+fn select_view(scene: &Scene, s: &str, flag: &str) -> Result<usize> {
+    if let Some(i) = scene.views.iter().position(|v| v.name == s) {
+        return Ok(i);
+    }
+    // By file stem: `0001` for `0001.png`, or for `cam1/0001.jpg` — which must then be the only
+    // view with that stem.
+    let by_stem: Vec<usize> = (0..scene.views.len())
+        .filter(|&i| {
+            Path::new(&scene.views[i].name)
+                .file_stem()
+                .is_some_and(|x| x == s)
+        })
+        .collect();
+    match by_stem[..] {
+        [i] => return Ok(i),
+        [_, _, ..] => bail!(
+            "{flag}: {s:?} names {} views ({}): give the whole name",
+            by_stem.len(),
+            by_stem
+                .iter()
+                .map(|&i| scene.views[i].name.as_str())
+                .collect::<Vec<_>>()
+                .join(", ")
+        ),
+        [] => {}
+    }
+    match s.parse::<usize>() {
+        Ok(i) if i < scene.views.len() => Ok(i),
+        _ => bail!(
+            "{flag}: no view named or numbered {s:?} (the scene has {} views)",
+            scene.views.len()
+        ),
     }
 }
 
@@ -579,17 +648,48 @@ mod tests {
     fn views_by_name_stem_or_index() {
         let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/tiny");
         let mut scene = Scene::load(&dir, &LoadOptions::default()).unwrap();
-        assert_eq!(select_views(&scene, "0003.png,0004, 5").unwrap(), [3, 4, 5]);
-        assert_eq!(select_views(&scene, "test").unwrap(), scene.test);
+        let sel = |spec: &str, scene: &Scene| select_views(scene, spec, "--views");
+        assert_eq!(sel("0003.png,0004, 5", &scene).unwrap(), [3, 4, 5]);
+        assert_eq!(sel("test", &scene).unwrap(), scene.test);
         scene.views[1].name = "cam1/0001.png".into();
         scene.views[2].name = "cam2/0001.png".into();
-        assert_eq!(select_views(&scene, "cam2/0001.png").unwrap(), [2]);
-        let e = select_views(&scene, "0001").unwrap_err().to_string();
+        assert_eq!(sel("cam2/0001.png", &scene).unwrap(), [2]);
+        let e = sel("0001", &scene).unwrap_err().to_string();
         assert!(
             e.contains("names 2 views (cam1/0001.png, cam2/0001.png)"),
             "{e}"
         );
-        let e = select_views(&scene, "0009").unwrap_err().to_string();
+        let e = sel("0009", &scene).unwrap_err().to_string();
         assert!(e.contains("no view named or numbered \"0009\""), "{e}");
+        // The flag the list came from is the one named.
+        let e = select_views(&scene, "0,99", "--path")
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.starts_with("--path: no view named or numbered \"99\""),
+            "{e}"
+        );
+    }
+
+    /// A view named twice, by the same word or by two (index and name), is refused: it would be
+    /// scored twice and weigh twice in the mean (`eval --views 0,0` did).
+    #[test]
+    fn a_view_named_twice_is_refused() {
+        let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/tiny");
+        let scene = Scene::load(&dir, &LoadOptions::default()).unwrap();
+        for spec in ["0,0", "3,0003.png", "0004, 4"] {
+            let e = select_views(&scene, spec, "--views")
+                .unwrap_err()
+                .to_string();
+            assert!(
+                e.contains("--views: view") && e.contains("named twice"),
+                "{spec}: {e}"
+            );
+        }
+        let e = select_views(&scene, "1,1", "--path")
+            .unwrap_err()
+            .to_string();
+        assert!(e.starts_with("--path: view 0001.png is named twice"), "{e}");
+        assert_eq!(select_views(&scene, "1,0", "--views").unwrap(), [1, 0]);
     }
 }

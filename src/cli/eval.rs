@@ -2,6 +2,7 @@
 //! and ꟻLIP (SPEC §7), full image and masked, per held-out view and mean; a printed table; one
 //! side-by-side PNG per view (render | photo | error heat map | ꟻLIP) when `--out` is given.
 
+pub use super::common::Method;
 use super::common::{select_views, ModelArgs};
 use crate::eval::protocol::{
     evaluate_view, mean_score, output_name, scale_summary, scale_table, score_rendered, table,
@@ -39,31 +40,24 @@ pub struct Args {
     pub quiet: bool,
 }
 
-/// What renders the evaluated views.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
-pub enum Method {
-    Model,
-    Ulr,
-}
-
 pub fn run(a: Args) -> Result<ExitCode> {
     if let Some(j) = &a.json {
         crate::io::atomic::writable_folder(j)?;
     }
     // ULR needs no model: `--scene` alone is enough.
-    let (ck_path, ck, s) = if a.method == Method::Ulr && !a.model.has_model() {
-        (None, None, a.model.scene_only()?)
-    } else {
-        let (p, ck, s) = a.model.load()?;
-        (Some(p), Some(ck), s)
-    };
-    let views = select_views(&s.scene, &a.views)?;
+    let loaded = a.model.load_for(a.method)?;
+    let ulr_gamma = loaded.gamma();
+    let (ck, s) = (&loaded.ck, &loaded.s);
+    let views = select_views(&s.scene, &a.views, "--views")?;
     anyhow::ensure!(
         !views.is_empty(),
         "no views to evaluate (the scene has no held-out views; use --views)"
     );
     // None of the files written may be one this command reads (a photo, a mask, the checkpoint).
-    let (ck_read, refuse) = (ck_path.as_deref(), super::common::refuse_overwriting_inputs);
+    let (ck_read, refuse) = (
+        loaded.checkpoint.as_deref(),
+        super::common::refuse_overwriting_inputs,
+    );
     if let Some(j) = &a.json {
         refuse(std::slice::from_ref(j), "--json", &s.scene, ck_read)?;
     }
@@ -88,12 +82,6 @@ pub fn run(a: Args) -> Result<ExitCode> {
     } else {
         Vec::new()
     };
-    // ULR casts its pixels as the model does (its γ; without a model, the `cpu` preset's).
-    let ulr_gamma = ck
-        .as_ref()
-        .map_or(crate::model::ModelConfig::cpu().gamma, |c| {
-            c.model.cfg.gamma
-        });
     let mut scores = Vec::new();
     for (k, &i) in views.iter().enumerate() {
         let e = match a.method {
@@ -136,10 +124,15 @@ pub fn run(a: Args) -> Result<ExitCode> {
         eprintln!("{w}");
     }
     if let Some(j) = &a.json {
-        let json = serde_json::json!({
-            "checkpoint": ck_path, "views": scores, "mean": mean_score(&scores),
+        let mut json = serde_json::json!({
+            "method": a.method.name(), "views": scores, "mean": mean_score(&scores),
             "by_scale": scale_summary(&scores), "training_views": seen
         });
+        // The checkpoint scored; ULR uses none (a run given with it lends only its scene,
+        // split, mesh and γ).
+        if let (Method::Model, Some(p)) = (a.method, &loaded.checkpoint) {
+            json["checkpoint"] = serde_json::json!(p);
+        }
         crate::io::atomic::write_bytes(j, serde_json::to_string_pretty(&json)?)?;
     }
     Ok(ExitCode::SUCCESS)

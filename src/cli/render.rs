@@ -1,11 +1,11 @@
 //! `xscale render --run RUN | --checkpoint FILE --scene DIR --out DIR [--views test|all|LIST]
-//! [--path A,B --frames N] [--format png|exr] [--gamma G] [--mask] [--footprint]`.
+//! [--path A,B --frames N] [--format png|exr] [--gamma G] [--mask] [--footprint]`; with
+//! `--method ulr`, `--scene DIR` alone is enough (as for `eval`).
 //!
-//! `--gamma` is the multisampling factor γ used for rendering (default: the model's); pixels
-//! whose rays all miss are white.
+//! `--gamma` is the multisampling factor γ used for rendering (default: the model's, for ULR
+//! without a model the `cpu` preset's); pixels whose rays all miss get the background colour.
 
-use super::common::{select_views, ModelArgs};
-use super::eval::Method;
+use super::common::{select_views, Method, ModelArgs};
 use crate::eval::protocol::output_name;
 use crate::render::ulr::{render_ulr, training_sources, Source};
 use crate::render::{fly_camera, footprint_image, look_at_point, mask_image, render_camera};
@@ -28,23 +28,25 @@ pub struct Args {
     /// Folder for the frames (created; one file per view, or frame_NNNN for a path).
     #[arg(long)]
     pub out: PathBuf,
-    /// test, train, all, or a comma-separated list of view names / indices.
+    /// test, train, all, or a comma-separated list of view names / indices (each once).
     #[arg(long, default_value = "test")]
     pub views: String,
-    /// Render a camera path from view A to view B instead (names or indices).
-    #[arg(long, value_parser = super::common::parse_view_pair)]
+    /// Render a camera path from view A to view B instead of --views (names or indices).
+    #[arg(long, value_parser = super::common::parse_view_pair, conflicts_with = "views")]
     pub path: Option<String>,
     /// Frames on the path (both ends included; at least 1).
     #[arg(long, default_value_t = 30, value_parser = super::common::parse_positive)]
     pub frames: usize,
     /// What renders: the trained model, or `ulr` (the no-learning baseline: unstructured lumigraph
-    /// rendering of the training photos on the mesh, `src/render/ulr.rs`).
+    /// rendering of the training photos on the mesh, `src/render/ulr.rs`; it needs no model:
+    /// `--scene DIR` alone, or a run for its scene, split, mesh and γ).
     #[arg(long, value_enum, default_value = "model")]
     pub method: Method,
     /// Image format: 8-bit PNG, or 32-bit float EXR (the same values, not quantised).
     #[arg(long, value_enum, default_value = "png")]
     pub format: Format,
-    /// Multisampling factor for rendering, 1 to 4 (default: the model's γ).
+    /// Multisampling factor for rendering (default: the model's γ; ULR without a model: the
+    /// `cpu` preset's).
     #[arg(long, value_parser = super::common::parse_gamma)]
     pub gamma: Option<u32>,
     /// Render at this multiple of each view's resolution (e.g. 4: a 1024×768 view as
@@ -55,7 +57,8 @@ pub struct Args {
     /// Also write NAME_mask.png (white where the rays hit the mesh).
     #[arg(long)]
     pub mask: bool,
-    /// Also write NAME_footprint.png (log pixel footprint on the surface).
+    /// Also write NAME_footprint.png (log pixel footprint on the surface: finest black, coarsest
+    /// white; pixels whose rays all miss red).
     #[arg(long)]
     pub footprint: bool,
     /// Only errors (no line per frame, no summary).
@@ -94,8 +97,9 @@ fn write(base: &Path, img: &Image, format: Format) -> Result<()> {
 }
 
 pub fn run(a: Args) -> Result<ExitCode> {
-    let (ck_path, ck, s) = a.model.load()?;
-    let gamma = a.gamma.unwrap_or(ck.model.cfg.gamma);
+    let loaded = a.model.load_for(a.method)?;
+    let gamma = a.gamma.unwrap_or(loaded.gamma());
+    let s = &loaded.s;
     std::fs::create_dir_all(&a.out)
         .with_context(|| format!("{}: cannot create", a.out.display()))?;
     // Frames' temp files left by a render killed mid-write (not those of one still running;
@@ -106,7 +110,7 @@ pub fn run(a: Args) -> Result<ExitCode> {
     // (output path without extension, camera, appearance row)
     let jobs: Vec<(PathBuf, Camera, i32)> = match &a.path {
         Some(p) => {
-            let ends = select_views(&s.scene, p)?;
+            let ends = select_views(&s.scene, p, "--path")?;
             if ends.len() != 2 {
                 bail!("--path takes two views A,B, got {p:?}");
             }
@@ -123,7 +127,7 @@ pub fn run(a: Args) -> Result<ExitCode> {
                 })
                 .collect()
         }
-        None => select_views(&s.scene, &a.views)?
+        None => select_views(&s.scene, &a.views, "--views")?
             .into_iter()
             .map(|i| {
                 let v = &s.scene.views[i];
@@ -174,7 +178,12 @@ pub fn run(a: Args) -> Result<ExitCode> {
         let base = a.out.join(stem);
         outputs.extend(suffixes.iter().flatten().map(|x| suffixed(&base, x)));
     }
-    super::common::refuse_overwriting_inputs(&outputs, "--out", &s.scene, Some(&ck_path))?;
+    super::common::refuse_overwriting_inputs(
+        &outputs,
+        "--out",
+        &s.scene,
+        loaded.checkpoint.as_deref(),
+    )?;
     let sources: Vec<Source> = if a.method == Method::Ulr {
         training_sources(&s.scene)?
     } else {
@@ -183,9 +192,12 @@ pub fn run(a: Args) -> Result<ExitCode> {
     let t0 = std::time::Instant::now();
     for (k, (stem, cam, row)) in jobs.iter().enumerate() {
         let r = match a.method {
-            Method::Model => render_camera(
-                &ck.model, &ck.params, &s.tracer, cam, gamma, *row, background,
-            )?,
+            Method::Model => {
+                let ck = (loaded.ck.as_ref()).expect("a model is loaded for --method model");
+                render_camera(
+                    &ck.model, &ck.params, &s.tracer, cam, gamma, *row, background,
+                )?
+            }
             Method::Ulr => render_ulr(&s.tracer, &sources, cam, gamma, background)?,
         };
         let base = a.out.join(stem);
@@ -203,7 +215,7 @@ pub fn run(a: Args) -> Result<ExitCode> {
         if a.footprint {
             write_png8(
                 &suffixed(&base, "_footprint.png"),
-                &footprint_image(&r.footprint, cam.width, cam.height),
+                &footprint_image(&r.footprint, &r.hit, cam.width, cam.height),
             )?;
         }
         if a.quiet {

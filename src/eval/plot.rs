@@ -40,11 +40,41 @@ pub fn pareto_front(curves: &[Curve]) -> Vec<(f64, f64, String)> {
 }
 
 /// The run-time-against-error plot: PSNR against wall-clock seconds (log scale), one curve per
-/// configuration, the Pareto front circled.
+/// configuration, the Pareto front circled. A curve with no training time (every point at 0 s:
+/// ULR) cannot sit on the log axis: it is drawn as a level across the plot, `NAME (no training)`,
+/// and a point at 0 s on the front is circled at the axis' left end.
 pub fn pareto_png(path: &Path, title: &str, curves: &[Curve]) -> Result<()> {
+    let timed = || {
+        (curves.iter())
+            .flat_map(|c| c.points.iter().map(|p| p.0))
+            .filter(|&t| t > 0.0)
+    };
+    let (lo, hi) = timed().fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), t| {
+        (a.min(t), b.max(t))
+    });
+    // No timed point at all (only ULR): a nominal axis from 0.1 to 10 s.
+    let (left, right) = if lo.is_finite() {
+        (lo * 0.5, hi)
+    } else {
+        (0.1, 10.0)
+    };
+    let at_left = |(t, p): (f64, f64)| (if t > 0.0 { t } else { left }, p);
+    let drawn: Vec<Curve> = curves
+        .iter()
+        .map(|c| match c.points.last() {
+            Some(&(_, p)) if c.points.iter().all(|q| q.0 <= 0.0) => Curve {
+                name: format!("{} (no training)", c.name),
+                points: vec![(left, p), (right.max(left * 4.0), p)],
+            },
+            _ => Curve {
+                name: c.name.clone(),
+                points: c.points.iter().map(|&q| at_left(q)).collect(),
+            },
+        })
+        .collect();
     let front: Vec<(f64, f64)> = pareto_front(curves)
         .iter()
-        .map(|(t, p, _)| (*t, *p))
+        .map(|(t, p, _)| at_left((*t, *p)))
         .collect();
     lines_png(
         path,
@@ -54,7 +84,7 @@ pub fn pareto_png(path: &Path, title: &str, curves: &[Curve]) -> Result<()> {
             y_desc: "held-out masked PSNR (dB)",
             log_x: true,
         },
-        curves,
+        &drawn,
         &front,
         "Pareto front",
     )
@@ -131,11 +161,9 @@ fn log_tick_label(v: &f64) -> String {
         .any(|k| (m - k).abs() < 1e-6 * k)
     {
         let r = m.round() * decade;
-        if r >= 1.0 {
-            format!("{r:.0}")
-        } else {
-            format!("{r}")
-        }
+        // As many decimals as the decade needs (`{r}` printed 3 × 0.1 as 0.30000000000000004).
+        let digits = (-decade.log10().round()).max(0.0) as usize;
+        format!("{r:.digits$}")
     } else {
         String::new()
     }
@@ -230,5 +258,37 @@ mod tests {
         pareto_png(&dir, "test", &curves).unwrap();
         assert!(std::fs::metadata(&dir).unwrap().len() > 1000);
         let _ = std::fs::remove_file(&dir);
+    }
+
+    /// Labels below 1 keep the decade's decimals only (0.3 was printed 0.30000000000000004).
+    #[test]
+    fn log_tick_labels_are_short() {
+        let labels: Vec<String> = [0.03, 0.3, 0.5, 0.4, 2.0, 30.0]
+            .iter()
+            .map(log_tick_label)
+            .collect();
+        assert_eq!(labels, ["0.03", "0.3", "0.5", "", "2", "30"]);
+    }
+
+    /// A curve with no training time (ULR: its point at 0 s) is plotted (a level across the
+    /// log axis; 0 has no place on it) and leads the front until a point beats it.
+    #[test]
+    fn a_curve_at_zero_seconds_is_plotted_and_on_the_front() {
+        let curves = [
+            Curve {
+                name: "a".into(),
+                points: vec![(1.0, 20.0), (2.0, 25.0)],
+            },
+            Curve {
+                name: "ulr".into(),
+                points: vec![(0.0, 23.0)],
+            },
+        ];
+        let f: Vec<(f64, f64)> = pareto_front(&curves).iter().map(|x| (x.0, x.1)).collect();
+        assert_eq!(f, vec![(0.0, 23.0), (2.0, 25.0)]);
+        let png = std::env::temp_dir().join(format!("xscale-plot0-{}.png", std::process::id()));
+        pareto_png(&png, "test", &curves).unwrap();
+        assert!(std::fs::metadata(&png).unwrap().len() > 1000);
+        let _ = std::fs::remove_file(&png);
     }
 }

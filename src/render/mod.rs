@@ -279,19 +279,29 @@ pub fn mask_image(hit: &[bool], w: u32, h: u32) -> Image {
     }
 }
 
-/// log-scaled footprint (finest black … coarsest white over the image's own range).
-pub fn footprint_image(fp: &[f32], w: u32, h: u32) -> Image {
+/// The colour of `render --footprint`'s pixels whose rays all miss the mesh: red, off the grey
+/// ramp of the hit pixels, so a miss is never taken for the finest footprint (black).
+pub const FOOTPRINT_MISS: [f32; 3] = [1.0, 0.0, 0.0];
+
+/// log-scaled footprint (finest black … coarsest white over the range of the image's hit
+/// pixels); pixels whose rays all miss (`hit` false) are [`FOOTPRINT_MISS`].
+pub fn footprint_image(fp: &[f32], hit: &[bool], w: u32, h: u32) -> Image {
     let logs: Vec<f64> = fp
         .iter()
-        .filter(|&&f| f > 0.0)
-        .map(|&f| (f as f64).ln())
+        .zip(hit)
+        .filter(|&(&f, &m)| m && f > 0.0)
+        .map(|(&f, _)| (f as f64).ln())
         .collect();
     let lo = logs.iter().cloned().fold(f64::INFINITY, f64::min);
     let hi = logs.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
     let span = (hi - lo).max(1e-12);
     let data = fp
         .iter()
-        .flat_map(|&f| {
+        .zip(hit)
+        .flat_map(|(&f, &m)| {
+            if !m {
+                return FOOTPRINT_MISS;
+            }
             let v = if f > 0.0 {
                 (((f as f64).ln() - lo) / span) as f32
             } else {

@@ -38,6 +38,9 @@ use serde::{Deserialize, Serialize};
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
+/// The fraction of faces `mesh10` keeps unless told (the paper's Table 5: 10 %).
+pub const DEFAULT_RATIO: f64 = 0.1;
+
 /// Largest vertex feature width the `vertex` variant uses.
 pub const Z_MAX: u32 = 256;
 /// Target vertex feature width of the `vertex_subdiv` variant.
@@ -125,8 +128,9 @@ pub struct AblateOptions {
     pub base: RunConfig,
     /// Variants to run, in table order.
     pub variants: Vec<Variant>,
-    /// Face ratio of the decimated mesh (`mesh10`).
-    pub ratio: f64,
+    /// Face ratio of the decimated mesh (`mesh10`); `None`: the earlier ablation's when appending,
+    /// else [`DEFAULT_RATIO`].
+    pub ratio: Option<f64>,
     /// Subdivision levels of `vertex_subdiv` (`None` = automatic, see the module doc).
     pub subdivide: Option<u32>,
     /// Set the step count from a timing probe so the full model trains about this long.
@@ -178,6 +182,10 @@ pub struct AblationReport {
     /// empty in reports written before it was recorded.
     #[serde(default)]
     pub base_config: String,
+    /// The fraction of faces `mesh10` keeps (`--ratio`), shared by the whole table; absent in
+    /// reports written before it was recorded.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub ratio: Option<f64>,
     pub results: Vec<VariantResult>,
     /// The claims, checked on the measured numbers.
     pub claims: Vec<Claim>,
@@ -237,11 +245,10 @@ pub fn choose_z(
 pub fn run_ablation(scene: &Path, out: &Path, opts: &AblateOptions) -> Result<AblationReport> {
     ensure!(!opts.variants.is_empty(), "no variants to run");
     // Options only a later variant uses are checked before the first one trains.
-    if opts.variants.contains(&Variant::Mesh10) {
+    if let (true, Some(r)) = (opts.variants.contains(&Variant::Mesh10), opts.ratio) {
         ensure!(
-            opts.ratio.is_finite() && opts.ratio > 0.0 && opts.ratio <= 1.0,
-            "--ratio {}: must be in (0, 1] (the fraction of faces mesh10 keeps)",
-            opts.ratio
+            r.is_finite() && r > 0.0 && r <= 1.0,
+            "--ratio {r}: must be in (0, 1] (the fraction of faces mesh10 keeps)"
         );
     }
     if let (true, Some(k)) = (
@@ -265,6 +272,18 @@ pub fn run_ablation(scene: &Path, out: &Path, opts: &AblateOptions) -> Result<Ab
             variant_names(&old.results)
         );
     }
+    // One table, one decimation ratio: an appended ablation keeps the earlier one (its mesh10
+    // row, kept or run again, is judged by the same Table 5 claim).
+    let earlier_ratio = earlier.as_ref().and_then(recorded_ratio);
+    if let (Some(r), Some(then)) = (opts.ratio, earlier_ratio) {
+        if r != then {
+            bail!(
+                "--append: the earlier ablation in {} has --ratio {then} (the fraction of faces mesh10 keeps); the variants of one table share it (leave out --ratio, or give --ratio {then})",
+                out.display()
+            );
+        }
+    }
+    let ratio = opts.ratio.or(earlier_ratio).unwrap_or(DEFAULT_RATIO);
     std::fs::create_dir_all(out).with_context(|| format!("{}: cannot create", out.display()))?;
     let say = |s: String| {
         if !opts.quiet {
@@ -298,7 +317,7 @@ pub fn run_ablation(scene: &Path, out: &Path, opts: &AblateOptions) -> Result<Ab
         mesh_path: report.mesh_path.display().to_string(),
         n_train: sc.views.len() - sc.test.len(),
         mesh: sc.mesh,
-        ratio: opts.ratio,
+        ratio,
         subdivide: opts.subdivide,
         gamma: base.model.gamma,
     };
@@ -361,6 +380,7 @@ pub fn run_ablation(scene: &Path, out: &Path, opts: &AblateOptions) -> Result<Ab
         batch_pixels: base.train.batch_pixels,
         seed: base.train.seed,
         base_config: base_config.clone(),
+        ratio: Some(ratio),
         claims: check_claims(results),
         results: results.to_vec(),
         stopped: Vec::new(),
@@ -400,6 +420,16 @@ pub fn read_report(path: &Path) -> Result<AblationReport> {
         .with_context(|| format!("{}: cannot read", path.display()))?;
     serde_json::from_str(&text)
         .with_context(|| format!("{}: not an ablation report (ablation.json)", path.display()))
+}
+
+/// The `--ratio` an earlier ablation decimated `mesh10` with: recorded, or (reports from before
+/// it was) read from its mesh10 row's mesh, `meshes/decimated_<ratio>.ply`.
+fn recorded_ratio(old: &AblationReport) -> Option<f64> {
+    old.ratio.or_else(|| {
+        let r = old.results.iter().find(|r| r.name == Variant::Mesh10)?;
+        let stem = Path::new(&r.mesh).file_stem()?.to_str()?;
+        stem.strip_prefix("decimated_")?.parse().ok()
+    })
 }
 
 /// The variants' names, comma-separated.

@@ -29,7 +29,7 @@ use crate::scene::Mesh;
 use crate::synth::perturb::{diagonal, displace_along_normals};
 use crate::train::config::RunConfig;
 use crate::train::trainer::{train, TrainOptions};
-use anyhow::{bail, ensure, Context, Result};
+use anyhow::{anyhow, bail, ensure, Context, Result};
 use serde::{Deserialize, Serialize};
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
@@ -57,6 +57,18 @@ impl ProxySpec {
             ProxySpec::Displaced(p) if *p == 0.0 => "exact".into(),
             ProxySpec::Displaced(p) => format!("rms{p}"),
             ProxySpec::Decimated(r) => format!("dec{}", (r * 100.0).round()),
+        }
+    }
+    /// `Ok` when a proxy can be built with this value, else what is wrong with it.
+    pub fn check(&self) -> std::result::Result<(), String> {
+        match self {
+            ProxySpec::Displaced(p) if !(p.is_finite() && *p >= 0.0) => {
+                Err(format!("displacement RMS {p} % is not a number ≥ 0"))
+            }
+            ProxySpec::Decimated(r) if !(*r > 0.0 && *r <= 1.0) => {
+                Err(format!("decimation ratio {r} is not in (0, 1]"))
+            }
+            _ => Ok(()),
         }
     }
     pub fn description(&self) -> String {
@@ -179,6 +191,23 @@ pub fn split_scores(views: &[ViewScore]) -> (GroupScore, GroupScore, GroupScore)
     }
 }
 
+/// Every proxy's value can be built, and no two proxies are the same (`--rms 0,0` would train
+/// and list the same variants twice): checked before anything is made.
+pub fn check_proxies(specs: &[ProxySpec]) -> Result<()> {
+    ensure!(!specs.is_empty(), "no proxies to build");
+    for (i, spec) in specs.iter().enumerate() {
+        spec.check().map_err(|e| anyhow!(e))?;
+        if specs[..i].iter().any(|t| t.name() == spec.name()) {
+            bail!(
+                "proxy {} ({}) is listed twice: give each --rms value once",
+                spec.name(),
+                spec.description()
+            );
+        }
+    }
+    Ok(())
+}
+
 /// Build the proxy meshes of `truth` into `dir` and measure them.
 pub fn build_proxies(
     truth: &Mesh,
@@ -187,31 +216,20 @@ pub fn build_proxies(
     samples: usize,
     say: &mut dyn FnMut(String),
 ) -> Result<Vec<ProxyResult>> {
+    check_proxies(specs)?;
     std::fs::create_dir_all(dir).with_context(|| format!("{}: cannot create", dir.display()))?;
     let diag = diagonal(truth);
     let index = SurfaceIndex::new(truth);
     let mut out = Vec::new();
     for spec in specs {
         let mesh = match spec {
-            ProxySpec::Displaced(p) => {
-                ensure!(
-                    p.is_finite() && *p >= 0.0,
-                    "displacement RMS {p} % is not a number ≥ 0"
-                );
-                displace_along_normals(
-                    truth,
-                    FIELD_SEED,
-                    p / 100.0 * diag,
-                    WAVELENGTH_FRACTION * diag,
-                )
-            }
-            ProxySpec::Decimated(r) => {
-                ensure!(
-                    *r > 0.0 && *r <= 1.0,
-                    "decimation ratio {r} is not in (0, 1]"
-                );
-                decimate_report(truth, *r)?.0
-            }
+            ProxySpec::Displaced(p) => displace_along_normals(
+                truth,
+                FIELD_SEED,
+                p / 100.0 * diag,
+                WAVELENGTH_FRACTION * diag,
+            ),
+            ProxySpec::Decimated(r) => decimate_report(truth, *r)?.0,
         };
         let path = dir.join(format!("{}.ply", spec.name()));
         write_ply(&path, &mesh)?;
@@ -267,7 +285,7 @@ pub fn bench_geometry(
     opts: &GeometryOptions,
     say: &mut dyn FnMut(String),
 ) -> Result<Option<GeometryReport>> {
-    ensure!(!opts.proxies.is_empty(), "no proxies to build");
+    check_proxies(&opts.proxies)?;
     ensure!(
         !opts.deform.is_empty() && !opts.refine.is_empty(),
         "no variants to train"

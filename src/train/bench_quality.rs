@@ -6,7 +6,13 @@
 //!
 //! Configurations ([`CONFIGS`]): the presets, and the `cpu` preset with one change each (table
 //! size, level spacing, batch size, γ, deformation, f64 arithmetic), plus `ulr`, the no-learning
-//! baseline (its time is the time it takes to render the held-out views; nothing is trained).
+//! baseline: nothing is trained, so its one row has 0 training seconds (`wall_s`; its setup,
+//! loading the scene and the photos, is `setup_s`; rendering and scoring the held-out views is
+//! evaluation, not counted, as for the others), drawn as a level across the plot.
+//!
+//! The rows of one `bench.csv` share a scene and a budget, recorded beside it in `bench.json`;
+//! `--append` refuses another scene or `--minutes`, and a `bench.csv` without `bench.json`
+//! (written before it was recorded), whose rows it cannot check.
 
 use crate::eval::plot::{pareto_front, pareto_png, Curve};
 use crate::eval::protocol::{mean_score, scale_summary, score_rendered};
@@ -161,13 +167,13 @@ fn bench_one(
 ) -> Result<bool> {
     let t_setup = Instant::now();
     let Some(mut cfg) = config(name)? else {
-        // ULR: render the held-out views from the training photos; its time is that render.
+        // ULR: render the held-out views from the training photos. It trains nothing: 0 training
+        // seconds; the render and its scores are its evaluation, not counted as for the others.
         let opts = crate::scene::LoadOptions::default();
         let sc = crate::scene::Scene::load(scene, &opts)?;
         let tracer = crate::raycast::Tracer::new(&sc.mesh, &sc.normalization)?;
         let sources = crate::render::ulr::training_sources(&sc)?;
         let setup_s = t_setup.elapsed().as_secs_f64();
-        let t0 = Instant::now();
         let mut scores = Vec::new();
         for &i in &sc.test {
             // Cast as the `cpu` configurations cast their pixels (γ = 2).
@@ -185,7 +191,7 @@ fn bench_one(
         log(Row {
             config: name.into(),
             setup_s,
-            wall_s: t0.elapsed().as_secs_f64(),
+            wall_s: 0.0,
             step: 0,
             psnr_masked: m.psnr_masked,
             ssim_masked: m.ssim_masked,
@@ -291,6 +297,9 @@ pub fn bench_quality(
         }
         let (again, kept): (Vec<Row>, Vec<Row>) =
             old.into_iter().partition(|r| configs.contains(&r.config));
+        if !kept.is_empty() || !again.is_empty() {
+            same_bench(out, scene, minutes)?;
+        }
         if !again.is_empty() {
             say(format!(
                 "--append: {} earlier rows of {} are replaced by this run's",
@@ -300,6 +309,11 @@ pub fn bench_quality(
         }
         rows = kept;
     }
+    let record = Record {
+        scene: std::fs::canonicalize(scene).unwrap_or_else(|_| scene.to_path_buf()),
+        minutes,
+    };
+    crate::io::atomic::write_bytes(&out.join(RECORD), serde_json::to_string_pretty(&record)?)?;
     // The kept rows replace the old file whole (or not at all), then this run appends to it.
     let mut kept = format!("{HEADER}\n");
     for r in &rows {
@@ -318,7 +332,10 @@ pub fn bench_quality(
             stopped = configs[k..].to_vec();
             break;
         }
-        say(format!("== {name} ({:.1} min of training)", minutes));
+        say(match name.as_str() {
+            "ulr" => "== ulr (nothing trained: 0 s of training)".to_string(),
+            _ => format!("== {name} ({minutes:.1} min of training)"),
+        });
         let mut log = |r: Row| {
             let _ = writeln!(csv, "{}", r.csv());
             let _ = csv.flush();
@@ -349,6 +366,58 @@ pub fn bench_quality(
     Ok((rows, stopped))
 }
 
+/// What the rows of one `bench.csv` share, recorded beside it in `OUT/bench.json`.
+#[derive(serde::Serialize, serde::Deserialize, Debug)]
+struct Record {
+    /// The scene, as an absolute path.
+    scene: std::path::PathBuf,
+    /// The training budget per configuration, `--minutes`.
+    minutes: f64,
+}
+
+/// The file beside `bench.csv` recording its [`Record`].
+const RECORD: &str = "bench.json";
+
+/// An error naming what differs when this run's scene or budget is not that of the rows in
+/// `OUT/bench.csv` (or when they were written without a record, so nothing can be checked).
+fn same_bench(out: &Path, scene: &Path, minutes: f64) -> Result<()> {
+    let path = out.join(RECORD);
+    let csv = out.join("bench.csv");
+    if !path.exists() {
+        bail!(
+            "--append: {} holds rows from an older xscale that did not record their scene and --minutes ({} is missing), so this run cannot be checked against them; --overwrite replaces them, or choose another --out (--replot still draws them)",
+            csv.display(),
+            path.display()
+        );
+    }
+    let text = crate::io::text::read(&path)?;
+    let then: Record = serde_json::from_str(&text)
+        .with_context(|| format!("{}: not a bench-quality record", path.display()))?;
+    let canon = |p: &Path| std::fs::canonicalize(p).unwrap_or_else(|_| p.to_path_buf());
+    let mut diffs = Vec::new();
+    if canon(scene) != canon(&then.scene) {
+        diffs.push(format!(
+            "scene {} (the earlier run's is {})",
+            scene.display(),
+            then.scene.display()
+        ));
+    }
+    if minutes != then.minutes {
+        diffs.push(format!(
+            "--minutes {minutes} (the earlier run's is {})",
+            then.minutes
+        ));
+    }
+    if !diffs.is_empty() {
+        bail!(
+            "--append: this run differs from the earlier one in {}, and the rows of one bench must share their scene and budget:\n  {}\nrun with the earlier options, or use another --out (or --overwrite)",
+            csv.display(),
+            diffs.join("\n  ")
+        );
+    }
+    Ok(())
+}
+
 /// Draw `OUT/pareto.png` from `rows` (one curve per configuration, in order of first appearance)
 /// and say the Pareto front.
 fn plot(out: &Path, scene_name: &str, rows: &[Row], say: &mut dyn FnMut(String)) -> Result<()> {
@@ -360,7 +429,11 @@ fn plot(out: &Path, scene_name: &str, rows: &[Row], say: &mut dyn FnMut(String))
             points: rows
                 .iter()
                 .filter(|r| r.config == *c)
-                .map(|r| (r.wall_s.max(1e-3), r.psnr_masked))
+                // ULR trains nothing (rows written before that was so hold its render time).
+                .map(|r| {
+                    let t = if r.config == "ulr" { 0.0 } else { r.wall_s };
+                    (t, r.psnr_masked)
+                })
                 .collect(),
         })
         .collect();

@@ -169,7 +169,7 @@ fn cast_views(
         }
         let t = Instant::now();
         let mask = scene.load_mask(i)?;
-        let masked_out = mask.as_ref().is_some_and(|m| !m.contains(&true));
+        let why = crate::scene::mask::drop_reason(mask.as_deref());
         let mut on_event = |e: CacheEvent| match e {
             CacheEvent::ViewCast { kept, pixels, .. } => eprintln!(
                 "[{}/{}] view {i} '{}': {kept} of {pixels} pixels see the mesh ({:.1}%)",
@@ -178,15 +178,9 @@ fn cast_views(
                 view.name,
                 100.0 * kept as f64 / pixels.max(1) as f64
             ),
-            CacheEvent::ViewDropped { .. } => eprintln!(
-                "warning: view {i} '{}' {}; dropped",
-                view.name,
-                if masked_out {
-                    "has an object mask that excludes every pixel"
-                } else {
-                    "sees no part of the mesh"
-                }
-            ),
+            CacheEvent::ViewDropped { .. } => {
+                eprintln!("warning: view {i} '{}' {why}; dropped", view.name)
+            }
         };
         cache.add_view(
             tracer,

@@ -2,7 +2,7 @@
 //! and ꟻLIP (SPEC §7), full image and masked, per held-out view and mean; a printed table; one
 //! side-by-side PNG per view (render | photo | error heat map | ꟻLIP) when `--out` is given.
 
-pub use super::common::Method;
+use super::common::Method;
 use super::common::{select_views, ModelArgs};
 use crate::eval::protocol::{
     evaluate_view, mean_score, output_name, scale_summary, scale_table, score_rendered, table,

@@ -110,10 +110,8 @@ pub fn run(a: Args) -> Result<ExitCode> {
     // (output path without extension, camera, appearance row)
     let jobs: Vec<(PathBuf, Camera, i32)> = match &a.path {
         Some(p) => {
+            // Two views: `parse_view_pair` took only `A,B`.
             let ends = select_views(&s.scene, p, "--path")?;
-            if ends.len() != 2 {
-                bail!("--path takes two views A,B, got {p:?}");
-            }
             let (va, vb) = (&s.scene.views[ends[0]], &s.scene.views[ends[1]]);
             let ta = look_at_point(&s.tracer, &s.scene.mesh, &va.camera);
             let tb = look_at_point(&s.tracer, &s.scene.mesh, &vb.camera);

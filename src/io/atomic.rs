@@ -110,15 +110,22 @@ pub fn same_file(a: &Path, b: &Path) -> bool {
     let (Ok(ma), Ok(mb)) = (std::fs::metadata(a), std::fs::metadata(b)) else {
         return false;
     };
+    same_identity(&ma, &mb)
+        .unwrap_or_else(|| matches!((a.canonicalize(), b.canonicalize()), (Ok(x), Ok(y)) if x == y))
+}
+
+/// Whether two files' metadata are of one file (device and inode); `None` where the system
+/// gives no such identity (not unix).
+pub fn same_identity(a: &std::fs::Metadata, b: &std::fs::Metadata) -> Option<bool> {
     #[cfg(unix)]
     {
         use std::os::unix::fs::MetadataExt;
-        (ma.dev(), ma.ino()) == (mb.dev(), mb.ino())
+        Some((a.dev(), a.ino()) == (b.dev(), b.ino()))
     }
     #[cfg(not(unix))]
     {
-        let _ = (ma, mb);
-        matches!((a.canonicalize(), b.canonicalize()), (Ok(x), Ok(y)) if x == y)
+        let _ = (a, b);
+        None
     }
 }
 

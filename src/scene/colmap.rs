@@ -253,15 +253,7 @@ pub fn is_model_dir(dir: &Path) -> bool {
 /// A model directory among the places [`find_layout`] looks that holds part of a model but not
 /// a whole one (`cameras` and `images` both .txt or both .bin): what is there and what is missing.
 pub fn incomplete_model(scene: &Path) -> Option<String> {
-    let places = [
-        scene.join("dense").join("0").join("sparse"),
-        scene.join("dense").join("sparse"),
-        scene.join("0").join("sparse"),
-        scene.join("sparse").join("0"),
-        scene.join("sparse"),
-        scene.to_path_buf(),
-    ];
-    places.iter().find_map(|d| {
+    model_places(scene).iter().map(|(d, _)| d).find_map(|d| {
         let has = |f: &str| d.join(f).is_file();
         let found: Vec<&str> = ["cameras.txt", "images.txt", "cameras.bin", "images.bin"]
             .into_iter()
@@ -319,33 +311,36 @@ pub struct Layout {
 ///    COLMAP's meshes (`meshed-poisson.ply`, `meshed-delaunay.ply`) live beside it;
 /// 2. `sparse/0/`, `sparse/` or the dir itself, with images in `images/`.
 pub fn find_layout(scene: &Path) -> Option<Layout> {
+    let undistorted_here = scene.join("stereo").is_dir();
+    model_places(scene)
+        .into_iter()
+        .find(|(model, ws)| {
+            is_model_dir(model) && ws.as_ref().is_none_or(|w| w.join("images").is_dir())
+        })
+        .map(|(model, ws)| Layout {
+            model,
+            images: ws.as_deref().unwrap_or(scene).join("images"),
+            dense: ws.is_some() || undistorted_here,
+        })
+}
+
+/// The folders of a scene dir that may hold a COLMAP model, in the order they are looked in, each
+/// with its dense workspace when it is one's `sparse/` (its images beside it): `dense/0/sparse/`,
+/// `dense/sparse/`, `0/sparse/`, then `sparse/0/`, `sparse/` and the dir itself.
+fn model_places(scene: &Path) -> Vec<(PathBuf, Option<PathBuf>)> {
     let dense = [
         scene.join("dense").join("0"),
         scene.join("dense"),
         scene.join("0"),
     ];
-    for d in dense {
-        if is_model_dir(&d.join("sparse")) && d.join("images").is_dir() {
-            return Some(Layout {
-                model: d.join("sparse"),
-                images: d.join("images"),
-                dense: true,
-            });
-        }
-    }
-    let undistorted_here = scene.join("stereo").is_dir();
-    [
+    let plain = [
         scene.join("sparse").join("0"),
         scene.join("sparse"),
         scene.to_path_buf(),
-    ]
-    .into_iter()
-    .find(|d| is_model_dir(d))
-    .map(|model| Layout {
-        model,
-        images: scene.join("images"),
-        dense: undistorted_here,
-    })
+    ];
+    (dense.into_iter().map(|w| (w.join("sparse"), Some(w))))
+        .chain(plain.into_iter().map(|d| (d, None)))
+        .collect()
 }
 
 /// Read a model directory (text preferred over binary); image paths are `images_dir/NAME`.

@@ -35,6 +35,21 @@ pub enum MaskSource {
     Alpha,
 }
 
+/// Whether a view's mask (`None`: no mask) leaves no pixel inside it.
+pub fn excludes_all(mask: Option<&[bool]>) -> bool {
+    mask.is_some_and(|m| !m.contains(&true))
+}
+
+/// Why a view none of whose pixels the cast kept was dropped, for its warning: its mask
+/// ([`excludes_all`]), else the mesh.
+pub fn drop_reason(mask: Option<&[bool]>) -> &'static str {
+    if excludes_all(mask) {
+        "has an object mask that excludes every pixel"
+    } else {
+        "sees no part of the mesh"
+    }
+}
+
 /// The candidates for the mask of a view named `name` under `masks_dir` (module docs), in order.
 pub fn mask_candidates(masks_dir: &Path, name: &str) -> Vec<PathBuf> {
     let mut names = vec![name.to_string()];

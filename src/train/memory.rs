@@ -239,18 +239,21 @@ fn status_kb(key: &str) -> Option<u64> {
 }
 
 /// Refuse, before allocating, `need` bytes that `what` would take when more than the memory
-/// available ([`available_bytes`]; nothing is refused where the system does not say): an
+/// available ([`available_bytes`]; where the system does not say, more than a process can
+/// address): an
 /// allocation that fails aborts the process without a word (`memory allocation of N bytes
 /// failed`, exit 134). `fix` says what to change.
 pub fn check_fits(need: u64, what: &str, fix: &str) -> Result<()> {
-    match available_bytes() {
-        Some(avail) if need > avail => bail!(
+    // Without a reading, only what no process can address is refused (as [`beyond_addressing`]).
+    let avail = available_bytes().unwrap_or(isize::MAX as u64);
+    if need > avail {
+        bail!(
             "{what} would take about {} in memory, and {} are available; {fix}",
             size(need),
             size(avail)
-        ),
-        _ => Ok(()),
+        );
     }
+    Ok(())
 }
 
 /// Peak resident memory of this process so far (Linux `VmHWM`), if known.

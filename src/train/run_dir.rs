@@ -235,18 +235,9 @@ fn try_flock(f: &std::fs::File) -> std::io::Result<bool> {
 /// Whether the open `file` is the file now at `path` (not replaced or removed since it was
 /// opened).
 fn same_file(file: &std::fs::File, path: &Path) -> bool {
-    #[cfg(unix)]
-    {
-        use std::os::unix::fs::MetadataExt;
-        match (file.metadata(), std::fs::metadata(path)) {
-            (Ok(a), Ok(b)) => a.dev() == b.dev() && a.ino() == b.ino(),
-            _ => false,
-        }
-    }
-    #[cfg(not(unix))]
-    {
-        let _ = file;
-        path.exists()
+    match (file.metadata(), std::fs::metadata(path)) {
+        (Ok(a), Ok(b)) => crate::io::atomic::same_identity(&a, &b).unwrap_or(true),
+        _ => false,
     }
 }
 

@@ -179,18 +179,13 @@ pub fn prepare_until(
         };
         let mask = scene.load_mask(i)?;
         let mask = mask.as_deref();
-        let masked_out = mask.is_some_and(|m| !m.contains(&true));
-        empty_masks += masked_out as usize;
+        empty_masks += crate::scene::mask::excludes_all(mask) as usize;
         let mut on_event = |e| {
             if let CacheEvent::ViewDropped { .. } = e {
                 log(format!(
                     "warning: view {i} ({}) {}: dropped",
                     scene.views[i].name,
-                    if masked_out {
-                        "has an object mask that excludes every pixel"
-                    } else {
-                        "sees no part of the mesh"
-                    }
+                    crate::scene::mask::drop_reason(mask)
                 ));
             }
         };

@@ -2219,3 +2219,256 @@ fn mesh_distance_warns_of_meshes_in_other_units() {
     assert_eq!(code, 0, "{err}");
     assert!(!err.contains("warning"), "{err}");
 }
+
+// ------------------------------------------------------------------------------------------
+// Agisoft Metashape (cameras.xml)
+// ------------------------------------------------------------------------------------------
+
+/// `x → s·R·x + t` written as Metashape's `<transform>` children.
+fn xml_similarity(r: &DMat3, t: DVec3, s: f64) -> String {
+    let rr = rows(r);
+    format!(
+        "<transform><rotation locked=\"true\">{}</rotation><translation>{} {} {}</translation><scale>{s}</scale></transform>",
+        rr.iter().flatten().map(|v| v.to_string()).collect::<Vec<_>>().join(" "),
+        t.x,
+        t.y,
+        t.z
+    )
+}
+
+/// A camera's `<transform>`: camera → frame `(R_c, c)` as 16 row-major numbers.
+fn xml_pose(r_c: &DMat3, c: DVec3) -> String {
+    let rr = rows(r_c);
+    format!(
+        "<transform>{} {} {} {} {} {} {} {} {} {} {} {} 0 0 0 1</transform>",
+        rr[0][0],
+        rr[0][1],
+        rr[0][2],
+        c.x,
+        rr[1][0],
+        rr[1][1],
+        rr[1][2],
+        c.y,
+        rr[2][0],
+        rr[2][1],
+        rr[2][2],
+        c.z
+    )
+}
+
+/// The `tiny` scene's photos and mesh with its cameras written as a Metashape 2 export (in
+/// words, not through the reader's code): the views under a component similarity and a chunk
+/// similarity, one frame sensor per distinct camera, an unaligned and a disabled camera more.
+fn metashape_tiny(name: &str, calibration_extra: &str) -> (PathBuf, Vec<View>) {
+    let d = scratch(name);
+    copy_dir(&tiny().join("images"), &d.join("images"));
+    fs::copy(tiny().join("mesh.ply"), d.join("mesh.ply")).unwrap();
+    let views = load_as(&tiny(), CameraFormat::Colmap).unwrap().0.views;
+    let (rc, tc, sc) = (
+        DMat3::from_euler(glam::EulerRot::ZYX, 0.4, -0.3, 1.1),
+        DVec3::new(10.0, -4.0, 2.5),
+        2.5,
+    );
+    let (rk, tk, sk) = (
+        DMat3::from_euler(glam::EulerRot::XYZ, -0.2, 0.7, 0.1),
+        DVec3::new(-1.0, 0.5, 3.0),
+        0.8,
+    );
+    let mut sensors = String::new();
+    let mut cams = String::new();
+    for (i, v) in views.iter().enumerate() {
+        let c = &v.camera;
+        // f = fy, b1 = fx − fy; cx, cy from the image centre.
+        sensors += &format!(
+            "<sensor id=\"{i}\" label=\"s{i}\" type=\"frame\"><resolution width=\"{}\" height=\"{}\"/><calibration type=\"frame\" class=\"initial\"><f>1</f></calibration><calibration type=\"frame\" class=\"adjusted\"><resolution width=\"{}\" height=\"{}\"/><f>{}</f><cx>{}</cx><cy>{}</cy><b1>{}</b1>{calibration_extra}</calibration></sensor>\n",
+            c.width, c.height, c.width, c.height, c.fy,
+            c.cx - 0.5 * c.width as f64,
+            c.cy - 0.5 * c.height as f64,
+            c.fx - c.fy
+        );
+        // World pose (camera → world) undone through the chunk's, then the component's similarity.
+        let (r_w, c_w) = (c.rotation.transpose(), c.center());
+        let (r_k, c_k) = (rc.transpose() * r_w, rc.transpose() * (c_w - tc) / sc);
+        let (r_m, c_m) = (rk.transpose() * r_k, rk.transpose() * (c_k - tk) / sk);
+        let label = v.name.trim_end_matches(".png");
+        let group = if i % 2 == 0 {
+            ("<group id=\"0\" label=\"g\">", "</group>")
+        } else {
+            ("", "")
+        };
+        cams += &format!(
+            "{}<camera id=\"{i}\" sensor_id=\"{i}\" component_id=\"0\" label=\"{label}\">{}<reference x=\"1\" enabled=\"true\"/></camera>{}\n",
+            group.0,
+            xml_pose(&r_m, c_m),
+            group.1
+        );
+    }
+    cams += "<camera id=\"90\" sensor_id=\"0\" component_id=\"0\" label=\"0000\"/>\n";
+    cams += &format!(
+        "<camera id=\"91\" sensor_id=\"0\" label=\"0001\" enabled=\"false\">{}</camera>\n",
+        xml_pose(&DMat3::IDENTITY, DVec3::ZERO)
+    );
+    let xml = format!(
+        "<?xml version=\"1.0\" encoding=\"UTF-8\"?>\n<document version=\"2.0.0\">\n<chunk version=\"2.0.0\" label=\"Chunk 1\" enabled=\"true\">\n<sensors next_id=\"9\">\n{sensors}</sensors>\n<components next_id=\"1\" active_id=\"0\"><component id=\"0\" label=\"Component 1\">{}<partition><camera_ids>0 1</camera_ids></partition></component></components>\n<cameras next_id=\"92\" next_group_id=\"1\">\n{cams}</cameras>\n{}\n<reference>LOCAL_CS[\"Local Coordinates (m)\",LOCAL_DATUM[\"Local Datum\",0],UNIT[\"metre\",1]]</reference>\n</chunk>\n</document>\n",
+        xml_similarity(&rk, tk, sk),
+        xml_similarity(&rc, tc, sc)
+    );
+    fs::write(d.join("cameras.xml"), xml).unwrap();
+    (d, views)
+}
+
+#[test]
+fn metashape_export_places_cameras_as_colmap_does() {
+    let (d, views) = metashape_tiny("metashape_tiny", "");
+    assert_eq!(
+        xscale::scene::detect_formats(&d),
+        vec![CameraFormat::Metashape]
+    );
+    let (scene, report) = Scene::load_report(&d, &LoadOptions::default()).unwrap();
+    assert_eq!(report.format, CameraFormat::Metashape);
+    assert_cameras_close(&views, &scene.views, 1e-9);
+    let notes = report.notes.join("\n");
+    assert_contains(&notes, &["8 cameras read", "1 not aligned", "1 disabled"]);
+    assert!(!notes.contains("georeferenced"), "{notes}");
+    // The same scene trains the same pixels: the cast sees the mesh from every view.
+    let colmap = load_as(&tiny(), CameraFormat::Colmap).unwrap().0;
+    assert_eq!(scene.test.len(), colmap.test.len());
+
+    // A georeferenced chunk says which frame the mesh must be exported in.
+    let p = d.join("cameras.xml");
+    let text = fs::read_to_string(&p).unwrap();
+    let geo = text.replace(
+        "LOCAL_CS[\"Local Coordinates (m)\",LOCAL_DATUM[\"Local Datum\",0],UNIT[\"metre\",1]]",
+        "GEOGCS[\"WGS 84\",DATUM[\"World Geodetic System 1984\"]]",
+    );
+    fs::write(&p, geo).unwrap();
+    let (_, report) = Scene::load_report(&d, &LoadOptions::default()).unwrap();
+    assert_contains(&report.notes.join("\n"), &["georeferenced", "EPSG:4978"]);
+}
+
+/// Metashape's frame camera model as its manual's Appendix C writes it, for a camera-frame point.
+fn metashape_pixel(p: DVec3, w: f64, h: f64, c: &[f64; 11], fisheye: bool) -> (f64, f64) {
+    let [f, cx, cy, b1, b2, k1, k2, k3, k4, p1, p2] = *c;
+    let (mut x, mut y) = (p.x / p.z, p.y / p.z);
+    if fisheye {
+        let r0 = (x * x + y * y).sqrt();
+        let s = r0.atan() / r0;
+        (x, y) = (x * s, y * s);
+    }
+    let r2 = x * x + y * y;
+    let radial = 1.0 + k1 * r2 + k2 * r2 * r2 + k3 * r2.powi(3) + k4 * r2.powi(4);
+    let xd = x * radial + p1 * (r2 + 2.0 * x * x) + 2.0 * p2 * x * y;
+    let yd = y * radial + p2 * (r2 + 2.0 * y * y) + 2.0 * p1 * x * y;
+    (
+        0.5 * w + cx + xd * f + xd * b1 + yd * b2,
+        0.5 * h + cy + yd * f,
+    )
+}
+
+#[test]
+fn metashape_lens_models_follow_the_manual() {
+    // f, cx, cy, b1, b2, k1, k2, k3, k4, p1, p2
+    let c = [
+        52.0, 0.8, -1.3, 0.9, 0.35, -0.11, 0.04, -0.012, 0.003, 0.0007, -0.0012,
+    ];
+    for fisheye in [false, true] {
+        let d = scratch(if fisheye {
+            "metashape_fisheye"
+        } else {
+            "metashape_frame"
+        });
+        copy_dir(&tiny().join("images"), &d.join("images"));
+        fs::copy(tiny().join("mesh.ply"), d.join("mesh.ply")).unwrap();
+        let b2 = if fisheye { 0.0 } else { c[4] };
+        let names = [
+            "f", "cx", "cy", "b1", "b2", "k1", "k2", "k3", "k4", "p1", "p2",
+        ];
+        let mut cc = c;
+        cc[4] = b2;
+        let cal: String = names
+            .iter()
+            .zip(cc)
+            .map(|(n, v)| format!("<{n}>{v}</{n}>"))
+            .collect();
+        let (r_c, cen) = (
+            DMat3::from_euler(glam::EulerRot::XYZ, 0.1, -0.2, 0.3),
+            DVec3::new(0.3, -0.2, -3.0),
+        );
+        let xml = format!(
+            "<document><chunk><sensors><sensor id=\"0\" type=\"{}\"><resolution width=\"64\" height=\"48\"/><calibration class=\"adjusted\">{cal}</calibration></sensor></sensors><cameras><camera id=\"0\" sensor_id=\"0\" label=\"0000.png\">{}</camera></cameras></chunk></document>",
+            if fisheye { "fisheye" } else { "frame" },
+            xml_pose(&r_c, cen)
+        );
+        fs::write(d.join("cameras.xml"), xml).unwrap();
+        let scene = Scene::load(&d, &LoadOptions::default()).unwrap();
+        let cam = &scene.views[0].camera;
+        assert_eq!(
+            scene.views[0].name, "0000.png",
+            "a label with its extension"
+        );
+        for k in 0..30 {
+            let pc = DVec3::new(-0.4 + 0.03 * k as f64, 0.3 - 0.025 * k as f64, 1.0);
+            let pw = r_c * pc + cen;
+            let (u, v) = cam.project(pw).unwrap();
+            let (eu, ev) = metashape_pixel(pc, 64.0, 48.0, &cc, fisheye);
+            assert!(
+                (u - eu).abs() < 1e-9 && (v - ev).abs() < 1e-9,
+                "fisheye {fisheye}: ({u}, {v}) against the manual's ({eu}, {ev})"
+            );
+            // And the ray back through that pixel meets the point.
+            let dir = cam.dir_world(eu, ev).normalize();
+            let off = (pw - cam.center()).normalize();
+            assert!(
+                (dir - off).length() < 1e-9,
+                "fisheye {fisheye}: ray {dir} vs {off}"
+            );
+        }
+    }
+}
+
+#[test]
+fn metashape_bad_inputs_name_file_and_line() {
+    let (d, _) = metashape_tiny("metashape_bad", "");
+    let p = d.join("cameras.xml");
+    let good = fs::read_to_string(&p).unwrap();
+    let load = || load_as(&d, CameraFormat::Metashape);
+    let cases: [(String, &[&str]); 7] = [
+        (
+            good.replace("</document>", ""),
+            &["cameras.xml", "not well-formed XML"],
+        ),
+        (
+            good.replacen("type=\"frame\"", "type=\"spherical\"", 1),
+            &["cameras.xml:5", "sensor type 'spherical'", "undistorted"],
+        ),
+        (
+            good.replacen("</b1>", "</b1><p3>0.01</p3>", 1),
+            &["cameras.xml:5", "<p3>"],
+        ),
+        (
+            good.replacen("label=\"0002\"", "label=\"nosuch\"", 1),
+            &["cameras.xml:", "no photo for camera 'nosuch'", "images"],
+        ),
+        (
+            good.replacen("<f>55.", "<f>x55.", 1),
+            &["cameras.xml:5", "<f>", "not a number"],
+        ),
+        (
+            good.replacen("</chunk>", "</chunk><chunk label=\"Chunk 2\"/>", 1),
+            &["2 chunks", "'Chunk 1', 'Chunk 2'"],
+        ),
+        (
+            good.replacen("<scale>2.5</scale>", "<scale>-2.5</scale>", 1),
+            &["cameras.xml:", "<scale> -2.5"],
+        ),
+    ];
+    for (text, parts) in cases {
+        fs::write(&p, text).unwrap();
+        assert_contains(&err(load()), parts);
+    }
+    // A camera transform that is not a rotation (a mirrored pose).
+    let mirrored = good.replacen("<transform>", "<transform>-", 3);
+    fs::write(&p, &mirrored).unwrap();
+    let e = err(load());
+    assert!(e.contains("cameras.xml:") && e.contains("rotation"), "{e}");
+}

@@ -48,7 +48,7 @@ pub struct Args {
     /// Mesh file (default: found in the scene directory).
     #[arg(long)]
     pub mesh: Option<PathBuf>,
-    /// Camera format (default: auto-detect): colmap, mvsnet, transforms.
+    /// Camera format (default: auto-detect): colmap, mvsnet, transforms, metashape.
     #[arg(long)]
     pub format: Option<CameraFormat>,
     /// Normalisation of the bounding box to `[0,1]^3`.

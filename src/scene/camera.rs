@@ -28,6 +28,16 @@ pub enum Distortion {
     /// COLMAP FULL_OPENCV: rational radial `(1 + k1 r² + k2 r⁴ + k3 r⁶) / (1 + k4 r² + k5 r⁴ +
     /// k6 r⁶)` (`k = [k1 … k6]`) and tangential p1, p2.
     FullOpenCv { k: [f64; 6], p1: f64, p2: f64 },
+    /// Brown's model as Agisoft Metashape fits it for frame cameras (its manual, Appendix C):
+    /// radial `1 + k1 r² + k2 r⁴ + k3 r⁶ + k4 r⁸`, tangential in OpenCV's order (Metashape's P1
+    /// is `p2` here and its P2 is `p1`), then the skew `b2 / (f + b1)` added to x:
+    /// `x_d = x' + skew·y'`. Not a COLMAP model; with `k4 = skew = 0` it is FULL_OPENCV.
+    Brown {
+        k: [f64; 4],
+        p1: f64,
+        p2: f64,
+        skew: f64,
+    },
     /// COLMAP FOV (Devernay & Faugeras 2001): `x_d = x · atan(2 r tan(ω/2)) / (r ω)`.
     Fov { omega: f64 },
     /// COLMAP SIMPLE_DIVISION / DIVISION (Fitzgibbon 2001): the undistorted point is
@@ -113,6 +123,14 @@ impl Distortion {
                     u * radial + 2.0 * p1 * uv + p2 * (r2 + 2.0 * u2),
                     v * radial + 2.0 * p2 * uv + p1 * (r2 + 2.0 * v2),
                 )
+            }
+            Distortion::Brown { k, p1, p2, skew } => {
+                let (u2, v2, uv) = (u * u, v * v, u * v);
+                let r2 = u2 + v2;
+                let radial = r2 * (k[0] + r2 * (k[1] + r2 * (k[2] + r2 * k[3])));
+                let x = u + u * radial + 2.0 * p1 * uv + p2 * (r2 + 2.0 * u2);
+                let y = v + v * radial + 2.0 * p2 * uv + p1 * (r2 + 2.0 * v2);
+                (x + skew * y, y)
             }
             Distortion::Fisheye { k } => {
                 let t2 = u * u + v * v;
@@ -389,6 +407,12 @@ mod tests {
                 k2: 0.05,
                 p1: 0.001,
                 p2: -0.002,
+            },
+            Distortion::Brown {
+                k: [-0.15, 0.04, -0.01, 0.002],
+                p1: 0.0008,
+                p2: -0.0011,
+                skew: 0.0004,
             },
         ];
         for m in models {

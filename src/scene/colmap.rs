@@ -140,12 +140,14 @@ fn intrinsics(where_: &str, model: usize, w: u64, h: u64, p: &[f64]) -> Result<I
 }
 
 /// COLMAP model id and parameters representing a camera exactly (SIMPLE_RADIAL/RADIAL need
-/// fx == fy; otherwise the equivalent OPENCV with zero extra terms is used).
-fn model_of(cam: &Camera) -> (usize, Vec<f64>) {
+/// fx == fy; otherwise the equivalent OPENCV with zero extra terms is used). A distortion no
+/// COLMAP model has (Metashape's r⁸ term or skew) is an error naming the view.
+fn model_of(view: &View) -> Result<(usize, Vec<f64>)> {
+    let cam = &view.camera;
     let same_f = cam.fx == cam.fy;
     let k4 = [cam.fx, cam.fy, cam.cx, cam.cy];
     let with = |extra: &[f64]| [&k4[..], extra].concat();
-    match cam.distortion {
+    Ok(match cam.distortion {
         Distortion::None => (1, k4.to_vec()),
         Distortion::SimpleRadial { k } if same_f => (2, vec![cam.fx, cam.cx, cam.cy, k]),
         Distortion::SimpleRadial { k } => (4, with(&[k, 0.0, 0.0, 0.0])),
@@ -166,7 +168,15 @@ fn model_of(cam: &Camera) -> (usize, Vec<f64>) {
         } => (10, with(&[k[0], k[1], p1, p2, k[2], k[3], sx1, sy1])),
         Distortion::RadTanThinPrismFisheye { k, p, s } => (11, with(&[&k[..], &p, &s].concat())),
         Distortion::Division { k } => (13, with(&[k])),
-    }
+        Distortion::Brown { k, p1, p2, skew } if k[3] == 0.0 && skew == 0.0 => {
+            (6, with(&[k[0], k[1], p1, p2, k[2], 0.0, 0.0, 0.0]))
+        }
+        Distortion::Brown { k, skew, .. } => bail!(
+            "view '{}': no COLMAP camera model has Metashape's k4 = {} or skew = {skew}; undistort the images first",
+            view.name,
+            k[3]
+        ),
+    })
 }
 
 /// World→camera rotation from a COLMAP quaternion (normalised first).
@@ -516,7 +526,7 @@ pub fn write_text(dir: &Path, views: &[View]) -> Result<()> {
     .unwrap();
     for (i, v) in views.iter().enumerate() {
         let c = &v.camera;
-        let (model, params) = model_of(c);
+        let (model, params) = model_of(v)?;
         writeln!(
             cams,
             "{} {} {} {} {}",
@@ -823,7 +833,7 @@ pub fn write_binary(dir: &Path, views: &[View]) -> Result<()> {
     imgs.extend((views.len() as u64).to_le_bytes());
     for (i, v) in views.iter().enumerate() {
         let c = &v.camera;
-        let (model, params) = model_of(c);
+        let (model, params) = model_of(v)?;
         let id = (i + 1) as u32;
         cams.extend(id.to_le_bytes());
         cams.extend((model as i32).to_le_bytes());

@@ -5,7 +5,7 @@
 //! expected when it fails.
 
 use super::{
-    colmap, image, mask, mesh, mvsnet, points, transforms, MaskSource, Normalization,
+    colmap, image, mask, mesh, metashape, mvsnet, points, transforms, MaskSource, Normalization,
     NormalizeMode, Scene, View,
 };
 use anyhow::{anyhow, bail, Result};
@@ -23,6 +23,9 @@ pub enum CameraFormat {
     /// `transforms.json` (instant-ngp / nerfstudio), or NeRF-synthetic style
     /// `transforms_train.json` + `transforms_test.json` (+ `transforms_val.json`, used for training).
     Transforms,
+    /// Agisoft Metashape's camera export: `cameras.xml` (or a single other Agisoft `*.xml`) with
+    /// the photos in `images/` ([`metashape`]).
+    Metashape,
 }
 
 impl CameraFormat {
@@ -31,6 +34,7 @@ impl CameraFormat {
             CameraFormat::Colmap => "colmap",
             CameraFormat::MvsNet => "mvsnet",
             CameraFormat::Transforms => "transforms",
+            CameraFormat::Metashape => "metashape",
         }
     }
 }
@@ -42,7 +46,10 @@ impl std::str::FromStr for CameraFormat {
             "colmap" => Ok(CameraFormat::Colmap),
             "mvsnet" | "xscale" => Ok(CameraFormat::MvsNet),
             "transforms" | "nerf" | "instant-ngp" | "nerfstudio" => Ok(CameraFormat::Transforms),
-            _ => anyhow::bail!("unknown camera format '{s}' (colmap, mvsnet, transforms)"),
+            "metashape" | "agisoft" => Ok(CameraFormat::Metashape),
+            _ => {
+                anyhow::bail!("unknown camera format '{s}' (colmap, mvsnet, transforms, metashape)")
+            }
         }
     }
 }
@@ -168,6 +175,9 @@ pub fn detect_formats(dir: &Path) -> Vec<CameraFormat> {
     if !mvsnet::find_layouts(dir).is_empty() {
         out.push(CameraFormat::MvsNet);
     }
+    if metashape::find(dir).is_some() {
+        out.push(CameraFormat::Metashape);
+    }
     out
 }
 
@@ -276,6 +286,18 @@ impl Scene {
         let (mut views, format_test, given_masks) = match format {
             CameraFormat::Colmap => (load_colmap(dir)?, None, None),
             CameraFormat::MvsNet => (load_mvsnet(dir, opts.mvsnet_dsp)?, None, None),
+            CameraFormat::Metashape => {
+                let xml = metashape::find(dir).ok_or_else(|| {
+                    anyhow!(
+                        "{}: no Metashape camera export ({} or a single Agisoft *.xml)",
+                        dir.display(),
+                        metashape::FILE
+                    )
+                })?;
+                let loaded = metashape::load(&xml, &dir.join("images"))?;
+                notes.extend(loaded.notes);
+                (loaded.views, None, None)
+            }
             CameraFormat::Transforms => {
                 let (loaded, undone) = load_transforms(dir, applied, &mut notes)?;
                 if let Some(file) = undone {

@@ -6,8 +6,8 @@
 //! (loading a scene directory: layout detection, one loader per layout, image checks, split,
 //! mesh), `normalize.rs` ([`Normalization`]), `mesh.rs` ([`Mesh`]; OBJ/PLY load and write),
 //! `image.rs` ([`Image`]; PNG/JPEG/EXR load, downsample, write), `camera.rs` (pinhole +
-//! distortion), `colmap.rs`, `mvsnet.rs`, `transforms.rs` (the three camera layouts, load and
-//! write), `mask.rs` (object masks), `remesh.rs` (decimation and subdivision), `points.rs` (the
+//! distortion), `colmap.rs`, `mvsnet.rs`, `transforms.rs` (camera layouts, load and write),
+//! `metashape.rs` (Agisoft Metashape's camera export, load only), `mask.rs` (object masks), `remesh.rs` (decimation and subdivision), `points.rs` (the
 //! reconstruction's 3-D points against the mesh: are they in one frame?), `distance.rs`
 //! (point-to-surface distance).
 //!
@@ -21,6 +21,7 @@ pub mod image;
 pub mod load;
 pub mod mask;
 pub mod mesh;
+pub mod metashape;
 pub mod mvsnet;
 pub mod normalize;
 pub mod points;

@@ -82,7 +82,7 @@ pub fn find(
                 None
             }
         }
-        CameraFormat::MvsNet => None,
+        CameraFormat::MvsNet | CameraFormat::Metashape => None,
     };
     Ok(found.map(|(source, xyz)| SparsePoints { source, xyz }))
 }

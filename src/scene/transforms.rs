@@ -380,7 +380,7 @@ fn affine_rows(wh: &str, m: &Value) -> Result<[[f64; 4]; 3]> {
 
 /// max |RᵀR − I|: how far a matrix is from orthonormal.
 /// Why `r` is not a rotation (orthonormal to `tol`, determinant +1), or `None` if it is one.
-fn not_a_rotation(r: &DMat3, tol: f64) -> Option<String> {
+pub(crate) fn not_a_rotation(r: &DMat3, tol: f64) -> Option<String> {
     let ortho = non_orthonormality(r);
     let det = r.determinant();
     if ortho > tol {

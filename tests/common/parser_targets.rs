@@ -12,7 +12,7 @@ use std::path::Path;
 use xscale::io::TensorFile;
 use xscale::model::checkpoint::Checkpoint;
 use xscale::model::Batch;
-use xscale::scene::{colmap, mesh, mvsnet, transforms, LoadOptions, Scene};
+use xscale::scene::{colmap, mesh, metashape, mvsnet, transforms, LoadOptions, Scene};
 use xscale::train::config::RunConfig;
 
 /// Parse `bytes` (written into the work dir); returns the path errors must name, and the result.
@@ -295,6 +295,27 @@ pub fn targets(fx: &Path, work: &Path) -> Vec<Target> {
                 );
                 Ok(())
             });
+            (disp(&p), r)
+        }),
+    });
+
+    // Metashape's cameras.xml (the `tiny` photos beside it). Seeds: the `tiny` cameras as a
+    // Metashape 2 export and one camera with every lens term, as `scene_formats`'s
+    // `metashape_tiny` and `metashape_lens_models_follow_the_manual` write them.
+    let mdir = work.join("metashape");
+    copy_dir(&fx.join("tiny/images"), &mdir.join("images"));
+    ts.push(Target {
+        name: "metashape_xml",
+        seeds: vec![
+            read(fx.join("formats/metashape/cameras.xml")),
+            read(fx.join("formats/metashape/lens.xml")),
+        ],
+        text: true,
+        quick: 2500,
+        run: Box::new(move |b, _| {
+            let p = mdir.join("cameras.xml");
+            std::fs::write(&p, b).unwrap();
+            let r = metashape::load(&p, &mdir.join("images")).and_then(|l| check_views(&l.views));
             (disp(&p), r)
         }),
     });

@@ -11,7 +11,7 @@
 //!   --test spec_refs` rewrites them in place after a deliberate change of a preset.
 //! - every configuration key the user docs (`README.md`, `docs/*.md`) name in an inline code span
 //!   (`model.grid_h.levels`, `[train] samples = "cache"`, `train.adam.<group>`) or set in a
-//!   ```toml block exists, and a value given there has the key's type (an enum's variant);
+//!   fenced `toml` block exists, and a value given there has the key's type (an enum's variant);
 //!   §4.11's `[model.refine]` table lists exactly `RefineConfig`'s keys with their defaults.
 //!
 //! This file is the checker, so it is not scanned itself (its examples would count).

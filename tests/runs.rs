@@ -1074,6 +1074,63 @@ fn flag_values_a_flag_does_not_take_are_usage_errors() {
     assert!(!out.exists(), "nothing written");
 }
 
+/// A negative number given as the next argument (`--max-abs -1`, as users type it) reaches the
+/// flag's own check, as `--max-abs=-1` does: `invalid value '-1' for '--max-abs …': …`, exit 64
+/// (clap took it for a flag: `unexpected argument '-1' found`, with the tip to write `-- -1`).
+#[test]
+fn negative_values_after_a_flag_get_the_flags_own_message() {
+    let out = tmp("negative-values");
+    let o = out.to_str().unwrap();
+    let (scene, ck) = (fixture(), "/nonexistent/checkpoint.safetensors");
+    let scene = scene.to_str().unwrap();
+    let mesh = fixture().join("mesh.ply");
+    let m = mesh.to_str().unwrap();
+    let render = ["render", "--checkpoint", ck, "--scene", scene, "--out", o];
+    let ablate = ["ablate", "--scene", scene, "--out", o];
+    let bench_q = ["bench-quality", "--scene", scene, "--out", o];
+    let bench_g = ["bench-geometry", "--scene", scene, "--out", o];
+    let dump = ["dump", "--checkpoint", ck, "--batch", ck, "--out", o];
+    let compare = ["compare", ck, ck];
+    let cases: Vec<(Vec<&str>, &str)> = vec![
+        ([&compare[..], &["--max-abs", "-1"]].concat(), "--max-abs"),
+        (
+            [&compare[..], &["--max-rel", "-0.001"]].concat(),
+            "--max-rel",
+        ),
+        (
+            [&compare[..], &["--max-rel-peak", "-0.5"]].concat(),
+            "--max-rel-peak",
+        ),
+        (
+            [&dump[..], &["--kink-threshold", "-1"]].concat(),
+            "--kink-threshold",
+        ),
+        (
+            vec!["decimate", "--in", m, "--out", o, "--ratio", "-0.5"],
+            "--ratio",
+        ),
+        ([&render[..], &["--scale", "-2"]].concat(), "--scale"),
+        ([&ablate[..], &["--ratio", "-1"]].concat(), "--ratio"),
+        ([&ablate[..], &["--minutes", "-1"]].concat(), "--minutes"),
+        ([&bench_q[..], &["--minutes", "-1"]].concat(), "--minutes"),
+        ([&bench_g[..], &["--rms", "-1"]].concat(), "--rms"),
+        ([&bench_g[..], &["--rms", "0.1,-1"]].concat(), "--rms"),
+        (
+            [&bench_g[..], &["--decimate", "-0.1"]].concat(),
+            "--decimate",
+        ),
+    ];
+    for (args, flag) in cases {
+        let (code, err) = xscale(&args);
+        assert_eq!(code, 64, "{args:?}: {err}");
+        assert!(
+            err.contains(&format!("for '{flag} <")),
+            "{args:?}: not the flag's own message: {err}"
+        );
+    }
+    assert!(!out.exists(), "nothing written");
+}
+
 /// A run trained on a mesh given with `--mesh` whose file is gone: `eval`/`render --run` and
 /// `--resume` say which mesh and what to do (they said only "cannot read").
 #[test]

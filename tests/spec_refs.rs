@@ -9,6 +9,10 @@
 //! - the generated tables of `docs/spec.md` (presets, Adam groups, per-level grid geometry) are
 //!   exactly what `RunConfig::preset` / `HashGrid::new` give. `XSCALE_BLESS=1 cargo test --release
 //!   --test spec_refs` rewrites them in place after a deliberate change of a preset.
+//! - every configuration key the user docs (`README.md`, `docs/*.md`) name in an inline code span
+//!   (`model.grid_h.levels`, `[train] samples = "cache"`, `train.adam.<group>`) or set in a
+//!   fenced `toml` block exists, and a value given there has the key's type (an enum's variant);
+//!   §4.11's `[model.refine]` table lists exactly `RefineConfig`'s keys with their defaults.
 //!
 //! This file is the checker, so it is not scanned itself (its examples would count).
 
@@ -484,5 +488,324 @@ fn generated_tables_match_the_code() {
         stale.is_empty(),
         "docs/spec.md's generated tables disagree with the code (rerun with XSCALE_BLESS=1 to rewrite them):\n{}",
         stale.join("\n")
+    );
+}
+
+// ------------------------------------------------------------------------------------------------
+// Configuration keys named in the user docs
+
+/// The user docs: `README.md` and every `docs/*.md`.
+fn user_docs() -> Vec<PathBuf> {
+    let mut files = vec![root().join("README.md")];
+    let mut docs: Vec<PathBuf> = std::fs::read_dir(root().join("docs"))
+        .unwrap()
+        .flatten()
+        .map(|e| e.path())
+        .filter(|p| p.extension().is_some_and(|e| e == "md"))
+        .collect();
+    docs.sort();
+    files.extend(docs);
+    files
+}
+
+/// The inline code spans of a Markdown text (fenced blocks skipped), with their line numbers.
+fn code_spans(text: &str) -> Vec<(usize, String)> {
+    let mut out = Vec::new();
+    let mut in_fence = false;
+    let mut para = String::new();
+    let mut para_line = 1;
+    let flush = |para: &mut String, para_line: usize, out: &mut Vec<(usize, String)>| {
+        let mut rest = para.as_str();
+        let mut consumed = 0;
+        while let Some(a) = rest.find('`') {
+            let after = &rest[a + 1..];
+            let Some(b) = after.find('`') else { break };
+            let span = &after[..b];
+            let line = para_line + para[..consumed + a].matches('\n').count();
+            out.push((line, span.replace('\n', " ")));
+            consumed += a + 1 + b + 1;
+            rest = &after[b + 1..];
+        }
+        para.clear();
+    };
+    for (i, l) in text.lines().enumerate() {
+        if l.trim_start().starts_with("```") {
+            flush(&mut para, para_line, &mut out);
+            in_fence = !in_fence;
+            continue;
+        }
+        if in_fence {
+            continue;
+        }
+        if l.trim().is_empty() {
+            flush(&mut para, para_line, &mut out);
+            continue;
+        }
+        if para.is_empty() {
+            para_line = i + 1;
+        }
+        para.push_str(l);
+        para.push('\n');
+    }
+    flush(&mut para, para_line, &mut out);
+    out
+}
+
+/// The fenced ```toml blocks of a Markdown text, with the line of their first line.
+fn toml_blocks(text: &str) -> Vec<(usize, String)> {
+    let mut out = Vec::new();
+    let mut cur: Option<(usize, String)> = None;
+    for (i, l) in text.lines().enumerate() {
+        let t = l.trim_start();
+        match &mut cur {
+            None if t.starts_with("```toml") => cur = Some((i + 2, String::new())),
+            Some(_) if t.starts_with("```") => out.push(cur.take().unwrap()),
+            Some((_, s)) => {
+                s.push_str(l);
+                s.push('\n');
+            }
+            None => {}
+        }
+    }
+    out
+}
+
+const ADAM_GROUPS: [&str; 6] = [
+    "shader",
+    "deform",
+    "grid_h",
+    "grid_d",
+    "appearance",
+    "vertex",
+];
+
+/// A key as the docs write it (`model.grid_h.levels`, `train.adam.<group>.lr`) and the value
+/// they give it, if any: the TOML override that sets it, one per `<group>` expansion.
+fn overrides(key: &str, value: Option<&str>) -> Vec<(String, Option<String>)> {
+    let keys: Vec<String> = if key.contains("<group>") {
+        ADAM_GROUPS
+            .iter()
+            .map(|g| key.replace("<group>", g))
+            .collect()
+    } else {
+        vec![key.to_string()]
+    };
+    keys.into_iter()
+        .map(|k| {
+            let (table, field) = k.rsplit_once('.').unwrap();
+            // A value the docs give that is TOML is probed as written; a placeholder (`b`, `Z`)
+            // probes the key alone, with a value of no type any key takes.
+            let v = value
+                .filter(|v| toml::from_str::<toml::Table>(&format!("x = {v}")).is_ok())
+                .map(str::to_string);
+            let probe = v.clone().unwrap_or_else(|| "\"\\u0001probe\"".into());
+            (format!("[{table}]\n{field} = {probe}\n"), v)
+        })
+        .collect()
+}
+
+/// What is wrong with the override `text` (None: the key exists and, if given, takes the value).
+/// Validation errors (a value the docs show being refused, a key that needs another) do not
+/// count: only an unknown key, or a value of the wrong type or variant.
+fn probe(text: &str, valued: bool) -> Option<String> {
+    let e = match RunConfig::from_toml_str(text, "cpu", "doc") {
+        Ok(_) => return None,
+        Err(e) => format!("{e:#}"),
+    };
+    if e.contains("unknown field") {
+        return Some(e);
+    }
+    if valued && (e.contains("unknown variant") || e.contains("invalid type")) {
+        return Some(e);
+    }
+    None
+}
+
+/// `(line, key, value)` of every configuration key an inline code span names: `model.x.y`,
+/// `train.x = v`, `[model.grid_h] levels = 1`, `[train] samples`.
+fn doc_keys(text: &str) -> Vec<(usize, String, Option<String>)> {
+    let mut out = Vec::new();
+    for (line, span) in code_spans(text) {
+        let s = span.trim();
+        let (key, value) = if let Some(rest) = s.strip_prefix('[') {
+            let Some((table, after)) = rest.split_once(']') else {
+                continue;
+            };
+            if !(table.starts_with("model") || table.starts_with("train")) || table.contains('[') {
+                continue;
+            }
+            let after = after.trim();
+            let field: String = after
+                .chars()
+                .take_while(|c| c.is_ascii_alphanumeric() || *c == '_')
+                .collect();
+            if field.is_empty() {
+                // A table alone (`[model.refine]`): its name is a key of the table above it.
+                (table.to_string(), None)
+            } else {
+                let v = after[field.len()..].trim().strip_prefix('=');
+                (format!("{table}.{field}"), v.map(|v| v.trim().to_string()))
+            }
+        } else if s.starts_with("model.") || s.starts_with("train.") {
+            let key: String = s
+                .chars()
+                .take_while(|c| c.is_ascii_alphanumeric() || matches!(c, '_' | '.' | '<' | '>'))
+                .collect();
+            let v = s[key.len()..].trim().strip_prefix('=');
+            // `= "stream"` / `"cache"`: the first value; `= 1 (the run has 2)`: up to the note.
+            let v = v.map(|v| {
+                let v = v.trim();
+                v.split(" (").next().unwrap().trim().to_string()
+            });
+            (key.trim_end_matches('.').to_string(), v)
+        } else {
+            continue;
+        };
+        if key.contains('.') {
+            out.push((line, key, value));
+        }
+    }
+    out
+}
+
+#[test]
+fn doc_scanners_find_keys_spans_and_blocks() {
+    let text = "a `model.gamma = 1 (the run has 2)` b `[train] samples = \"cache\"` and\n\
+                `[model.refine]`, `[train.adam.<group>]` c\n`train.steps`\n\n```toml\n[model]\n\
+                gamma = 1\n```\n`model.rs` `[[rule]]`\n";
+    let keys = doc_keys(text);
+    let got: Vec<(usize, &str, Option<&str>)> = keys
+        .iter()
+        .map(|(l, k, v)| (*l, k.as_str(), v.as_deref()))
+        .collect();
+    assert_eq!(
+        got,
+        [
+            (1, "model.gamma", Some("1")),
+            (1, "train.samples", Some("\"cache\"")),
+            (2, "model.refine", None),
+            (2, "train.adam.<group>", None),
+            (3, "train.steps", None),
+            (9, "model.rs", None),
+        ]
+    );
+    assert_eq!(toml_blocks(text), [(6, "[model]\ngamma = 1\n".to_string())]);
+    // The probe tells a missing key and a wrong value from a refused combination.
+    assert!(probe("[train]\nstepz = 3\n", false).is_some());
+    assert!(probe("[model]\nlevel_weight = \"footprints\"\n", true).is_some());
+    assert!(probe("[model.grid_h]\nper_level_scale = 0.5\n", true).is_none());
+    assert!(probe("[model]\nrs = \"\\u0001probe\"\n", false).is_some());
+}
+
+#[test]
+fn config_keys_named_in_the_docs_exist() {
+    let mut bad = Vec::new();
+    let mut n = 0;
+    for p in user_docs() {
+        let r = rel(&p);
+        let text = std::fs::read_to_string(&p).unwrap();
+        for (line, key, value) in doc_keys(&text) {
+            // File names (`model.rs`) and code paths are not keys.
+            if key.ends_with(".rs") || key.ends_with(".toml") || key.ends_with(".md") {
+                continue;
+            }
+            for (toml, v) in overrides(&key, value.as_deref()) {
+                n += 1;
+                if let Some(e) = probe(&toml, v.is_some()) {
+                    let shown = v.map_or(String::new(), |v| format!(" = {v}"));
+                    bad.push(format!("{r}:{line}: `{key}{shown}`: {e}"));
+                }
+            }
+        }
+        for (line, block) in toml_blocks(&text) {
+            let Ok(t) = toml::from_str::<toml::Table>(&block) else {
+                continue;
+            };
+            // Run configurations only (not scene.toml, tolerance files).
+            if t.is_empty()
+                || !t
+                    .keys()
+                    .all(|k| k == "model" || k == "train" || k == "preset")
+            {
+                continue;
+            }
+            n += 1;
+            if let Some(e) = probe(&block, true) {
+                bad.push(format!("{r}:{line}: toml block: {e}"));
+            }
+        }
+    }
+    assert!(
+        bad.is_empty(),
+        "{} configuration key(s) in the docs that the code does not take:\n{}",
+        bad.len(),
+        bad.join("\n")
+    );
+    assert!(n > 80, "only {n} keys found: is the scanner broken?");
+}
+
+/// The fields a table of the run configuration takes, from serde's list in the error for an
+/// unknown one (`expected one of `a`, `b``).
+fn fields_of(table: &str) -> BTreeSet<String> {
+    let e = RunConfig::from_toml_str(&format!("[{table}]\n__none = 1\n"), "cpu", "probe")
+        .err()
+        .map(|e| format!("{e:#}"))
+        .unwrap();
+    let list = e
+        .split("expected one of ")
+        .nth(1)
+        .unwrap_or_else(|| panic!("no field list in {e}"));
+    list.split(", ")
+        .map_while(|f| f.strip_prefix('`').and_then(|f| f.split('`').next()))
+        .map(String::from)
+        .collect()
+}
+
+/// §4.11's table of `[model.refine]` keys (`| key | default | meaning |`) names every key of
+/// `RefineConfig` once, and its defaults are the code's: the table's keys set to the table's
+/// defaults give a configuration equal to the preset's.
+#[test]
+fn refine_table_lists_every_key_with_its_default() {
+    let spec = std::fs::read_to_string(root().join(SPEC)).unwrap();
+    let start = spec
+        .find("| key | default | meaning |")
+        .expect("docs/spec.md §4.11 has a `| key | default | meaning |` table");
+    let mut keys = Vec::new();
+    let mut toml = String::from("[model.refine]\n");
+    for row in spec[start..].lines().skip(2) {
+        if !row.starts_with('|') {
+            break;
+        }
+        let cells: Vec<&str> = row.split('|').map(str::trim).collect();
+        let names: Vec<&str> = cells[1].split(", ").map(|k| k.trim_matches('`')).collect();
+        let defaults: Vec<&str> = cells[2].split(", ").map(|v| v.trim_matches('`')).collect();
+        // `[32, 512]` is one default, not two.
+        let defaults = if defaults.len() != names.len() && names.len() == 1 {
+            vec![cells[2].trim_matches('`')]
+        } else {
+            defaults
+        };
+        assert_eq!(names.len(), defaults.len(), "§4.11 table row {row:?}");
+        for (k, v) in names.iter().zip(&defaults) {
+            keys.push(k.to_string());
+            writeln!(toml, "{k} = {v}").unwrap();
+        }
+    }
+    let fields = fields_of("model.refine");
+    let listed: BTreeSet<String> = keys.iter().cloned().collect();
+    assert_eq!(listed.len(), keys.len(), "a key listed twice: {keys:?}");
+    assert_eq!(
+        listed,
+        fields,
+        "§4.11's table and RefineConfig's fields differ: only in the table {:?}, only in the code {:?}",
+        listed.difference(&fields).collect::<Vec<_>>(),
+        fields.difference(&listed).collect::<Vec<_>>()
+    );
+    let cfg = RunConfig::from_toml_str(&toml, "cpu", "§4.11 table")
+        .unwrap_or_else(|e| panic!("§4.11's defaults do not parse: {e:#}\n{toml}"));
+    assert_eq!(
+        cfg.model.refine,
+        RunConfig::preset("cpu").unwrap().model.refine,
+        "§4.11's defaults are not the code's:\n{toml}"
     );
 }

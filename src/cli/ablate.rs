@@ -25,14 +25,19 @@ pub struct Args {
     pub run: RunArgs,
     /// Instead of --steps: pick the step count so the full model trains about this many minutes
     /// (from a 20-step timing probe); every variant then uses that step count.
-    #[arg(long, conflicts_with = "steps", value_parser = super::common::parse_positive_number)]
+    #[arg(
+        long,
+        conflicts_with = "steps",
+        value_parser = super::common::parse_positive_number,
+        allow_negative_numbers = true
+    )]
     pub minutes: Option<f64>,
     /// Comma-separated subset of the variants, run in table order (default: all).
     #[arg(long, value_enum, value_delimiter = ',', default_values_t = Variant::ALL)]
     pub variants: Vec<Variant>,
     /// Fraction of faces kept by the decimated-mesh variant [default: 0.1; with --append, the
     /// earlier ablation's, which a different value cannot change].
-    #[arg(long, value_parser = super::common::parse_fraction)]
+    #[arg(long, value_parser = super::common::parse_fraction, allow_negative_numbers = true)]
     pub ratio: Option<f64>,
     /// Subdivision levels of the vertex_subdiv variant, at most 6 (default: automatic).
     #[arg(long, value_parser = super::common::parse_levels)]

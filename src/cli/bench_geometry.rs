@@ -34,10 +34,10 @@ pub struct Args {
     pub run: RunArgs,
     /// RMS displacements of the proxies, in % of the bounding-box diagonal (0 = the exact mesh;
     /// each value ≥ 0, once).
-    #[arg(long, value_delimiter = ',', num_args = 1.., default_values_t = [0.0, 0.1, 0.3, 1.0], value_parser = super::common::parse_non_negative)]
+    #[arg(long, value_delimiter = ',', num_args = 1.., default_values_t = [0.0, 0.1, 0.3, 1.0], value_parser = super::common::parse_non_negative, allow_negative_numbers = true)]
     pub rms: Vec<f64>,
     /// Fraction of faces kept by the decimated proxy, in (0, 1] (0: no decimated proxy).
-    #[arg(long, default_value_t = 0.1, value_parser = super::common::parse_fraction_or_zero)]
+    #[arg(long, default_value_t = 0.1, value_parser = super::common::parse_fraction_or_zero, allow_negative_numbers = true)]
     pub decimate: f64,
     /// ξ settings to train each proxy with.
     #[arg(long, value_delimiter = ',', num_args = 1.., default_values_t = [Switch::On, Switch::Off])]

@@ -15,7 +15,7 @@ pub struct Args {
     #[arg(long, required_unless_present = "list")]
     pub out: Option<PathBuf>,
     /// Training wall-clock budget per configuration, in minutes.
-    #[arg(long, default_value_t = 1.0, value_parser = super::common::parse_positive_number)]
+    #[arg(long, default_value_t = 1.0, value_parser = super::common::parse_positive_number, allow_negative_numbers = true)]
     pub minutes: f64,
     /// Comma-separated configurations (default: all; see --list).
     #[arg(long, value_delimiter = ',', value_parser = config_names())]

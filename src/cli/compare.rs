@@ -26,16 +26,16 @@ pub struct Args {
     pub strict: bool,
     /// Default rule's abs limit (replaces the file's `[default]` when any --max-* is given; the
     /// float limits take a number >= 0).
-    #[arg(long, value_parser = parse_limit)]
+    #[arg(long, value_parser = parse_limit, allow_negative_numbers = true)]
     pub max_abs: Option<f64>,
     /// Default rule's rel limit.
-    #[arg(long, value_parser = parse_limit)]
+    #[arg(long, value_parser = parse_limit, allow_negative_numbers = true)]
     pub max_rel: Option<f64>,
     /// Default rule's ULP limit.
     #[arg(long)]
     pub max_ulp: Option<u64>,
     /// Default rule's limit on abs error / the tensor's largest |value|.
-    #[arg(long, value_parser = parse_limit)]
+    #[arg(long, value_parser = parse_limit, allow_negative_numbers = true)]
     pub max_rel_peak: Option<f64>,
     /// Accept NaN where both files have it (by default any NaN fails its tensor).
     #[arg(long)]

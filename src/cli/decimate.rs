@@ -16,7 +16,7 @@ pub struct Args {
     #[arg(long = "in")]
     pub input: PathBuf,
     /// Fraction of the faces to keep, in (0, 1].
-    #[arg(long, value_parser = super::common::parse_fraction)]
+    #[arg(long, value_parser = super::common::parse_fraction, allow_negative_numbers = true)]
     pub ratio: f64,
     /// Output mesh (.ply or .obj).
     #[arg(long)]

@@ -33,7 +33,7 @@ pub struct Args {
     /// pixels, and the dump carries how far a correct backend's gradients may be off there
     /// (`kink.*` tensors, docs/oracle.md §7); 0 writes no kink tensors. Default 2^-16
     /// (1.52587890625e-5); in [0, 1) (a margin is at most 1). Not for f32 dumps.
-    #[arg(long, value_parser = parse_kink_threshold)]
+    #[arg(long, value_parser = parse_kink_threshold, allow_negative_numbers = true)]
     pub kink_threshold: Option<f64>,
 }
 

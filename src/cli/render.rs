@@ -52,7 +52,7 @@ pub struct Args {
     /// Render at this multiple of each view's resolution (e.g. 4: a 1024×768 view as
     /// 4096×3072; the field of view is unchanged). Frames are cast and shaded in bands of rows,
     /// so large frames need no more memory than the image itself.
-    #[arg(long, default_value_t = 1.0, value_parser = super::common::parse_positive_number)]
+    #[arg(long, default_value_t = 1.0, value_parser = super::common::parse_positive_number, allow_negative_numbers = true)]
     pub scale: f64,
     /// Also write NAME_mask.png (white where the rays hit the mesh).
     #[arg(long)]

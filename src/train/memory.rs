@@ -6,8 +6,9 @@
 //! - **samples** (`train/sampler.rs`): stream — per training view `w·h·3` (8-bit photo; 16-bit
 //!   photos take twice that, EXR and downsampled photos four times: the estimate takes the
 //!   photo's stored form from the downsample factor, and 3 bytes otherwise) + `w·h/8` hit map;
-//!   cache — `w·h·(12γ²+42)`, every pixel assumed to see the mesh (an upper bound), plus one f32
-//!   photo (`12·w·h`) while it is cast; auto — whichever of the two [`resolve_samples`] picks;
+//!   cache — `w·h·(12γ²+42)`, every pixel assumed to see the mesh (an upper bound; `24γ²` with
+//!   the triangle ids and barycentrics of the vertex featurization), plus one f32 photo
+//!   (`12·w·h`) while it is cast; auto — whichever of the two [`resolve_samples`] picks;
 //! - **model**: 20 bytes per parameter (f32 value, gradient, Adam m, v, step count);
 //! - **photo**: with mesh refinement's photo-consistency term (`[model.refine] photo` > 0), every
 //!   training view's f32 RGB copies at the image levels `photo_levels[1] ..= photo_levels[0]`
@@ -59,13 +60,17 @@ pub const AUTO_CACHE_BUDGET_SHARE: f64 = 0.25;
 /// Bytes of the training samples, cached (`cache`) or streamed.
 fn sample_bytes(cfg: &RunConfig, cache: bool, sizes: &[(u32, u32)], downsample: u32) -> u64 {
     let g2 = (cfg.model.gamma * cfg.model.gamma) as u64;
+    // A slot's position (3 × u32), plus its triangle id and barycentrics (3 × u32) when the run
+    // keeps them (`train/setup.rs`: the vertex featurization, the mesh refinement).
+    let keeps_triangles = !cfg.model.featurization.is_hash() || cfg.model.refine.enabled;
+    let slot = if keeps_triangles { 24 } else { 12 };
     let photo_bytes = if downsample > 1 { 12 } else { 3 };
     let per_view: u64 = sizes
         .iter()
         .map(|&(w, h)| {
             let px = w as u64 * h as u64;
             if cache {
-                px * (12 * g2 + 42)
+                px * (slot * g2 + 42)
             } else {
                 px * photo_bytes + px.div_ceil(8)
             }

@@ -73,7 +73,7 @@ pub fn run_subdivide(a: SubdivideArgs) -> Result<ExitCode> {
     crate::io::atomic::not_an_input(&a.out, "--out", &[("the input mesh (--in)", &a.input)])?;
     let (mesh, _) = load_mesh(&a.input)?;
     crate::train::memory::check_fits(
-        subdivide_bytes(&mesh, a.levels),
+        subdivide_bytes(&mesh, a.levels) as f64,
         &format!(
             "subdivide --levels {}: {} faces",
             a.levels,

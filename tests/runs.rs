@@ -537,6 +537,40 @@ fn resuming_a_finished_run_writes_nothing_twice() {
     let _ = std::fs::remove_dir_all(&run);
 }
 
+/// A resume takes the run's time from beside its checkpoint (`RUN/checkpoint-time.json`), not
+/// from `metrics.jsonl`: with the log deleted, `elapsed_s` restarted at 0.
+#[test]
+fn elapsed_time_survives_a_deleted_metrics_file() {
+    let run = tmp("elapsed");
+    let (code, err) = train(
+        &run,
+        &["--preset", "tiny", "--steps", "100", "--stop-at", "40"],
+    );
+    assert_eq!(code, 0, "{err}");
+    let at_40 = metrics::lines(&run)
+        .iter()
+        .find(|j| j["checkpoint"] == true)
+        .and_then(|j| j["elapsed_s"].as_f64())
+        .unwrap();
+    let recorded: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(run.join("checkpoint-time.json")).unwrap())
+            .unwrap();
+    assert_eq!(recorded["step"], 40);
+    assert_eq!(recorded["elapsed_s"].as_f64(), Some(at_40));
+    std::fs::remove_file(run.join("metrics.jsonl")).unwrap();
+    let (code, err) = train(&run, &["--resume", "--steps", "60"]);
+    assert_eq!(code, 0, "{err}");
+    let after: Vec<f64> = (metrics::lines(&run).iter())
+        .filter_map(|j| j["elapsed_s"].as_f64())
+        .collect();
+    assert!(
+        after.len() >= 2 && after.iter().all(|&t| t >= at_40),
+        "the time at step 40 was {at_40} s; after the resume: {after:?}"
+    );
+    assert!(metrics::elapsed_runs_on(&run, 2));
+    let _ = std::fs::remove_dir_all(&run);
+}
+
 /// With `--resume`, `[train] steps` in a `--config` file is the new total, as `--steps` (it was
 /// ignored silently); a hand-edited `RUN/config.toml` is warned about (it was ignored silently).
 #[test]

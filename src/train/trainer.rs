@@ -543,6 +543,10 @@ fn open_run(
             );
         }
         st.cfg.train.steps = cfg.train.steps;
+        // Settings that change no result are the caller's (`train --resume --config` may change
+        // them: `config::RESUMABLE_KEYS`).
+        let given = toml::Value::try_from(&cfg).expect("a RunConfig serialises");
+        st.cfg = st.cfg.with_resumable(&given, "the run configuration")?;
         // The mesh's place may have moved (`xscale train --resume --mesh`, which passes the
         // stored configuration with the new place); the scene fingerprint below checks it is
         // the same mesh.

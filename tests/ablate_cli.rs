@@ -712,3 +712,38 @@ fn bench_geometry_stops_between_views_of_its_scene() {
     stop_after_first_view();
     let _ = std::fs::remove_dir_all(&out);
 }
+
+/// `vertex_subdiv` checks that its subdivided mesh fits in memory before subdividing, as `xscale
+/// subdivide` does, and with `--subdivide` before the first variant trains: 6 levels of the
+/// fixture's 2,118 faces (8.7 M faces, about 0.42 GB at the peak) under a 500 MB address-space
+/// limit is an error naming the estimate (it aborted: `memory allocation of … bytes failed`,
+/// exit 134, after training the variants before it).
+#[test]
+fn vertex_subdiv_checks_its_memory_before_subdividing() {
+    let out = tmp("subdiv-memory");
+    let args: Vec<String> = ablate_args(&out, "5")
+        .into_iter()
+        .chain(["--variants", "full,vertex_subdiv", "--subdivide", "6"].map(String::from))
+        .chain(["--threads", "2"].map(String::from))
+        .map(|a| format!("'{a}'"))
+        .collect();
+    let o = Command::new("sh")
+        .arg("-c")
+        .arg(format!(
+            "ulimit -v 500000; exec '{}' {}",
+            env!("CARGO_BIN_EXE_xscale"),
+            args.join(" ")
+        ))
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    assert!(
+        err.contains("vertex_subdiv: --subdivide 6: 8675328 faces would take about")
+            && err.contains("give --subdivide fewer levels"),
+        "{err}"
+    );
+    assert!(!out.join("full").exists(), "a variant trained first");
+    assert!(!out.join("meshes/subdivided_6.ply").exists());
+    let _ = std::fs::remove_dir_all(&out);
+}

@@ -257,6 +257,25 @@ pub fn check_fits(need: f64, what: &str, fix: &str) -> Result<()> {
     Ok(())
 }
 
+/// [`check_fits`] for `levels` rounds of midpoint subdivision of `mesh`
+/// ([`crate::scene::remesh::subdivide`], which holds [`crate::scene::remesh::subdivide_bytes`] at
+/// its peak): `what` names the request (`subdivide --levels 6`), `fix` what to change.
+pub fn check_subdivide(
+    mesh: &crate::scene::Mesh,
+    levels: u32,
+    what: &str,
+    fix: &str,
+) -> Result<()> {
+    check_fits(
+        crate::scene::remesh::subdivide_bytes(mesh, levels) as f64,
+        &format!(
+            "{what}: {} faces",
+            mesh.triangles.len() as u64 * 4u64.pow(levels)
+        ),
+        fix,
+    )
+}
+
 /// Peak resident memory of this process so far (Linux `VmHWM`), if known.
 pub fn peak_rss_bytes() -> Option<u64> {
     Some(status_kb("VmHWM:")? * 1024)

@@ -660,3 +660,90 @@ fn bench_geometry_continues_a_stopped_run() {
     assert!(metrics::elapsed_runs_on(&run, 5));
     let _ = std::fs::remove_dir_all(&out);
 }
+
+/// Ctrl-C / SIGTERM while `bench-geometry --scene-preset` generates its scene stops it after the
+/// view being rendered, saying what is left, exit 3 (nothing trained); the same command then
+/// generates the unfinished scene again rather than reusing it. (The signal killed it without a
+/// word, and the rerun took the unfinished scene, without cameras, for a finished one.)
+#[test]
+fn bench_geometry_stops_between_views_of_its_scene() {
+    let out = tmp("geo-synth-stop");
+    let o = out.to_str().unwrap();
+    let args = [
+        "bench-geometry",
+        "--scene-preset",
+        "small",
+        "--out",
+        o,
+        "--steps",
+        "5",
+        "-q",
+    ];
+    let first = out.join("scene/images/0000.png");
+    // Terminate the command once the scene's first view is written.
+    let stop_after_first_view = || {
+        let child = Command::new(env!("CARGO_BIN_EXE_xscale"))
+            .args(args)
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::piped())
+            .spawn()
+            .unwrap();
+        let t0 = std::time::Instant::now();
+        while !first.is_file() {
+            assert!(t0.elapsed().as_secs() < 120, "no view written");
+            std::thread::sleep(std::time::Duration::from_millis(10));
+        }
+        signal::terminate(&child);
+        let done = child.wait_with_output().unwrap();
+        let err = String::from_utf8_lossy(&done.stderr).into_owned();
+        assert_eq!(done.status.code(), Some(3), "{err}");
+        assert!(
+            err.contains("interrupted: stopped after")
+                && err.contains("holds an unfinished scene")
+                && err.contains("run the same command again"),
+            "{err}"
+        );
+        assert!(!out.join("scene/scene.toml").exists(), "finished: {err}");
+        assert!(!out.join("runs").exists(), "trained: {err}");
+    };
+    stop_after_first_view();
+    // The rerun writes the scene again (the first view included), not taking it as finished.
+    std::fs::remove_file(&first).unwrap();
+    stop_after_first_view();
+    let _ = std::fs::remove_dir_all(&out);
+}
+
+/// `vertex_subdiv` checks that its subdivided mesh fits in memory before subdividing, as `xscale
+/// subdivide` does, and with `--subdivide` before the first variant trains: 6 levels of the
+/// fixture's 2,118 faces (8.7 M faces, about 0.42 GB at the peak) under a 500 MB address-space
+/// limit is an error naming the estimate (it aborted: `memory allocation of … bytes failed`,
+/// exit 134, after training the variants before it).
+#[test]
+fn vertex_subdiv_checks_its_memory_before_subdividing() {
+    let out = tmp("subdiv-memory");
+    let args: Vec<String> = ablate_args(&out, "5")
+        .into_iter()
+        .chain(["--variants", "full,vertex_subdiv", "--subdivide", "6"].map(String::from))
+        .chain(["--threads", "2"].map(String::from))
+        .map(|a| format!("'{a}'"))
+        .collect();
+    let o = Command::new("sh")
+        .arg("-c")
+        .arg(format!(
+            "ulimit -v 500000; exec '{}' {}",
+            env!("CARGO_BIN_EXE_xscale"),
+            args.join(" ")
+        ))
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    assert!(
+        err.contains("vertex_subdiv: --subdivide 6: 8675328 faces would take about")
+            && err.contains("give --subdivide fewer levels"),
+        "{err}"
+    );
+    assert!(!out.join("full").exists(), "a variant trained first");
+    assert!(!out.join("meshes/subdivided_6.ply").exists());
+    let _ = std::fs::remove_dir_all(&out);
+}

@@ -305,3 +305,32 @@ fn append_refuses_another_scene_or_budget() {
     assert_eq!(run(&same, 0.01, Existing::Append).unwrap().0.len(), 1);
     let _ = std::fs::remove_dir_all(&out);
 }
+
+/// A configuration named twice in `--configs` is a usage error (exit 64) naming it, as an unknown
+/// one is, before anything is written (it exited 2, from the run).
+#[test]
+fn a_configuration_listed_twice_is_a_usage_error() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let out = fresh_out("-twice");
+    for (list, says) in [
+        ("ulr,ulr", "configuration \"ulr\" is listed twice"),
+        ("tiny, ulr,tiny", "configuration \"tiny\" is listed twice"),
+        ("ulr,foo", "unknown configuration \"foo\""),
+    ] {
+        let o = std::process::Command::new(env!("CARGO_BIN_EXE_xscale"))
+            .args(["bench-quality", "--scene"])
+            .arg(root.join("fixtures/tiny"))
+            .arg("--out")
+            .arg(&out)
+            .args(["--configs", list])
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(64), "{list}: {err}");
+        assert!(
+            err.contains("--configs") && err.contains(says),
+            "{list}: {err}"
+        );
+        assert!(!out.exists(), "{list}: wrote {}", out.display());
+    }
+}

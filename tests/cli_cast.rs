@@ -78,3 +78,44 @@ fn an_unknown_format_is_a_usage_error() {
     let (code, _, err) = xscale(&["cast", "--scene", scene, "--format", "colmap"]);
     assert_eq!(code, 0, "{err}");
 }
+
+/// `--no-images` reads no photo's pixels but still checks every photo's size against its camera
+/// from the header, as without it (it cast at the camera's size and reported success).
+#[test]
+fn no_images_still_checks_the_image_sizes() {
+    let fixture = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/formats/colmap");
+    let scene = std::path::Path::new(env!("CARGO_TARGET_TMPDIR")).join("cli_cast_size");
+    let _ = std::fs::remove_dir_all(&scene);
+    copy_dir(&fixture, &scene);
+    // The camera of c.png says 8x6.
+    let wrong = xscale::scene::Image {
+        width: 9,
+        height: 6,
+        data: vec![0.0; 3 * 9 * 6],
+    };
+    xscale::scene::image::write_png8(&scene.join("images/c.png"), &wrong).unwrap();
+    let s = scene.to_str().unwrap();
+    for extra in [&[][..], &["--no-images"]] {
+        let args = [&["cast", "--scene", s, "--views", "all"][..], extra].concat();
+        let (code, _, err) = xscale(&args);
+        assert_eq!(code, 2, "{extra:?}: {err}");
+        assert!(
+            err.contains("c.png: image is 9x6 but the camera of view 'c.png' says 8x6"),
+            "{extra:?}: {err}"
+        );
+    }
+    let _ = std::fs::remove_dir_all(&scene);
+}
+
+fn copy_dir(from: &std::path::Path, to: &std::path::Path) {
+    std::fs::create_dir_all(to).unwrap();
+    for e in std::fs::read_dir(from).unwrap() {
+        let e = e.unwrap();
+        let t = to.join(e.file_name());
+        if e.path().is_dir() {
+            copy_dir(&e.path(), &t);
+        } else {
+            std::fs::copy(e.path(), t).unwrap();
+        }
+    }
+}

@@ -149,6 +149,50 @@ fn render_scale_writes_the_larger_frame() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
+/// A `--scale` whose frame cannot fit is refused with the size asked for: the frame size was
+/// printed clamped at 4294967295 a side with a wrapped byte count, and a scale whose byte count
+/// wrapped to 0 (2147483648×1610612736 pixels × 32 bytes = 3·2⁶⁵) passed the check and panicked
+/// allocating (exit 101).
+#[test]
+#[cfg(target_os = "linux")]
+fn an_oversized_scale_is_refused_with_its_true_size() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/tiny");
+    let out = std::env::temp_dir().join(format!("xscale-test-render-big-{}", std::process::id()));
+    let (s, o) = (root.to_str().unwrap(), out.to_str().unwrap());
+    // View 0 is 64×48.
+    for (scale, shown, frame, bytes) in [
+        (
+            "1e9",
+            "1000000000",
+            "64000000000×48000000000 pixels",
+            "98304000000000.00 GB",
+        ),
+        (
+            "33554432",
+            "33554432",
+            "2147483648×1610612736 pixels",
+            "110680464442.26 GB",
+        ),
+    ] {
+        let args = [
+            "render", "--method", "ulr", "--scene", s, "--out", o, "--views", "0", "--scale", scale,
+        ];
+        let r = std::process::Command::new(env!("CARGO_BIN_EXE_xscale"))
+            .args(args)
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&r.stderr);
+        assert_eq!(r.status.code(), Some(2), "--scale {scale}: {err}");
+        assert!(
+            err.contains(&format!(
+                "--scale {shown}: 0000, {frame}, would take about {bytes} in memory"
+            )) && err.contains("use a smaller --scale"),
+            "--scale {scale}: {err}"
+        );
+    }
+    let _ = std::fs::remove_dir_all(&out);
+}
+
 /// `render --method ulr` needs no model: `--scene DIR` alone, as for `eval` (it used to say
 /// `give --run RUN or --checkpoint FILE`). Its `--footprint` image paints misses in a colour off
 /// the grey ramp, so they are not taken for the finest footprint (black; both were 0). `--path`

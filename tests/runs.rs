@@ -537,6 +537,101 @@ fn resuming_a_finished_run_writes_nothing_twice() {
     let _ = std::fs::remove_dir_all(&run);
 }
 
+/// `--resume --config` may change the `[train]` keys that change no result (checkpoint and log
+/// intervals, evaluation cadence, the sample source): the resumed run takes them, says so in one
+/// line, and trains the bits of an uninterrupted run; a key that changes results is still refused
+/// (and named alone). Both used to be refused alike.
+#[test]
+fn resume_takes_settings_that_change_no_result() {
+    let (run, straight) = (tmp("cadence"), tmp("cadence-straight"));
+    let tiny = ["--preset", "tiny", "--steps", "60"];
+    assert_eq!(train(&straight, &tiny).0, 0);
+    assert_eq!(
+        train(&run, &[&tiny[..], &["--stop-at", "30"]].concat()).0,
+        0
+    );
+    let cfg = run.with_extension("toml");
+    std::fs::write(
+        &cfg,
+        "[train]\ncheckpoint_every = 10\nlog_every = 5\neval_every = 0\nsamples = \"stream\"\n",
+    )
+    .unwrap();
+    let (c, o) = (cfg.to_str().unwrap(), run.to_str().unwrap());
+    let resume = ["train", "--out", o, "--resume", "--no-eval", "--config", c];
+    let (code, err) = xscale(&resume);
+    assert_eq!(code, 0, "{err}");
+    let said: Vec<&str> = err
+        .lines()
+        .filter(|l| l.starts_with("--resume: "))
+        .collect();
+    assert!(
+        said.len() == 1
+            && said[0].contains("train.checkpoint_every = 10 (the run has 100)")
+            && said[0].contains("train.log_every = 5 (the run has 10)")
+            && said[0].contains("train.samples = \"stream\"")
+            && said[0].contains("not what it computes"),
+        "{err}"
+    );
+    assert_eq!(metrics::checkpoints(&run), [30, 40, 50, 60]);
+    let config = std::fs::read_to_string(run.join("config.toml")).unwrap();
+    assert!(config.contains("checkpoint_every = 10\n"), "{config}");
+    let tensors = |r: &Path| {
+        xscale::io::tensors::TensorFile::read(r.join("checkpoint.safetensors"))
+            .unwrap()
+            .tensors
+    };
+    assert!(
+        tensors(&run) == tensors(&straight),
+        "the resumed run trained other bits than the uninterrupted one"
+    );
+    // A key that changes results is refused, named alone.
+    std::fs::write(&cfg, "[model]\ngamma = 1\n[train]\nlog_every = 7\n").unwrap();
+    let (code, err) = xscale(&[&resume[..], &["--steps", "70"]].concat());
+    assert_eq!(code, 2, "{err}");
+    assert!(
+        err.contains("model.gamma = 1 (the run has 2)") && !err.contains("log_every"),
+        "{err}"
+    );
+    assert_eq!(step_of(&run), 60);
+    let _ = std::fs::remove_dir_all(&run);
+    let _ = std::fs::remove_dir_all(&straight);
+    let _ = std::fs::remove_file(&cfg);
+}
+
+/// A resume takes the run's time from beside its checkpoint (`RUN/checkpoint-time.json`), not
+/// from `metrics.jsonl`: with the log deleted, `elapsed_s` restarted at 0.
+#[test]
+fn elapsed_time_survives_a_deleted_metrics_file() {
+    let run = tmp("elapsed");
+    let (code, err) = train(
+        &run,
+        &["--preset", "tiny", "--steps", "100", "--stop-at", "40"],
+    );
+    assert_eq!(code, 0, "{err}");
+    let at_40 = metrics::lines(&run)
+        .iter()
+        .find(|j| j["checkpoint"] == true)
+        .and_then(|j| j["elapsed_s"].as_f64())
+        .unwrap();
+    let recorded: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(run.join("checkpoint-time.json")).unwrap())
+            .unwrap();
+    assert_eq!(recorded["step"], 40);
+    assert_eq!(recorded["elapsed_s"].as_f64(), Some(at_40));
+    std::fs::remove_file(run.join("metrics.jsonl")).unwrap();
+    let (code, err) = train(&run, &["--resume", "--steps", "60"]);
+    assert_eq!(code, 0, "{err}");
+    let after: Vec<f64> = (metrics::lines(&run).iter())
+        .filter_map(|j| j["elapsed_s"].as_f64())
+        .collect();
+    assert!(
+        after.len() >= 2 && after.iter().all(|&t| t >= at_40),
+        "the time at step 40 was {at_40} s; after the resume: {after:?}"
+    );
+    assert!(metrics::elapsed_runs_on(&run, 2));
+    let _ = std::fs::remove_dir_all(&run);
+}
+
 /// With `--resume`, `[train] steps` in a `--config` file is the new total, as `--steps` (it was
 /// ignored silently); a hand-edited `RUN/config.toml` is warned about (it was ignored silently).
 #[test]

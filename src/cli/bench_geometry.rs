@@ -10,6 +10,7 @@ use crate::train::bench_geometry::{
 use anyhow::{bail, Context, Result};
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
+use std::sync::atomic::AtomicBool;
 
 #[derive(clap::Args, Debug)]
 pub struct Args {
@@ -69,9 +70,18 @@ impl std::fmt::Display for Switch {
     }
 }
 
-/// OUT/scene for `--scene-preset`: generated (with `truth.ply`) unless a scene of the same preset
-/// and seed is there.
-fn synth_scene(preset: Preset, seed: u64, dir: &Path, say: &mut dyn FnMut(String)) -> Result<()> {
+/// OUT/scene for `--scene-preset`: generated (with `truth.ply`) unless the whole scene of the
+/// same preset and seed is there. An unfinished one (a generation stopped by a signal or killed:
+/// `scene.toml` is written last) is generated again, which finishes it with the same bytes.
+/// `stop` (the interrupt flag) stops the generation between views
+/// ([`super::synth::progress_until`]).
+fn synth_scene(
+    preset: Preset,
+    seed: u64,
+    dir: &Path,
+    stop: &AtomicBool,
+    say: &mut dyn FnMut(String),
+) -> Result<()> {
     let record = dir.join("synth.toml");
     if let (Ok(text), true) = (
         std::fs::read_to_string(&record),
@@ -81,22 +91,30 @@ fn synth_scene(preset: Preset, seed: u64, dir: &Path, say: &mut dyn FnMut(String
             .with_context(|| format!("{}: not valid TOML", record.display()))?;
         let same = v.get("preset").and_then(|p| p.as_str()) == Some(preset.name())
             && v.get("seed").and_then(|s| s.as_integer()) == Some(seed as i64);
-        if same {
+        if !same {
+            bail!(
+                "{}: holds another synthetic scene (not preset {} seed {seed}); choose another --out",
+                dir.display(),
+                preset.name()
+            );
+        }
+        if dir.join("scene.toml").is_file() {
             say(format!("scene: reusing {}", dir.display()));
             return Ok(());
         }
-        bail!(
-            "{}: holds another synthetic scene (not preset {} seed {seed}); choose another --out",
-            dir.display(),
-            preset.name()
-        );
     }
     say(format!(
         "scene: xscale synth --preset {} --seed {seed} --write-truth → {}",
         preset.name(),
         dir.display()
     ));
-    super::synth::generate(preset, seed, dir, true, &mut |_, _| Ok(()))?;
+    super::synth::generate(
+        preset,
+        seed,
+        dir,
+        true,
+        &mut super::synth::progress_until(stop, say),
+    )?;
     Ok(())
 }
 
@@ -113,6 +131,10 @@ pub fn run(a: Args) -> Result<ExitCode> {
     }
     // Before the scene is synthesised or anything built: a proxy listed twice.
     check_proxies(&proxies)?;
+    // Before the scene is synthesised, so that a signal stops that too (between views).
+    let interrupt = super::common::on_interrupt(
+        "stopping: the scene's generation after the view being rendered, a run in training at its next step with a checkpoint",
+    );
     let dedup = |v: &[Switch]| {
         let mut out: Vec<bool> = Vec::new();
         for s in v {
@@ -127,7 +149,13 @@ pub fn run(a: Args) -> Result<ExitCode> {
         (Some(s), _) => s.clone(),
         (None, Some(p)) => {
             let dir = a.out.join("scene");
-            synth_scene(p, a.synth_seed, &dir, &mut say)?;
+            if let Err(e) = synth_scene(p, a.synth_seed, &dir, interrupt, &mut say) {
+                let Some(m) = super::synth::stopped_message(&e, &dir) else {
+                    return Err(e);
+                };
+                eprintln!("{m}");
+                return Ok(ExitCode::from(super::common::EXIT_STOPPED_UNSAVED));
+            }
             dir
         }
         (None, None) => bail!("give --scene DIR or --scene-preset P"),
@@ -139,9 +167,7 @@ pub fn run(a: Args) -> Result<ExitCode> {
         refine: dedup(&a.refine),
         samples: a.samples,
         quiet: a.quiet,
-        interrupt: Some(super::common::on_interrupt(
-            "stopping the run in training at its next step with a checkpoint",
-        )),
+        interrupt: Some(interrupt),
     };
     let Some(rep) = bench_geometry(&scene, &a.out, &opts, &mut say)? else {
         eprintln!(

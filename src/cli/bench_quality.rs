@@ -2,7 +2,7 @@
 //! --overwrite] [--list]`: run time
 //! against error (`train/bench_quality.rs`).
 
-use crate::train::bench_quality::{bench_quality, replot, Existing, CONFIGS};
+use crate::train::bench_quality::{bench_quality, check_configs, replot, Existing, CONFIGS};
 use std::path::PathBuf;
 use std::process::ExitCode;
 
@@ -17,9 +17,9 @@ pub struct Args {
     /// Training wall-clock budget per configuration, in minutes.
     #[arg(long, default_value_t = 1.0, value_parser = super::common::parse_positive_number, allow_negative_numbers = true)]
     pub minutes: f64,
-    /// Comma-separated configurations (default: all; see --list).
-    #[arg(long, value_delimiter = ',', value_parser = config_names())]
-    pub configs: Vec<String>,
+    /// Comma-separated configurations, each once (default: all; see --list).
+    #[arg(long, value_parser = parse_configs)]
+    pub configs: Option<Configs>,
     /// List the configurations and exit.
     #[arg(long)]
     pub list: bool,
@@ -37,9 +37,17 @@ pub struct Args {
     pub replot: bool,
 }
 
-/// `--configs` takes the names of [`CONFIGS`] and `ulr`.
-fn config_names() -> clap::builder::PossibleValuesParser {
-    clap::builder::PossibleValuesParser::new(CONFIGS.iter().map(|c| c.0).chain(["ulr"]))
+/// The names `--configs` gave.
+#[derive(Clone, Debug)]
+pub struct Configs(pub Vec<String>);
+
+/// `--configs a,b`: names of [`CONFIGS`] and `ulr`, each once. The whole list is parsed at once
+/// so that a name listed twice is a usage error (exit 64) like an unknown one; a parser of one
+/// name at a time cannot see it (it exited 2 from `bench_quality`).
+fn parse_configs(s: &str) -> std::result::Result<Configs, String> {
+    let names: Vec<String> = s.split(',').map(|n| n.trim().to_string()).collect();
+    check_configs(&names).map_err(|e| format!("{e:#}"))?;
+    Ok(Configs(names))
 }
 
 pub fn run(a: Args) -> anyhow::Result<ExitCode> {
@@ -53,14 +61,13 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
         );
         return Ok(ExitCode::SUCCESS);
     }
-    let configs: Vec<String> = if a.configs.is_empty() {
-        CONFIGS
+    let configs: Vec<String> = match &a.configs {
+        Some(Configs(given)) => given.clone(),
+        None => CONFIGS
             .iter()
             .map(|c| c.0.to_string())
             .chain(["ulr".to_string()])
-            .collect()
-    } else {
-        a.configs.clone()
+            .collect(),
     };
     if a.replot {
         let out = a.out.unwrap();

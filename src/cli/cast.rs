@@ -60,7 +60,9 @@ pub struct Args {
     /// BVH build preset (obvhs); hits do not depend on it.
     #[arg(long, value_enum, default_value_t = Bvh::Medium)]
     pub bvh: Bvh,
-    /// Do not load the images (cast only; targets are zero, and the photo check is skipped).
+    /// Do not load the images' pixels (cast only; targets are zero, the photo check is skipped
+    /// and alpha-channel masks are not applied). Their headers are still read, so an image
+    /// whose size differs from its camera's is refused as without this flag.
     #[arg(long)]
     pub no_images: bool,
 }
@@ -76,7 +78,8 @@ pub fn run(args: Args) -> Result<ExitCode> {
             Normalize::Isotropic => NormalizeMode::Isotropic,
         },
         mesh: args.mesh.clone(),
-        load_images_check: !args.no_images,
+        // The size check reads headers only, so --no-images keeps it: without it a camera that
+        // disagrees with its photo was cast at the camera's size and reported as fine.
         ..LoadOptions::default()
     };
     let (scene, report) = Scene::load_report(&args.scene, &opts)?;
@@ -168,7 +171,12 @@ fn cast_views(
             c.add_view(k, img);
         }
         let t = Instant::now();
-        let mask = scene.load_mask(i)?;
+        // An alpha mask is the photo's own alpha channel: reading it would decode the photo.
+        let mask = if args.no_images && scene.masks[i] == crate::scene::MaskSource::Alpha {
+            None
+        } else {
+            scene.load_mask(i)?
+        };
         let why = crate::scene::mask::drop_reason(mask.as_deref());
         let mut on_event = |e: CacheEvent| match e {
             CacheEvent::ViewCast { kept, pixels, .. } => eprintln!(

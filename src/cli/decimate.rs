@@ -4,7 +4,6 @@
 //! (`.ply` binary double, `.obj`).
 
 use crate::scene::mesh::{decimate_report, load_mesh, subdivide, write_obj, write_ply};
-use crate::scene::remesh::subdivide_bytes;
 use crate::scene::Mesh;
 use anyhow::{bail, Result};
 use std::path::{Path, PathBuf};
@@ -72,13 +71,10 @@ pub struct SubdivideArgs {
 pub fn run_subdivide(a: SubdivideArgs) -> Result<ExitCode> {
     crate::io::atomic::not_an_input(&a.out, "--out", &[("the input mesh (--in)", &a.input)])?;
     let (mesh, _) = load_mesh(&a.input)?;
-    crate::train::memory::check_fits(
-        subdivide_bytes(&mesh, a.levels),
-        &format!(
-            "subdivide --levels {}: {} faces",
-            a.levels,
-            mesh.triangles.len() as u64 * 4u64.pow(a.levels)
-        ),
+    crate::train::memory::check_subdivide(
+        &mesh,
+        a.levels,
+        &format!("subdivide --levels {}", a.levels),
         "use fewer --levels",
     )?;
     let out = subdivide(&mesh, a.levels)?;

@@ -23,10 +23,8 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
     let (m, _) = load_mesh(&a.mesh)?;
     let (t, _) = load_mesh(&a.truth)?;
     // Per direction: the samples (f64 points) and their distances; the area sums of the mesh.
-    let faces = m.triangles.len().max(t.triangles.len()) as u64;
-    let need = (a.samples as u64)
-        .saturating_mul(32)
-        .saturating_add(8 * faces);
+    let faces = m.triangles.len().max(t.triangles.len()) as f64;
+    let need = a.samples as f64 * 32.0 + 8.0 * faces;
     crate::train::memory::check_fits(
         need,
         &format!("--samples {}", a.samples),

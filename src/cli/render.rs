@@ -96,6 +96,45 @@ fn write(base: &Path, img: &Image, format: Format) -> Result<()> {
     }
 }
 
+/// Refuse, before any frame is allocated, a `--scale` that leaves a frame empty, or one that
+/// cannot fit in memory: a frame holds its colours (f32), hit mask, footprints (f32) and the
+/// written copy, at most 32 bytes per pixel (an allocation failure aborts the process with no
+/// word about --scale). Sizes are judged in f64 from the unscaled cameras: `Camera::scaled`
+/// saturates a side at u32::MAX and a frame's bytes overflow u64 (`--scale 1e9` was reported
+/// as 4294967295×4294967295 pixels, and `--scale 33554432` wrapped to 0 bytes, passed, and
+/// panicked allocating).
+fn check_frame_sizes(jobs: &[(PathBuf, Camera, i32)], scale: f64) -> Result<()> {
+    const FRAME_BYTES_PER_PIXEL: f64 = 32.0;
+    let sizes: Vec<(&PathBuf, f64, f64)> = (jobs.iter())
+        .map(|(p, c, _)| {
+            let (w, h) = c.scaled_size(scale);
+            (p, w, h)
+        })
+        .collect();
+    if let Some((_, w, h)) = sizes.iter().find(|(_, w, h)| *w == 0.0 || *h == 0.0) {
+        bail!("--scale {scale} leaves a {w}×{h} image");
+    }
+    let largest = (sizes.iter()).max_by(|a, b| (a.1 * a.2).total_cmp(&(b.1 * b.2)));
+    let Some(&(p, w, h)) = largest else {
+        return Ok(());
+    };
+    crate::train::memory::check_fits(
+        w * h * FRAME_BYTES_PER_PIXEL,
+        &format!("--scale {scale}: {}, {w}×{h} pixels,", p.display()),
+        "use a smaller --scale",
+    )?;
+    // Only where the system gives no memory reading can a frame that passed have a side a
+    // camera cannot hold.
+    if w.max(h) > u32::MAX as f64 {
+        bail!(
+            "--scale {scale}: {}, {w}×{h} pixels: a side of at most {} pixels is possible; use a smaller --scale",
+            p.display(),
+            u32::MAX
+        );
+    }
+    Ok(())
+}
+
 pub fn run(a: Args) -> Result<ExitCode> {
     let loaded = a.model.load_for(a.method)?;
     let gamma = a.gamma.unwrap_or(loaded.gamma());
@@ -135,36 +174,11 @@ pub fn run(a: Args) -> Result<ExitCode> {
             })
             .collect(),
     };
+    check_frame_sizes(&jobs, a.scale)?;
     let jobs: Vec<(PathBuf, Camera, i32)> = jobs
         .into_iter()
         .map(|(p, c, r)| (p, c.scaled(a.scale), r))
         .collect();
-    if let Some((_, c, _)) = jobs.iter().find(|(_, c, _)| c.width == 0 || c.height == 0) {
-        bail!(
-            "--scale {} leaves a {}×{} image",
-            a.scale,
-            c.width,
-            c.height
-        );
-    }
-    // A frame holds its colours (f32), hit mask, footprints (f32) and the written copy: at most
-    // 32 bytes per pixel. Refuse a frame that cannot fit before allocating it (an allocation
-    // failure aborts the process with no word about --scale).
-    const FRAME_BYTES_PER_PIXEL: u64 = 32;
-    if let Some((p, c, _)) = (jobs.iter()).max_by_key(|(_, c, _)| c.width as u64 * c.height as u64)
-    {
-        crate::train::memory::check_fits(
-            c.width as u64 * c.height as u64 * FRAME_BYTES_PER_PIXEL,
-            &format!(
-                "--scale {}: {}, {}×{} pixels,",
-                a.scale,
-                p.display(),
-                c.width,
-                c.height
-            ),
-            "use a smaller --scale",
-        )?;
-    }
     // Every file this command will write, none of which may be one it reads.
     let suffixes = [
         Some(a.format.suffix()),

@@ -3,8 +3,9 @@
 
 use crate::synth::{self, Preset};
 use anyhow::bail;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::process::ExitCode;
+use std::sync::atomic::{AtomicBool, Ordering};
 
 #[derive(clap::Args, Debug)]
 pub struct Args {
@@ -124,37 +125,56 @@ impl std::fmt::Display for Stopped {
 
 impl std::error::Error for Stopped {}
 
+/// [`generate`]'s `progress` for a command: `rendered I of N views (T s)` through `say` at least
+/// every [`PROGRESS_EVERY_S`] and after the last view, and, once `stop` is set (the interrupt
+/// flag), an end ([`Stopped`]) after the view just written — not after the last, when only the
+/// camera files are left to write.
+pub(super) fn progress_until<'a>(
+    stop: &'a AtomicBool,
+    say: &'a mut dyn FnMut(String),
+) -> impl FnMut(usize, usize) -> anyhow::Result<()> + 'a {
+    let t0 = std::time::Instant::now();
+    let mut said = 0.0;
+    move |i, n| {
+        let t = t0.elapsed().as_secs_f64();
+        if t - said >= PROGRESS_EVERY_S || i + 1 == n {
+            say(format!("rendered {} of {n} views ({t:.1} s)", i + 1));
+            said = t;
+        }
+        if stop.load(Ordering::SeqCst) && i + 1 < n {
+            return Err(Stopped(i + 1, n).into());
+        }
+        Ok(())
+    }
+}
+
+/// What a generation into `dir` stopped by [`progress_until`] left there and what to do, for the
+/// user; `None` when `e` is another error.
+pub(super) fn stopped_message(e: &anyhow::Error, dir: &Path) -> Option<String> {
+    let s = e.downcast_ref::<Stopped>()?;
+    Some(format!(
+        "interrupted: {s}; {} holds an unfinished scene (synth.toml, the meshes and {} of the {} images; the camera files come last): run the same command again to finish it (it writes the same scene, byte for byte)",
+        dir.display(),
+        s.0,
+        s.1
+    ))
+}
+
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     check_out(&args)?;
     let stop = super::common::on_interrupt("stopping after the view being rendered");
     let t0 = std::time::Instant::now();
-    let mut said = 0.0;
     let generated = generate(
         args.preset,
         args.seed,
         &args.out,
         args.write_truth,
-        &mut |i, n| {
-            let t = t0.elapsed().as_secs_f64();
-            if t - said >= PROGRESS_EVERY_S || i + 1 == n {
-                eprintln!("rendered {} of {n} views ({t:.1} s)", i + 1);
-                said = t;
-            }
-            if stop.load(std::sync::atomic::Ordering::SeqCst) && i + 1 < n {
-                return Err(Stopped(i + 1, n).into());
-            }
-            Ok(())
-        },
+        &mut progress_until(stop, &mut |m| eprintln!("{m}")),
     );
     let summary = match generated {
-        Err(e) => match e.downcast_ref::<Stopped>() {
-            Some(s) => {
-                eprintln!(
-                    "interrupted: {s}; {} holds an unfinished scene (synth.toml, the meshes and {} of the {} images; the camera files come last): run the same command again to finish it (it writes the same scene, byte for byte)",
-                    args.out.display(),
-                    s.0,
-                    s.1
-                );
+        Err(e) => match stopped_message(&e, &args.out) {
+            Some(m) => {
+                eprintln!("{m}");
                 return Ok(ExitCode::from(super::common::EXIT_STOPPED_UNSAVED));
             }
             None => return Err(e),

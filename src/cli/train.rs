@@ -1,7 +1,7 @@
 //! `xscale train`: train on a scene directory into a run folder (see `train/trainer.rs`).
 
 use super::common::RunArgs;
-use crate::train::config::RunConfig;
+use crate::train::config::{is_resumable, RunConfig};
 use crate::train::trainer::{train, TrainOptions};
 use anyhow::bail;
 use std::path::PathBuf;
@@ -25,8 +25,10 @@ pub struct Args {
     #[arg(long)]
     pub mesh: Option<PathBuf>,
     /// Continue from RUN/checkpoint.safetensors, bit-identically to an uninterrupted run. The
-    /// run's stored configuration is used; `--steps N` sets the total (not the steps to add);
-    /// any other option that differs from the run is an error (docs/runs.md).
+    /// run's stored configuration is used; `--steps N` sets the total (not the steps to add); a
+    /// `--config` file may change the `[train]` keys that change no result (checkpoint_every,
+    /// log_every, eval_every, eval_max_views, memory_gb, samples); any other option that
+    /// differs from the run is an error (docs/runs.md).
     #[arg(long, conflicts_with = "overwrite")]
     pub resume: bool,
     /// Replace the run this folder already holds (without it, a folder holding a run is refused).
@@ -178,9 +180,17 @@ fn resume_config(a: &Args) -> anyhow::Result<(RunConfig, PathBuf)> {
     }
     // `[train] steps` in a --config file is the total asked for, as --steps (which wins).
     let mut steps = r.steps;
+    let mut taken: Vec<String> = Vec::new();
     if let Some(file) = &r.config {
-        let (d, total) = config_differences(file, &stored)?;
-        diffs.extend(d);
+        let (given, d, total) = config_differences(file, &stored)?;
+        // Keys that change no result are taken, not refused (`config::RESUMABLE_KEYS`).
+        let (resumable, refused): (Vec<String>, Vec<String>) =
+            d.into_iter().partition(|d| is_resumable(d));
+        diffs.extend(refused);
+        taken = resumable;
+        if !taken.is_empty() {
+            stored = stored.with_resumable(&given, &file.display().to_string())?;
+        }
         steps = steps.or(total);
     }
     if !diffs.is_empty() {
@@ -189,18 +199,25 @@ fn resume_config(a: &Args) -> anyhow::Result<(RunConfig, PathBuf)> {
             diffs.join("\n  ")
         );
     }
+    if !taken.is_empty() && !a.quiet {
+        eprintln!(
+            "--resume: {}: these change when the run logs, evaluates or checkpoints (or how it holds its samples), not what it computes, so the resumed run takes them",
+            taken.join(", ")
+        );
+    }
     if let Some(n) = steps {
         stored.train.steps = n;
     }
     Ok((stored, scene))
 }
 
-/// Every key a `--config` file sets whose value differs from the stored configuration's, and the
-/// file's `[train] steps` (not a difference: it is the total asked for, as `--steps`).
+/// A `--config` file's TOML, every key it sets whose value differs from the stored
+/// configuration's, and the file's `[train] steps` (not a difference: it is the total asked
+/// for, as `--steps`).
 fn config_differences(
     file: &std::path::Path,
     stored: &RunConfig,
-) -> anyhow::Result<(Vec<String>, Option<u64>)> {
+) -> anyhow::Result<(toml::Value, Vec<String>, Option<u64>)> {
     let text = crate::io::text::read(file)?;
     let origin = file.display().to_string();
     let (given, out) =
@@ -222,5 +239,5 @@ fn config_differences(
         .into_iter()
         .map(|d| format!("{d} (in {})", file.display()))
         .collect();
-    Ok((out, steps))
+    Ok((given, out, steps))
 }

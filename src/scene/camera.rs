@@ -356,8 +356,8 @@ impl Camera {
         if f == 1.0 {
             return self.clone();
         }
-        let w = (self.width as f64 * f).round().max(0.0) as u32;
-        let h = (self.height as f64 * f).round().max(0.0) as u32;
+        let (w, h) = self.scaled_size(f);
+        let (w, h) = (w as u32, h as u32);
         let (sx, sy) = (w as f64 / self.width as f64, h as f64 / self.height as f64);
         Camera {
             width: w,
@@ -368,6 +368,14 @@ impl Camera {
             cy: self.cy * sy,
             ..self.clone()
         }
+    }
+
+    /// The size of [`scaled`](Self::scaled)'s camera, `round(w·f) × round(h·f)`, in f64: what
+    /// was asked for even when a side exceeds what a camera holds (`scaled` saturates it at
+    /// `u32::MAX`), so callers can judge and report it first.
+    pub fn scaled_size(&self, f: f64) -> (f64, f64) {
+        let side = |n: u32| (n as f64 * f).round().max(0.0);
+        (side(self.width), side(self.height))
     }
 
     /// Largest absolute difference to another camera over K and pose (for cross-format checks).

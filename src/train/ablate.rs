@@ -321,6 +321,13 @@ pub fn run_ablation(scene: &Path, out: &Path, opts: &AblateOptions) -> Result<Ab
         subdivide: opts.subdivide,
         gamma: base.model.gamma,
     };
+    // A --subdivide that cannot fit is refused before the first variant trains, not hours later.
+    if let (true, Some(k)) = (
+        opts.variants.contains(&Variant::VertexSubdiv),
+        opts.subdivide,
+    ) {
+        check_subdivision(&ctx.mesh, k, &format!("--subdivide {k}"))?;
+    }
     std::fs::create_dir_all(&ctx.mesh_dir)
         .with_context(|| format!("{}: cannot create", ctx.mesh_dir.display()))?;
     match &earlier {
@@ -611,6 +618,18 @@ fn hash_params(scene: &Path, base: &RunConfig) -> Result<usize> {
     Ok(TrainState::init(cfg, &prepared)?.ckpt.model.layout.total)
 }
 
+/// Refuse, before subdividing, `levels` rounds of `mesh` for `vertex_subdiv` that cannot fit in
+/// memory (the check `xscale subdivide` makes: an allocation that fails aborted the ablation
+/// without a word, exit 134); `what` names the request.
+fn check_subdivision(mesh: &Mesh, levels: u32, what: &str) -> Result<()> {
+    crate::train::memory::check_subdivide(
+        mesh,
+        levels,
+        &format!("vertex_subdiv: {what}"),
+        "give --subdivide fewer levels, or leave vertex_subdiv out of --variants",
+    )
+}
+
 /// `vertex_subdiv`'s mesh: subdivided `ctx.subdivide` levels, or the smallest k with
 /// `target / V_k ≤ Z_SUBDIV` (module doc); written to `meshes/subdivided_<k>.ply`.
 fn subdivided(ctx: &Shared, target: usize, say: &dyn Fn(String)) -> Result<(Mesh, PathBuf)> {
@@ -621,12 +640,18 @@ fn subdivided(ctx: &Shared, target: usize, say: &dyn Fn(String)) -> Result<(Mesh
             let mut k = 0;
             let mut m = ctx.mesh.clone();
             while k < MAX_SUBDIV && target as f64 / m.vertices.len() as f64 > Z_SUBDIV as f64 {
+                check_subdivision(&m, 1, &format!("subdivision level {} (automatic)", k + 1))?;
                 m = subdivide(&m, 1)?;
                 k += 1;
             }
             k.max(1)
         }
     };
+    let what = match ctx.subdivide {
+        Some(k) => format!("--subdivide {k}"),
+        None => format!("{levels} subdivision levels (automatic)"),
+    };
+    check_subdivision(&ctx.mesh, levels, &what)?;
     let m = subdivide(&ctx.mesh, levels)?;
     let path = ctx.mesh_dir.join(format!("subdivided_{levels}.ply"));
     write_ply(&path, &m)?;

@@ -107,6 +107,18 @@ pub fn config(name: &str) -> Result<Option<RunConfig>> {
     Ok(Some(c))
 }
 
+/// Every name in `configs` is a configuration ([`config`]) and listed once (a configuration
+/// listed twice would be trained twice and replace its own rows).
+pub fn check_configs(configs: &[String]) -> Result<()> {
+    for (i, c) in configs.iter().enumerate() {
+        config(c)?;
+        if configs[..i].contains(c) {
+            bail!("configuration {c:?} is listed twice");
+        }
+    }
+    Ok(())
+}
+
 /// One evaluation.
 #[derive(Clone, Debug)]
 pub struct Row {
@@ -273,12 +285,7 @@ pub fn bench_quality(
     if !(minutes > 0.0 && minutes.is_finite()) {
         bail!("--minutes {minutes}: expected a positive number");
     }
-    for (i, c) in configs.iter().enumerate() {
-        config(c)?;
-        if configs[..i].contains(c) {
-            bail!("configuration {c:?} is listed twice");
-        }
-    }
+    check_configs(configs)?;
     std::fs::create_dir_all(out).with_context(|| format!("{}: cannot create", out.display()))?;
     let csv_path = out.join("bench.csv");
     // Rows kept from an earlier run (read before anything is written, so a bad file stops the

@@ -455,6 +455,45 @@ pub fn tool_checkpoint_every(steps: u64) -> u64 {
     steps.div_ceil(10).max(1000)
 }
 
+/// The `[train]` keys that decide when a run logs, evaluates and checkpoints, and how it holds its
+/// samples in memory, never what it computes: a run resumed with other values trains the same
+/// bits (SPEC §5; both sample sources give the same batches, `train/sampler.rs`). `--resume`
+/// takes them from a `--config` file instead of refusing them ([`RunConfig::with_resumable`]).
+pub const RESUMABLE_KEYS: [&str; 6] = [
+    "checkpoint_every",
+    "log_every",
+    "eval_every",
+    "eval_max_views",
+    "memory_gb",
+    "samples",
+];
+
+/// Whether a difference listed by [`toml_differences`] is one of a [`RESUMABLE_KEYS`].
+pub fn is_resumable(difference: &str) -> bool {
+    RESUMABLE_KEYS
+        .iter()
+        .any(|k| difference.starts_with(&format!("train.{k} = ")))
+}
+
+impl RunConfig {
+    /// This configuration with the [`RESUMABLE_KEYS`] that `over` (a configuration as TOML,
+    /// whole or in part) sets taken from it; `origin` names `over` in an error (a value of the
+    /// wrong type).
+    pub fn with_resumable(&self, over: &toml::Value, origin: &str) -> Result<RunConfig> {
+        let mut v = toml::Value::try_from(self).expect("a RunConfig serialises");
+        let (Some(train), Some(given)) = (v.get_mut("train"), over.get("train")) else {
+            return Ok(self.clone());
+        };
+        for k in RESUMABLE_KEYS {
+            if let (Some(x), Some(t)) = (given.get(k), train.as_table_mut()) {
+                t.insert(k.to_string(), x.clone());
+            }
+        }
+        v.try_into()
+            .with_context(|| format!("{origin}: [train] {}", RESUMABLE_KEYS.join(", ")))
+    }
+}
+
 /// The TOML `text` (read from `origin`) and every key it sets to another value than `cfg` has
 /// ([`toml_differences`], `have_name` naming `cfg`), `train.steps` aside: a run's total, which a
 /// resume may change.

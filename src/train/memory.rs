@@ -142,8 +142,8 @@ fn resolve_within(
             SampleMode::Cache,
             format!(
                 "auto: a cache of at most {} fits the {} allowed",
-                size(bytes),
-                size(cap)
+                size(bytes as f64),
+                size(cap as f64)
             ),
         )
     } else {
@@ -151,8 +151,8 @@ fn resolve_within(
             SampleMode::Stream,
             format!(
                 "auto: a cache would take up to {}, more than the {} allowed",
-                size(bytes),
-                size(cap)
+                size(bytes as f64),
+                size(cap as f64)
             ),
         )
     }
@@ -245,12 +245,13 @@ fn status_kb(key: &str) -> Option<u64> {
 
 /// Refuse, before allocating, `need` bytes that `what` would take when more than the memory
 /// available ([`available_bytes`]; where the system does not say, more than a process can
-/// address): an
-/// allocation that fails aborts the process without a word (`memory allocation of N bytes
-/// failed`, exit 134). `fix` says what to change.
-pub fn check_fits(need: u64, what: &str, fix: &str) -> Result<()> {
+/// address): an allocation that fails aborts the process without a word (`memory allocation
+/// of N bytes failed`, exit 134). `fix` says what to change. `need` is an f64 so that a
+/// request beyond what u64 counts (`render --scale 1e9`) is refused with its true size, not a
+/// wrapped or clamped one.
+pub fn check_fits(need: f64, what: &str, fix: &str) -> Result<()> {
     // Without a reading, only what no process can address is refused (as [`beyond_addressing`]).
-    let avail = available_bytes().unwrap_or(isize::MAX as u64);
+    let avail = available_bytes().unwrap_or(isize::MAX as u64) as f64;
     if need > avail {
         bail!(
             "{what} would take about {} in memory, and {} are available; {fix}",
@@ -259,6 +260,25 @@ pub fn check_fits(need: u64, what: &str, fix: &str) -> Result<()> {
         );
     }
     Ok(())
+}
+
+/// [`check_fits`] for `levels` rounds of midpoint subdivision of `mesh`
+/// ([`crate::scene::remesh::subdivide`], which holds [`crate::scene::remesh::subdivide_bytes`] at
+/// its peak): `what` names the request (`subdivide --levels 6`), `fix` what to change.
+pub fn check_subdivide(
+    mesh: &crate::scene::Mesh,
+    levels: u32,
+    what: &str,
+    fix: &str,
+) -> Result<()> {
+    check_fits(
+        crate::scene::remesh::subdivide_bytes(mesh, levels) as f64,
+        &format!(
+            "{what}: {} faces",
+            mesh.triangles.len() as u64 * 4u64.pow(levels)
+        ),
+        fix,
+    )
 }
 
 /// Peak resident memory of this process so far (Linux `VmHWM`), if known.
@@ -271,11 +291,11 @@ fn gb(b: u64) -> f64 {
 }
 
 /// `b` bytes in MB below 1 GB, else in GB.
-fn size(b: u64) -> String {
-    if b < 1_000_000_000 {
-        format!("{:.1} MB", b as f64 / 1e6)
+fn size(b: f64) -> String {
+    if b < 1e9 {
+        format!("{:.1} MB", b / 1e6)
     } else {
-        format!("{:.2} GB", gb(b))
+        format!("{:.2} GB", b / 1e9)
     }
 }
 

@@ -6,7 +6,7 @@ use crate::train::trainer::{StepStats, TrainState};
 use anyhow::{Context, Result};
 use std::fs::File;
 use std::io::{IsTerminal, Write};
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 /// The terminal and `metrics.jsonl` of one run.
@@ -14,6 +14,8 @@ pub struct Reporter {
     quiet: bool,
     bar: Option<indicatif::ProgressBar>,
     metrics: File,
+    /// `RUN/checkpoint-time.json` ([`crate::train::run_dir::TIME_FILE`]).
+    time_path: PathBuf,
     steps: u64,
     t0: Instant,
     /// Seconds the run had trained before this process (a resumed run; 0 for a fresh one).
@@ -30,22 +32,23 @@ pub fn psnr_of(mse: f64) -> f64 {
 }
 
 impl Reporter {
-    /// Append to `metrics_path`; a progress bar on a terminal unless `quiet` (or, with `bar`,
-    /// even then: a tool's run shows its progress but none of its messages). `offset`: the
-    /// seconds the run had already trained (a resumed run, [`elapsed_recorded`]), so
+    /// Append to `run_dir`'s `metrics.jsonl`; a progress bar on a terminal unless `quiet` (or,
+    /// with `bar`, even then: a tool's run shows its progress but none of its messages).
+    /// `offset`: the seconds the run had already trained (a resumed run, [`elapsed_at`]), so
     /// `elapsed_s` runs on across resumes.
     pub fn open(
-        metrics_path: &Path,
+        run_dir: &Path,
         quiet: bool,
         bar: bool,
         steps: u64,
         first_step: u64,
         offset: f64,
     ) -> Result<Reporter> {
+        let metrics_path = run_dir.join("metrics.jsonl");
         let metrics = std::fs::OpenOptions::new()
             .create(true)
             .append(true)
-            .open(metrics_path)
+            .open(&metrics_path)
             .with_context(|| format!("{}: cannot open", metrics_path.display()))?;
         let bar = ((!quiet || bar) && std::io::stderr().is_terminal()).then(|| {
             let b = indicatif::ProgressBar::new(steps);
@@ -62,6 +65,7 @@ impl Reporter {
             quiet,
             bar,
             metrics,
+            time_path: run_dir.join(crate::train::run_dir::TIME_FILE),
             steps,
             t0: Instant::now(),
             offset,
@@ -87,15 +91,17 @@ impl Reporter {
         self.offset + self.t0.elapsed().as_secs_f64()
     }
 
-    /// A checkpoint of step `k` was written: a metrics line with the time, which a resume from
-    /// it continues from ([`elapsed_recorded`]).
+    /// A checkpoint of step `k` was written: a metrics line with the time, and the time beside
+    /// the checkpoint, which a resume from it continues from ([`elapsed_at`]).
     pub fn checkpointed(&mut self, k: u64) -> Result<()> {
+        let t = self.elapsed();
         writeln!(
             self.metrics,
             "{}",
-            serde_json::json!({"step": k, "checkpoint": true, "elapsed_s": self.elapsed()})
+            serde_json::json!({"step": k, "checkpoint": true, "elapsed_s": t})
         )?;
-        Ok(())
+        let record = serde_json::json!({"step": k, "elapsed_s": t});
+        crate::io::atomic::write_bytes(&self.time_path, format!("{record}\n"))
     }
 
     /// The model and the run's shape, once at the start.
@@ -230,6 +236,20 @@ impl Reporter {
         ));
         Ok(m)
     }
+}
+
+/// The training time of `run_dir`'s run at its checkpoint's `step`: from
+/// [`crate::train::run_dir::TIME_FILE`] when it holds that step, else (a run from an older xscale,
+/// or one killed between writing its checkpoint and that file) as `metrics.jsonl` records it
+/// ([`elapsed_recorded`]; the resume has cut it back to the checkpoint's step).
+pub fn elapsed_at(run_dir: &Path, step: u64) -> Option<f64> {
+    let recorded = std::fs::read_to_string(run_dir.join(crate::train::run_dir::TIME_FILE))
+        .ok()
+        .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok())
+        .filter(|j| j.get("step").and_then(|s| s.as_u64()) == Some(step))
+        .and_then(|j| j.get("elapsed_s").and_then(|e| e.as_f64()))
+        .filter(|e| e.is_finite() && *e >= 0.0);
+    recorded.or_else(|| elapsed_recorded(&run_dir.join("metrics.jsonl")))
 }
 
 /// The run's training time as its metrics file records it: the last `elapsed_s` outside a

@@ -17,8 +17,9 @@ use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
 /// Files and folders a run writes (what `--overwrite` removes; nothing else is touched).
-pub const RUN_FILES: [&str; 10] = [
+pub const RUN_FILES: [&str; 11] = [
     "checkpoint.safetensors",
+    TIME_FILE,
     "checkpoint-diverged.safetensors",
     "metrics.jsonl",
     "config.toml",
@@ -373,6 +374,13 @@ fn remove_images(dir: &Path) -> Result<()> {
     let _ = std::fs::remove_dir(dir);
     Ok(())
 }
+
+/// The run's training time when its checkpoint was written, `{"step": K, "elapsed_s": T}`
+/// ([`crate::train::report::elapsed_at`]). Not in the checkpoint, whose bytes must not depend on
+/// wall time (a resumed run writes the same bytes as one never stopped), nor only in
+/// `metrics.jsonl`, a log a user may trim or delete (the resumed run's time then restarted at
+/// 0).
+pub const TIME_FILE: &str = "checkpoint-time.json";
 
 /// The settings a tool that trains run folders itself (`ablate`, `bench-geometry`) started a
 /// run with: its unresolved configuration ([`crate::train::config::RunConfig::results_toml`]),

@@ -6,6 +6,7 @@
 //! ```text
 //! RUN/config.toml              the resolved run configuration (preset + overrides + dropped levels)
 //! RUN/checkpoint.safetensors   latest checkpoint: parameters, Adam state, step (atomic rename)
+//! RUN/checkpoint-time.json     the run's training time at that checkpoint (not in it: below)
 //! RUN/metrics.jsonl            one JSON object per log line / evaluation
 //! RUN/render/NAME.png          final renders of the held-out views
 //! RUN/eval/NAME.png            prediction | ground truth | error heat map
@@ -414,7 +415,6 @@ pub fn train(
     let _lock = RunLock::acquire(run_dir)?;
     let replaced = prepare_run_dir(run_dir, opts.resume, opts.overwrite)?;
     let ckpt_path = run_checkpoint(run_dir);
-    let metrics_path = run_dir.join("metrics.jsonl");
     let (mut state, prepared) = match open_run(scene_dir, run_dir, cfg, opts, &replaced) {
         Err(e)
             if e.downcast_ref::<crate::train::setup::StoppedInSetup>()
@@ -431,20 +431,13 @@ pub fn train(
         r => r?,
     };
     let tc = state.cfg.train.clone();
-    // A resumed run's time runs on from its checkpoint's (`open_run` cut the metrics back to it).
+    // A resumed run's time runs on from its checkpoint's.
     let before = if opts.resume {
-        crate::train::report::elapsed_recorded(&metrics_path).unwrap_or(0.0)
+        crate::train::report::elapsed_at(run_dir, state.step).unwrap_or(0.0)
     } else {
         0.0
     };
-    let mut rep = Reporter::open(
-        &metrics_path,
-        opts.quiet,
-        opts.bar,
-        tc.steps,
-        state.step,
-        before,
-    )?;
+    let mut rep = Reporter::open(run_dir, opts.quiet, opts.bar, tc.steps, state.step, before)?;
     rep.model(&state);
     // The step the run's checkpoint holds: a resumed run's is on disk already.
     let mut saved = opts.resume.then_some(state.step);
@@ -550,6 +543,10 @@ fn open_run(
             );
         }
         st.cfg.train.steps = cfg.train.steps;
+        // Settings that change no result are the caller's (`train --resume --config` may change
+        // them: `config::RESUMABLE_KEYS`).
+        let given = toml::Value::try_from(&cfg).expect("a RunConfig serialises");
+        st.cfg = st.cfg.with_resumable(&given, "the run configuration")?;
         // The mesh's place may have moved (`xscale train --resume --mesh`, which passes the
         // stored configuration with the new place); the scene fingerprint below checks it is
         // the same mesh.

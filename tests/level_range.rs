@@ -7,6 +7,7 @@ use xscale::model::config::per_level_scale_for;
 use xscale::train::config::{LevelRange, RunConfig};
 use xscale::train::sampler::SampleMode;
 use xscale::train::setup::{auto_levels, prepare, resolve_levels, AUTO_FINEST_MAX, LEVEL_QUANTILE};
+use xscale::train::trainer::TrainState;
 
 fn fixture() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("fixtures/tiny")
@@ -293,5 +294,34 @@ fn auto_caps_the_finest_level_at_what_a_grid_holds() {
     assert_eq!(cfg.model.grid_h.finest_resolution, Some(AUTO_FINEST_MAX));
     cfg.validate().unwrap();
     xscale::model::hashgrid::HashGrid::try_new(&cfg.model.grid_h).unwrap();
+    let _ = std::fs::remove_dir_all(&scene);
+}
+
+/// The memory check is made again once the automatic range has sized the model: a 1000× close-up
+/// asks for 37 levels instead of 16, and a budget the preset's grid fits but that one does not is
+/// refused before the model is allocated, naming the levels. The check used to be made only at
+/// setup, on the preset's grid: `memory_gb = 0.6` trained a model needing 0.95 GB.
+#[test]
+fn the_memory_check_sees_the_levels_the_range_added() {
+    let scene = zoomed_fixture("zoom-memory", 1e3);
+    let mut cfg = RunConfig::preset("cpu").unwrap();
+    cfg.train.memory_gb = 0.6;
+    let p = prepare(&scene, &cfg, false, &mut |_| {}).unwrap();
+    let mut fixed = cfg.clone();
+    fixed.train.level_range = LevelRange::Fixed;
+    resolve_levels(&mut fixed, &p.samples);
+    TrainState::init(fixed, &p).expect("the preset's grid fits");
+    resolve_levels(&mut cfg, &p.samples);
+    assert!(cfg.model.grid_h.levels > 30, "{:?}", cfg.model.grid_h);
+    let err = TrainState::init(cfg, &p)
+        .err()
+        .expect("refused")
+        .to_string();
+    assert!(
+        err.contains("train.memory_gb = 0.6")
+            && err.contains("level_range = \"fixed\"")
+            && err.contains("the 37 the closest views ask for"),
+        "{err}"
+    );
     let _ = std::fs::remove_dir_all(&scene);
 }

@@ -83,9 +83,12 @@ fn sample_bytes(cfg: &RunConfig, cache: bool, sizes: &[(u32, u32)], downsample: 
     per_view + cast_photo
 }
 
+/// A budget in bytes with the words that name it; `None` when the system gives no reading.
+pub type Budget = Option<(u64, String)>;
+
 /// The budget a run is checked against: `train.memory_gb` when > 0, else the available memory
 /// (when the system reports it), with the words that name it.
-fn budget(cfg: &RunConfig) -> Option<(u64, String)> {
+pub fn budget(cfg: &RunConfig) -> Budget {
     if cfg.train.memory_gb > 0.0 {
         Some((
             (cfg.train.memory_gb * 1e9) as u64,
@@ -317,7 +320,19 @@ pub fn check_job(
     downsample: u32,
     job: Job,
 ) -> Result<(SampleMode, String)> {
-    let budget = budget(cfg);
+    check_job_against(cfg, sizes, downsample, job, budget(cfg))
+}
+
+/// [`check_job`] against a budget already read. A run's setup reads it once and checks the model
+/// again once the level range has resized it (`TrainState::init`) against that same reading: a
+/// new one would see the samples already allocated and count them twice.
+pub fn check_job_against(
+    cfg: &RunConfig,
+    sizes: &[(u32, u32)],
+    downsample: u32,
+    job: Job,
+    budget: Budget,
+) -> Result<(SampleMode, String)> {
     let (mode, why) = resolve_within(cfg, sizes, downsample, budget.as_ref().map(|(b, _)| *b));
     let mut e = estimate_for(cfg, mode, sizes, downsample)?;
     let g2 = cfg.model.gamma * cfg.model.gamma;
@@ -367,6 +382,15 @@ pub fn check_job(
     }
     if e.model > budget / 3 {
         hints.push("a smaller hash table ([model.grid_h] log2_table_size)".into());
+        if cfg.model.grid_h.finest_resolution.is_some()
+            && cfg.train.level_range == crate::train::config::LevelRange::Auto
+        {
+            // Set by `resolve_levels`: the closest views asked for these levels.
+            hints.push(format!(
+                "fewer grid H levels than the {} the closest views ask for ([train] level_range = \"fixed\")",
+                cfg.model.grid_h.levels
+            ));
+        }
     }
     if e.photo > budget / 3 {
         let [hi, lo] = cfg.model.refine.photo_levels;

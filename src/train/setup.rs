@@ -25,6 +25,8 @@ pub struct Prepared {
     pub train_views: Vec<usize>,
     /// Samples of the training views (input index = position in `train_views`).
     pub samples: Samples,
+    /// The memory budget the setup was checked against ([`memory::check_job_against`]).
+    pub budget: memory::Budget,
 }
 
 impl Prepared {
@@ -34,6 +36,11 @@ impl Prepared {
             .iter()
             .map(|&v| self.scene.views[v].name.clone())
             .collect()
+    }
+
+    /// Width and height of each training view (after downsampling), by appearance row.
+    pub fn train_sizes(&self) -> Vec<(u32, u32)> {
+        view_sizes(&self.scene, &self.train_views)
     }
 
     /// Appearance row of a scene view, or -1 (held-out / unknown view: mean code).
@@ -138,11 +145,10 @@ pub fn prepare_until(
         ));
     }
     let tracer = Tracer::new(&scene.mesh, &scene.normalization).context("building the BVH")?;
-    let sizes: Vec<(u32, u32)> = train_views
-        .iter()
-        .map(|&i| (scene.views[i].camera.width, scene.views[i].camera.height))
-        .collect();
-    let (mode, why) = memory::check_job(cfg, &sizes, scene.downsample, job)?;
+    let sizes = view_sizes(&scene, &train_views);
+    let budget = memory::budget(cfg);
+    let (mode, why) =
+        memory::check_job_against(cfg, &sizes, scene.downsample, job, budget.clone())?;
     let t0 = std::time::Instant::now();
     let gamma = cfg.model.gamma;
     // The vertex featurization needs each sub-sample's triangle and barycentrics, the mesh
@@ -259,7 +265,16 @@ pub fn prepare_until(
         tracer,
         train_views,
         samples,
+        budget,
     })
+}
+
+/// Width and height of the scene views `views`.
+fn view_sizes(scene: &Scene, views: &[usize]) -> Vec<(u32, u32)> {
+    views
+        .iter()
+        .map(|&i| (scene.views[i].camera.width, scene.views[i].camera.height))
+        .collect()
 }
 
 /// Below this share of the training views' pixels seeing the mesh, `train` warns: a scene's mesh

@@ -79,7 +79,8 @@ fn a_run_over_its_budget_stops_before_training_with_the_figures() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
-/// The advice follows the part that does not fit: photos → `--downsample`, fewer views, and the
+/// The advice follows the part that does not fit: photos → `[train] downsample` (a config key:
+/// `train` has no `--downsample` flag, which the advice used to name), fewer views, and the
 /// stream instead of the cache; a batch → `--batch`.
 #[test]
 fn the_message_names_what_to_change() {
@@ -95,23 +96,24 @@ fn the_message_names_what_to_change() {
     for want in [
         "the sample cache",
         "samples = \"stream\"",
-        "--downsample 2",
+        "[train] downsample = 2",
         "test_views / holdout_every",
     ] {
         assert!(err.contains(want), "missing {want:?} in: {err}");
     }
+    assert!(!err.contains("--downsample"), "{err}");
     assert!(!err.contains("--batch"), "{err}");
     // Streamed, the same scene fits in 2 GB: 3 bytes per pixel plus a bit.
     cfg.train.samples = SampleMode::Stream;
     cfg.train.memory_gb = 2.0;
     check_budget(&cfg, &sizes, 1).unwrap();
     // A batch of 2^20 pixels (4 Mi sub-samples at ~1.5 kB: 6.4 GB) does not fit in 4 GB: the
-    // message says --batch, and not --downsample (the photos take under a third of the budget).
+    // message says --batch, and not downsample (the photos take under a third of the budget).
     cfg.train.batch_pixels = 1 << 20;
     cfg.train.memory_gb = 4.0;
     let err = check_budget(&cfg, &sizes, 1).unwrap_err().to_string();
     assert!(err.contains("--batch 262144"), "{err}");
-    assert!(!err.contains("--downsample"), "{err}");
+    assert!(!err.contains("downsample"), "{err}");
 }
 
 /// Mesh refinement's photo-consistency term keeps f32 copies of every training photo at its image

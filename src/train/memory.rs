@@ -365,8 +365,10 @@ pub fn check_job_against(
                 "stream the rays instead of caching them ([train] samples = \"stream\")".into(),
             );
         }
+        // A config key: `train` and `batch` have no --downsample flag (only cast, render and
+        // eval do), and the advice used to name one.
         hints.push(format!(
-            "downsample the photos (--downsample {})",
+            "downsample the photos ([train] downsample = {})",
             cfg.train.downsample * 2
         ));
         hints.push("hold out or remove views (scene.toml test_views / holdout_every)".into());

@@ -244,3 +244,55 @@ fn a_dump_that_cannot_fit_is_refused_with_the_estimate() {
         19_968
     );
 }
+
+/// A mesh whose BVH does not fit in the memory left (here an address-space limit) is refused in
+/// words before the BVH is built, by every command that casts rays. The BVH builder (obvhs)
+/// unwraps its allocations: `cast`, `train` and the others used to panic there (`called
+/// Result::unwrap() on an Err value`, exit 101; with RUST_BACKTRACE=1 the panic hung).
+#[test]
+fn a_mesh_whose_bvh_cannot_fit_is_refused_before_it_is_built() {
+    let dir = tmp("bvh");
+    std::fs::create_dir_all(&dir).unwrap();
+    let big = dir.join("big.ply");
+    let exe = env!("CARGO_BIN_EXE_xscale");
+    // 2118 triangles × 4^5: 2.2 M triangles, a BVH of ~0.8 GB.
+    let st = Command::new(exe)
+        .args(["subdivide", "--in"])
+        .arg(fixture().join("mesh.ply"))
+        .args(["--levels", "5", "--out"])
+        .arg(&big)
+        .output()
+        .unwrap();
+    assert!(st.status.success(), "{st:?}");
+    for cmd in [
+        "cast --no-images --gamma 1",
+        "train --preset tiny --no-eval --out",
+    ] {
+        let out_arg = if cmd.ends_with("--out") {
+            format!(" '{}'", dir.join("run").display())
+        } else {
+            String::new()
+        };
+        let o = Command::new("sh")
+            .arg("-c")
+            .arg(format!(
+                "ulimit -v 400000; exec '{exe}' --threads 1 {cmd}{out_arg} --scene '{}' --mesh '{}'",
+                fixture().display(),
+                big.display()
+            ))
+            // With backtraces on, the old panic hung (the backtrace printer itself ran out of
+            // memory holding its lock): off, a regression fails instead of hanging the suite.
+            .env("RUST_BACKTRACE", "0")
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(2), "{cmd}: {err}");
+        assert!(
+            err.contains("BVH of the mesh's 2168832 triangles")
+                && err.contains("xscale decimate")
+                && !err.contains("panicked"),
+            "{cmd}: {err}"
+        );
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -15,8 +15,9 @@
 //! - **step**: [`STEP_BYTES_PER_SAMPLE`] per sub-sample of a batch (forward activations kept for
 //!   the backward pass, gradients of the inputs, touched-entry lists), measured on the `cpu`
 //!   preset (see the constant);
-//! - a fixed [`BASE_BYTES`] (BVH, code, allocator slack) plus 64 bytes per mesh triangle for the
-//!   BVH and the f64 mesh are added by the caller when known.
+//! - a fixed [`BASE_BYTES`] (code, allocator slack, a small mesh's BVH). The mesh's BVH is not in
+//!   the estimate: building it is checked on its own against the available memory
+//!   (`raycast::bvh::BVH_BYTES_PER_TRIANGLE`), before the setup reaches this check.
 //!
 //! It errs on the high side; a run that fails the check names the figures and what to change.
 

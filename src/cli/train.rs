@@ -179,9 +179,13 @@ fn resume_config(a: &Args) -> anyhow::Result<(RunConfig, PathBuf)> {
     // `[train] steps` in a --config file is the total asked for, as --steps (which wins).
     let mut steps = r.steps;
     if let Some(file) = &r.config {
-        let (d, total) = config_differences(file, &stored)?;
+        let (d, total, speed) = config_differences(file, &stored)?;
         diffs.extend(d);
         steps = steps.or(total);
+        if let Some(c) = speed {
+            stored.train.samples = c.train.samples;
+            stored.train.memory_gb = c.train.memory_gb;
+        }
     }
     if !diffs.is_empty() {
         bail!(
@@ -195,16 +199,35 @@ fn resume_config(a: &Args) -> anyhow::Result<(RunConfig, PathBuf)> {
     Ok((stored, scene))
 }
 
-/// Every key a `--config` file sets whose value differs from the stored configuration's, and the
-/// file's `[train] steps` (not a difference: it is the total asked for, as `--steps`).
+/// Keys a resume may change: they change speed and memory, never results (SPEC §1.2: the cache
+/// and the stream give the same batches bit for bit). A run that no longer fits its machine is
+/// told to stream (`[train] samples = "stream"`) or given a budget; refusing them on `--resume`
+/// left it no way to continue.
+const RESUMABLE_KEYS: [&str; 2] = ["train.samples", "train.memory_gb"];
+
+/// Every key a `--config` file sets whose value differs from the stored configuration's, the
+/// file's `[train] steps` (not a difference: it is the total asked for, as `--steps`), and, when
+/// the file changes one of [`RESUMABLE_KEYS`], the file's configuration to take them from
+/// (resolved, so a bad value is an error at its line).
 fn config_differences(
     file: &std::path::Path,
     stored: &RunConfig,
-) -> anyhow::Result<(Vec<String>, Option<u64>)> {
+) -> anyhow::Result<(Vec<String>, Option<u64>, Option<RunConfig>)> {
     let text = crate::io::text::read(file)?;
     let origin = file.display().to_string();
-    let (given, out) =
+    let (given, mut out) =
         crate::train::config::differences_but_steps(&text, &origin, stored, "the run")?;
+    let before = out.len();
+    out.retain(|d| {
+        !RESUMABLE_KEYS
+            .iter()
+            .any(|k| d.starts_with(&format!("{k} = ")))
+    });
+    let speed = if out.len() < before {
+        Some(RunConfig::resolve(&stored.preset, Some(file))?)
+    } else {
+        None
+    };
     let steps = match given.get("train").and_then(|t| t.get("steps")) {
         None => None,
         Some(v) => Some(
@@ -222,5 +245,5 @@ fn config_differences(
         .into_iter()
         .map(|d| format!("{d} (in {})", file.display()))
         .collect();
-    Ok((out, steps))
+    Ok((out, steps, speed))
 }

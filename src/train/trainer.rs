@@ -560,6 +560,10 @@ fn open_run(
             );
         }
         st.cfg.train.steps = cfg.train.steps;
+        // Speed and memory only (`xscale train --resume --config` may change them): the
+        // batches and results are the same either way.
+        st.cfg.train.samples = cfg.train.samples;
+        st.cfg.train.memory_gb = cfg.train.memory_gb;
         // The mesh's place may have moved (`xscale train --resume --mesh`, which passes the
         // stored configuration with the new place); the scene fingerprint below checks it is
         // the same mesh.

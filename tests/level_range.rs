@@ -6,7 +6,8 @@ use std::path::PathBuf;
 use xscale::model::config::per_level_scale_for;
 use xscale::train::config::{LevelRange, RunConfig};
 use xscale::train::sampler::SampleMode;
-use xscale::train::setup::{auto_levels, prepare, resolve_levels, LEVEL_QUANTILE};
+use xscale::train::setup::{auto_levels, prepare, resolve_levels, AUTO_FINEST_MAX, LEVEL_QUANTILE};
+use xscale::train::trainer::TrainState;
 
 fn fixture() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("fixtures/tiny")
@@ -232,4 +233,95 @@ fn a_cpu_run_records_its_range_and_is_thread_independent() {
     assert_eq!(c.train.level_range, LevelRange::Auto);
     assert_eq!(c.model.grid_h.log2_table_size, 22, "still the paper's grid");
     let _ = std::fs::remove_dir_all(&base);
+}
+
+/// A copy of the `tiny` fixture whose camera of `0001.png` (a close-up) has its focal length
+/// multiplied by `zoom`: one view whose pixels are `zoom` times finer than they were.
+fn zoomed_fixture(name: &str, zoom: f64) -> PathBuf {
+    let dir =
+        std::env::temp_dir().join(format!("xscale-test-levels-{name}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    for sub in ["images", "sparse/0"] {
+        std::fs::create_dir_all(dir.join(sub)).unwrap();
+        for e in std::fs::read_dir(fixture().join(sub)).unwrap() {
+            let e = e.unwrap();
+            std::fs::copy(e.path(), dir.join(sub).join(e.file_name())).unwrap();
+        }
+    }
+    for f in ["mesh.ply", "scene.toml"] {
+        std::fs::copy(fixture().join(f), dir.join(f)).unwrap();
+    }
+    let cams = dir.join("sparse/0/cameras.txt");
+    let text = std::fs::read_to_string(&cams).unwrap();
+    let out: Vec<String> = text
+        .lines()
+        .map(|l| {
+            let mut f: Vec<String> = l.split_whitespace().map(str::to_string).collect();
+            if f.first().map(String::as_str) == Some("2") {
+                for i in [4, 5] {
+                    f[i] = (f[i].parse::<f64>().unwrap() * zoom).to_string();
+                }
+                f.join(" ")
+            } else {
+                l.to_string()
+            }
+        })
+        .collect();
+    std::fs::write(&cams, out.join("\n") + "\n").unwrap();
+    dir
+}
+
+/// One view with a focal length 10^6 times too long (pixels of 4e-10 of the scene): the
+/// automatic range caps the finest level at what a grid holds and says so, and the model builds.
+/// It used to ask for 60 levels up to 2.4e9 cells and every run failed building the model
+/// ("config: grid_h: grid: scale of level 57 is 1291043200, expected a finite number in [0, 1e9]").
+#[test]
+fn auto_caps_the_finest_level_at_what_a_grid_holds() {
+    let scene = zoomed_fixture("zoom", 1e6);
+    let mut cfg = RunConfig::preset("cpu").unwrap();
+    let p = prepare(&scene, &cfg, false, &mut |_| {}).unwrap();
+    let fp = p.samples.footprint_quantile_min(LEVEL_QUANTILE).unwrap();
+    assert!(fp < 1e-9, "the zoomed view is that fine: {fp}");
+    let msgs = resolve_levels(&mut cfg, &p.samples);
+    let warning = msgs
+        .iter()
+        .find(|m| m.starts_with("warning:"))
+        .unwrap_or_else(|| panic!("{msgs:?}"));
+    assert!(
+        warning.contains("capped at 500000000 cells per unit") && warning.contains("xscale cast"),
+        "{warning}"
+    );
+    assert_eq!(cfg.model.grid_h.finest_resolution, Some(AUTO_FINEST_MAX));
+    cfg.validate().unwrap();
+    xscale::model::hashgrid::HashGrid::try_new(&cfg.model.grid_h).unwrap();
+    let _ = std::fs::remove_dir_all(&scene);
+}
+
+/// The memory check is made again once the automatic range has sized the model: a 1000× close-up
+/// asks for 37 levels instead of 16, and a budget the preset's grid fits but that one does not is
+/// refused before the model is allocated, naming the levels. The check used to be made only at
+/// setup, on the preset's grid: `memory_gb = 0.6` trained a model needing 0.95 GB.
+#[test]
+fn the_memory_check_sees_the_levels_the_range_added() {
+    let scene = zoomed_fixture("zoom-memory", 1e3);
+    let mut cfg = RunConfig::preset("cpu").unwrap();
+    cfg.train.memory_gb = 0.6;
+    let p = prepare(&scene, &cfg, false, &mut |_| {}).unwrap();
+    let mut fixed = cfg.clone();
+    fixed.train.level_range = LevelRange::Fixed;
+    resolve_levels(&mut fixed, &p.samples);
+    TrainState::init(fixed, &p).expect("the preset's grid fits");
+    resolve_levels(&mut cfg, &p.samples);
+    assert!(cfg.model.grid_h.levels > 30, "{:?}", cfg.model.grid_h);
+    let err = TrainState::init(cfg, &p)
+        .err()
+        .expect("refused")
+        .to_string();
+    assert!(
+        err.contains("train.memory_gb = 0.6")
+            && err.contains("level_range = \"fixed\"")
+            && err.contains("the 37 the closest views ask for"),
+        "{err}"
+    );
+    let _ = std::fs::remove_dir_all(&scene);
 }

@@ -79,7 +79,8 @@ fn a_run_over_its_budget_stops_before_training_with_the_figures() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
-/// The advice follows the part that does not fit: photos → `--downsample`, fewer views, and the
+/// The advice follows the part that does not fit: photos → `[train] downsample` (a config key:
+/// `train` has no `--downsample` flag, which the advice used to name), fewer views, and the
 /// stream instead of the cache; a batch → `--batch`.
 #[test]
 fn the_message_names_what_to_change() {
@@ -95,23 +96,24 @@ fn the_message_names_what_to_change() {
     for want in [
         "the sample cache",
         "samples = \"stream\"",
-        "--downsample 2",
+        "[train] downsample = 2",
         "test_views / holdout_every",
     ] {
         assert!(err.contains(want), "missing {want:?} in: {err}");
     }
+    assert!(!err.contains("--downsample"), "{err}");
     assert!(!err.contains("--batch"), "{err}");
     // Streamed, the same scene fits in 2 GB: 3 bytes per pixel plus a bit.
     cfg.train.samples = SampleMode::Stream;
     cfg.train.memory_gb = 2.0;
     check_budget(&cfg, &sizes, 1).unwrap();
     // A batch of 2^20 pixels (4 Mi sub-samples at ~1.5 kB: 6.4 GB) does not fit in 4 GB: the
-    // message says --batch, and not --downsample (the photos take under a third of the budget).
+    // message says --batch, and not downsample (the photos take under a third of the budget).
     cfg.train.batch_pixels = 1 << 20;
     cfg.train.memory_gb = 4.0;
     let err = check_budget(&cfg, &sizes, 1).unwrap_err().to_string();
     assert!(err.contains("--batch 262144"), "{err}");
-    assert!(!err.contains("--downsample"), "{err}");
+    assert!(!err.contains("downsample"), "{err}");
 }
 
 /// Mesh refinement's photo-consistency term keeps f32 copies of every training photo at its image
@@ -274,4 +276,56 @@ fn the_cache_estimate_counts_the_vertex_featurizations_triangles() {
         "the cache ({cache} MB) exceeds its estimate ({estimate} MB):\n{out}"
     );
     let _ = std::fs::remove_dir_all(&run);
+}
+
+/// A mesh whose BVH does not fit in the memory left (here an address-space limit) is refused in
+/// words before the BVH is built, by every command that casts rays. The BVH builder (obvhs)
+/// unwraps its allocations: `cast`, `train` and the others used to panic there (`called
+/// Result::unwrap() on an Err value`, exit 101; with RUST_BACKTRACE=1 the panic hung).
+#[test]
+fn a_mesh_whose_bvh_cannot_fit_is_refused_before_it_is_built() {
+    let dir = tmp("bvh");
+    std::fs::create_dir_all(&dir).unwrap();
+    let big = dir.join("big.ply");
+    let exe = env!("CARGO_BIN_EXE_xscale");
+    // 2118 triangles × 4^5: 2.2 M triangles, a BVH of ~0.8 GB.
+    let st = Command::new(exe)
+        .args(["subdivide", "--in"])
+        .arg(fixture().join("mesh.ply"))
+        .args(["--levels", "5", "--out"])
+        .arg(&big)
+        .output()
+        .unwrap();
+    assert!(st.status.success(), "{st:?}");
+    for cmd in [
+        "cast --no-images --gamma 1",
+        "train --preset tiny --no-eval --out",
+    ] {
+        let out_arg = if cmd.ends_with("--out") {
+            format!(" '{}'", dir.join("run").display())
+        } else {
+            String::new()
+        };
+        let o = Command::new("sh")
+            .arg("-c")
+            .arg(format!(
+                "ulimit -v 400000; exec '{exe}' --threads 1 {cmd}{out_arg} --scene '{}' --mesh '{}'",
+                fixture().display(),
+                big.display()
+            ))
+            // With backtraces on, the old panic hung (the backtrace printer itself ran out of
+            // memory holding its lock): off, a regression fails instead of hanging the suite.
+            .env("RUST_BACKTRACE", "0")
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(2), "{cmd}: {err}");
+        assert!(
+            err.contains("BVH of the mesh's 2168832 triangles")
+                && err.contains("xscale decimate")
+                && !err.contains("panicked"),
+            "{cmd}: {err}"
+        );
+    }
+    let _ = std::fs::remove_dir_all(&dir);
 }

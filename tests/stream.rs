@@ -176,3 +176,76 @@ fn training_is_identical_in_both_modes() {
         );
     }
 }
+
+/// `train.samples` and `train.memory_gb` change speed and memory, never results, so a resume may
+/// change them: a run cached and told it no longer fits ("To fit: stream the rays instead of
+/// caching them ([train] samples = \"stream\")") continues streamed, and writes the tensors an
+/// uninterrupted cached run writes. `--resume` used to refuse them as differences from the run,
+/// which left such a run no way to continue; other keys still are refused.
+#[test]
+fn a_resume_may_switch_between_cache_and_stream() {
+    let dir =
+        std::env::temp_dir().join(format!("xscale-test-stream-resume-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    let conf = |name: &str, text: &str| {
+        let p = dir.join(name);
+        std::fs::write(&p, text).unwrap();
+        p.to_str().unwrap().to_string()
+    };
+    let cache = conf("cache.toml", "[train]\nsamples = \"cache\"\n");
+    let stream = conf(
+        "stream.toml",
+        "[train]\nsamples = \"stream\"\nmemory_gb = 4\n",
+    );
+    let seed = conf("seed.toml", "[train]\nsamples = \"stream\"\nseed = 3\n");
+    let scene = fixture();
+    let xs = |args: &[&str]| {
+        std::process::Command::new(env!("CARGO_BIN_EXE_xscale"))
+            .args([
+                "train",
+                "--scene",
+                scene.to_str().unwrap(),
+                "--preset",
+                "tiny",
+            ])
+            .args(["--no-eval", "-q", "--batch", "256"])
+            .args(args)
+            .output()
+            .unwrap()
+    };
+    let run = |name: &str| dir.join(name).to_str().unwrap().to_string();
+    let (whole, part) = (run("whole"), run("part"));
+    assert!(xs(&["--out", &whole, "--steps", "8", "--config", &cache])
+        .status
+        .success());
+    assert!(xs(&["--out", &part, "--steps", "4", "--config", &cache])
+        .status
+        .success());
+    let o = xs(&[
+        "--out", &part, "--resume", "--steps", "8", "--config", &stream,
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let saved = std::fs::read_to_string(dir.join("part/config.toml")).unwrap();
+    assert!(saved.contains("samples = \"stream\""), "{saved}");
+    let load = |r: &str| {
+        xscale::io::tensors::TensorFile::read(Path::new(r).join("checkpoint.safetensors")).unwrap()
+    };
+    let (a, b) = (load(&whole), load(&part));
+    assert!(!a.tensors.is_empty());
+    assert_eq!(
+        a.tensors, b.tensors,
+        "streamed after a cached start: other tensors"
+    );
+    // A key that changes results is still refused.
+    let o = xs(&[
+        "--out", &part, "--resume", "--steps", "12", "--config", &seed,
+    ]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    assert!(
+        err.contains("train.seed = 3") && !err.contains("train.samples"),
+        "{err}"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -80,6 +80,8 @@ pub const PRIME_Y: u32 = 2_654_435_761;
 pub const PRIME_Z: u32 = 805_459_861;
 /// tiny-cuda-nn's `MAX_N_LEVELS`.
 pub const MAX_LEVELS: u32 = 128;
+/// The largest per-level scale a grid holds: `p = scale·x + 0.5` must fit an i32 for x in [0, 1].
+pub const MAX_SCALE: f32 = 1.0e9;
 
 /// Geometry of a grid: per-level scales (saved with the model), resolutions, sizes, dense flags.
 #[derive(Clone, Debug, PartialEq)]
@@ -147,7 +149,7 @@ pub fn first_bad_scale(cfg: &GridConfig) -> Option<(usize, f32)> {
     tcnn_scales(cfg)
         .into_iter()
         .enumerate()
-        .find(|(_, s)| !(s.is_finite() && (0.0..=1.0e9).contains(s)))
+        .find(|(_, s)| !(s.is_finite() && (0.0..=MAX_SCALE).contains(s)))
 }
 
 /// The per-level scales exactly as tiny-cuda-nn computes them on the host:
@@ -216,8 +218,7 @@ impl HashGrid {
         let mut dense = Vec::with_capacity(scales.len());
         let mut total: u64 = 0;
         for (l, &s) in scales.iter().enumerate() {
-            // p = s*x + 0.5 must fit an i32 for x in [0,1].
-            if !(s.is_finite() && (0.0..=1.0e9).contains(&s)) {
+            if !(s.is_finite() && (0.0..=MAX_SCALE).contains(&s)) {
                 bail!("grid: scale of level {l} is {s}, expected a finite number in [0, 1e9]");
             }
             let res = s.ceil() as u32 + 1;

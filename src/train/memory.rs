@@ -16,8 +16,9 @@
 //! - **step**: [`STEP_BYTES_PER_SAMPLE`] per sub-sample of a batch (forward activations kept for
 //!   the backward pass, gradients of the inputs, touched-entry lists), measured on the `cpu`
 //!   preset (see the constant);
-//! - a fixed [`BASE_BYTES`] (BVH, code, allocator slack) plus 64 bytes per mesh triangle for the
-//!   BVH and the f64 mesh are added by the caller when known.
+//! - a fixed [`BASE_BYTES`] (code, allocator slack, a small mesh's BVH). The mesh's BVH is not in
+//!   the estimate: building it is checked on its own against the available memory
+//!   (`raycast::bvh::BVH_BYTES_PER_TRIANGLE`), before the setup reaches this check.
 //!
 //! It errs on the high side; a run that fails the check names the figures and what to change.
 
@@ -88,9 +89,12 @@ fn sample_bytes(cfg: &RunConfig, cache: bool, sizes: &[(u32, u32)], downsample: 
     per_view + cast_photo
 }
 
+/// A budget in bytes with the words that name it; `None` when the system gives no reading.
+pub type Budget = Option<(u64, String)>;
+
 /// The budget a run is checked against: `train.memory_gb` when > 0, else the available memory
 /// (when the system reports it), with the words that name it.
-fn budget(cfg: &RunConfig) -> Option<(u64, String)> {
+pub fn budget(cfg: &RunConfig) -> Budget {
     if cfg.train.memory_gb > 0.0 {
         Some((
             (cfg.train.memory_gb * 1e9) as u64,
@@ -342,7 +346,19 @@ pub fn check_job(
     downsample: u32,
     job: Job,
 ) -> Result<(SampleMode, String)> {
-    let budget = budget(cfg);
+    check_job_against(cfg, sizes, downsample, job, budget(cfg))
+}
+
+/// [`check_job`] against a budget already read. A run's setup reads it once and checks the model
+/// again once the level range has resized it (`TrainState::init`) against that same reading: a
+/// new one would see the samples already allocated and count them twice.
+pub fn check_job_against(
+    cfg: &RunConfig,
+    sizes: &[(u32, u32)],
+    downsample: u32,
+    job: Job,
+    budget: Budget,
+) -> Result<(SampleMode, String)> {
     let (mode, why) = resolve_within(cfg, sizes, downsample, budget.as_ref().map(|(b, _)| *b));
     let mut e = estimate_for(cfg, mode, sizes, downsample)?;
     let g2 = cfg.model.gamma * cfg.model.gamma;
@@ -375,8 +391,10 @@ pub fn check_job(
                 "stream the rays instead of caching them ([train] samples = \"stream\")".into(),
             );
         }
+        // A config key: `train` and `batch` have no --downsample flag (only cast, render and
+        // eval do), and the advice used to name one.
         hints.push(format!(
-            "downsample the photos (--downsample {})",
+            "downsample the photos ([train] downsample = {})",
             cfg.train.downsample * 2
         ));
         hints.push("hold out or remove views (scene.toml test_views / holdout_every)".into());
@@ -392,6 +410,15 @@ pub fn check_job(
     }
     if e.model > budget / 3 {
         hints.push("a smaller hash table ([model.grid_h] log2_table_size)".into());
+        if cfg.model.grid_h.finest_resolution.is_some()
+            && cfg.train.level_range == crate::train::config::LevelRange::Auto
+        {
+            // Set by `resolve_levels`: the closest views asked for these levels.
+            hints.push(format!(
+                "fewer grid H levels than the {} the closest views ask for ([train] level_range = \"fixed\")",
+                cfg.model.grid_h.levels
+            ));
+        }
     }
     if e.photo > budget / 3 {
         let [hi, lo] = cfg.model.refine.photo_levels;

@@ -25,6 +25,8 @@ pub struct Prepared {
     pub train_views: Vec<usize>,
     /// Samples of the training views (input index = position in `train_views`).
     pub samples: Samples,
+    /// The memory budget the setup was checked against ([`memory::check_job_against`]).
+    pub budget: memory::Budget,
 }
 
 impl Prepared {
@@ -34,6 +36,11 @@ impl Prepared {
             .iter()
             .map(|&v| self.scene.views[v].name.clone())
             .collect()
+    }
+
+    /// Width and height of each training view (after downsampling), by appearance row.
+    pub fn train_sizes(&self) -> Vec<(u32, u32)> {
+        view_sizes(&self.scene, &self.train_views)
     }
 
     /// Appearance row of a scene view, or -1 (held-out / unknown view: mean code).
@@ -138,11 +145,10 @@ pub fn prepare_until(
         ));
     }
     let tracer = Tracer::new(&scene.mesh, &scene.normalization).context("building the BVH")?;
-    let sizes: Vec<(u32, u32)> = train_views
-        .iter()
-        .map(|&i| (scene.views[i].camera.width, scene.views[i].camera.height))
-        .collect();
-    let (mode, why) = memory::check_job(cfg, &sizes, scene.downsample, job)?;
+    let sizes = view_sizes(&scene, &train_views);
+    let budget = memory::budget(cfg);
+    let (mode, why) =
+        memory::check_job_against(cfg, &sizes, scene.downsample, job, budget.clone())?;
     let t0 = std::time::Instant::now();
     let gamma = cfg.model.gamma;
     // The vertex featurization needs each sub-sample's triangle and barycentrics, the mesh
@@ -259,7 +265,16 @@ pub fn prepare_until(
         tracer,
         train_views,
         samples,
+        budget,
     })
+}
+
+/// Width and height of the scene views `views`.
+fn view_sizes(scene: &Scene, views: &[usize]) -> Vec<(u32, u32)> {
+    views
+        .iter()
+        .map(|&i| (scene.views[i].camera.width, scene.views[i].camera.height))
+        .collect()
 }
 
 /// Below this share of the training views' pixels seeing the mesh, `train` warns: a scene's mesh
@@ -297,6 +312,14 @@ pub const LEVEL_QUANTILE: f64 = 0.1;
 /// finest-resolution sweep, `docs/cross-scale.md`).
 pub const CELLS_PER_FOOTPRINT: f64 = 1.0;
 
+/// The finest level `level_range = "auto"` sets, in cells per normalised unit: half the largest
+/// scale a grid holds ([`crate::model::hashgrid::MAX_SCALE`]), so that [`tcnn_scales`]' f32
+/// rounding cannot push the last level past it. Only a view whose pixels cover under 2e-9 of the
+/// scene reaches it (a focal length 10^6 times too long, a camera almost touching the mesh):
+/// without the cap such a view made every run fail building the model ("scale of level 57 is
+/// 1291043200"). Cells this small are still 8 steps of the 2^-32 training positions (SPEC §1.2).
+pub const AUTO_FINEST_MAX: f64 = crate::model::hashgrid::MAX_SCALE as f64 / 2.0;
+
 /// Resolve the hash-grid levels of a new run from what the training views see (SPEC §8), in
 /// place; returns the messages saying what was chosen and why.
 ///
@@ -323,7 +346,13 @@ pub fn resolve_levels(cfg: &mut RunConfig, samples: &Samples) -> Vec<String> {
         LevelRange::Auto => {
             if let Some(fp) = samples.footprint_quantile_min(LEVEL_QUANTILE) {
                 let n0 = g.base_resolution as f64;
-                let finest = (CELLS_PER_FOOTPRINT / fp).max(2.0 * n0);
+                let wanted = (CELLS_PER_FOOTPRINT / fp).max(2.0 * n0);
+                let finest = wanted.min(AUTO_FINEST_MAX);
+                if finest < wanted {
+                    out.push(format!(
+                        "warning: grid H level range (auto): the closest views' pixels are {fp:.3e} of the scene, finer than a grid level can hold; the finest level is capped at {finest:.0} cells per unit instead of {wanted:.3e} (a focal length or a camera position wrong? `xscale cast` lists each view's smallest footprint)"
+                    ));
+                }
                 let before = tcnn_scales(g).last().copied().unwrap_or(0.0);
                 g.levels = auto_levels(n0, finest, g.per_level_scale, g.levels);
                 g.per_level_scale = per_level_scale_for(n0, finest, g.levels);

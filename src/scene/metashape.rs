@@ -84,6 +84,17 @@ struct Similarity {
 }
 
 impl Similarity {
+    /// Whether two similarities are the same to rounding (the same one written twice).
+    fn same_as(&self, o: &Similarity) -> bool {
+        let tol = 1e-9;
+        (self.s - o.s).abs() <= tol * self.s.abs().max(o.s.abs())
+            && (self.r - o.r)
+                .to_cols_array()
+                .iter()
+                .all(|d| d.abs() <= tol)
+            && (self.t - o.t).length() <= tol * self.t.length().max(o.t.length()).max(1.0)
+    }
+
     /// A camera→frame pose `(R_c, c)` carried into this similarity's target frame.
     fn apply(&self, (r_c, c): (DMat3, DVec3)) -> (DMat3, DVec3) {
         (self.r * r_c, self.s * (self.r * c) + self.t)
@@ -392,9 +403,21 @@ pub fn load(xml: &Path, images: &Path) -> Result<Loaded> {
             components.insert(c.attribute("id").unwrap_or(""), src.similarity(t)?);
         }
     }
-    let chunk_transform = child(chunk, "transform")
-        .map(|t| src.similarity(t))
-        .transpose()?;
+    let chunk_transform = match child(chunk, "transform") {
+        Some(t) => Some((src.similarity(t)?, t)),
+        None => None,
+    };
+    // PhotoScan and Metashape 1.x before components place the chunk with the chunk's
+    // <transform>; later versions with each component's. A file with both has them mean the same
+    // placement (applying both would place the cameras twice) or something not documented.
+    let chunk_transform = match chunk_transform {
+        Some((ch, _)) if components.values().all(|c| c.same_as(&ch)) => Some(ch),
+        Some((_, t)) => bail!(
+            "{}: the chunk's <transform> differs from its components' <transform>s: whether the cameras are placed by one, the other or both is not documented, so xscale does not guess; export the cameras of a chunk with one of them",
+            src.at(t)
+        ),
+        None => None,
+    };
     let cameras = child(chunk, "cameras")
         .ok_or_else(|| anyhow!("{}: the chunk has no <cameras>", src.at(chunk)))?;
     let (mut unaligned, mut disabled, mut uncalibrated) = (0, 0, 0);
@@ -430,14 +453,16 @@ pub fn load(xml: &Path, images: &Path) -> Result<Loaded> {
             bail!("{at}: camera '{label}': the rotation of its <transform> {what}");
         }
         let mut pose = (r_c, c);
-        if let Some(comp) = cam
-            .attribute("component_id")
-            .and_then(|id| components.get(id))
-        {
-            pose = comp.apply(pose);
-        }
-        if let Some(ch) = &chunk_transform {
-            pose = ch.apply(pose);
+        // Its component's similarity, else the chunk's: never both (they are one when both).
+        let placing = match cam.attribute("component_id") {
+            Some(id) => components.get(id).or(chunk_transform.as_ref()),
+            None if chunk_transform.is_none() && !components.is_empty() => bail!(
+                "{at}: camera '{label}' has no component_id, but the chunk's components are placed by their <transform>s: which one places it is not known"
+            ),
+            None => chunk_transform.as_ref(),
+        };
+        if let Some(sim) = placing {
+            pose = sim.apply(pose);
         }
         let photo = find_photo(images, label).ok_or_else(|| {
             anyhow!(

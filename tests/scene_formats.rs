@@ -2522,3 +2522,40 @@ fn metashape_chunk_and_component_transforms_place_cameras_once() {
         ],
     );
 }
+
+#[test]
+fn metashape_photoscan_before_1_4_calibration() {
+    // PhotoScan before 1.4 (document 1.2.0) wrote fx, fy, skew and cx, cy from the image corner.
+    let (d, views) = metashape_tiny("metashape_photoscan12", "");
+    let p = d.join("cameras.xml");
+    let mut xml = fs::read_to_string(&p).unwrap();
+    for v in &views {
+        let c = &v.camera;
+        let new = format!(
+            "<fx>{}</fx><fy>{}</fy><cx>{}</cx><cy>{}</cy><skew>0</skew>",
+            c.fx, c.fy, c.cx, c.cy
+        );
+        let old = format!(
+            "<f>{}</f><cx>{}</cx><cy>{}</cy><b1>{}</b1>",
+            c.fy,
+            c.cx - 0.5 * c.width as f64,
+            c.cy - 0.5 * c.height as f64,
+            c.fx - c.fy
+        );
+        xml = xml.replace(&old, &new);
+    }
+    assert!(!xml.contains("<b1>"), "every calibration rewritten");
+    fs::write(&p, &xml).unwrap();
+    let scene = load_as(&d, CameraFormat::Metashape).unwrap().0;
+    assert_cameras_close(&views, &scene.views, 1e-9);
+    // Its tangential terms were documented both ways round: refused, not guessed.
+    fs::write(
+        &p,
+        xml.replacen("<skew>0</skew>", "<skew>0</skew><p1>0.001</p1>", 1),
+    )
+    .unwrap();
+    assert_contains(
+        &err(load_as(&d, CameraFormat::Metashape)),
+        &["cameras.xml:", "<p1>", "PhotoScan before 1.4"],
+    );
+}

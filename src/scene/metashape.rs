@@ -280,16 +280,50 @@ fn sensor(src: &Source, n: Node) -> Result<Option<Intrinsics>> {
         );
     }
     let get = |name: &str| -> Result<f64> { Ok(src.child_number(*cal, name)?.unwrap_or(0.0)) };
-    let f = src
-        .child_number(*cal, "f")?
-        .ok_or_else(|| anyhow!("{}: calibration has no <f>", src.at(*cal)))?;
-    let (b1, b2) = (get("b1")?, get("b2")?);
-    if !(f + b1 > 0.0 && f > 0.0) {
-        bail!(
-            "{}: focal length f = {f}, b1 = {b1}: expected f > 0 and f + b1 > 0",
-            src.at(*cal)
-        );
-    }
+    // `(fx, fy, principal point, skew in pixels)`. Metashape and PhotoScan from 1.4 (document
+    // 1.4.0 on) write `f`, `b1`, `b2` and cx, cy from the image centre; PhotoScan before 1.4
+    // wrote `fx`, `fy`, `skew` and cx, cy from the image corner, in pixels.
+    let (fx, fy, cx, cy, skew_px) = match src.child_number(*cal, "f")? {
+        Some(f) => {
+            let (b1, b2) = (get("b1")?, get("b2")?);
+            if !(f + b1 > 0.0 && f > 0.0) {
+                bail!(
+                    "{}: focal length f = {f}, b1 = {b1}: expected f > 0 and f + b1 > 0",
+                    src.at(*cal)
+                );
+            }
+            (f + b1, f, 0.5 * w + get("cx")?, 0.5 * h + get("cy")?, b2)
+        }
+        None => {
+            let need = |name: &str| -> Result<f64> {
+                src.child_number(*cal, name)?.ok_or_else(|| {
+                    anyhow!(
+                        "{}: calibration has no <f> (nor the <fx>, <fy>, <cx>, <cy> of PhotoScan before 1.4): no <{name}>",
+                        src.at(*cal)
+                    )
+                })
+            };
+            let (fx, fy) = (need("fx")?, need("fy")?);
+            let (cx, cy) = (need("cx")?, need("cy")?);
+            if !(fx > 0.0 && fy > 0.0) {
+                bail!(
+                    "{}: focal lengths fx = {fx}, fy = {fy}: expected positive numbers",
+                    src.at(*cal)
+                );
+            }
+            // Agisoft documented this form's tangential terms both ways round (Agisoft Lens'
+            // manual: P2 with r² + 2x², OpenCV's order; PhotoScan's Appendix C: P1 with it).
+            for name in ["p1", "p2"] {
+                if get(name)? != 0.0 {
+                    bail!(
+                        "{}: <{name}> in a calibration of PhotoScan before 1.4 (<fx>, <fy>): Agisoft's manuals disagree on which term it multiplies, so xscale does not guess; export the cameras from PhotoScan 1.4 or Metashape (which write <f>), or the photos undistorted",
+                        src.at(*cal)
+                    );
+                }
+            }
+            (fx, fy, cx, cy, get("skew")?)
+        }
+    };
     for extra in ["p3", "p4"] {
         if get(extra)? != 0.0 {
             bail!(
@@ -301,11 +335,11 @@ fn sensor(src: &Source, n: Node) -> Result<Option<Intrinsics>> {
     let k = [get("k1")?, get("k2")?, get("k3")?, get("k4")?];
     // Metashape's P1 goes with r² + 2x² (OpenCV's p2), its P2 with 2xy (OpenCV's p1).
     let (p1, p2) = (get("p2")?, get("p1")?);
-    let skew = b2 / (f + b1);
+    let skew = skew_px / fx;
     let distortion = if kind == "fisheye" {
-        if b2 != 0.0 {
+        if skew_px != 0.0 {
             bail!(
-                "{}: a fisheye sensor with skew b2 = {b2} is not supported",
+                "{}: a fisheye sensor with skew (b2) {skew_px} is not supported",
                 src.at(*cal)
             );
         }
@@ -324,10 +358,10 @@ fn sensor(src: &Source, n: Node) -> Result<Option<Intrinsics>> {
     Ok(Some(Intrinsics {
         width: w as u32,
         height: h as u32,
-        fx: f + b1,
-        fy: f,
-        cx: 0.5 * w + get("cx")?,
-        cy: 0.5 * h + get("cy")?,
+        fx,
+        fy,
+        cx,
+        cy,
         distortion,
     }))
 }

@@ -2559,3 +2559,50 @@ fn metashape_photoscan_before_1_4_calibration() {
         &["cameras.xml:", "<p1>", "PhotoScan before 1.4"],
     );
 }
+
+#[test]
+fn metashape_rig_slave_cameras_and_unused_sensors() {
+    let (d, views) = metashape_tiny("metashape_rig", "");
+    let p = d.join("cameras.xml");
+    let good = fs::read_to_string(&p).unwrap();
+    // Sensor 1 a slave of sensor 0 (an offset from the master), camera of sensor 2 a slave camera.
+    let xml = good
+        .replacen(
+            "<sensor id=\"1\" label=\"s1\" type=\"frame\">",
+            "<sensor id=\"1\" label=\"s1\" type=\"frame\" master_id=\"0\"><location x=\"0.1\" y=\"0\" z=\"0\"/>",
+            1,
+        )
+        .replacen(
+            "<camera id=\"2\" sensor_id=\"2\"",
+            "<camera id=\"2\" sensor_id=\"2\" master_id=\"0\"",
+            1,
+        )
+        // A spherical sensor no camera uses does not stop the others.
+        .replacen(
+            "</sensors>",
+            "<sensor id=\"50\" label=\"pano\" type=\"spherical\"><resolution width=\"8\" height=\"4\"/></sensor></sensors>",
+            1,
+        );
+    fs::write(&p, xml).unwrap();
+    let (scene, report) = load_as(&d, CameraFormat::Metashape).unwrap();
+    let kept: Vec<View> = views
+        .iter()
+        .enumerate()
+        .filter(|(i, _)| *i != 1 && *i != 2)
+        .map(|(_, v)| v.clone())
+        .collect();
+    assert_cameras_close(&kept, &scene.views, 1e-9);
+    assert_contains(
+        &report.notes.join("\n"),
+        &["6 cameras read", "2 slave cameras of a multi-camera system"],
+    );
+    // Nothing aligned: the error says why each camera was left out.
+    let none = good
+        .replace("<transform>", "<x>")
+        .replace("</transform>", "</x>");
+    fs::write(&p, none).unwrap();
+    assert_contains(
+        &err(load_as(&d, CameraFormat::Metashape)),
+        &["no camera to read", "9 not aligned", "1 disabled"],
+    );
+}

@@ -421,12 +421,24 @@ pub fn load(xml: &Path, images: &Path) -> Result<Loaded> {
             xml.display()
         );
     }
-    let mut sensors: HashMap<&str, Option<Intrinsics>> = HashMap::new();
+    // Each sensor's intrinsics, or why it has none we can use: a sensor no read camera uses may
+    // be of a kind xscale does not model.
+    let mut sensors: HashMap<&str, Result<Option<Intrinsics>>> = HashMap::new();
+    // The slave sensors of a multi-camera system (a `master_id` other than their own id, or a
+    // `<location>` / `<rotation>` offset from the master).
+    let mut slave_sensors: Vec<&str> = Vec::new();
     for s in child(chunk, "sensors")
         .into_iter()
         .flat_map(|s| s.children().filter(|c| c.has_tag_name("sensor")))
     {
-        sensors.insert(s.attribute("id").unwrap_or(""), sensor(&src, s)?);
+        let id = s.attribute("id").unwrap_or("");
+        if s.attribute("master_id").is_some_and(|m| m != id)
+            || child(s, "location").is_some()
+            || child(s, "rotation").is_some()
+        {
+            slave_sensors.push(id);
+        }
+        sensors.insert(id, sensor(&src, s));
     }
     let mut components: HashMap<&str, Similarity> = HashMap::new();
     for c in child(chunk, "components")
@@ -454,7 +466,7 @@ pub fn load(xml: &Path, images: &Path) -> Result<Loaded> {
     };
     let cameras = child(chunk, "cameras")
         .ok_or_else(|| anyhow!("{}: the chunk has no <cameras>", src.at(chunk)))?;
-    let (mut unaligned, mut disabled, mut uncalibrated) = (0, 0, 0);
+    let (mut unaligned, mut disabled, mut uncalibrated, mut slaves) = (0, 0, 0, 0);
     let mut views = Vec::new();
     for cam in cameras.descendants().filter(|c| c.has_tag_name("camera")) {
         let at = src.at(cam);
@@ -472,15 +484,26 @@ pub fn load(xml: &Path, images: &Path) -> Result<Loaded> {
         let sensor_id = cam
             .attribute("sensor_id")
             .ok_or_else(|| anyhow!("{at}: camera '{label}' has no sensor_id"))?;
+        // A slave camera of a multi-camera system: Metashape places it by its master camera and
+        // its sensor's offset, which xscale does not compose.
+        if slave_sensors.contains(&sensor_id)
+            || cam
+                .attribute("master_id")
+                .is_some_and(|m| Some(m) != cam.attribute("id"))
+        {
+            slaves += 1;
+            continue;
+        }
         let intr = match sensors.get(sensor_id) {
             None => bail!(
                 "{at}: camera '{label}': sensor {sensor_id} is not among the chunk's <sensors>"
             ),
-            Some(None) => {
+            Some(Err(e)) => bail!("{e:#}"),
+            Some(Ok(None)) => {
                 uncalibrated += 1;
                 continue;
             }
-            Some(Some(i)) => i,
+            Some(Ok(Some(i))) => i,
         };
         let (r_c, c) = src.matrix(t)?;
         if let Some(what) = not_a_rotation(&r_c, 1e-6) {
@@ -532,11 +555,26 @@ pub fn load(xml: &Path, images: &Path) -> Result<Loaded> {
         (unaligned, "not aligned (no <transform>)"),
         (disabled, "disabled"),
         (uncalibrated, "on a sensor without calibration"),
+        (
+            slaves,
+            "slave cameras of a multi-camera system (placed by their master camera and their sensor's offset, which xscale does not compose)",
+        ),
     ]
     .iter()
     .filter(|(n, _)| *n > 0)
     .map(|(n, why)| format!("{n} {why}"))
     .collect();
+    if views.is_empty() {
+        bail!(
+            "{}: no camera to read{}",
+            xml.display(),
+            if left.is_empty() {
+                String::new()
+            } else {
+                format!(": {}", left.join(", "))
+            }
+        );
+    }
     if !left.is_empty() {
         notes.push(format!(
             "{}: {} cameras read, left out: {}",

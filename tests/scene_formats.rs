@@ -2606,3 +2606,35 @@ fn metashape_rig_slave_cameras_and_unused_sensors() {
         &["no camera to read", "9 not aligned", "1 disabled"],
     );
 }
+
+#[test]
+fn metashape_labels_that_are_paths() {
+    let (d, views) = metashape_tiny("metashape_labels", "");
+    let p = d.join("cameras.xml");
+    let good = fs::read_to_string(&p).unwrap();
+    // Labels holding the photo's full path (as Metashape can write them), Unix or Windows.
+    let xml = good
+        .replacen(
+            "label=\"0002\"",
+            "label=\"/home/user/flight/DCIM/0002.png\"",
+            1,
+        )
+        .replacen("label=\"0003\"", "label=\"C:\\photos\\0003\"", 1);
+    fs::write(&p, &xml).unwrap();
+    let scene = load_as(&d, CameraFormat::Metashape).unwrap().0;
+    assert_cameras_close(&views, &scene.views, 1e-9);
+    // Never a photo outside images/, even when the path exists.
+    let outside = scratch("metashape_labels_outside");
+    fs::copy(d.join("images/0004.png"), outside.join("0004.png")).unwrap();
+    fs::remove_file(d.join("images/0004.png")).unwrap();
+    let label = outside.join("0004.png").display().to_string();
+    fs::write(
+        &p,
+        xml.replacen("label=\"0004\"", &format!("label=\"{label}\""), 1),
+    )
+    .unwrap();
+    assert_contains(
+        &err(load_as(&d, CameraFormat::Metashape)),
+        &["no photo for camera", "0004.png"],
+    );
+}

@@ -366,17 +366,35 @@ fn sensor(src: &Source, n: Node) -> Result<Option<Intrinsics>> {
     }))
 }
 
-/// The photo of a camera label in `images`: the label itself when it names a file (labels may
-/// keep their extension), else the label with one of the usual extensions.
+/// The photo of a camera label in `images`: the label itself when it names a file there (labels
+/// may keep their extension, or be a path below `images`), else the label with one of the usual
+/// extensions; a label that is a path elsewhere (Metashape can label a camera with its photo's
+/// full path) by its file name, likewise. Never a file outside `images`.
 fn find_photo(images: &Path, label: &str) -> Option<PathBuf> {
-    let direct = images.join(label);
-    if direct.is_file() {
-        return Some(direct);
-    }
-    super::mvsnet::IMAGE_EXTS
-        .iter()
-        .map(|e| images.join(format!("{label}.{e}")))
-        .find(|p| p.is_file())
+    let within = |name: &str| -> Option<PathBuf> {
+        let rel = Path::new(name);
+        if name.is_empty()
+            || rel.is_absolute()
+            || name.contains('\\')
+            || rel
+                .components()
+                .any(|c| !matches!(c, std::path::Component::Normal(_)))
+        {
+            return None;
+        }
+        let direct = images.join(name);
+        if direct.is_file() {
+            return Some(direct);
+        }
+        super::mvsnet::IMAGE_EXTS
+            .iter()
+            .map(|e| images.join(format!("{name}.{e}")))
+            .find(|p| p.is_file())
+    };
+    within(label).or_else(|| {
+        let base = label.rsplit(['/', '\\']).next()?;
+        (base != label).then(|| within(base)).flatten()
+    })
 }
 
 /// Load the views of Metashape export `xml` with photos in `images`.
@@ -523,7 +541,7 @@ pub fn load(xml: &Path, images: &Path) -> Result<Loaded> {
         }
         let photo = find_photo(images, label).ok_or_else(|| {
             anyhow!(
-                "{at}: no photo for camera '{label}': tried {}/{label} and {label}.{{{}}}",
+                "{at}: no photo for camera '{label}': tried {}/{label} and {label}.{{{}}} (a label that is a path: its file name)",
                 images.display(),
                 super::mvsnet::IMAGE_EXTS.join(",")
             )

@@ -2257,18 +2257,14 @@ fn xml_pose(r_c: &DMat3, c: DVec3) -> String {
 }
 
 /// The `tiny` scene's photos and mesh with its cameras written as a Metashape 2 export (in
-/// words, not through the reader's code): the views under a component similarity and a chunk
-/// similarity, one frame sensor per distinct camera, an unaligned and a disabled camera more.
+/// words, not through the reader's code): the views under a component similarity (Metashape 2
+/// places a component by its `<transform>`, PhotoScan and Metashape 1 the chunk by the chunk's),
+/// one frame sensor per distinct camera, an unaligned and a disabled camera more.
 fn metashape_tiny(name: &str, calibration_extra: &str) -> (PathBuf, Vec<View>) {
     let d = scratch(name);
     copy_dir(&tiny().join("images"), &d.join("images"));
     fs::copy(tiny().join("mesh.ply"), d.join("mesh.ply")).unwrap();
     let views = load_as(&tiny(), CameraFormat::Colmap).unwrap().0.views;
-    let (rc, tc, sc) = (
-        DMat3::from_euler(glam::EulerRot::ZYX, 0.4, -0.3, 1.1),
-        DVec3::new(10.0, -4.0, 2.5),
-        2.5,
-    );
     let (rk, tk, sk) = (
         DMat3::from_euler(glam::EulerRot::XYZ, -0.2, 0.7, 0.1),
         DVec3::new(-1.0, 0.5, 3.0),
@@ -2286,10 +2282,9 @@ fn metashape_tiny(name: &str, calibration_extra: &str) -> (PathBuf, Vec<View>) {
             c.cy - 0.5 * c.height as f64,
             c.fx - c.fy
         );
-        // World pose (camera → world) undone through the chunk's, then the component's similarity.
+        // World pose (camera → world) undone through the component's similarity.
         let (r_w, c_w) = (c.rotation.transpose(), c.center());
-        let (r_k, c_k) = (rc.transpose() * r_w, rc.transpose() * (c_w - tc) / sc);
-        let (r_m, c_m) = (rk.transpose() * r_k, rk.transpose() * (c_k - tk) / sk);
+        let (r_m, c_m) = (rk.transpose() * r_w, rk.transpose() * (c_w - tk) / sk);
         let label = v.name.trim_end_matches(".png");
         let group = if i % 2 == 0 {
             ("<group id=\"0\" label=\"g\">", "</group>")
@@ -2309,9 +2304,8 @@ fn metashape_tiny(name: &str, calibration_extra: &str) -> (PathBuf, Vec<View>) {
         xml_pose(&DMat3::IDENTITY, DVec3::ZERO)
     );
     let xml = format!(
-        "<?xml version=\"1.0\" encoding=\"UTF-8\"?>\n<document version=\"2.0.0\">\n<chunk version=\"2.0.0\" label=\"Chunk 1\" enabled=\"true\">\n<sensors next_id=\"9\">\n{sensors}</sensors>\n<components next_id=\"1\" active_id=\"0\"><component id=\"0\" label=\"Component 1\">{}<partition><camera_ids>0 1</camera_ids></partition></component></components>\n<cameras next_id=\"92\" next_group_id=\"1\">\n{cams}</cameras>\n{}\n<reference>LOCAL_CS[\"Local Coordinates (m)\",LOCAL_DATUM[\"Local Datum\",0],UNIT[\"metre\",1]]</reference>\n</chunk>\n</document>\n",
+        "<?xml version=\"1.0\" encoding=\"UTF-8\"?>\n<document version=\"2.0.0\">\n<chunk version=\"2.0.0\" label=\"Chunk 1\" enabled=\"true\">\n<sensors next_id=\"9\">\n{sensors}</sensors>\n<components next_id=\"1\" active_id=\"0\"><component id=\"0\" label=\"Component 1\">{}<partition><camera_ids>0 1</camera_ids></partition></component></components>\n<cameras next_id=\"92\" next_group_id=\"1\">\n{cams}</cameras>\n<reference>LOCAL_CS[\"Local Coordinates (m)\",LOCAL_DATUM[\"Local Datum\",0],UNIT[\"metre\",1]]</reference>\n</chunk>\n</document>\n",
         xml_similarity(&rk, tk, sk),
-        xml_similarity(&rc, tc, sc)
     );
     fs::write(d.join("cameras.xml"), xml).unwrap();
     (d, views)
@@ -2458,17 +2452,189 @@ fn metashape_bad_inputs_name_file_and_line() {
             &["2 chunks", "'Chunk 1', 'Chunk 2'"],
         ),
         (
-            good.replacen("<scale>2.5</scale>", "<scale>-2.5</scale>", 1),
-            &["cameras.xml:", "<scale> -2.5"],
+            good.replacen("<scale>0.8</scale>", "<scale>-0.8</scale>", 1),
+            &["cameras.xml:", "<scale> -0.8"],
         ),
     ];
     for (text, parts) in cases {
         fs::write(&p, text).unwrap();
         assert_contains(&err(load()), parts);
     }
-    // A camera transform that is not a rotation (a mirrored pose).
-    let mirrored = good.replacen("<transform>", "<transform>-", 3);
+    // A camera transform that is not a rotation (a mirrored pose: its first row negated).
+    let cam = good.find("<camera id=\"0\"").unwrap();
+    let a = cam + good[cam..].find("<transform>").unwrap() + "<transform>".len();
+    let b = a + good[a..].find("</transform>").unwrap();
+    let mut m: Vec<f64> = good[a..b]
+        .split_whitespace()
+        .map(|w| w.parse().unwrap())
+        .collect();
+    for x in &mut m[..3] {
+        *x = -*x;
+    }
+    let text: Vec<String> = m.iter().map(|x| x.to_string()).collect();
+    let mirrored = format!("{}{}{}", &good[..a], text.join(" "), &good[b..]);
     fs::write(&p, &mirrored).unwrap();
     let e = err(load());
     assert!(e.contains("cameras.xml:") && e.contains("rotation"), "{e}");
+}
+
+/// The component's `<transform>` of [`metashape_tiny`]'s export, its text.
+fn metashape_component_transform(xml: &str) -> String {
+    let a = xml.find("<transform><rotation").unwrap();
+    let b = a + xml[a..].find("</transform>").unwrap() + "</transform>".len();
+    xml[a..b].to_string()
+}
+
+#[test]
+fn metashape_chunk_and_component_transforms_place_cameras_once() {
+    let (d, views) = metashape_tiny("metashape_transforms", "");
+    let p = d.join("cameras.xml");
+    let good = fs::read_to_string(&p).unwrap();
+    let t = metashape_component_transform(&good);
+    let load = || load_as(&d, CameraFormat::Metashape);
+    // PhotoScan / Metashape 1: the similarity at the chunk, none at the component.
+    fs::write(
+        &p,
+        good.replacen(&t, "", 1)
+            .replacen("<reference>LOCAL", &format!("{t}\n<reference>LOCAL"), 1),
+    )
+    .unwrap();
+    assert_cameras_close(&views, &load().unwrap().0.views, 1e-9);
+    // The same similarity at both: one placement, not two.
+    fs::write(
+        &p,
+        good.replacen("<reference>LOCAL", &format!("{t}\n<reference>LOCAL"), 1),
+    )
+    .unwrap();
+    assert_cameras_close(&views, &load().unwrap().0.views, 1e-9);
+    // Different ones: which places the cameras is not documented; refused, not composed.
+    let other = t.replacen("<scale>0.8</scale>", "<scale>0.5</scale>", 1);
+    fs::write(
+        &p,
+        good.replacen("<reference>LOCAL", &format!("{other}\n<reference>LOCAL"), 1),
+    )
+    .unwrap();
+    assert_contains(
+        &err(load()),
+        &[
+            "cameras.xml:",
+            "chunk's <transform> differs from its components'",
+        ],
+    );
+}
+
+#[test]
+fn metashape_photoscan_before_1_4_calibration() {
+    // PhotoScan before 1.4 (document 1.2.0) wrote fx, fy, skew and cx, cy from the image corner.
+    let (d, views) = metashape_tiny("metashape_photoscan12", "");
+    let p = d.join("cameras.xml");
+    let mut xml = fs::read_to_string(&p).unwrap();
+    for v in &views {
+        let c = &v.camera;
+        let new = format!(
+            "<fx>{}</fx><fy>{}</fy><cx>{}</cx><cy>{}</cy><skew>0</skew>",
+            c.fx, c.fy, c.cx, c.cy
+        );
+        let old = format!(
+            "<f>{}</f><cx>{}</cx><cy>{}</cy><b1>{}</b1>",
+            c.fy,
+            c.cx - 0.5 * c.width as f64,
+            c.cy - 0.5 * c.height as f64,
+            c.fx - c.fy
+        );
+        xml = xml.replace(&old, &new);
+    }
+    assert!(!xml.contains("<b1>"), "every calibration rewritten");
+    fs::write(&p, &xml).unwrap();
+    let scene = load_as(&d, CameraFormat::Metashape).unwrap().0;
+    assert_cameras_close(&views, &scene.views, 1e-9);
+    // Its tangential terms were documented both ways round: refused, not guessed.
+    fs::write(
+        &p,
+        xml.replacen("<skew>0</skew>", "<skew>0</skew><p1>0.001</p1>", 1),
+    )
+    .unwrap();
+    assert_contains(
+        &err(load_as(&d, CameraFormat::Metashape)),
+        &["cameras.xml:", "<p1>", "PhotoScan before 1.4"],
+    );
+}
+
+#[test]
+fn metashape_rig_slave_cameras_and_unused_sensors() {
+    let (d, views) = metashape_tiny("metashape_rig", "");
+    let p = d.join("cameras.xml");
+    let good = fs::read_to_string(&p).unwrap();
+    // Sensor 1 a slave of sensor 0 (an offset from the master), camera of sensor 2 a slave camera.
+    let xml = good
+        .replacen(
+            "<sensor id=\"1\" label=\"s1\" type=\"frame\">",
+            "<sensor id=\"1\" label=\"s1\" type=\"frame\" master_id=\"0\"><location x=\"0.1\" y=\"0\" z=\"0\"/>",
+            1,
+        )
+        .replacen(
+            "<camera id=\"2\" sensor_id=\"2\"",
+            "<camera id=\"2\" sensor_id=\"2\" master_id=\"0\"",
+            1,
+        )
+        // A spherical sensor no camera uses does not stop the others.
+        .replacen(
+            "</sensors>",
+            "<sensor id=\"50\" label=\"pano\" type=\"spherical\"><resolution width=\"8\" height=\"4\"/></sensor></sensors>",
+            1,
+        );
+    fs::write(&p, xml).unwrap();
+    let (scene, report) = load_as(&d, CameraFormat::Metashape).unwrap();
+    let kept: Vec<View> = views
+        .iter()
+        .enumerate()
+        .filter(|(i, _)| *i != 1 && *i != 2)
+        .map(|(_, v)| v.clone())
+        .collect();
+    assert_cameras_close(&kept, &scene.views, 1e-9);
+    assert_contains(
+        &report.notes.join("\n"),
+        &["6 cameras read", "2 slave cameras of a multi-camera system"],
+    );
+    // Nothing aligned: the error says why each camera was left out.
+    let none = good
+        .replace("<transform>", "<x>")
+        .replace("</transform>", "</x>");
+    fs::write(&p, none).unwrap();
+    assert_contains(
+        &err(load_as(&d, CameraFormat::Metashape)),
+        &["no camera to read", "9 not aligned", "1 disabled"],
+    );
+}
+
+#[test]
+fn metashape_labels_that_are_paths() {
+    let (d, views) = metashape_tiny("metashape_labels", "");
+    let p = d.join("cameras.xml");
+    let good = fs::read_to_string(&p).unwrap();
+    // Labels holding the photo's full path (as Metashape can write them), Unix or Windows.
+    let xml = good
+        .replacen(
+            "label=\"0002\"",
+            "label=\"/home/user/flight/DCIM/0002.png\"",
+            1,
+        )
+        .replacen("label=\"0003\"", "label=\"C:\\photos\\0003\"", 1);
+    fs::write(&p, &xml).unwrap();
+    let scene = load_as(&d, CameraFormat::Metashape).unwrap().0;
+    assert_cameras_close(&views, &scene.views, 1e-9);
+    // Never a photo outside images/, even when the path exists.
+    let outside = scratch("metashape_labels_outside");
+    fs::copy(d.join("images/0004.png"), outside.join("0004.png")).unwrap();
+    fs::remove_file(d.join("images/0004.png")).unwrap();
+    let label = outside.join("0004.png").display().to_string();
+    fs::write(
+        &p,
+        xml.replacen("label=\"0004\"", &format!("label=\"{label}\""), 1),
+    )
+    .unwrap();
+    assert_contains(
+        &err(load_as(&d, CameraFormat::Metashape)),
+        &["no photo for camera", "0004.png"],
+    );
 }

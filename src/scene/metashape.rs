@@ -84,6 +84,17 @@ struct Similarity {
 }
 
 impl Similarity {
+    /// Whether two similarities are the same to rounding (the same one written twice).
+    fn same_as(&self, o: &Similarity) -> bool {
+        let tol = 1e-9;
+        (self.s - o.s).abs() <= tol * self.s.abs().max(o.s.abs())
+            && (self.r - o.r)
+                .to_cols_array()
+                .iter()
+                .all(|d| d.abs() <= tol)
+            && (self.t - o.t).length() <= tol * self.t.length().max(o.t.length()).max(1.0)
+    }
+
     /// A camera→frame pose `(R_c, c)` carried into this similarity's target frame.
     fn apply(&self, (r_c, c): (DMat3, DVec3)) -> (DMat3, DVec3) {
         (self.r * r_c, self.s * (self.r * c) + self.t)
@@ -269,16 +280,50 @@ fn sensor(src: &Source, n: Node) -> Result<Option<Intrinsics>> {
         );
     }
     let get = |name: &str| -> Result<f64> { Ok(src.child_number(*cal, name)?.unwrap_or(0.0)) };
-    let f = src
-        .child_number(*cal, "f")?
-        .ok_or_else(|| anyhow!("{}: calibration has no <f>", src.at(*cal)))?;
-    let (b1, b2) = (get("b1")?, get("b2")?);
-    if !(f + b1 > 0.0 && f > 0.0) {
-        bail!(
-            "{}: focal length f = {f}, b1 = {b1}: expected f > 0 and f + b1 > 0",
-            src.at(*cal)
-        );
-    }
+    // `(fx, fy, principal point, skew in pixels)`. Metashape and PhotoScan from 1.4 (document
+    // 1.4.0 on) write `f`, `b1`, `b2` and cx, cy from the image centre; PhotoScan before 1.4
+    // wrote `fx`, `fy`, `skew` and cx, cy from the image corner, in pixels.
+    let (fx, fy, cx, cy, skew_px) = match src.child_number(*cal, "f")? {
+        Some(f) => {
+            let (b1, b2) = (get("b1")?, get("b2")?);
+            if !(f + b1 > 0.0 && f > 0.0) {
+                bail!(
+                    "{}: focal length f = {f}, b1 = {b1}: expected f > 0 and f + b1 > 0",
+                    src.at(*cal)
+                );
+            }
+            (f + b1, f, 0.5 * w + get("cx")?, 0.5 * h + get("cy")?, b2)
+        }
+        None => {
+            let need = |name: &str| -> Result<f64> {
+                src.child_number(*cal, name)?.ok_or_else(|| {
+                    anyhow!(
+                        "{}: calibration has no <f> (nor the <fx>, <fy>, <cx>, <cy> of PhotoScan before 1.4): no <{name}>",
+                        src.at(*cal)
+                    )
+                })
+            };
+            let (fx, fy) = (need("fx")?, need("fy")?);
+            let (cx, cy) = (need("cx")?, need("cy")?);
+            if !(fx > 0.0 && fy > 0.0) {
+                bail!(
+                    "{}: focal lengths fx = {fx}, fy = {fy}: expected positive numbers",
+                    src.at(*cal)
+                );
+            }
+            // Agisoft documented this form's tangential terms both ways round (Agisoft Lens'
+            // manual: P2 with r² + 2x², OpenCV's order; PhotoScan's Appendix C: P1 with it).
+            for name in ["p1", "p2"] {
+                if get(name)? != 0.0 {
+                    bail!(
+                        "{}: <{name}> in a calibration of PhotoScan before 1.4 (<fx>, <fy>): Agisoft's manuals disagree on which term it multiplies, so xscale does not guess; export the cameras from PhotoScan 1.4 or Metashape (which write <f>), or the photos undistorted",
+                        src.at(*cal)
+                    );
+                }
+            }
+            (fx, fy, cx, cy, get("skew")?)
+        }
+    };
     for extra in ["p3", "p4"] {
         if get(extra)? != 0.0 {
             bail!(
@@ -290,11 +335,11 @@ fn sensor(src: &Source, n: Node) -> Result<Option<Intrinsics>> {
     let k = [get("k1")?, get("k2")?, get("k3")?, get("k4")?];
     // Metashape's P1 goes with r² + 2x² (OpenCV's p2), its P2 with 2xy (OpenCV's p1).
     let (p1, p2) = (get("p2")?, get("p1")?);
-    let skew = b2 / (f + b1);
+    let skew = skew_px / fx;
     let distortion = if kind == "fisheye" {
-        if b2 != 0.0 {
+        if skew_px != 0.0 {
             bail!(
-                "{}: a fisheye sensor with skew b2 = {b2} is not supported",
+                "{}: a fisheye sensor with skew (b2) {skew_px} is not supported",
                 src.at(*cal)
             );
         }
@@ -313,25 +358,43 @@ fn sensor(src: &Source, n: Node) -> Result<Option<Intrinsics>> {
     Ok(Some(Intrinsics {
         width: w as u32,
         height: h as u32,
-        fx: f + b1,
-        fy: f,
-        cx: 0.5 * w + get("cx")?,
-        cy: 0.5 * h + get("cy")?,
+        fx,
+        fy,
+        cx,
+        cy,
         distortion,
     }))
 }
 
-/// The photo of a camera label in `images`: the label itself when it names a file (labels may
-/// keep their extension), else the label with one of the usual extensions.
+/// The photo of a camera label in `images`: the label itself when it names a file there (labels
+/// may keep their extension, or be a path below `images`), else the label with one of the usual
+/// extensions; a label that is a path elsewhere (Metashape can label a camera with its photo's
+/// full path) by its file name, likewise. Never a file outside `images`.
 fn find_photo(images: &Path, label: &str) -> Option<PathBuf> {
-    let direct = images.join(label);
-    if direct.is_file() {
-        return Some(direct);
-    }
-    super::mvsnet::IMAGE_EXTS
-        .iter()
-        .map(|e| images.join(format!("{label}.{e}")))
-        .find(|p| p.is_file())
+    let within = |name: &str| -> Option<PathBuf> {
+        let rel = Path::new(name);
+        if name.is_empty()
+            || rel.is_absolute()
+            || name.contains('\\')
+            || rel
+                .components()
+                .any(|c| !matches!(c, std::path::Component::Normal(_)))
+        {
+            return None;
+        }
+        let direct = images.join(name);
+        if direct.is_file() {
+            return Some(direct);
+        }
+        super::mvsnet::IMAGE_EXTS
+            .iter()
+            .map(|e| images.join(format!("{name}.{e}")))
+            .find(|p| p.is_file())
+    };
+    within(label).or_else(|| {
+        let base = label.rsplit(['/', '\\']).next()?;
+        (base != label).then(|| within(base)).flatten()
+    })
 }
 
 /// Load the views of Metashape export `xml` with photos in `images`.
@@ -376,12 +439,24 @@ pub fn load(xml: &Path, images: &Path) -> Result<Loaded> {
             xml.display()
         );
     }
-    let mut sensors: HashMap<&str, Option<Intrinsics>> = HashMap::new();
+    // Each sensor's intrinsics, or why it has none we can use: a sensor no read camera uses may
+    // be of a kind xscale does not model.
+    let mut sensors: HashMap<&str, Result<Option<Intrinsics>>> = HashMap::new();
+    // The slave sensors of a multi-camera system (a `master_id` other than their own id, or a
+    // `<location>` / `<rotation>` offset from the master).
+    let mut slave_sensors: Vec<&str> = Vec::new();
     for s in child(chunk, "sensors")
         .into_iter()
         .flat_map(|s| s.children().filter(|c| c.has_tag_name("sensor")))
     {
-        sensors.insert(s.attribute("id").unwrap_or(""), sensor(&src, s)?);
+        let id = s.attribute("id").unwrap_or("");
+        if s.attribute("master_id").is_some_and(|m| m != id)
+            || child(s, "location").is_some()
+            || child(s, "rotation").is_some()
+        {
+            slave_sensors.push(id);
+        }
+        sensors.insert(id, sensor(&src, s));
     }
     let mut components: HashMap<&str, Similarity> = HashMap::new();
     for c in child(chunk, "components")
@@ -392,12 +467,24 @@ pub fn load(xml: &Path, images: &Path) -> Result<Loaded> {
             components.insert(c.attribute("id").unwrap_or(""), src.similarity(t)?);
         }
     }
-    let chunk_transform = child(chunk, "transform")
-        .map(|t| src.similarity(t))
-        .transpose()?;
+    let chunk_transform = match child(chunk, "transform") {
+        Some(t) => Some((src.similarity(t)?, t)),
+        None => None,
+    };
+    // PhotoScan and Metashape 1.x before components place the chunk with the chunk's
+    // <transform>; later versions with each component's. A file with both has them mean the same
+    // placement (applying both would place the cameras twice) or something not documented.
+    let chunk_transform = match chunk_transform {
+        Some((ch, _)) if components.values().all(|c| c.same_as(&ch)) => Some(ch),
+        Some((_, t)) => bail!(
+            "{}: the chunk's <transform> differs from its components' <transform>s: whether the cameras are placed by one, the other or both is not documented, so xscale does not guess; export the cameras of a chunk with one of them",
+            src.at(t)
+        ),
+        None => None,
+    };
     let cameras = child(chunk, "cameras")
         .ok_or_else(|| anyhow!("{}: the chunk has no <cameras>", src.at(chunk)))?;
-    let (mut unaligned, mut disabled, mut uncalibrated) = (0, 0, 0);
+    let (mut unaligned, mut disabled, mut uncalibrated, mut slaves) = (0, 0, 0, 0);
     let mut views = Vec::new();
     for cam in cameras.descendants().filter(|c| c.has_tag_name("camera")) {
         let at = src.at(cam);
@@ -415,33 +502,46 @@ pub fn load(xml: &Path, images: &Path) -> Result<Loaded> {
         let sensor_id = cam
             .attribute("sensor_id")
             .ok_or_else(|| anyhow!("{at}: camera '{label}' has no sensor_id"))?;
+        // A slave camera of a multi-camera system: Metashape places it by its master camera and
+        // its sensor's offset, which xscale does not compose.
+        if slave_sensors.contains(&sensor_id)
+            || cam
+                .attribute("master_id")
+                .is_some_and(|m| Some(m) != cam.attribute("id"))
+        {
+            slaves += 1;
+            continue;
+        }
         let intr = match sensors.get(sensor_id) {
             None => bail!(
                 "{at}: camera '{label}': sensor {sensor_id} is not among the chunk's <sensors>"
             ),
-            Some(None) => {
+            Some(Err(e)) => bail!("{e:#}"),
+            Some(Ok(None)) => {
                 uncalibrated += 1;
                 continue;
             }
-            Some(Some(i)) => i,
+            Some(Ok(Some(i))) => i,
         };
         let (r_c, c) = src.matrix(t)?;
         if let Some(what) = not_a_rotation(&r_c, 1e-6) {
             bail!("{at}: camera '{label}': the rotation of its <transform> {what}");
         }
         let mut pose = (r_c, c);
-        if let Some(comp) = cam
-            .attribute("component_id")
-            .and_then(|id| components.get(id))
-        {
-            pose = comp.apply(pose);
-        }
-        if let Some(ch) = &chunk_transform {
-            pose = ch.apply(pose);
+        // Its component's similarity, else the chunk's: never both (they are one when both).
+        let placing = match cam.attribute("component_id") {
+            Some(id) => components.get(id).or(chunk_transform.as_ref()),
+            None if chunk_transform.is_none() && !components.is_empty() => bail!(
+                "{at}: camera '{label}' has no component_id, but the chunk's components are placed by their <transform>s: which one places it is not known"
+            ),
+            None => chunk_transform.as_ref(),
+        };
+        if let Some(sim) = placing {
+            pose = sim.apply(pose);
         }
         let photo = find_photo(images, label).ok_or_else(|| {
             anyhow!(
-                "{at}: no photo for camera '{label}': tried {}/{label} and {label}.{{{}}}",
+                "{at}: no photo for camera '{label}': tried {}/{label} and {label}.{{{}}} (a label that is a path: its file name)",
                 images.display(),
                 super::mvsnet::IMAGE_EXTS.join(",")
             )
@@ -473,11 +573,26 @@ pub fn load(xml: &Path, images: &Path) -> Result<Loaded> {
         (unaligned, "not aligned (no <transform>)"),
         (disabled, "disabled"),
         (uncalibrated, "on a sensor without calibration"),
+        (
+            slaves,
+            "slave cameras of a multi-camera system (placed by their master camera and their sensor's offset, which xscale does not compose)",
+        ),
     ]
     .iter()
     .filter(|(n, _)| *n > 0)
     .map(|(n, why)| format!("{n} {why}"))
     .collect();
+    if views.is_empty() {
+        bail!(
+            "{}: no camera to read{}",
+            xml.display(),
+            if left.is_empty() {
+                String::new()
+            } else {
+                format!(": {}", left.join(", "))
+            }
+        );
+    }
     if !left.is_empty() {
         notes.push(format!(
             "{}: {} cameras read, left out: {}",

@@ -109,7 +109,9 @@ def level_weight(r: torch.Tensor) -> torch.Tensor:
 
 class Peer:
     def __init__(self, ck_path: str, batch_path: str):
-        ck = ref.load_checkpoint(ck_path)
+        # The footprint level weighting is implemented here (`level_weight` above), not in the
+        # reference's model, which refuses it on its own.
+        ck = ref.load_checkpoint(ck_path, also=frozenset({"level_weight"}))
         raw = tomllib.loads(ck.meta["config"])
         self.cfg = ck.cfg
         self.ck = ck

@@ -590,6 +590,11 @@ def test_unimplemented_config_is_refused(tmp_path):
     # What it implements, spelled out, is accepted.
     save_file(t, str(p), metadata={**meta, "config": 'level_weight = "none"\nfeaturization = "hash"\n' + meta["config"]})
     xr.load_checkpoint(p)
+    # A caller that implements a part itself (bench_torch.py, the footprint weighting) names it, and only it.
+    save_file(t, str(p), metadata={**meta, "config": 'level_weight = "footprint"\n' + meta["config"]})
+    xr.load_checkpoint(p, also=frozenset({"level_weight"}))
+    with pytest.raises(xr.RefError, match="level_weight = 'footprint'"):
+        xr.load_checkpoint(p, also=frozenset({"featurization"}))
     for case_dir in GOLDEN_CASES:
         xr.load_checkpoint(case_dir / "checkpoint.safetensors")
 

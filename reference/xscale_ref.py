@@ -131,8 +131,9 @@ _UNSUPPORTED = {
 }
 
 
-def check_implemented(raw: dict, where: str) -> None:
-    """Refuse a model config with a key or value this reference does not implement (RefError)."""
+def check_implemented(raw: dict, where: str, also: frozenset = frozenset()) -> None:
+    """Refuse a model config with a key or value this reference does not implement (RefError).
+    `also`: keys of _UNSUPPORTED the caller implements itself (bench_torch.py's footprint weighting)."""
     for table, keys in _KEYS.items():
         d = raw
         for part in table.split(".") if table else []:
@@ -145,20 +146,22 @@ def check_implemented(raw: dict, where: str) -> None:
                 raise RefError(f"{where}: {name} is not implemented by this reference (a config it does not know "
                                f"cannot be evaluated faithfully); use `xscale dump` for this checkpoint")
     for k, (only, what) in _UNSUPPORTED.items():
+        if k in also:
+            continue
         v = raw.get(k, only)
         if v != only:
             raise RefError(f"{where}: {k} = {v!r}: {what} is not implemented by this reference (only {k} = "
                            f"{only!r}); use `xscale dump --precision f64` of this checkpoint as the oracle (docs/oracle.md §5)")
 
 
-def parse_config(text: str, where: str = "config") -> ModelConfig:
+def parse_config(text: str, where: str = "config", also: frozenset = frozenset()) -> ModelConfig:
     try:
         raw = tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
         raise RefError(f"{where}: TOML: {e}") from None
     if "grid_h" not in raw:
         raise RefError(f"{where}: missing [grid_h]")
-    check_implemented(raw, where)
+    check_implemented(raw, where, also)
     deform = raw.get("deform", {})
     enabled = bool(deform.get("enabled", False))
     shader = raw.get("shader", {})
@@ -319,11 +322,12 @@ def _check_grid(ck_path, tensors, prefix, gcfg: GridConfig) -> list[Level]:
     return levels
 
 
-def load_checkpoint(path: str | Path) -> Checkpoint:
+def load_checkpoint(path: str | Path, also: frozenset = frozenset()) -> Checkpoint:
+    """`also`: as check_implemented's, for a caller that implements those parts itself."""
     tensors, meta = read_safetensors(path)
     if "config" not in meta:
         raise RefError(f"{path}: header metadata has no 'config'")
-    cfg = parse_config(meta["config"], f"{path}: config")
+    cfg = parse_config(meta["config"], f"{path}: config", also)
     levels_h = _check_grid(path, tensors, "grid_h", cfg.grid_h)
     lf = cfg.grid_h.levels * cfg.grid_h.features
     levels_d = None

@@ -172,3 +172,51 @@ fn anchored_refinement_is_thread_independent_resumes_exactly_and_moves_the_mesh(
     }
     assert!(finals[0] == finals[1], "1 and 2 threads differ");
 }
+
+/// A run that refines its mesh says where the refined mesh is and how far it moved (it used to
+/// write `refined.ply` without a word; a user found it only through `mesh-distance`).
+#[test]
+fn a_refining_run_names_its_refined_mesh_and_how_far_it_moved() {
+    let run = tmp("cli-says");
+    let _ = std::fs::remove_dir_all(&run);
+    let cfg = Path::new(env!("CARGO_MANIFEST_DIR")).join("configs/refine.toml");
+    let o = std::process::Command::new(env!("CARGO_BIN_EXE_xscale"))
+        .args([
+            "train",
+            "--preset",
+            "tiny",
+            "--steps",
+            "30",
+            "--no-eval",
+            "--scene",
+        ])
+        .arg(fixture())
+        .arg("--config")
+        .arg(&cfg)
+        .arg("--out")
+        .arg(&run)
+        .output()
+        .unwrap();
+    let text = format!(
+        "{}{}",
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr)
+    );
+    assert!(o.status.success(), "{text}");
+    let line = text
+        .lines()
+        .find(|l| l.starts_with("refined mesh written to "))
+        .unwrap_or_else(|| panic!("no refined-mesh line in:\n{text}"));
+    assert!(
+        line.contains(&run.join("refined.ply").display().to_string()),
+        "{line}"
+    );
+    let rms: f64 = line
+        .split("moved ")
+        .nth(1)
+        .and_then(|r| r.split(' ').next())
+        .and_then(|v| v.parse().ok())
+        .unwrap_or_else(|| panic!("no RMS in {line}"));
+    assert!(rms > 0.0 && rms.is_finite(), "{line}");
+    let _ = std::fs::remove_dir_all(&run);
+}

@@ -1020,17 +1020,37 @@ pub fn eval_tracer(state: &TrainState, prepared: &Prepared) -> Result<Option<Tra
 }
 
 /// `RUN/refined.ply`: the training mesh with the offsets of `state` (written at the end of a run
-/// that refines the mesh; nothing otherwise).
-pub fn write_refined(state: &TrainState, prepared: &Prepared, run_dir: &Path) -> Result<()> {
+/// that refines the mesh; nothing otherwise). Returns the line that tells the user where it is
+/// and how far its vertices moved (scene units, and as a share of the mesh's diagonal).
+pub fn write_refined(
+    state: &TrainState,
+    prepared: &Prepared,
+    run_dir: &Path,
+) -> Result<Option<String>> {
     let Some(p) = &state.ckpt.refine else {
-        return Ok(());
+        return Ok(None);
     };
-    let m = crate::model::refine::refined_mesh(
-        &prepared.scene.mesh,
-        &state.ckpt.normalization,
-        &p.offsets,
-    )?;
-    crate::scene::mesh::write_ply(&run_dir.join("refined.ply"), &m)
+    let base = &prepared.scene.mesh;
+    let m = crate::model::refine::refined_mesh(base, &state.ckpt.normalization, &p.offsets)?;
+    let path = run_dir.join("refined.ply");
+    crate::scene::mesh::write_ply(&path, &m)?;
+    let moved: Vec<f64> = base
+        .vertices
+        .iter()
+        .zip(&m.vertices)
+        .map(|(a, b)| (*a - *b).length())
+        .collect();
+    let n = moved.len().max(1) as f64;
+    let rms = (moved.iter().map(|d| d * d).sum::<f64>() / n).sqrt();
+    let max = moved.iter().copied().fold(0.0, f64::max);
+    let (lo, hi) = base.bbox();
+    let diag = (hi - lo).length().max(f64::MIN_POSITIVE);
+    Ok(Some(format!(
+        "refined mesh written to {}: its vertices moved {rms:.3e} RMS, {max:.3e} at most ({:.3} % and {:.3} % of the mesh's diagonal)",
+        path.display(),
+        100.0 * rms / diag,
+        100.0 * max / diag
+    )))
 }
 
 /// Gather the per-vertex sums `d` of the `touched` vertices onto the offset field's pending sums

@@ -461,7 +461,9 @@ pub fn train(
         save_checkpoint(&state, &ckpt_path)?;
         rep.checkpointed(state.step)?;
     }
-    crate::train::refine::write_refined(&state, &prepared, run_dir)?;
+    if let Some(line) = crate::train::refine::write_refined(&state, &prepared, run_dir)? {
+        rep.say(line);
+    }
     let seconds = rep.elapsed();
     if interrupted || state.step < tc.steps {
         rep.say(format!(

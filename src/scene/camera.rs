@@ -288,6 +288,36 @@ impl Distortion {
     }
 }
 
+/// A camera without its pose: what a camera file's camera or sensor entry holds (COLMAP's
+/// `cameras.txt` rows, Metashape's `<sensor>`s) before an image's pose is attached.
+#[derive(Clone, Debug)]
+pub struct Intrinsics {
+    pub width: u32,
+    pub height: u32,
+    pub fx: f64,
+    pub fy: f64,
+    pub cx: f64,
+    pub cy: f64,
+    pub distortion: Distortion,
+}
+
+impl Intrinsics {
+    /// The camera with world→camera `rotation` and `translation`.
+    pub fn posed(&self, rotation: DMat3, translation: DVec3) -> Camera {
+        Camera {
+            width: self.width,
+            height: self.height,
+            fx: self.fx,
+            fy: self.fy,
+            cx: self.cx,
+            cy: self.cy,
+            distortion: self.distortion,
+            rotation,
+            translation,
+        }
+    }
+}
+
 /// A posed camera: intrinsics K, distortion, world→camera rotation and translation.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Camera {

@@ -19,7 +19,8 @@
 //!
 //! If both text and binary files are present, the text files are read.
 
-use super::{Camera, Distortion, View};
+use super::camera::Intrinsics;
+use super::{Distortion, View};
 use anyhow::{anyhow, bail, Context, Result};
 use glam::{DMat3, DQuat, DVec3};
 use std::collections::HashMap;
@@ -51,18 +52,6 @@ const MODELS: [(&str, usize); 18] = [
     ("EUCM", 6),
     ("EQUIRECTANGULAR", 2),
 ];
-
-/// Intrinsics of one COLMAP camera (pose-free `Camera`).
-#[derive(Clone, Debug)]
-struct Intrinsics {
-    width: u32,
-    height: u32,
-    fx: f64,
-    fy: f64,
-    cx: f64,
-    cy: f64,
-    distortion: Distortion,
-}
 
 /// Build intrinsics from a model id and its parameters (count already checked). `where_` is
 /// prefixed to errors.
@@ -237,17 +226,7 @@ fn assemble(
         views.push(View {
             image_path: images_dir.join(&im.name),
             name: im.name,
-            camera: Camera {
-                width: k.width,
-                height: k.height,
-                fx: k.fx,
-                fy: k.fy,
-                cx: k.cx,
-                cy: k.cy,
-                distortion: k.distortion,
-                rotation,
-                translation: DVec3::from_array(im.t),
-            },
+            camera: k.posed(rotation, DVec3::from_array(im.t)),
         });
     }
     views.sort_by(|a, b| a.name.cmp(&b.name));

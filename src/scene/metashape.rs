@@ -27,8 +27,9 @@
 //! terms). Metashape's P1 multiplies `r² + 2x²`, which is OpenCV's `p2`: the two are swapped on
 //! reading. Views are sorted by photo file name, as the other layouts' are.
 
+use super::camera::Intrinsics;
 use super::transforms::not_a_rotation;
-use super::{Camera, Distortion, View};
+use super::{Distortion, View};
 use anyhow::{anyhow, bail, Result};
 use glam::{DMat3, DVec3};
 use roxmltree::Node;
@@ -227,17 +228,6 @@ fn row_major(v: &[f64]) -> DMat3 {
 
 fn child<'a, 'i>(n: Node<'a, 'i>, name: &str) -> Option<Node<'a, 'i>> {
     n.children().find(|c| c.has_tag_name(name))
-}
-
-/// A sensor's camera model: size, focal lengths, principal point and distortion.
-struct Intrinsics {
-    width: u32,
-    height: u32,
-    fx: f64,
-    fy: f64,
-    cx: f64,
-    cy: f64,
-    distortion: Distortion,
 }
 
 /// A `<sensor>`'s intrinsics from its adjusted calibration (else its only one); `Ok(None)` for a
@@ -553,17 +543,7 @@ pub fn load(xml: &Path, images: &Path) -> Result<Loaded> {
                 .unwrap_or(&photo)
                 .to_string_lossy()
                 .to_string(),
-            camera: Camera {
-                width: intr.width,
-                height: intr.height,
-                fx: intr.fx,
-                fy: intr.fy,
-                cx: intr.cx,
-                cy: intr.cy,
-                distortion: intr.distortion,
-                rotation,
-                translation: -(rotation * pose.1),
-            },
+            camera: intr.posed(rotation, -(rotation * pose.1)),
             image_path: photo,
         });
     }

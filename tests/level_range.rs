@@ -325,3 +325,31 @@ fn the_memory_check_sees_the_levels_the_range_added() {
     );
     let _ = std::fs::remove_dir_all(&scene);
 }
+
+/// `xscale init` checks the model the level range sized, as `train` does: a budget the preset's
+/// grid fits but the 37 levels a 1000× close-up asks for do not is refused, nothing written (it
+/// wrote the checkpoint; only the setup's check of the configured grid ran).
+#[test]
+fn init_checks_the_memory_of_the_levels_the_range_added() {
+    let scene = zoomed_fixture("zoom-init", 1e3);
+    let cfg = scene.join("mem.toml");
+    std::fs::write(&cfg, "[train]\nmemory_gb = 0.6\n").unwrap();
+    let out = scene.join("init.safetensors");
+    let o = std::process::Command::new(env!("CARGO_BIN_EXE_xscale"))
+        .args(["init", "--preset", "cpu", "--scene"])
+        .arg(&scene)
+        .arg("--config")
+        .arg(&cfg)
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    assert!(
+        err.contains("train.memory_gb = 0.6") && err.contains("the 37 the closest views ask for"),
+        "{err}"
+    );
+    assert!(!out.exists(), "init wrote {}", out.display());
+    let _ = std::fs::remove_dir_all(&scene);
+}

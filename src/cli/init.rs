@@ -35,6 +35,7 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
     for msg in resolve_levels(&mut cfg, &p.samples) {
         eprintln!("{msg}");
     }
+    p.check_model(&cfg)?;
     let norm = p.scene.normalization;
     let ck = init_checkpoint_for_mesh(
         &cfg.model,

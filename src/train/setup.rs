@@ -43,6 +43,20 @@ impl Prepared {
         view_sizes(&self.scene, &self.train_views)
     }
 
+    /// The memory check of the setup again, for `cfg`'s model: the level range
+    /// ([`resolve_levels`]) may have added levels since the setup saw the configured grid (a
+    /// 1000× close-up: 37 instead of 16), so a model is checked before it is allocated.
+    pub fn check_model(&self, cfg: &RunConfig) -> Result<()> {
+        memory::check_job_against(
+            cfg,
+            &self.train_sizes(),
+            self.scene.downsample,
+            memory::Job::Train,
+            self.budget.clone(),
+        )
+        .map(|_| ())
+    }
+
     /// Appearance row of a scene view, or -1 (held-out / unknown view: mean code).
     pub fn appearance_row(&self, scene_view: usize) -> i32 {
         self.train_views

@@ -78,16 +78,7 @@ fn param_specs(ckpt: &Checkpoint) -> Vec<(String, Vec<usize>)> {
 impl TrainState {
     /// A fresh run for a prepared scene (`cfg.model` already has its levels resolved).
     pub fn init(cfg: RunConfig, prepared: &Prepared) -> Result<TrainState> {
-        // The setup's memory check saw the configured grid; the level range (`resolve_levels`)
-        // may have added levels since (a 1000× close-up: 37 instead of 16), so the model is
-        // checked again before it is allocated.
-        crate::train::memory::check_job_against(
-            &cfg,
-            &prepared.train_sizes(),
-            prepared.scene.downsample,
-            Job::Train,
-            prepared.budget.clone(),
-        )?;
+        prepared.check_model(&cfg)?;
         let norm = prepared.scene.normalization;
         let ckpt = init_checkpoint_for_mesh(
             &cfg.model,

@@ -37,9 +37,13 @@ fn bench_quality_writes_rows_and_the_plot() {
     let (rows, _) = tiny_and_ulr(&out, &|| false);
     let tiny: Vec<_> = rows.iter().filter(|r| r.config == "tiny").collect();
     assert_eq!(tiny.len(), 6);
+    // Evaluations 19 ms apart at first: on a loaded machine two can fall within one step (the
+    // same step and time, a fresh clone's test run saw it), so in order, not strictly, and the
+    // budget's run as a whole moves on.
     assert!(tiny
         .windows(2)
-        .all(|w| w[1].wall_s > w[0].wall_s && w[1].step > w[0].step));
+        .all(|w| w[1].wall_s >= w[0].wall_s && w[1].step >= w[0].step));
+    assert!(tiny[5].step > tiny[0].step && tiny[5].wall_s > tiny[0].wall_s);
     assert!(tiny
         .iter()
         .all(|r| r.psnr_masked.is_finite() && r.psnr_masked > 10.0));

@@ -376,10 +376,7 @@ fn find_photo(images: &Path, label: &str) -> Option<PathBuf> {
         if direct.is_file() {
             return Some(direct);
         }
-        super::mvsnet::IMAGE_EXTS
-            .iter()
-            .map(|e| images.join(format!("{name}.{e}")))
-            .find(|p| p.is_file())
+        super::mvsnet::find_image(images, name)
     };
     within(label).or_else(|| {
         let base = label.rsplit(['/', '\\']).next()?;
@@ -591,7 +588,7 @@ pub fn load(xml: &Path, images: &Path) -> Result<Loaded> {
 }
 
 /// What a georeferenced chunk's frame means for the mesh.
-pub fn georeference_note(xml: &Path) -> String {
+fn georeference_note(xml: &Path) -> String {
     format!(
         "{}: the chunk is georeferenced, so its cameras stand in its world frame, geocentric \
          coordinates (EPSG:4978): export the mesh in that coordinate system ('WGS 84 geocentric' \

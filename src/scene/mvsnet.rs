@@ -161,8 +161,8 @@ pub fn parse_cam(path: &Path) -> Result<(DMat3, DVec3, [f64; 4])> {
     Ok((rot, t, [k[0][0], k[1][1], k[0][2], k[1][2]]))
 }
 
-/// Find `images/NAME.<ext>` for the extensions in [`IMAGE_EXTS`].
-fn find_image(images: &Path, stem: &str) -> Option<PathBuf> {
+/// Find `images/NAME.<ext>` for the extensions in [`IMAGE_EXTS`] (also Metashape's labels).
+pub(super) fn find_image(images: &Path, stem: &str) -> Option<PathBuf> {
     IMAGE_EXTS
         .iter()
         .map(|e| images.join(format!("{stem}.{e}")))

@@ -27,7 +27,7 @@ use xscale::model::Batch;
 use xscale::train::config::{LevelRange, RunConfig};
 use xscale::train::sampler::sample_batch;
 use xscale::train::setup::{prepare, resolve_levels, Prepared};
-use xscale::train::trainer::TrainState;
+use xscale::train::state::TrainState;
 
 struct Variant {
     name: &'static str,

@@ -25,7 +25,7 @@ use xscale::model::params::Grads;
 use xscale::train::config::RunConfig;
 use xscale::train::sampler::sample_batch;
 use xscale::train::setup::{prepare, resolve_levels};
-use xscale::train::trainer::TrainState;
+use xscale::train::state::TrainState;
 
 const TRAIN: u64 = 100;
 

@@ -20,7 +20,7 @@ use xscale::model::params::Grads;
 use xscale::train::config::RunConfig;
 use xscale::train::sampler::{sample_batch, SampleMode};
 use xscale::train::setup::{prepare, resolve_levels};
-use xscale::train::trainer::TrainState;
+use xscale::train::state::TrainState;
 
 #[derive(Default, Clone, Copy)]
 struct Phases {

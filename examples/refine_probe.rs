@@ -19,7 +19,7 @@ use xscale::model::params::Grads;
 use xscale::model::refine::{field_backward, hits_backward, reintersect_batch, RefineGeom};
 use xscale::train::sampler::sample_batch;
 use xscale::train::setup::prepare;
-use xscale::train::trainer::TrainState;
+use xscale::train::state::TrainState;
 
 fn cosine(a: &[f64], b: &[f64]) -> f64 {
     let (mut ab, mut aa, mut bb) = (0.0, 0.0, 0.0);

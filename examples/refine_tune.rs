@@ -14,7 +14,8 @@ use xscale::model::refine::{RefineConfig, RefineParams};
 use xscale::train::adam::AdamState;
 use xscale::train::refine::Refiner;
 use xscale::train::setup::prepare;
-use xscale::train::trainer::{evaluate, TrainState};
+use xscale::train::state::TrainState;
+use xscale::train::trainer::evaluate;
 
 fn main() -> anyhow::Result<()> {
     let a: Vec<String> = std::env::args().collect();

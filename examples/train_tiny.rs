@@ -13,7 +13,8 @@ use xscale::model::params::Grads;
 use xscale::train::config::RunConfig;
 use xscale::train::sampler::sample_batch;
 use xscale::train::setup::{prepare, resolve_levels};
-use xscale::train::trainer::{evaluate, TrainState};
+use xscale::train::state::TrainState;
+use xscale::train::trainer::evaluate;
 
 /// What a run of the example reached.
 #[allow(dead_code)] // the fields are read by tests/example_train_tiny.rs

@@ -79,7 +79,7 @@ fn sigkill_at_random_moments_never_loses_the_run() {
         let ck = run.join("checkpoint.safetensors");
         if ck.exists() {
             started = true;
-            let s = xscale::train::trainer::TrainState::load(&ck).unwrap_or_else(|e| {
+            let s = xscale::train::state::TrainState::load(&ck).unwrap_or_else(|e| {
                 panic!("kill {k} after {wait:?}: the checkpoint does not load: {e:#}")
             });
             assert!(s.step <= 400);

@@ -7,7 +7,7 @@ use xscale::model::config::per_level_scale_for;
 use xscale::train::config::{LevelRange, RunConfig};
 use xscale::train::sampler::SampleMode;
 use xscale::train::setup::{auto_levels, prepare, resolve_levels, AUTO_FINEST_MAX, LEVEL_QUANTILE};
-use xscale::train::trainer::TrainState;
+use xscale::train::state::TrainState;
 
 fn fixture() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("fixtures/tiny")

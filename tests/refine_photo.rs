@@ -8,7 +8,8 @@ use std::path::Path;
 use xscale::model::photo::PhotoMeasure;
 use xscale::model::refine::RefineOptimizer;
 use xscale::train::config::RunConfig;
-use xscale::train::trainer::{train, TrainState};
+use xscale::train::state::TrainState;
+use xscale::train::trainer::train;
 
 #[path = "common/pool.rs"]
 mod pool;

@@ -6,7 +6,8 @@
 
 use std::path::Path;
 use xscale::train::config::RunConfig;
-use xscale::train::trainer::{train, TrainState};
+use xscale::train::state::TrainState;
+use xscale::train::trainer::train;
 
 #[path = "common/pool.rs"]
 mod pool;

@@ -98,7 +98,7 @@ fn set_split(scene: &Path, split: &str) {
 }
 
 fn step_of(run: &Path) -> u64 {
-    xscale::train::trainer::TrainState::load(&run.join("checkpoint.safetensors"))
+    xscale::train::state::TrainState::load(&run.join("checkpoint.safetensors"))
         .unwrap()
         .step
 }

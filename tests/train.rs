@@ -3,7 +3,8 @@
 
 use std::path::{Path, PathBuf};
 use xscale::train::config::RunConfig;
-use xscale::train::trainer::{train, TrainOptions, TrainState};
+use xscale::train::state::TrainState;
+use xscale::train::trainer::{train, TrainOptions};
 
 #[path = "common/pool.rs"]
 mod pool;

@@ -15,7 +15,8 @@ use xscale::raycast::{SampleCache, Tracer};
 use xscale::scene::{LoadOptions, Scene};
 use xscale::train::config::RunConfig;
 use xscale::train::sampler::sample_batch;
-use xscale::train::trainer::{train, TrainOptions, TrainState};
+use xscale::train::state::TrainState;
+use xscale::train::trainer::{train, TrainOptions};
 
 fn fixture() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/tiny")

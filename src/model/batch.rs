@@ -46,6 +46,57 @@ impl Batch {
             .unwrap_or(0)
     }
 
+    /// Remove the pixels none of whose sub-samples is valid (possible once the mesh refinement
+    /// has moved the mesh the batch was cast against).
+    pub fn drop_empty_pixels(&mut self) {
+        let s = self.samples_per_pixel();
+        let n = self.n_pixels();
+        if s == 0 {
+            return;
+        }
+        let keep: Vec<bool> = (0..n)
+            .map(|i| self.valid[i * s..(i + 1) * s].iter().any(|&v| v != 0))
+            .collect();
+        if keep.iter().all(|&k| k) {
+            return;
+        }
+        let mut w = 0;
+        for (i, &k) in keep.iter().enumerate() {
+            if !k {
+                continue;
+            }
+            if w != i {
+                for j in 0..s {
+                    self.positions[w * s + j] = self.positions[i * s + j];
+                    self.valid[w * s + j] = self.valid[i * s + j];
+                    if !self.triangle.is_empty() {
+                        self.triangle[w * s + j] = self.triangle[i * s + j];
+                        self.bary[w * s + j] = self.bary[i * s + j];
+                    }
+                }
+                self.dirs[w] = self.dirs[i];
+                self.view[w] = self.view[i];
+                self.target[w] = self.target[i];
+                if !self.footprint.is_empty() {
+                    self.footprint[w] = self.footprint[i];
+                }
+            }
+            w += 1;
+        }
+        self.positions.truncate(w * s);
+        self.valid.truncate(w * s);
+        if !self.triangle.is_empty() {
+            self.triangle.truncate(w * s);
+            self.bary.truncate(w * s);
+        }
+        self.dirs.truncate(w);
+        self.view.truncate(w);
+        self.target.truncate(w);
+        if !self.footprint.is_empty() {
+            self.footprint.truncate(w);
+        }
+    }
+
     /// Shapes agree, every pixel has ≥ 1 valid sub-sample, valid flags are 0/1, positions of
     /// valid sub-samples and all directions/targets are finite, views are ≥ −1. Messages name the
     /// element.
@@ -216,5 +267,39 @@ mod tests {
             .unwrap_err()
             .to_string()
             .contains("sub-sample 0"));
+    }
+
+    #[test]
+    fn empty_pixels_are_dropped_with_their_rows() {
+        let mut b = Batch::random(3, 6, 4, 2, 0.0);
+        b.triangle = (0..24).collect();
+        b.bary = vec![[0.25, 0.5]; 24];
+        b.footprint = (0..6).map(|i| i as f32).collect();
+        let orig = b.clone();
+        for j in 0..4 {
+            b.valid[4 + j] = 0; // pixel 1
+            b.valid[16 + j] = 0; // pixel 4
+        }
+        b.drop_empty_pixels();
+        b.validate().unwrap();
+        assert_eq!(b.n_pixels(), 4);
+        let kept = [0usize, 2, 3, 5];
+        for (w, &i) in kept.iter().enumerate() {
+            assert_eq!(b.dirs[w], orig.dirs[i]);
+            assert_eq!(b.target[w], orig.target[i]);
+            assert_eq!(b.view[w], orig.view[i]);
+            assert_eq!(b.footprint[w], orig.footprint[i]);
+            assert_eq!(
+                b.positions[w * 4..w * 4 + 4],
+                orig.positions[i * 4..i * 4 + 4]
+            );
+            assert_eq!(
+                b.triangle[w * 4..w * 4 + 4],
+                orig.triangle[i * 4..i * 4 + 4]
+            );
+        }
+        let before = b.clone();
+        b.drop_empty_pixels();
+        assert_eq!(b, before, "nothing to drop: unchanged");
     }
 }

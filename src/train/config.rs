@@ -17,7 +17,7 @@ use crate::model::ModelConfig;
 use crate::scene::NormalizeMode;
 use crate::train::adam::AdamConfig;
 use crate::train::sampler::SampleMode;
-use anyhow::{bail, Context, Result};
+use anyhow::{bail, ensure, Context, Result};
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 
@@ -272,6 +272,30 @@ impl RunConfig {
         c.to_toml()
     }
 
+    /// `[model.refine]`'s own checks, then what the mesh refinement needs of the rest of the
+    /// run: hash features, streamed samples (the mesh moves, so rays are cast as batches are
+    /// drawn), f32 arithmetic.
+    fn validate_refine(&self) -> Result<()> {
+        let r = &self.model.refine;
+        r.validate().context("model.refine")?;
+        if !r.enabled {
+            return Ok(());
+        }
+        ensure!(
+            self.model.featurization.is_hash(),
+            "model.refine: the mesh refinement needs featurization = \"hash\""
+        );
+        ensure!(
+            self.train.samples != SampleMode::Cache,
+            "model.refine: the mesh moves, so rays must be cast as batches are drawn: set [train] samples = \"stream\""
+        );
+        ensure!(
+            self.train.arithmetic == Arithmetic::F32,
+            "model.refine: runs in f32 arithmetic only (remove [train] arithmetic = \"f64\")"
+        );
+        Ok(())
+    }
+
     pub fn validate(&self) -> Result<()> {
         let t = &self.train;
         if t.batch_pixels == 0 {
@@ -290,7 +314,7 @@ impl RunConfig {
             bail!("model.gamma must be 1..=4, got {}", self.model.gamma);
         }
         t.adam.validate().context("train.adam")?;
-        crate::train::refine::validate(self)?;
+        self.validate_refine()?;
         let sh = &self.model.shader;
         if sh.width == 0 && sh.hidden_layers > 0 {
             bail!(

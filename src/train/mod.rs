@@ -8,7 +8,9 @@
 //! | `sampler.rs` | batch k as a pure function of (seed, k); streamed or cached samples |
 //! | `memory.rs` | the memory estimate and budget, peak RSS |
 //! | `adam.rs` | the optimizer |
-//! | `trainer.rs` | the state, one step, the loop, checkpoints, exact resume, Ctrl-C |
+//! | `state.rs` | the state of a run at a step ([`state::TrainState`]) and one optimisation step |
+//! | `precision.rs` | the step with the model in f64 |
+//! | `trainer.rs` | the loop, checkpoints, exact resume, Ctrl-C |
 //! | `run_dir.rs` | the run folder's lock, its protection, the scene fingerprint |
 //! | `divergence.rs` | stopping a run whose loss never falls or blows up |
 //! | `report.rs` | what a run tells the user: progress, `metrics.jsonl`, `eval.json` |
@@ -28,6 +30,7 @@ pub mod report;
 pub mod run_dir;
 pub mod sampler;
 pub mod setup;
+pub mod state;
 pub mod trainer;
 pub mod trust;
 

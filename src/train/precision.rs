@@ -12,7 +12,7 @@
 use crate::model::batch::Batch;
 use crate::model::params::{Grads, Group};
 use crate::train::config::Arithmetic;
-use crate::train::trainer::{batch_mse, StepStats, TrainState};
+use crate::train::state::{batch_mse, StepStats, TrainState};
 use anyhow::{ensure, Result};
 use std::time::Instant;
 

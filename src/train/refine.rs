@@ -49,9 +49,9 @@ use crate::model::refine::{
 use crate::raycast::Tracer;
 use crate::train::adam::{AdamGroup, LrSchedule};
 use crate::train::config::RunConfig;
-use crate::train::sampler::{sample_batch, SampleMode, Samples};
+use crate::train::sampler::{sample_batch, Samples};
 use crate::train::setup::Prepared;
-use crate::train::trainer::{batch_mse, StepStats, TrainState};
+use crate::train::state::{batch_mse, StepStats, TrainState};
 use anyhow::{ensure, Context, Result};
 use glam::DVec3;
 use rayon::prelude::*;
@@ -64,28 +64,6 @@ use std::time::Instant;
 pub fn enable(cfg: &mut RunConfig) -> Result<()> {
     cfg.model.refine.enabled = true;
     cfg.validate()
-}
-
-/// The checks a run configuration with refinement must pass (called by `RunConfig::validate`).
-pub fn validate(cfg: &RunConfig) -> Result<()> {
-    let r = &cfg.model.refine;
-    r.validate().context("model.refine")?;
-    if !r.enabled {
-        return Ok(());
-    }
-    ensure!(
-        cfg.model.featurization.is_hash(),
-        "model.refine: the mesh refinement needs featurization = \"hash\""
-    );
-    ensure!(
-        cfg.train.samples != SampleMode::Cache,
-        "model.refine: the mesh moves, so rays must be cast as batches are drawn: set [train] samples = \"stream\""
-    );
-    ensure!(
-        cfg.train.arithmetic == crate::train::config::Arithmetic::F32,
-        "model.refine: runs in f32 arithmetic only (remove [train] arithmetic = \"f64\")"
-    );
-    Ok(())
 }
 
 /// The refinement side of a training run (module docs).
@@ -567,7 +545,7 @@ impl Refiner {
         let t0 = Instant::now();
         // Cast against a moved mesh, a pixel of the training mesh's hit map may see nothing.
         if self.tracer.is_some() {
-            drop_empty_pixels(batch);
+            batch.drop_empty_pixels();
         }
         let mut hits = if moving {
             self.reintersect(state, batch)?
@@ -950,56 +928,6 @@ fn draw_with(samples: &Samples, tracer: &Tracer, seed: u64, k: u64, n: usize) ->
     sample_batch(samples, tracer, seed, k, n)
 }
 
-/// Remove the pixels none of whose sub-samples is valid (possible once the mesh has moved).
-pub fn drop_empty_pixels(b: &mut Batch) {
-    let s = b.samples_per_pixel();
-    let n = b.n_pixels();
-    if s == 0 {
-        return;
-    }
-    let keep: Vec<bool> = (0..n)
-        .map(|i| b.valid[i * s..(i + 1) * s].iter().any(|&v| v != 0))
-        .collect();
-    if keep.iter().all(|&k| k) {
-        return;
-    }
-    let mut w = 0;
-    for (i, &k) in keep.iter().enumerate() {
-        if !k {
-            continue;
-        }
-        if w != i {
-            for j in 0..s {
-                b.positions[w * s + j] = b.positions[i * s + j];
-                b.valid[w * s + j] = b.valid[i * s + j];
-                if !b.triangle.is_empty() {
-                    b.triangle[w * s + j] = b.triangle[i * s + j];
-                    b.bary[w * s + j] = b.bary[i * s + j];
-                }
-            }
-            b.dirs[w] = b.dirs[i];
-            b.view[w] = b.view[i];
-            b.target[w] = b.target[i];
-            if !b.footprint.is_empty() {
-                b.footprint[w] = b.footprint[i];
-            }
-        }
-        w += 1;
-    }
-    b.positions.truncate(w * s);
-    b.valid.truncate(w * s);
-    if !b.triangle.is_empty() {
-        b.triangle.truncate(w * s);
-        b.bary.truncate(w * s);
-    }
-    b.dirs.truncate(w);
-    b.view.truncate(w);
-    b.target.truncate(w);
-    if !b.footprint.is_empty() {
-        b.footprint.truncate(w);
-    }
-}
-
 /// The BVH to evaluate a state with: the refined mesh's when it refines one, else `None`.
 pub fn eval_tracer(state: &TrainState, prepared: &Prepared) -> Result<Option<Tracer>> {
     match &state.ckpt.refine {
@@ -1074,44 +1002,5 @@ fn gather_and_clear(
     field_backward(cfg, geom, touched, d, levels, residual, grids, d_r);
     for &i in touched {
         d[i as usize] = 0.0;
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn empty_pixels_are_dropped_with_their_rows() {
-        let mut b = Batch::random(3, 6, 4, 2, 0.0);
-        b.triangle = (0..24).collect();
-        b.bary = vec![[0.25, 0.5]; 24];
-        b.footprint = (0..6).map(|i| i as f32).collect();
-        let orig = b.clone();
-        for j in 0..4 {
-            b.valid[4 + j] = 0; // pixel 1
-            b.valid[16 + j] = 0; // pixel 4
-        }
-        drop_empty_pixels(&mut b);
-        b.validate().unwrap();
-        assert_eq!(b.n_pixels(), 4);
-        let kept = [0usize, 2, 3, 5];
-        for (w, &i) in kept.iter().enumerate() {
-            assert_eq!(b.dirs[w], orig.dirs[i]);
-            assert_eq!(b.target[w], orig.target[i]);
-            assert_eq!(b.view[w], orig.view[i]);
-            assert_eq!(b.footprint[w], orig.footprint[i]);
-            assert_eq!(
-                b.positions[w * 4..w * 4 + 4],
-                orig.positions[i * 4..i * 4 + 4]
-            );
-            assert_eq!(
-                b.triangle[w * 4..w * 4 + 4],
-                orig.triangle[i * 4..i * 4 + 4]
-            );
-        }
-        let before = b.clone();
-        drop_empty_pixels(&mut b);
-        assert_eq!(b, before, "nothing to drop: unchanged");
     }
 }

@@ -2,7 +2,7 @@
 //! `RUN/metrics.jsonl`, and the final `RUN/eval.json`. Nothing here affects the numbers.
 
 use crate::eval::protocol::{mean_score, scale_summary, scale_table, table, ViewScore};
-use crate::train::trainer::{StepStats, TrainState};
+use crate::train::state::{StepStats, TrainState};
 use anyhow::{Context, Result};
 use std::fs::File;
 use std::io::{IsTerminal, Write};

@@ -89,7 +89,7 @@ pub fn row_errors(model: &Hfm, params: &[f32], mut batch: Batch) -> Result<Vec<O
     let rows: Vec<usize> = (0..n)
         .filter(|&i| batch.valid[i * s..(i + 1) * s].iter().any(|&v| v != 0))
         .collect();
-    crate::train::refine::drop_empty_pixels(&mut batch);
+    batch.drop_empty_pixels();
     let mut out = vec![None; n];
     if rows.is_empty() {
         return Ok(out);

@@ -17,9 +17,9 @@ use anyhow::{Context, Result};
 use std::path::{Path, PathBuf};
 use xscale::eval::plot::{lines_png, Axes, Curve};
 use xscale::model::config::per_level_scale_for;
+use xscale::run::trainer::{train, TrainOptions};
 use xscale::train::config::{LevelRange, RunConfig};
 use xscale::train::setup::auto_levels;
-use xscale::train::trainer::{train, TrainOptions};
 
 const FINEST: [f64; 5] = [2048.0, 4096.0, 8192.0, 16384.0, 32768.0];
 const TABLES: [u32; 2] = [19, 20];

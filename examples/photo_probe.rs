@@ -1,7 +1,7 @@
 //! Does the photo-consistency gradient point at the true surface, and how large is it on the exact
 //! mesh? (docs/geometry.md §4)
 //!
-//! Sums the photo term's ∂E/∂θ (`train/photo.rs`) over `STEPS` steps with the mesh unmoved, at one
+//! Sums the photo term's ∂E/∂θ (`src/refine/photo_term.rs`) over `STEPS` steps with the mesh unmoved, at one
 //! image level, on a displaced proxy of a synthetic scene whose true error is known vertex by
 //! vertex (as `refine_probe`), and prints per grid level of the offset field: the cosine between
 //! the summed gradient and the true error (> 0: descent moves towards the truth), the RMS of the
@@ -14,9 +14,11 @@
 //! ```
 //! The optional arguments are `[model.refine]` keys (`photo_patch = 3`, `photo_measure = "huber"` …).
 
-use xscale::model::refine::{field_backward, RefineConfig, RefineGeom};
+use xscale::refine::field::{field_backward, RefineGeom};
+
+use xscale::model::refine::RefineConfig;
+use xscale::refine::photo_term::{accumulate, PhotoTerm};
 use xscale::train::config::RunConfig;
-use xscale::train::photo::{accumulate, PhotoTerm};
 use xscale::train::sampler::Samples;
 use xscale::train::setup::prepare;
 

@@ -16,7 +16,8 @@
 
 use glam::DVec3;
 use xscale::model::params::Grads;
-use xscale::model::refine::{field_backward, hits_backward, reintersect_batch, RefineGeom};
+use xscale::refine::field::{field_backward, RefineGeom};
+use xscale::refine::hit::{hits_backward, reintersect_batch};
 use xscale::train::sampler::sample_batch;
 use xscale::train::setup::prepare;
 use xscale::train::state::TrainState;
@@ -47,7 +48,7 @@ fn main() -> anyhow::Result<()> {
         .map(|s| s.parse())
         .collect::<Result<_, _>>()?;
     let st = TrainState::load(&run.join("checkpoint.safetensors"))?;
-    let scene = xscale::train::run_dir::SceneFingerprint::read(&run)?
+    let scene = xscale::run::run_dir::SceneFingerprint::read(&run)?
         .ok_or_else(|| anyhow::anyhow!("{}: no scene.json", run.display()))?
         .scene;
     let mut cfg = st.cfg.clone();

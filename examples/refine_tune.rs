@@ -11,11 +11,11 @@
 
 use xscale::model::params::Grads;
 use xscale::model::refine::{RefineConfig, RefineParams};
+use xscale::refine::refiner::Refiner;
+use xscale::run::trainer::evaluate;
 use xscale::train::adam::AdamState;
-use xscale::train::refine::Refiner;
 use xscale::train::setup::prepare;
 use xscale::train::state::TrainState;
-use xscale::train::trainer::evaluate;
 
 fn main() -> anyhow::Result<()> {
     let a: Vec<String> = std::env::args().collect();
@@ -27,7 +27,7 @@ fn main() -> anyhow::Result<()> {
     let mut rcfg: RefineConfig = toml::from_str(&std::fs::read_to_string(&a[2])?)?;
     let (steps, moving): (u64, u64) = (a[3].parse()?, a[4].parse()?);
     let mut st = TrainState::load(&run.join("checkpoint.safetensors"))?;
-    let scene = xscale::train::run_dir::SceneFingerprint::read(&run)?
+    let scene = xscale::run::run_dir::SceneFingerprint::read(&run)?
         .ok_or_else(|| anyhow::anyhow!("{}: no scene.json", run.display()))?
         .scene;
     let k0 = st.step;
@@ -89,7 +89,7 @@ fn main() -> anyhow::Result<()> {
         let dir = std::path::Path::new(out)
             .parent()
             .unwrap_or(std::path::Path::new("."));
-        xscale::train::refine::write_refined(&st, &prepared, dir)?;
+        xscale::refine::mesh::write_refined(&st, &prepared, dir)?;
         std::fs::rename(dir.join("refined.ply"), out)?;
     }
     Ok(())

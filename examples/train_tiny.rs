@@ -4,17 +4,17 @@
 //!     cargo run --release --example train_tiny [SCENE_DIR] [STEPS]
 //!
 //! (default `fixtures/tiny`, 300 steps; about a second). `xscale train` does the same plus
-//! progress, metrics, periodic evaluation, checkpoints and resume (`src/train/trainer.rs`).
+//! progress, metrics, periodic evaluation, checkpoints and resume (`src/run/trainer.rs`).
 
 use anyhow::Result;
 use std::path::Path;
 use xscale::eval::protocol::mean_score;
 use xscale::model::params::Grads;
+use xscale::run::trainer::evaluate;
 use xscale::train::config::RunConfig;
 use xscale::train::sampler::sample_batch;
 use xscale::train::setup::{prepare, resolve_levels};
 use xscale::train::state::TrainState;
-use xscale::train::trainer::evaluate;
 
 /// What a run of the example reached.
 #[allow(dead_code)] // the fields are read by tests/example_train_tiny.rs

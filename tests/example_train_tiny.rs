@@ -23,11 +23,11 @@ fn the_library_example_trains_like_the_cli() {
     let _ = std::fs::remove_dir_all(&dir);
     let mut cfg = xscale::train::config::RunConfig::preset("tiny").unwrap();
     cfg.train.steps = 300;
-    let s = xscale::train::trainer::train(
+    let s = xscale::run::trainer::train(
         &root.join("fixtures/tiny"),
         &dir,
         cfg,
-        &xscale::train::trainer::TrainOptions {
+        &xscale::run::trainer::TrainOptions {
             quiet: true,
             ..Default::default()
         },

@@ -983,13 +983,15 @@ fn vertex_pipeline_gradients_match_fd() {
 }
 
 // ---------------------------------------------------------------------------------------------
-// Mesh refinement through the hit point (model/refine.rs)
+// Mesh refinement through the hit point (src/refine/hit.rs, field.rs)
 // ---------------------------------------------------------------------------------------------
 
 use glam::DVec3;
-use xscale::model::refine::{
-    field_backward, field_theta, hits_backward, hits_backward_anchored, intersect,
-    reintersect_batch, reintersect_batch_anchored, smoothness, RayHit, RefineConfig, RefineGeom,
+use xscale::model::refine::RefineConfig;
+use xscale::refine::field::{field_backward, field_theta, smoothness, RefineGeom};
+use xscale::refine::hit::{
+    hits_backward, hits_backward_anchored, intersect, reintersect_batch,
+    reintersect_batch_anchored, RayHit,
 };
 use xscale::scene::{Mesh, Normalization, NormalizeMode};
 
@@ -1046,9 +1048,9 @@ fn brute_hit(geom: &RefineGeom, theta: &[f64], o: DVec3, d: DVec3) -> Option<(us
     let mut best: Option<(usize, f64)> = None;
     for (ti, t) in geom.triangles.iter().enumerate() {
         let v = t.map(|i| geom.position(i as usize, theta[i as usize]));
-        if let Some((tt, _, _)) = xscale::model::refine::intersect(o, d, v, 0.0) {
+        if let Some((tt, _, _)) = xscale::refine::hit::intersect(o, d, v, 0.0) {
             let inside = {
-                let (_, b, _) = xscale::model::refine::intersect(o, d, v, 0.0).unwrap();
+                let (_, b, _) = xscale::refine::hit::intersect(o, d, v, 0.0).unwrap();
                 b.iter().all(|&x| (0.0..=1.0).contains(&x))
             };
             if inside && best.is_none_or(|b| tt < b.1) {
@@ -1485,13 +1487,14 @@ fn broken_anchored_mesh_refinement_gradients_fail_the_check() {
 }
 
 // ---------------------------------------------------------------------------------------------
-// The refinement's photo-consistency term (model/photo.rs)
+// The refinement's photo-consistency term (src/refine/photo.rs)
 // ---------------------------------------------------------------------------------------------
 
-use xscale::model::photo::{
-    measure, patch_eval, plane_hit_chain, PatchEval, PatchPoint, PhotoCamera, PhotoImage,
-    PhotoMeasure,
-};
+use xscale::refine::photo::{measure, patch_eval, PatchEval, PatchPoint, PhotoCamera, PhotoImage};
+
+use xscale::refine::hit::plane_hit_chain;
+
+use xscale::model::refine::PhotoMeasure;
 
 /// A smooth RGB texture rasterised at integer pixels (values in ~[0.15, 0.85]).
 fn photo_image(w: u32, h: u32, seed: u64) -> PhotoImage {

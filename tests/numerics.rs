@@ -17,10 +17,10 @@ use xscale::raycast::meshes::{cube_grid, icosphere};
 use xscale::raycast::triangle::{intersect, WatertightRay};
 use xscale::raycast::{cast_view, Tracer};
 use xscale::rng::{self, Purpose};
+use xscale::run::trainer::{train, TrainOptions};
 use xscale::scene::{colmap, mesh, Camera, Distortion, LoadOptions, Mesh, Scene};
 use xscale::scene::{Normalization, NormalizeMode};
 use xscale::train::config::RunConfig;
-use xscale::train::trainer::{train, TrainOptions};
 
 fn u(seed: u64, a: u64, b: u64) -> f64 {
     rng::uniform_f64(seed, Purpose::Test, a, b)

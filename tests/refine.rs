@@ -1,11 +1,11 @@
-//! Mesh refinement during training (`[model.refine]`, train/refine.rs): bit-identical on 1, 2
+//! Mesh refinement during training (`[model.refine]`, src/refine/refiner.rs): bit-identical on 1, 2
 //! and 4 threads, exact resume across a BVH rebuild, the refined mesh in the checkpoint, in
 //! `refined.ply` and in what eval/render load, and clear errors for configurations it cannot run.
 
 use std::path::Path;
+use xscale::run::trainer::train;
 use xscale::train::config::RunConfig;
 use xscale::train::state::TrainState;
-use xscale::train::trainer::train;
 
 #[path = "common/pool.rs"]
 mod pool;
@@ -71,8 +71,8 @@ fn refinement_is_thread_independent_resumes_exactly_and_moves_the_mesh() {
             assert_eq!(refined.triangles, base.triangles);
             assert!(refined.vertices != base.vertices);
             let (ck, rc) =
-                xscale::cli::common::load_model(&run.join("checkpoint.safetensors")).unwrap();
-            let s = xscale::cli::common::scene_for_model(&fixture(), &ck, rc.as_ref(), None, None)
+                xscale::run::model::load_model(&run.join("checkpoint.safetensors")).unwrap();
+            let s = xscale::run::model::scene_for_model(&fixture(), &ck, rc.as_ref(), None, None)
                 .unwrap();
             assert_eq!(s.scene.mesh.vertices, refined.vertices);
         }
@@ -150,8 +150,8 @@ fn anchored_refinement_is_thread_independent_resumes_exactly_and_moves_the_mesh(
             assert_mesh_moved(&run);
             // The render's tracer runs on the refined mesh and reports the training mesh's point.
             let (ck, rc) =
-                xscale::cli::common::load_model(&run.join("checkpoint.safetensors")).unwrap();
-            let s = xscale::cli::common::scene_for_model(&fixture(), &ck, rc.as_ref(), None, None)
+                xscale::run::model::load_model(&run.join("checkpoint.safetensors")).unwrap();
+            let s = xscale::run::model::scene_for_model(&fixture(), &ck, rc.as_ref(), None, None)
                 .unwrap();
             let (base, _) = xscale::scene::mesh::load_mesh(&fixture().join("mesh.ply")).unwrap();
             let view = &s.scene.views[s.scene.test[0]];

@@ -1,15 +1,15 @@
-//! The mesh refinement's photo-consistency term (`[model.refine] photo`, train/photo.rs) and its
+//! The mesh refinement's photo-consistency term (`[model.refine] photo`, src/refine/photo_term.rs) and its
 //! Gauss–Newton step (`optimizer = "gauss-newton"`): bit-identical on 1 and 2 threads, exact
 //! resume between two updates and right after one, patches that actually take part, and clear
 //! errors for values it cannot run. Its own test binary: it sets `XSCALE_REFINE_LOG`
 //! (process-wide) to read each update's photo statistics.
 
 use std::path::Path;
-use xscale::model::photo::PhotoMeasure;
+use xscale::model::refine::PhotoMeasure;
 use xscale::model::refine::RefineOptimizer;
+use xscale::run::trainer::train;
 use xscale::train::config::RunConfig;
 use xscale::train::state::TrainState;
-use xscale::train::trainer::train;
 
 #[path = "common/pool.rs"]
 mod pool;

@@ -1,13 +1,13 @@
 //! The mesh refinement's trust region (`[model.refine] trust_batches`, `trust_holdout`;
-//! train/trust.rs): bit-identical on 1, 2 and 4 threads, exact resume across accepted and
+//! src/refine/trust.rs): bit-identical on 1, 2 and 4 threads, exact resume across accepted and
 //! rejected updates, a rejected update leaves the mesh where it was, and the validation-view
 //! variant runs. Its own test binary: it sets `XSCALE_REFINE_LOG` (process-wide) to read each
 //! update's decision.
 
 use std::path::Path;
+use xscale::run::trainer::train;
 use xscale::train::config::RunConfig;
 use xscale::train::state::TrainState;
-use xscale::train::trainer::train;
 
 #[path = "common/pool.rs"]
 mod pool;

@@ -134,7 +134,7 @@ fn a_live_lock_refuses_a_second_run_and_a_stale_one_is_taken_over() {
     let run = tmp("lock");
     std::fs::create_dir_all(&run).unwrap();
     // This test process holds the lock, as a concurrent run would.
-    let lock = xscale::train::run_dir::RunLock::acquire(&run).unwrap();
+    let lock = xscale::run::run_dir::RunLock::acquire(&run).unwrap();
     let (code, err) = train(&run, &["--preset", "tiny", "--steps", "5"]);
     assert_ne!(code, 0);
     assert!(

@@ -10,10 +10,10 @@ use std::path::{Path, PathBuf};
 use xscale::raycast::stream::HitMap;
 use xscale::raycast::{RayStream, SampleCache, Targets, Tracer};
 use xscale::rng::{below, uniform_f32, Purpose};
+use xscale::run::trainer::{train, TrainOptions};
 use xscale::scene::{Image, LoadOptions, Scene};
 use xscale::train::config::RunConfig;
 use xscale::train::sampler::{batch_from_pixels, batch_pixels, SampleMode};
-use xscale::train::trainer::{train, TrainOptions};
 
 #[path = "common/pool.rs"]
 mod pool;

@@ -2,9 +2,9 @@
 //! and that training actually learns.
 
 use std::path::{Path, PathBuf};
+use xscale::run::trainer::{train, TrainOptions};
 use xscale::train::config::RunConfig;
 use xscale::train::state::TrainState;
-use xscale::train::trainer::{train, TrainOptions};
 
 #[path = "common/pool.rs"]
 mod pool;
@@ -228,12 +228,12 @@ fn an_interrupted_final_evaluation_is_resumed_not_retrained() {
     let prepared =
         xscale::train::setup::prepare(&fixture(), &state.cfg, true, &mut |_| {}).unwrap();
     let eval =
-        |stop| xscale::train::trainer::evaluate_until(&state, &prepared, 0, None, stop).unwrap();
+        |stop| xscale::run::trainer::evaluate_until(&state, &prepared, 0, None, stop).unwrap();
     assert!(eval(&|| true).is_none());
     assert_eq!(eval(&|| false).unwrap().len(), prepared.scene.test.len());
     // At its last step without eval.json (no final evaluation ran): stopped.
-    assert!(xscale::train::run_dir::stopped_run_of(&run, &c));
+    assert!(xscale::run::run_dir::stopped_run_of(&run, &c));
     std::fs::write(run.join("eval.json"), "{}").unwrap();
-    assert!(!xscale::train::run_dir::stopped_run_of(&run, &c));
+    assert!(!xscale::run::run_dir::stopped_run_of(&run, &c));
     let _ = std::fs::remove_dir_all(&run);
 }

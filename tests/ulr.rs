@@ -124,12 +124,12 @@ fn eval_json_records_the_method_and_only_a_used_checkpoint() {
     // A 3-step run of the tiny preset (the scores do not matter here).
     let mut cfg = xscale::train::config::RunConfig::preset("tiny").unwrap();
     cfg.train.steps = 3;
-    let opts = xscale::train::trainer::TrainOptions {
+    let opts = xscale::run::trainer::TrainOptions {
         no_final_eval: true,
         quiet: true,
         ..Default::default()
     };
-    xscale::train::trainer::train(&scene, &run, cfg, &opts).unwrap();
+    xscale::run::trainer::train(&scene, &run, cfg, &opts).unwrap();
     let r = run.to_str().unwrap();
     let json = dir.join("e.json");
     let j = json.to_str().unwrap();

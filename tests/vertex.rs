@@ -12,11 +12,11 @@ use xscale::model::checkpoint::{
 };
 use xscale::model::config::{Featurization, ModelConfig};
 use xscale::raycast::{SampleCache, Tracer};
+use xscale::run::trainer::{train, TrainOptions};
 use xscale::scene::{LoadOptions, Scene};
 use xscale::train::config::RunConfig;
 use xscale::train::sampler::sample_batch;
 use xscale::train::state::TrainState;
-use xscale::train::trainer::{train, TrainOptions};
 
 fn fixture() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/tiny")

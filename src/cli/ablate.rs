@@ -6,8 +6,8 @@
 //! `src/train/ablate.rs` for the variants and how the baseline's feature width is chosen.
 
 use super::common::RunArgs;
+use crate::run::run_dir::Existing;
 use crate::train::ablate::{run_ablation, AblateOptions, Variant};
-use crate::train::run_dir::Existing;
 use anyhow::Result;
 use std::path::PathBuf;
 use std::process::ExitCode;

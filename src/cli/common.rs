@@ -1,10 +1,10 @@
 //! Pieces shared by several subcommands: choosing a checkpoint, loading a scene for a model.
 
 use crate::model::checkpoint::Checkpoint;
-use crate::raycast::Tracer;
+use crate::run::model::{load_model, scene_for_model, scene_without_model, SceneForModel};
+use crate::run::run_dir::run_checkpoint;
 use crate::scene::{LoadOptions, Scene};
 use crate::train::config::RunConfig;
-use crate::train::trainer::run_checkpoint;
 use anyhow::{bail, Context, Result};
 use std::path::{Path, PathBuf};
 
@@ -123,10 +123,10 @@ impl ModelArgs {
 /// A warning when `scene`'s cameras or train/test split are not those `run` was trained on
 /// (`RUN/scene.json`; `None` too for a run without one).
 pub fn scene_changed_warning(run: &Path, dir: &Path, scene: &Scene) -> Result<Option<String>> {
-    let Some(then) = crate::train::run_dir::SceneFingerprint::read(run)? else {
+    let Some(then) = crate::run::run_dir::SceneFingerprint::read(run)? else {
         return Ok(None);
     };
-    let now = crate::train::run_dir::SceneFingerprint::of(dir, scene);
+    let now = crate::run::run_dir::SceneFingerprint::of(dir, scene);
     // The mesh is left out: `--mesh` may differ on purpose.
     let mut what = then.changed(&now);
     what.retain(|w| *w != "mesh");
@@ -215,14 +215,7 @@ impl ModelArgs {
             mesh: self.mesh.clone(),
             ..LoadOptions::default()
         };
-        let scene = load_warning(&dir, &opts)?;
-        let tracer = Tracer::new(&scene.mesh, &scene.normalization).context("building the BVH")?;
-        let rows = vec![-1; scene.views.len()];
-        Ok(SceneForModel {
-            scene,
-            tracer,
-            rows,
-        })
+        scene_without_model(&dir, &opts)
     }
 
     /// `--scene`, else the scene recorded in `RUN/scene.json` by `xscale train`.
@@ -235,7 +228,7 @@ impl ModelArgs {
                 "give --scene DIR (a --checkpoint file does not say which scene it was trained on)"
             );
         };
-        match crate::train::run_dir::SceneFingerprint::read(run)? {
+        match crate::run::run_dir::SceneFingerprint::read(run)? {
             Some(f) if f.scene.is_dir() => Ok(f.scene),
             Some(f) => bail!(
                 "{}: the run's scene {} no longer exists; give --scene DIR",
@@ -260,29 +253,6 @@ pub fn checkpoint_path(run: &Option<PathBuf>, checkpoint: &Option<PathBuf>) -> R
     }
 }
 
-/// A model checkpoint and, when it has one, the run configuration it was trained with.
-pub fn load_model(path: &Path) -> Result<(Checkpoint, Option<RunConfig>)> {
-    let f = Checkpoint::read_model_tensors(path)?;
-    let ckpt = Checkpoint::from_tensor_file(&f)?;
-    let cfg = match f.metadata.get("run_config") {
-        Some(text) => Some(RunConfig::from_stored_toml(
-            text,
-            &path.display().to_string(),
-        )?),
-        None => None,
-    };
-    Ok((ckpt, cfg))
-}
-
-/// A scene loaded for a model: the model's normalisation (not the scene mesh's own, so a
-/// decimated or edited mesh still maps into the trained grid), its BVH, and the appearance row
-/// of each view (training views in order; held-out views −1).
-pub struct SceneForModel {
-    pub scene: Scene,
-    pub tracer: Tracer,
-    pub rows: Vec<i32>,
-}
-
 /// A `--mesh` path made absolute: as given if it exists, else relative to the scene dir (as
 /// `LoadOptions::mesh` resolves it), so a run config keeps pointing at the same file.
 pub fn absolute_mesh_path(mesh: &Path, scene: &Path) -> PathBuf {
@@ -292,82 +262,6 @@ pub fn absolute_mesh_path(mesh: &Path, scene: &Path) -> PathBuf {
         scene.join(mesh)
     };
     std::fs::canonicalize(&p).unwrap_or(p)
-}
-
-/// `mesh`: a mesh file overriding the scene's (default: the run config's `train.mesh`, else the
-/// scene's own). A vertex-featurization model checks that the mesh's triangles are the ones it
-/// was trained on (its table is indexed by them).
-pub fn scene_for_model(
-    dir: &Path,
-    ckpt: &Checkpoint,
-    cfg: Option<&RunConfig>,
-    downsample: Option<u32>,
-    mesh: Option<&Path>,
-) -> Result<SceneForModel> {
-    let opts = LoadOptions {
-        downsample: downsample.or(cfg.map(|c| c.train.downsample)).unwrap_or(1),
-        normalize: cfg.map(|c| c.train.normalize).unwrap_or_default(),
-        mesh: mesh
-            .map(Path::to_path_buf)
-            .or_else(|| cfg.and_then(|c| c.train.mesh.clone())),
-        ..LoadOptions::default()
-    };
-    if let (None, Some(m)) = (mesh, &opts.mesh) {
-        if !m.exists() {
-            bail!(
-                "{}: the mesh this model was trained on (train.mesh of its run configuration) no longer exists; give it with --mesh FILE",
-                m.display()
-            );
-        }
-    }
-    let mut scene = load_warning(dir, &opts)?;
-    if let Some(vt) = &ckpt.model.vertex {
-        if scene.mesh.vertices.len() != vt.n_vertices || scene.mesh.triangles[..] != vt.faces[..] {
-            bail!(
-                "the model has vertex features for a mesh of {} vertices / {} triangles, but the scene's mesh has {} / {} (or other triangles): pass the training mesh with --mesh",
-                vt.n_vertices,
-                vt.faces.len(),
-                scene.mesh.vertices.len(),
-                scene.mesh.triangles.len()
-            );
-        }
-    }
-    scene.normalization = ckpt.normalization;
-    let mut anchor = None;
-    if let Some(r) = &ckpt.refine {
-        // The model refined its training mesh (`[model.refine]`): render on the refined one.
-        let refined =
-            crate::model::refine::refined_mesh(&scene.mesh, &scene.normalization, &r.offsets)?;
-        let base = std::mem::replace(&mut scene.mesh, refined);
-        // `anchored`: the features are queried on the training mesh.
-        if cfg.is_some_and(|c| c.model.refine.anchored) {
-            anchor = Some(base);
-        }
-    }
-    let mut tracer = Tracer::new(&scene.mesh, &scene.normalization).context("building the BVH")?;
-    if let Some(base) = &anchor {
-        tracer = tracer.anchored(base)?;
-    }
-    let train = scene.train();
-    let mut rows = vec![-1; scene.views.len()];
-    if ckpt.model.appearance_dim() > 0 {
-        if train.len() != ckpt.model.appearance_views() {
-            eprintln!(
-                "warning: the scene has {} training views but the model has {} appearance codes; every view uses the mean code",
-                train.len(),
-                ckpt.model.appearance_views()
-            );
-        } else {
-            for (r, &i) in train.iter().enumerate() {
-                rows[i] = r as i32;
-            }
-        }
-    }
-    Ok(SceneForModel {
-        scene,
-        tracer,
-        rows,
-    })
 }
 
 /// An error when one of `outputs` (written under `flag`) is a file the command reads: a view's
@@ -399,17 +293,6 @@ pub fn refuse_overwriting_inputs(
         crate::io::atomic::not_an_input(out, flag, &inputs)?;
     }
     Ok(())
-}
-
-/// [`Scene::load`], printing the loader's warnings (a mesh in other units or another frame than
-/// the cameras, docs/spec.md §3.9) as `train` and `cast` do: `eval` and `render` would otherwise
-/// score or draw such a scene without a word.
-fn load_warning(dir: &Path, opts: &LoadOptions) -> Result<Scene> {
-    let (scene, report) = Scene::load_report(dir, opts)?;
-    for w in &report.warnings {
-        eprintln!("warning: {w}");
-    }
-    Ok(scene)
 }
 
 /// Views named by `test`, `all`, `train`, or a comma-separated list of names or indices; `flag`
@@ -594,7 +477,7 @@ pub fn on_interrupt(what: &'static str) -> &'static std::sync::atomic::AtomicBoo
             if first.elapsed() < COPY_WINDOW {
                 return;
             }
-            crate::train::run_dir::release_locks();
+            crate::run::run_dir::release_locks();
             eprintln!(
                 "\naborted: nothing more was saved (a run folder keeps its last checkpoint, if it has one: --resume continues from it)"
             );

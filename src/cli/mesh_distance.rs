@@ -30,8 +30,8 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
         &format!("--samples {}", a.samples),
         "use fewer --samples",
     )?;
-    let diag = crate::synth::perturb::diagonal(&t);
-    let ratio = crate::synth::perturb::diagonal(&m) / diag;
+    let diag = t.diagonal();
+    let ratio = m.diagonal() / diag;
     if !(0.1..=10.0).contains(&ratio) {
         eprintln!(
             "warning: the mesh's bounding box is {ratio:.3e} times the size of the truth's: are the two in the same units and frame?"

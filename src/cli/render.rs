@@ -143,7 +143,7 @@ pub fn run(a: Args) -> Result<ExitCode> {
         .with_context(|| format!("{}: cannot create", a.out.display()))?;
     // Frames' temp files left by a render killed mid-write (not those of one still running;
     // not below: --out may be a folder of anything).
-    let dead = |pid: Option<u32>| pid.is_none_or(|p| !crate::train::run_dir::process_alive(p));
+    let dead = |pid: Option<u32>| pid.is_none_or(|p| !crate::run::run_dir::process_alive(p));
     crate::io::atomic::remove_temp_files(&a.out, false, &dead);
     let background = a.background.unwrap_or(s.scene.background);
     // (output path without extension, camera, appearance row)

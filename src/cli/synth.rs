@@ -107,7 +107,7 @@ fn check_out(args: &Args) -> anyhow::Result<()> {
             dir.display()
         );
     }
-    crate::train::run_dir::remove_listed(dir, &SYNTH_FILES)
+    crate::run::run_dir::remove_listed(dir, &SYNTH_FILES)
 }
 
 /// Seconds between progress lines (the last view is always said).

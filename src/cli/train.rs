@@ -1,8 +1,8 @@
-//! `xscale train`: train on a scene directory into a run folder (see `train/trainer.rs`).
+//! `xscale train`: train on a scene directory into a run folder (see `run/trainer.rs`).
 
 use super::common::RunArgs;
+use crate::run::trainer::{train, TrainOptions};
 use crate::train::config::{is_resumable, RunConfig};
-use crate::train::trainer::{train, TrainOptions};
 use anyhow::bail;
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -46,8 +46,8 @@ pub struct Args {
 }
 
 pub fn run(a: Args) -> anyhow::Result<ExitCode> {
-    if let Some(pid) = crate::train::run_dir::RunLock::holder(&a.out) {
-        bail!("{}", crate::train::run_dir::held_by(&a.out, pid));
+    if let Some(pid) = crate::run::run_dir::RunLock::holder(&a.out) {
+        bail!("{}", crate::run::run_dir::held_by(&a.out, pid));
     }
     let (cfg, scene) = if a.resume {
         resume_config(&a)?
@@ -93,12 +93,12 @@ fn resume_scene(a: &Args) -> anyhow::Result<PathBuf> {
     if let Some(s) = &a.scene {
         return Ok(s.clone());
     }
-    match crate::train::run_dir::SceneFingerprint::read(&a.out)? {
+    match crate::run::run_dir::SceneFingerprint::read(&a.out)? {
         Some(f) if f.scene.is_dir() => Ok(f.scene),
         Some(f) => bail!(
             "--resume: the run's scene {} (from {}) no longer exists; give --scene DIR",
             f.scene.display(),
-            crate::train::run_dir::SceneFingerprint::path(&a.out).display()
+            crate::run::run_dir::SceneFingerprint::path(&a.out).display()
         ),
         None => bail!(
             "--resume: {} does not record the run's scene (made by an older xscale); give --scene DIR",
@@ -112,7 +112,7 @@ fn resume_scene(a: &Args) -> anyhow::Result<PathBuf> {
 /// must agree with the run; a difference is an error naming the field (the stored
 /// configuration always wins).
 fn resume_config(a: &Args) -> anyhow::Result<(RunConfig, PathBuf)> {
-    let ckpt = crate::train::trainer::run_checkpoint(&a.out);
+    let ckpt = crate::run::run_dir::run_checkpoint(&a.out);
     if !ckpt.is_file() {
         bail!(
             "--resume: {} does not exist: nothing to resume (a run stopped before its first checkpoint leaves none); start the run without --resume (`xscale train --scene DIR --out {}`): in a folder without a checkpoint it starts afresh",
@@ -120,7 +120,7 @@ fn resume_config(a: &Args) -> anyhow::Result<(RunConfig, PathBuf)> {
             a.out.display()
         );
     }
-    let (_, stored) = super::common::load_model(&ckpt)?;
+    let (_, stored) = crate::run::model::load_model(&ckpt)?;
     let mut stored = stored.ok_or_else(|| {
         anyhow::anyhow!(
             "{}: the checkpoint has no run configuration",

@@ -38,7 +38,7 @@ pub struct Checkpoint {
     /// `[model.layout.total]`.
     pub params: Vec<f32>,
     pub normalization: Normalization,
-    /// Mesh refinement (`[model.refine] enabled`, `model/refine.rs`): the offset field's
+    /// Mesh refinement (`[model.refine] enabled`, `model/refine.rs`, `refine/`): the offset field's
     /// parameters and the per-vertex offsets eval/render apply to the training mesh.
     pub refine: Option<crate::model::refine::RefineParams>,
 }

@@ -12,7 +12,6 @@ pub mod level_weight;
 pub mod loss;
 pub mod mlp;
 pub mod params;
-pub mod photo;
 pub mod real;
 pub mod refine;
 pub mod sh;

@@ -173,7 +173,7 @@ pub struct Grads<R> {
     pub touched_v: Touched,
     /// With `inputs`: the position gradient goes through only the grid levels (of H and D)
     /// whose scale is at most this many cells per unit (`None`: every level, the exact
-    /// gradient). The mesh refinement's coarse-to-fine schedule (`train/refine.rs`); parameter
+    /// gradient). The mesh refinement's coarse-to-fine schedule (`refine/refiner.rs`); parameter
     /// gradients are unaffected.
     pub position_max_scale: Option<f32>,
     /// Scratch of the backward pass, kept to be reused: the chunks write their rows of

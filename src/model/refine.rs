@@ -1,65 +1,12 @@
-//! Mesh refinement through the ray–triangle hit point (beyond the paper; docs/geometry.md).
-//!
-//! The paper's mesh is fixed. Here the vertices of the training mesh may move along their
-//! normals, and the photometric loss moves them: a hit point moves along its ray when its
-//! triangle moves along the triangle's normal (tangential motion only re-parametrises the
-//! surface), so the loss's gradient with respect to the hit position (`grad.batch.positions`)
-//! gives one with respect to the vertices.
-//!
-//! ## Parametrisation
-//! Vertex i of the base mesh (the training mesh as loaded; local frame `v − center`, f64) moves to
-//! ```text
-//! v_i(θ) = v_i + (θ_i · s) · m_i          s = max(extent)  (the largest axis of the SPEC §4.1 normalisation)
-//! θ_i    = Σ_l trilinear(G_l, u_i) + r_i  u_i = (v_i − center) / s + 0.5  (isotropic unit coordinates)
-//! ```
-//! `m_i` is the unit area-weighted vertex normal of the base mesh (`synth::perturb::vertex_normals`,
-//! zero for an unused vertex), `G_l` (l = 0 … levels−1) are dense scalar grids of
-//! `R_l = base_resolution · 2^l` cells per unit ((R_l + 1)³ nodes, node `x + y(R+1) + z(R+1)²`,
-//! cell `c = clamp(floor(u·R), 0, R−1)`, fraction `u·R − c`), and `r_i` a per-vertex residual. The
-//! grids are the coarse-to-fine part: a coarse node gathers the gradient of every vertex in its
-//! cells, so an error that is smooth over the mesh is corrected even though a batch touches few
-//! vertices; levels are switched on coarse first (`train/refine.rs`). Offsets are in units of
-//! `s`, so learning rates do not depend on the scene's units. The normalisation (centre and
-//! extent) stays the one of the base mesh throughout: refined vertices may leave the unit cube
-//! (the hash grid wraps, SPEC §4.2).
-//!
-//! ## Hit point and its gradient
-//! For a valid sub-sample of a training batch: its triangle T = (k0, k1, k2) (from the ray cast),
-//! the ray origin `o` (the camera centre, local frame) and the unit direction `d` from `o` to the
-//! cast hit. With the current vertices a, b, c of T, Möller–Trumbore (f64, as `raycast/bvh.rs`)
-//! gives `t` and barycentrics `β = (1 − u − v, u, v)`; the position is `x_n = (o + t·d) / extent + 0.5`.
-//! With `n = (b − a) × (c − a)` and `g = ∂L/∂x_n ⊘ extent` (per axis: the normalisation's chain
-//! rule, so ∂L/∂x in local units),
-//! ```text
-//! ∂L/∂v_k = (g·d) · β_k · n / (n·d)                 (k ∈ T)
-//! ∂L/∂θ_k = s · (g·d) · β_k · (n·m_k) / (n·d)
-//! ```
-//! which is the exact derivative of the plane intersection (the hit moves along `d` by
-//! `Σ_k β_k n·δv_k / (n·d)`). Held constant (data, as in the fixed-mesh model): the ray (`o`, `d`),
-//! the triangle each sub-sample hits (chosen by the BVH of the last rebuild), which sub-samples
-//! are valid, the pixel's view direction and its footprint (level weighting, SPEC §4.10). A
-//! sub-sample is left at its cast position with no vertex gradient when the ray is within
-//! `acos(min_cos)` of the triangle's plane (`|n·d| < min_cos·|n|`: the hit would run off along the
-//! ray), when `t` is not finite and positive, or when a barycentric lies outside [−0.5, 1.5] (the
-//! triangle moved far since the BVH was built).
-//!
-//! ## Smoothness
-//! On the per-vertex residual (the grids are smooth by construction), with `N(i)` the vertices
-//! sharing an edge with i, `E` the undirected edges and `(Lr)_i = r_i − mean_{j∈N(i)} r_j`:
-//! ```text
-//! E_smooth = laplacian · (1/|E|) Σ_{(i,j)∈E} (r_i − r_j)²  +  bilaplacian · (1/V) Σ_i (Lr)_i²
-//! ```
-//! (f64, sums in vertex / edge order, so deterministic).
+//! The mesh refinement's part of the model (beyond the paper; SPEC §4.11, docs/geometry.md): its
+//! configuration (`[model.refine]`, [`RefineConfig`]) and the parameters of the offset field as a
+//! checkpoint stores them ([`RefineParams`]: the grids, the per-vertex residual, the offsets eval
+//! and render apply). What they mean and how they are computed and trained is `src/refine/`.
 
-use crate::model::batch::Batch;
-use crate::model::photo::PhotoMeasure;
-use crate::model::Real;
-use crate::scene::{Mesh, Normalization};
 use anyhow::{bail, ensure, Result};
-use glam::DVec3;
 use serde::{Deserialize, Serialize};
 
-/// `[model.refine]`: joint refinement of the mesh (module docs; schedule in `train/refine.rs`).
+/// `[model.refine]`: joint refinement of the mesh (module docs; schedule in `refine/refiner.rs`).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct RefineConfig {
@@ -111,7 +58,7 @@ pub struct RefineConfig {
     pub anchored: bool,
     /// Acceptance test of every update (a trust region; 0 = off, docs/geometry.md §3): the
     /// photometric MSE of this many fixed batches (`train.batch_pixels` pixels each, a pure
-    /// function of the seed and the update's step, `train/trust.rs`) is measured with the rays
+    /// function of the seed and the update's step, `refine/trust.rs`) is measured with the rays
     /// cast against the mesh before and after the proposed update; the update is kept only if
     /// the MSE falls by more than `trust_margin` (relative), else its step is halved and tried
     /// again, at most `trust_halvings` times, then dropped (the mesh stays where it was).
@@ -138,7 +85,7 @@ pub struct RefineConfig {
     #[serde(skip_serializing_if = "is_one_f64")]
     pub features: f64,
     /// Weight of the multi-view photo-consistency energy of the training photos (0 = off;
-    /// `model/photo.rs`, `train/photo.rs`).
+    /// `refine/photo.rs`, `refine/photo_term.rs`).
     #[serde(skip_serializing_if = "is_zero_f64")]
     pub photo: f64,
     /// Reference patches drawn per training step.
@@ -147,7 +94,7 @@ pub struct RefineConfig {
     /// Side of a patch in pixels (odd; 1 = single pixels, huber only).
     #[serde(skip_serializing_if = "is_default_photo_patch")]
     pub photo_patch: u32,
-    /// `zncc` or `huber` (model/photo.rs).
+    /// `zncc` or `huber` (`refine/photo.rs`).
     #[serde(skip_serializing_if = "is_default_measure")]
     pub photo_measure: PhotoMeasure,
     /// Image levels (photos box-downsampled by 2^l), from `[0]` when the mesh starts moving to
@@ -155,7 +102,7 @@ pub struct RefineConfig {
     #[serde(skip_serializing_if = "is_default_photo_levels")]
     pub photo_levels: [u32; 2],
     /// Neighbour views kept per training view (the best by shared, visible, well-triangulated
-    /// surface; `train/photo.rs`).
+    /// surface; `refine/photo_term.rs`).
     #[serde(skip_serializing_if = "is_default_photo_neighbours")]
     pub photo_neighbours: u32,
     /// Range of the angle (degrees) between the two views' rays at the surface for a pair.
@@ -165,13 +112,33 @@ pub struct RefineConfig {
     #[serde(skip_serializing_if = "is_default_photo_scale")]
     pub photo_scale: f64,
     /// How the offset field steps at an update: `adam` (tiny-cuda-nn rules) or `gauss-newton`
-    /// (the summed gradient over the photo term's summed curvature: `train/refine.rs`).
+    /// (the summed gradient over the photo term's summed curvature: `refine/refiner.rs`).
     #[serde(skip_serializing_if = "is_default_optimizer")]
     pub optimizer: RefineOptimizer,
     /// Levenberg damping of the Gauss–Newton step, relative to the mean curvature of the level's
     /// nodes that have one.
     #[serde(skip_serializing_if = "is_default_damping")]
     pub damping: f64,
+}
+
+/// How a reference patch and its reprojection are compared.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "lowercase")]
+pub enum PhotoMeasure {
+    /// One minus the zero-mean normalised cross-correlation of the patch (RGB, per-channel means).
+    #[default]
+    Zncc,
+    /// Mean Huber penalty of the colour differences.
+    Huber,
+}
+
+impl PhotoMeasure {
+    pub fn name(self) -> &'static str {
+        match self {
+            PhotoMeasure::Zncc => "zncc",
+            PhotoMeasure::Huber => "huber",
+        }
+    }
 }
 
 /// The offset field's step rule (`[model.refine] optimizer`).
@@ -462,190 +429,6 @@ impl RefineConfig {
     }
 }
 
-/// What the base mesh fixes (module docs): local-frame vertices, normals, unit coordinates,
-/// edges. Built once per run from the training mesh and the model's normalisation.
-#[derive(Clone, Debug)]
-pub struct RefineGeom {
-    /// The vertices as loaded (world frame).
-    pub world: Vec<DVec3>,
-    /// `v_i − center` (f64).
-    pub base: Vec<DVec3>,
-    /// Unit area-weighted vertex normals (zero for unused vertices).
-    pub normals: Vec<DVec3>,
-    /// `(v_i − center)/s + 0.5`, clamped to [0, 1].
-    pub unit: Vec<DVec3>,
-    pub triangles: Vec<[u32; 3]>,
-    /// `s = max(extent)`.
-    pub scale: f64,
-    pub norm: Normalization,
-    /// CSR neighbours: vertex i's are `nbr[nbr_start[i]..nbr_start[i+1]]` (ascending).
-    pub nbr_start: Vec<u32>,
-    pub nbr: Vec<u32>,
-    /// Undirected edges (i < j), ascending.
-    pub edges: Vec<[u32; 2]>,
-}
-
-impl RefineGeom {
-    pub fn new(mesh: &Mesh, norm: &Normalization) -> RefineGeom {
-        let scale = norm.extent.max_element();
-        let base: Vec<DVec3> = mesh.vertices.iter().map(|&v| v - norm.center).collect();
-        let normals = crate::synth::perturb::vertex_normals(mesh);
-        let unit = base
-            .iter()
-            .map(|&v| (v / scale + DVec3::splat(0.5)).clamp(DVec3::ZERO, DVec3::ONE))
-            .collect();
-        let mut edges: Vec<[u32; 2]> = mesh
-            .triangles
-            .iter()
-            .flat_map(|t| [[t[0], t[1]], [t[1], t[2]], [t[2], t[0]]])
-            .filter(|e| e[0] != e[1])
-            .map(|[a, b]| [a.min(b), a.max(b)])
-            .collect();
-        edges.sort_unstable();
-        edges.dedup();
-        let nv = mesh.vertices.len();
-        let mut deg = vec![0u32; nv + 1];
-        for e in &edges {
-            deg[e[0] as usize + 1] += 1;
-            deg[e[1] as usize + 1] += 1;
-        }
-        for i in 0..nv {
-            deg[i + 1] += deg[i];
-        }
-        let mut fill = deg.clone();
-        let mut nbr = vec![0u32; deg[nv] as usize];
-        for e in &edges {
-            for (a, b) in [(e[0], e[1]), (e[1], e[0])] {
-                nbr[fill[a as usize] as usize] = b;
-                fill[a as usize] += 1;
-            }
-        }
-        for i in 0..nv {
-            nbr[deg[i] as usize..deg[i + 1] as usize].sort_unstable();
-        }
-        RefineGeom {
-            world: mesh.vertices.clone(),
-            base,
-            normals,
-            unit,
-            triangles: mesh.triangles.clone(),
-            scale,
-            norm: *norm,
-            nbr_start: deg,
-            nbr,
-            edges,
-        }
-    }
-
-    pub fn n_vertices(&self) -> usize {
-        self.base.len()
-    }
-
-    /// Vertex i (local frame) at offset θ_i.
-    #[inline]
-    pub fn position(&self, i: usize, theta: f64) -> DVec3 {
-        self.base[i] + self.normals[i] * (theta * self.scale)
-    }
-
-    /// The mesh (world frame) with offsets `theta`; a vertex whose offset is exactly 0 keeps its
-    /// loaded coordinates bit for bit (so zero offsets give the training mesh itself).
-    pub fn mesh_with(&self, theta: &[f64]) -> Mesh {
-        Mesh {
-            vertices: (0..self.n_vertices())
-                .map(|i| {
-                    if theta[i] == 0.0 {
-                        self.world[i]
-                    } else {
-                        self.position(i, theta[i]) + self.norm.center
-                    }
-                })
-                .collect(),
-            triangles: self.triangles.clone(),
-        }
-    }
-
-    fn neighbours(&self, i: usize) -> &[u32] {
-        &self.nbr[self.nbr_start[i] as usize..self.nbr_start[i + 1] as usize]
-    }
-}
-
-/// Node indices and trilinear weights of unit point `u` in a grid of `r` cells per axis.
-#[inline]
-pub fn trilinear(r: usize, u: DVec3) -> ([usize; 8], [f64; 8]) {
-    let mut c = [0usize; 3];
-    let mut f = [0f64; 3];
-    for a in 0..3 {
-        let p = u[a] * r as f64;
-        let ci = (p.floor().max(0.0) as usize).min(r - 1);
-        c[a] = ci;
-        f[a] = p - ci as f64;
-    }
-    let n = r + 1;
-    let mut idx = [0usize; 8];
-    let mut w = [0f64; 8];
-    for k in 0..8 {
-        let (bx, by, bz) = (k & 1, (k >> 1) & 1, (k >> 2) & 1);
-        idx[k] = (c[0] + bx) + (c[1] + by) * n + (c[2] + bz) * n * n;
-        let wx = if bx == 1 { f[0] } else { 1.0 - f[0] };
-        let wy = if by == 1 { f[1] } else { 1.0 - f[1] };
-        let wz = if bz == 1 { f[2] } else { 1.0 - f[2] };
-        w[k] = wx * wy * wz;
-    }
-    (idx, w)
-}
-
-/// `θ_i = Σ_l trilinear(G_l, u_i) + r_i` (module docs) from grids `[levels][(R_l+1)³]` and the
-/// residual `r` (empty: none), in f64 whatever the parameters' type.
-pub fn field_theta<R: Real>(
-    cfg: &RefineConfig,
-    geom: &RefineGeom,
-    grids: &[Vec<R>],
-    r: &[R],
-    i: usize,
-) -> f64 {
-    let mut th = 0.0f64;
-    for (l, g) in grids.iter().enumerate() {
-        let (idx, w) = trilinear(cfg.resolution(l as u32), geom.unit[i]);
-        for k in 0..8 {
-            th += w[k] * g[idx[k]].to_f64();
-        }
-    }
-    if !r.is_empty() {
-        th += r[i].to_f64();
-    }
-    th
-}
-
-/// Accumulate `∂L/∂θ_i = d_theta[i]` of the listed vertices (in list order) into the gradients
-/// of grid levels `< levels` (`d_grids[l]`) and, if `residual`, of the residual (`d_r`).
-#[allow(clippy::too_many_arguments)]
-pub fn field_backward(
-    cfg: &RefineConfig,
-    geom: &RefineGeom,
-    vertices: &[u32],
-    d_theta: &[f64],
-    levels: usize,
-    residual: bool,
-    d_grids: &mut [Vec<f64>],
-    d_r: &mut [f64],
-) {
-    for &i in vertices {
-        let (i, g) = (i as usize, d_theta[i as usize]);
-        if g == 0.0 {
-            continue;
-        }
-        for (l, dg) in d_grids.iter_mut().enumerate().take(levels) {
-            let (idx, w) = trilinear(cfg.resolution(l as u32), geom.unit[i]);
-            for k in 0..8 {
-                dg[idx[k]] += w[k] * g;
-            }
-        }
-        if residual && !d_r.is_empty() {
-            d_r[i] += g;
-        }
-    }
-}
-
 /// The offset field's parameters and the offsets derived from them (f32, saved in checkpoints).
 #[derive(Clone, Debug, PartialEq)]
 pub struct RefineParams {
@@ -731,30 +514,6 @@ impl RefineParams {
         v
     }
 
-    /// θ_i from the parameters ([`field_theta`] with every level).
-    pub fn theta(&self, cfg: &RefineConfig, geom: &RefineGeom, i: usize) -> f64 {
-        field_theta(cfg, geom, &self.grids, &self.vertex, i)
-    }
-
-    /// θ of every vertex (parallel, each vertex independent).
-    pub fn theta_all(&self, cfg: &RefineConfig, geom: &RefineGeom) -> Vec<f64> {
-        use rayon::prelude::*;
-        (0..geom.n_vertices())
-            .into_par_iter()
-            .with_min_len(4096)
-            .map(|i| self.theta(cfg, geom, i))
-            .collect()
-    }
-
-    /// Recompute `offsets` from the parameters.
-    pub fn sync_offsets(&mut self, cfg: &RefineConfig, geom: &RefineGeom) {
-        self.offsets = self
-            .theta_all(cfg, geom)
-            .into_iter()
-            .map(|t| t as f32)
-            .collect();
-    }
-
     /// Write the tensors into a checkpoint file.
     pub fn to_tensors(&self, f: &mut crate::io::tensors::TensorFile) -> Result<()> {
         use crate::io::tensors::Tensor;
@@ -829,277 +588,4 @@ impl RefineParams {
         }
         Ok(p)
     }
-}
-
-/// A valid sub-sample re-intersected with its triangle's current plane (module docs).
-#[derive(Clone, Copy, Debug)]
-pub struct RayHit {
-    /// Index into the batch's `[N*S]` sub-samples.
-    pub sample: usize,
-    pub tri: [u32; 3],
-    pub o: DVec3,
-    pub d: DVec3,
-    pub t: f64,
-    /// Barycentrics of the triangle's three corners.
-    pub beta: [f64; 3],
-    /// `(b − a) × (c − a)`, unnormalised.
-    pub n: DVec3,
-    /// The moved triangle's edges `b − a`, `c − a` (for the anchored gradient).
-    pub e: [DVec3; 2],
-}
-
-/// Möller–Trumbore of the ray `o + t·d` with triangle (a, b, c) (f64, as `raycast/bvh.rs`):
-/// `(t, [1−u−v, u, v], n)`, or `None` when the ray is within `acos(min_cos)` of the plane, `t`
-/// is not finite and positive, or a barycentric is outside [−0.5, 1.5].
-pub fn intersect(
-    o: DVec3,
-    d: DVec3,
-    [a, b, c]: [DVec3; 3],
-    min_cos: f64,
-) -> Option<(f64, [f64; 3], DVec3)> {
-    let (e1, e2) = (b - a, c - a);
-    let p = d.cross(e2);
-    let det = e1.dot(p);
-    let n = e1.cross(e2);
-    let nn = n.length();
-    // det = −n·d.
-    if nn.is_nan() || nn <= 0.0 || det.abs() < min_cos * nn {
-        return None;
-    }
-    let inv = 1.0 / det;
-    let s = o - a;
-    let q = s.cross(e1);
-    let (t, u, v) = (e2.dot(q) * inv, s.dot(p) * inv, d.dot(q) * inv);
-    let beta = [1.0 - u - v, u, v];
-    if !(t.is_finite() && t > 0.0) || beta.iter().any(|&x| !(-0.5..=1.5).contains(&x)) {
-        return None;
-    }
-    Some((t, beta, n))
-}
-
-/// Sub-samples per parallel work item of [`reintersect_batch`] (a constant, SPEC §5.2; every
-/// sub-sample is independent, so it does not enter the results).
-pub const HIT_CHUNK: usize = 1024;
-
-/// Move every valid sub-sample of `batch` (which must carry triangle ids) to its triangle's plane
-/// at offsets `theta` (indexed by vertex; only the batch's triangles' vertices are read) and
-/// return the hits that carry a vertex gradient, in batch order (module docs). The ray of a
-/// sub-sample runs from `origin(pixel)` (local frame) through its position in `batch`; a
-/// sub-sample [`intersect`] rejects keeps its position.
-pub fn reintersect_batch(
-    geom: &RefineGeom,
-    theta: &[f64],
-    batch: &mut Batch,
-    origin: &(dyn Fn(usize) -> DVec3 + Sync),
-    min_cos: f64,
-) -> Vec<RayHit> {
-    reintersect_with(geom, theta, None, batch, origin, min_cos)
-}
-
-/// [`reintersect_batch`] for `[model.refine] anchored = true`: the batch's positions are on the
-/// training mesh (an anchored tracer's), so the ray of a sub-sample runs from `origin(pixel)`
-/// through the point with the batch's barycentrics (`bary`) on the mesh at offsets `traced` (the
-/// mesh the rays were cast against); the position written is the *training* mesh's point with the
-/// barycentrics of the hit on the mesh at `theta`.
-pub fn reintersect_batch_anchored(
-    geom: &RefineGeom,
-    theta: &[f64],
-    traced: &[f64],
-    batch: &mut Batch,
-    origin: &(dyn Fn(usize) -> DVec3 + Sync),
-    min_cos: f64,
-) -> Vec<RayHit> {
-    reintersect_with(geom, theta, Some(traced), batch, origin, min_cos)
-}
-
-fn reintersect_with(
-    geom: &RefineGeom,
-    theta: &[f64],
-    traced: Option<&[f64]>,
-    batch: &mut Batch,
-    origin: &(dyn Fn(usize) -> DVec3 + Sync),
-    min_cos: f64,
-) -> Vec<RayHit> {
-    use rayon::prelude::*;
-    let s = batch.samples_per_pixel();
-    let extent = geom.norm.extent;
-    let (valid, triangle, positions) = (&batch.valid, &batch.triangle, &batch.positions);
-    let bary = &batch.bary;
-    let out: Vec<Option<(DVec3, RayHit)>> = (0..positions.len())
-        .into_par_iter()
-        .with_min_len(HIT_CHUNK)
-        .map(|j| {
-            if valid[j] == 0 {
-                return None;
-            }
-            let tri = geom.triangles[triangle[j] as usize];
-            let o = origin(j / s);
-            let x = match traced {
-                None => (DVec3::from_array(positions[j]) - DVec3::splat(0.5)) * extent,
-                Some(tr) => {
-                    let [u, v] = bary[j];
-                    let w = [1.0 - u - v, u, v];
-                    (0..3).fold(DVec3::ZERO, |acc, c| {
-                        let i = tri[c] as usize;
-                        acc + geom.position(i, tr[i]) * w[c]
-                    })
-                }
-            };
-            let d = (x - o).normalize_or_zero();
-            let v = tri.map(|i| geom.position(i as usize, theta[i as usize]));
-            let (t, beta, n) = intersect(o, d, v, min_cos)?;
-            let hit = match traced {
-                None => o + d * t,
-                // The training mesh's point with the moved hit's barycentrics.
-                Some(_) => (0..3).fold(DVec3::ZERO, |acc, c| {
-                    acc + geom.position(tri[c] as usize, 0.0) * beta[c]
-                }),
-            };
-            let p = hit / extent + DVec3::splat(0.5);
-            Some((
-                p,
-                RayHit {
-                    sample: j,
-                    tri,
-                    o,
-                    d,
-                    t,
-                    beta,
-                    n,
-                    e: [v[1] - v[0], v[2] - v[0]],
-                },
-            ))
-        })
-        .collect();
-    let mut hits = Vec::with_capacity(out.len());
-    for (p, h) in out.into_iter().flatten() {
-        batch.positions[h.sample] = p.to_array();
-        hits.push(h);
-    }
-    hits
-}
-
-/// ∂L/∂x in local units of sub-sample `j` from `grad.batch.positions` (x_n = x / extent + 0.5 per
-/// axis).
-#[inline]
-fn local_gradient<R: Real>(d_positions: &[R], j: usize, inv_extent: DVec3) -> DVec3 {
-    let k = j * 3;
-    DVec3::new(
-        d_positions[k].to_f64(),
-        d_positions[k + 1].to_f64(),
-        d_positions[k + 2].to_f64(),
-    ) * inv_extent
-}
-
-/// `∂L/∂θ` of the hits (module docs), accumulated into `d_theta` in hit order. `d_positions` is
-/// `grad.batch.positions` `[N*S*3]`; `inv_extent` the normalisation's `1/extent` per axis.
-pub fn hits_backward<R: Real>(
-    geom: &RefineGeom,
-    hits: &[RayHit],
-    d_positions: &[R],
-    d_theta: &mut [f64],
-) {
-    let inv_extent = DVec3::ONE / geom.norm.extent;
-    for h in hits {
-        let g = local_gradient(d_positions, h.sample, inv_extent);
-        for (i, v) in crate::model::photo::plane_hit_chain(geom, h.tri, h.beta, h.n, h.d, g) {
-            d_theta[i as usize] += v;
-        }
-    }
-}
-
-/// `∂L/∂θ` of anchored hits ([`reintersect_batch_anchored`]; docs/geometry.md §3), accumulated
-/// into `d_theta` in hit order. The query point is `x₀ = Σ β_k v⁰_k` (training mesh), so
-/// `∂L/∂β` restricted to the plane is `c = J₀ᵀ g` (`J₀ = [b⁰−a⁰, c⁰−a⁰]`), pulled back to the
-/// moved plane as `h = J G⁻¹ c` (`J` the moved edges, `G = JᵀJ`). Moving the material point of
-/// the hit by `w = Σ β_k δv_k` moves the hit in the plane by `δt·d − w` with
-/// `δt = n·w / n·d`, so `∂L/∂w = (h·d) n / (n·d) − h` and `∂L/∂θ_k = s β_k m_k · ∂L/∂w`.
-pub fn hits_backward_anchored<R: Real>(
-    geom: &RefineGeom,
-    hits: &[RayHit],
-    d_positions: &[R],
-    d_theta: &mut [f64],
-) {
-    let inv_extent = DVec3::ONE / geom.norm.extent;
-    for h in hits {
-        let g = local_gradient(d_positions, h.sample, inv_extent);
-        let base = h.tri.map(|i| geom.base[i as usize]);
-        let c = [g.dot(base[1] - base[0]), g.dot(base[2] - base[0])];
-        let [e1, e2] = h.e;
-        let (g11, g12, g22) = (e1.dot(e1), e1.dot(e2), e2.dot(e2));
-        let det = g11 * g22 - g12 * g12;
-        if det.is_nan() || det <= 0.0 {
-            continue;
-        }
-        // G⁻¹ c, then h = J (G⁻¹ c).
-        let y = [
-            (g22 * c[0] - g12 * c[1]) / det,
-            (g11 * c[1] - g12 * c[0]) / det,
-        ];
-        let hv = e1 * y[0] + e2 * y[1];
-        let dw = h.n * (hv.dot(h.d) / h.n.dot(h.d)) - hv;
-        for c in 0..3 {
-            let i = h.tri[c] as usize;
-            d_theta[i] += geom.scale * h.beta[c] * dw.dot(geom.normals[i]);
-        }
-    }
-}
-
-/// `E_smooth` of the residual `r` and its gradient added into `d_r` (module docs).
-pub fn smoothness<R: Real>(cfg: &RefineConfig, geom: &RefineGeom, r: &[R], d_r: &mut [f64]) -> f64 {
-    if r.is_empty() {
-        return 0.0;
-    }
-    let mut e = 0.0f64;
-    if cfg.laplacian > 0.0 && !geom.edges.is_empty() {
-        let w = cfg.laplacian / geom.edges.len() as f64;
-        for &[i, j] in &geom.edges {
-            let (i, j) = (i as usize, j as usize);
-            let diff = r[i].to_f64() - r[j].to_f64();
-            e += w * diff * diff;
-            d_r[i] += 2.0 * w * diff;
-            d_r[j] -= 2.0 * w * diff;
-        }
-    }
-    if cfg.bilaplacian > 0.0 {
-        let nv = geom.n_vertices();
-        let w = cfg.bilaplacian / nv as f64;
-        // y = L r, then ∂/∂r of w·Σ y² = 2w·Lᵀy.
-        let mut y = vec![0.0f64; nv];
-        for (i, yi) in y.iter_mut().enumerate() {
-            let nb = geom.neighbours(i);
-            if nb.is_empty() {
-                continue;
-            }
-            let m: f64 = nb.iter().map(|&j| r[j as usize].to_f64()).sum::<f64>() / nb.len() as f64;
-            *yi = r[i].to_f64() - m;
-            e += w * *yi * *yi;
-        }
-        for (i, &yi) in y.iter().enumerate() {
-            let nb = geom.neighbours(i);
-            if nb.is_empty() || yi == 0.0 {
-                continue;
-            }
-            let g = 2.0 * w * yi;
-            d_r[i] += g;
-            let share = g / nb.len() as f64;
-            for &j in nb {
-                d_r[j as usize] -= share;
-            }
-        }
-    }
-    e
-}
-
-/// The base mesh with the checkpoint's offsets applied (eval/render), checking the vertex count.
-pub fn refined_mesh(mesh: &Mesh, norm: &Normalization, offsets: &[f32]) -> Result<Mesh> {
-    ensure!(
-        offsets.len() == mesh.vertices.len(),
-        "the model refines a mesh of {} vertices, but the scene's mesh has {}: pass the training mesh with --mesh",
-        offsets.len(),
-        mesh.vertices.len()
-    );
-    let geom = RefineGeom::new(mesh, norm);
-    let theta: Vec<f64> = offsets.iter().map(|&t| t as f64).collect();
-    Ok(geom.mesh_with(&theta))
 }

@@ -34,6 +34,26 @@ impl Mesh {
             |(lo, hi), v| (lo.min(*v), hi.max(*v)),
         )
     }
+
+    /// Length of the bounding-box diagonal.
+    pub fn diagonal(&self) -> f64 {
+        let (lo, hi) = self.bbox();
+        (hi - lo).length()
+    }
+
+    /// Unit area-weighted vertex normals: the normalised sum of the normals `(b−a)×(c−a)` of the
+    /// triangles using each vertex (zero for vertices no triangle uses).
+    pub fn vertex_normals(&self) -> Vec<DVec3> {
+        let mut n = vec![DVec3::ZERO; self.vertices.len()];
+        for t in &self.triangles {
+            let [a, b, c] = t.map(|i| self.vertices[i as usize]);
+            let f = (b - a).cross(c - a);
+            for &i in t {
+                n[i as usize] += f;
+            }
+        }
+        n.iter().map(|v| v.normalize_or_zero()).collect()
+    }
 }
 
 /// What loading a mesh did besides producing it.

@@ -3,7 +3,8 @@
 //! to a given RMS.
 //!
 //! - Vertex normal `m_i`: the normalised sum of the area-weighted normals `(b−a)×(c−a)` of the
-//!   triangles using vertex i (zero for an unused vertex, which then does not move).
+//!   triangles using vertex i (`Mesh::vertex_normals`; zero for an unused vertex, which then does
+//!   not move).
 //! - Field `h(p) = c_xy(x, y) + c_yz(y, z) + c_zx(z, x)`, each `c` the synth module's 2-D value
 //!   noise (`noise::centred`, C² quintic fade) of wavelength `λ` on its own stream: smooth in
 //!   all three axes, energy around λ, zero mean.
@@ -19,19 +20,6 @@ use glam::DVec3;
 /// Sub-stream of the proxy field (three components from here).
 pub const FIELD_STREAM: u64 = stream::PROXY + 0x40;
 
-/// Unit area-weighted vertex normals (zero for vertices no triangle uses).
-pub fn vertex_normals(mesh: &Mesh) -> Vec<DVec3> {
-    let mut n = vec![DVec3::ZERO; mesh.vertices.len()];
-    for t in &mesh.triangles {
-        let [a, b, c] = t.map(|i| mesh.vertices[i as usize]);
-        let f = (b - a).cross(c - a);
-        for &i in t {
-            n[i as usize] += f;
-        }
-    }
-    n.iter().map(|v| v.normalize_or_zero()).collect()
-}
-
 /// The smooth field `h` at `p` (module docs), values in (−1.5, 1.5).
 pub fn field(seed: u64, wavelength: f64, p: DVec3) -> f64 {
     noise::centred(seed, FIELD_STREAM, p.x, p.y, wavelength)
@@ -45,7 +33,7 @@ pub fn displace_along_normals(mesh: &Mesh, seed: u64, rms: f64, wavelength: f64)
     if rms == 0.0 {
         return mesh.clone();
     }
-    let normals = vertex_normals(mesh);
+    let normals = mesh.vertex_normals();
     let h: Vec<f64> = mesh
         .vertices
         .iter()
@@ -76,12 +64,6 @@ pub fn displace_along_normals(mesh: &Mesh, seed: u64, rms: f64, wavelength: f64)
     }
 }
 
-/// Length of the bounding-box diagonal.
-pub fn diagonal(mesh: &Mesh) -> f64 {
-    let (lo, hi) = mesh.bbox();
-    (hi - lo).length()
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -104,7 +86,7 @@ mod tests {
             }
         }
         let d = displace_along_normals(&m, 3, 0.4, 30.0);
-        let normals = vertex_normals(&m);
+        let normals = m.vertex_normals();
         let mut s2 = 0.0;
         for ((a, b), nrm) in m.vertices.iter().zip(&d.vertices).zip(&normals) {
             let delta = *b - *a;

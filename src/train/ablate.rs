@@ -28,12 +28,12 @@
 
 use crate::eval::protocol::ViewScore;
 use crate::model::config::Featurization;
+use crate::run::run_dir::Existing;
+use crate::run::trainer::{train, TrainOptions};
 use crate::scene::mesh::{decimate_report, subdivide, write_ply};
 use crate::scene::{LoadOptions, Mesh, Scene};
 use crate::train::config::RunConfig;
-use crate::train::run_dir::Existing;
 use crate::train::state::TrainState;
-use crate::train::trainer::{train, TrainOptions};
 use anyhow::{bail, ensure, Context, Result};
 use serde::{Deserialize, Serialize};
 use std::fmt::Write as _;
@@ -688,8 +688,8 @@ fn run_variant(
         run_dir.display()
     ));
     // A variant stopped halfway (the command an interrupt prints) continues from its checkpoint.
-    let resume = opts.existing != Existing::Overwrite
-        && crate::train::run_dir::stopped_run_of(run_dir, &cfg);
+    let resume =
+        opts.existing != Existing::Overwrite && crate::run::run_dir::stopped_run_of(run_dir, &cfg);
     if resume {
         say(format!(
             "   {}: continuing the stopped run in {}",

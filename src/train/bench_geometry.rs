@@ -8,7 +8,7 @@
 //! measured (mean / RMS point-to-surface distance of area samples, `scene/distance.rs`; also the
 //! RMS of the truth's samples to the proxy, which sees holes and lost relief). Each proxy is then
 //! trained with the deformation ξ on and off (and, with `refine`, with the joint mesh refinement
-//! of `train/refine.rs`), with one step budget and seed, and its held-out views scored (masked
+//! of `refine/`), with one step budget and seed, and its held-out views scored (masked
 //! PSNR / SSIM, SPEC §7), split into close-up and far views by `scale_summary`'s near/far split.
 //!
 //! Output (`OUT/`): `scene/` (the synthetic scene, rendered once and reused), `meshes/<proxy>.ply`,
@@ -23,12 +23,12 @@
 
 use crate::eval::plot::{lines_png, Axes, Curve};
 use crate::eval::protocol::{mean_score, scale_summary, ViewScore};
+use crate::run::trainer::{train, TrainOptions};
 use crate::scene::distance::{surface_distance, DistanceStats, SurfaceIndex};
 use crate::scene::mesh::{decimate_report, load_mesh, write_ply};
 use crate::scene::Mesh;
-use crate::synth::perturb::{diagonal, displace_along_normals};
+use crate::synth::perturb::displace_along_normals;
 use crate::train::config::RunConfig;
-use crate::train::trainer::{train, TrainOptions};
 use anyhow::{anyhow, bail, ensure, Context, Result};
 use serde::{Deserialize, Serialize};
 use std::fmt::Write as _;
@@ -218,7 +218,7 @@ pub fn build_proxies(
 ) -> Result<Vec<ProxyResult>> {
     check_proxies(specs)?;
     std::fs::create_dir_all(dir).with_context(|| format!("{}: cannot create", dir.display()))?;
-    let diag = diagonal(truth);
+    let diag = truth.diagonal();
     let index = SurfaceIndex::new(truth);
     let mut out = Vec::new();
     for spec in specs {
@@ -294,7 +294,7 @@ pub fn bench_geometry(
     base.validate()?;
     crate::train::config::set_tool_run(&mut base);
     let truth = load_truth(scene)?;
-    let diag = diagonal(&truth);
+    let diag = truth.diagonal();
     say(format!(
         "true surface: {} faces, bounding-box diagonal {diag:.3}",
         truth.triangles.len()
@@ -319,7 +319,8 @@ pub fn bench_geometry(
                 // variant is reused whatever `[model.refine]` values the base config carries);
                 // on: the base config's `[model.refine]` values, enabled.
                 if refine {
-                    crate::train::refine::enable(&mut cfg)?;
+                    cfg.model.refine.enabled = true;
+                    cfg.validate()?;
                 } else {
                     cfg.model.refine = Default::default();
                 }
@@ -397,7 +398,7 @@ fn recorded(dir: &Path) -> Result<(Vec<ViewScore>, u64, f64)> {
     let step = v.get("step").and_then(|x| x.as_u64()).unwrap_or(0);
     // The training time: the last metrics line's elapsed seconds before the final evaluation.
     let seconds =
-        crate::train::report::elapsed_recorded(&dir.join("metrics.jsonl")).unwrap_or(f64::NAN);
+        crate::run::report::elapsed_recorded(&dir.join("metrics.jsonl")).unwrap_or(f64::NAN);
     Ok((views, step, seconds))
 }
 
@@ -437,7 +438,7 @@ fn run_variant(
         ));
         let _ = std::fs::remove_file(&key_path);
         // A run stopped halfway (Ctrl-C, SIGTERM) continues from its checkpoint.
-        let resume = crate::train::run_dir::stopped_run_of(dir, &cfg);
+        let resume = crate::run::run_dir::stopped_run_of(dir, &cfg);
         if resume {
             say(format!("   {name}: continuing the stopped run"));
         }

@@ -17,12 +17,12 @@
 use crate::eval::plot::{pareto_front, pareto_png, Curve};
 use crate::eval::protocol::{mean_score, scale_summary, score_rendered};
 use crate::model::params::Grads;
+use crate::run::trainer::evaluate_until;
 use crate::train::config::RunConfig;
 use crate::train::memory::Job;
 use crate::train::sampler::sample_batch;
 use crate::train::setup::{prepare_until, resolve_levels, StoppedInSetup};
 use crate::train::state::TrainState;
-use crate::train::trainer::evaluate_until;
 use anyhow::{anyhow, bail, Context, Result};
 use std::io::Write;
 use std::path::Path;
@@ -265,7 +265,7 @@ fn bench_one(
     Ok(true)
 }
 
-pub use crate::train::run_dir::Existing;
+pub use crate::run::run_dir::Existing;
 
 /// Run the benchmark: every row (also in `OUT/bench.csv`, appended as each evaluation
 /// finishes, so an interrupted run keeps what it measured; plotted in `OUT/pareto.png`) and the

@@ -12,7 +12,7 @@
 //! - **model**: 20 bytes per parameter (f32 value, gradient, Adam m, v, step count);
 //! - **photo**: with mesh refinement's photo-consistency term (`[model.refine] photo` > 0), every
 //!   training view's f32 RGB copies at the image levels `photo_levels[1] ..= photo_levels[0]`
-//!   (`12·⌈w/2^l⌉·⌈h/2^l⌉` bytes at level l; `train/photo.rs`);
+//!   (`12·⌈w/2^l⌉·⌈h/2^l⌉` bytes at level l; `refine/photo_term.rs`);
 //! - **step**: [`STEP_BYTES_PER_SAMPLE`] per sub-sample of a batch (forward activations kept for
 //!   the backward pass, gradients of the inputs, touched-entry lists), measured on the `cpu`
 //!   preset (see the constant);

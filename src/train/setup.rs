@@ -166,7 +166,7 @@ pub fn prepare_until(
     let t0 = std::time::Instant::now();
     let gamma = cfg.model.gamma;
     // The vertex featurization needs each sub-sample's triangle and barycentrics, the mesh
-    // refinement its triangle (`train/refine.rs`).
+    // refinement its triangle (`refine/`).
     let keep_triangles = !cfg.model.featurization.is_hash() || cfg.model.refine.enabled;
     let mut samples = match mode {
         SampleMode::Stream | SampleMode::Auto => {

@@ -44,7 +44,7 @@ pub struct StepTiming {
     pub zero: f64,
 }
 
-/// Adam's parameters: the model's layout, then the mesh refinement's (`train/refine.rs`), if any.
+/// Adam's parameters: the model's layout, then the mesh refinement's (`refine/refiner.rs`), if any.
 fn param_specs(ckpt: &Checkpoint) -> Vec<(String, Vec<usize>)> {
     let mut v = ckpt.model.layout.name_shapes();
     if let Some(r) = &ckpt.refine {

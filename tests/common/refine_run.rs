@@ -2,8 +2,8 @@
 //! tests (`tests/refine.rs`, `tests/refine_trust.rs`).
 
 use std::path::{Path, PathBuf};
+use xscale::run::trainer::TrainOptions;
 use xscale::train::config::RunConfig;
-use xscale::train::trainer::TrainOptions;
 
 pub fn fixture() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/tiny")

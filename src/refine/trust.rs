@@ -1,6 +1,6 @@
 //! The trust region of the mesh refinement (`[model.refine] trust_batches`, `trust_holdout`;
 //! docs/geometry.md §3, "Trust region"): the acceptance batches an update is measured on and the
-//! paired error that decides it. The decision itself is in `train/refine.rs`.
+//! paired error that decides it. The decision itself is in `refine/refiner.rs`.
 //!
 //! Acceptance batch j of the update after step k: slot i is kept pixel
 //! `pool[below(seed, RefineTrust, k, j·size + i, |pool|)]` — a pure function of (seed, k, j, i),

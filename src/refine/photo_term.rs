@@ -1,5 +1,5 @@
 //! The photo-consistency term of the mesh refinement (`[model.refine] photo` > 0; the energy of a
-//! patch and its derivative are in `model/photo.rs`; SPEC §4.11, docs/geometry.md §4): which
+//! patch and its derivative are in `refine/photo.rs`; SPEC §4.11, docs/geometry.md §4): which
 //! pixels, which neighbour view, at which image level, and visibility.
 //!
 //! ## Setup (once per run, from the training mesh)
@@ -30,9 +30,11 @@
 //! depend on the thread count, and everything is a pure function of (seed, k, the BVH), so a
 //! resumed run draws the same patches.
 
-use crate::model::photo::{patch_eval, PatchEval, PatchPoint, PhotoCamera, PhotoImage};
-use crate::model::refine::{RefineConfig, RefineGeom};
+use crate::model::refine::RefineConfig;
 use crate::raycast::{Packet, RayStream, Scratch, Tracer};
+use crate::refine::field::RefineGeom;
+use crate::refine::photo::{patch_eval, PatchEval, PatchPoint, PhotoCamera, PhotoImage};
+use crate::refine::trust::is_validation_row;
 use crate::rng::{below, Purpose};
 use crate::scene::Image;
 use anyhow::{ensure, Result};
@@ -199,7 +201,7 @@ impl PhotoTerm {
                 cams,
                 images,
                 neighbours: Vec::new(),
-                active: !crate::train::trust::is_validation_row(v.view as i32, cfg.trust_holdout),
+                active: !is_validation_row(v.view as i32, cfg.trust_holdout),
             });
         }
         let lists: Vec<Vec<usize>> = (0..views.len())

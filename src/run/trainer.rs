@@ -18,18 +18,18 @@
 
 use crate::eval::protocol::{evaluate_view, write_evaluated, ViewScore};
 use crate::model::params::Grads;
-use crate::train::config::{differences_but_steps, RunConfig};
-use crate::train::divergence::Guard;
-use crate::train::memory::Job;
-use crate::train::report::Reporter;
-use crate::train::run_dir::{
-    prepare_run_dir, remove_run, RunLock, SceneFingerprint, SETTINGS_FILE,
+use crate::run::divergence::Guard;
+use crate::run::report::Reporter;
+use crate::run::run_dir::{
+    prepare_run_dir, remove_run, run_checkpoint, RunLock, SceneFingerprint, SETTINGS_FILE,
 };
+use crate::train::config::{differences_but_steps, RunConfig};
+use crate::train::memory::Job;
 use crate::train::sampler::sample_batch;
 use crate::train::setup::{prepare_until, resolve_levels, Prepared};
 use crate::train::state::TrainState;
 use anyhow::{bail, Context, Result};
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::sync::atomic::{AtomicBool, Ordering};
 
 /// How a training run is driven (not part of its result).
@@ -143,7 +143,7 @@ pub fn evaluate_until(
     } else {
         prepared.scene.test.iter().copied().take(max).collect()
     };
-    let refined = crate::train::refine::eval_tracer(state, prepared)?;
+    let refined = crate::refine::mesh::eval_tracer(state, prepared)?;
     let tracer = refined.as_ref().unwrap_or(&prepared.tracer);
     let mut scores = Vec::new();
     for &i in &views {
@@ -208,7 +208,7 @@ pub fn train(
     let tc = state.cfg.train.clone();
     // A resumed run's time runs on from its checkpoint's.
     let before = if opts.resume {
-        crate::train::report::elapsed_at(run_dir, state.step).unwrap_or(0.0)
+        crate::run::report::elapsed_at(run_dir, state.step).unwrap_or(0.0)
     } else {
         0.0
     };
@@ -226,7 +226,7 @@ pub fn train(
         save_checkpoint(&state, &ckpt_path)?;
         rep.checkpointed(state.step)?;
     }
-    if let Some(line) = crate::train::refine::write_refined(&state, &prepared, run_dir)? {
+    if let Some(line) = crate::refine::mesh::write_refined(&state, &prepared, run_dir)? {
         rep.say(line);
     }
     let seconds = rep.elapsed();
@@ -417,8 +417,8 @@ fn run_loop(
     .unwrap_or(0);
     let mut guard = Guard::new(warmup, state.step);
     let mut f64s = crate::train::precision::F64Step::for_config(state);
-    // Mesh refinement (`[model.refine]`) steps and draws batches itself (`train/refine.rs`).
-    let mut refiner = crate::train::refine::Refiner::for_run(state, prepared, opts.interrupt)?;
+    // Mesh refinement (`[model.refine]`) steps and draws batches itself (`refine/refiner.rs`).
+    let mut refiner = crate::refine::refiner::Refiner::for_run(state, prepared, opts.interrupt)?;
     let mut next = (state.step < stop).then(|| match &refiner {
         Some(r) => r.draw(prepared, state.step),
         None => draw(state.step),
@@ -492,7 +492,7 @@ fn run_loop(
 /// has: the checkpoint file is written whole or not at all, so the previous one is intact.
 fn save_checkpoint(state: &TrainState, ckpt_path: &Path) -> Result<()> {
     state.save(ckpt_path).map_err(|e| {
-        let what = match crate::train::run_dir::checkpoint_step(ckpt_path) {
+        let what = match crate::run::run_dir::checkpoint_step(ckpt_path) {
             Some(step) => format!(
                 "{} still holds step {step}; once the cause (below) is mended, e.g. room made, continue with --resume",
                 ckpt_path.display()
@@ -504,9 +504,4 @@ fn save_checkpoint(state: &TrainState, ckpt_path: &Path) -> Result<()> {
             state.step
         ))
     })
-}
-
-/// `RUN/checkpoint.safetensors` of a run folder.
-pub fn run_checkpoint(run: &Path) -> PathBuf {
-    run.join("checkpoint.safetensors")
 }

@@ -14,7 +14,7 @@ pub struct Reporter {
     quiet: bool,
     bar: Option<indicatif::ProgressBar>,
     metrics: File,
-    /// `RUN/checkpoint-time.json` ([`crate::train::run_dir::TIME_FILE`]).
+    /// `RUN/checkpoint-time.json` ([`crate::run::run_dir::TIME_FILE`]).
     time_path: PathBuf,
     steps: u64,
     t0: Instant,
@@ -65,7 +65,7 @@ impl Reporter {
             quiet,
             bar,
             metrics,
-            time_path: run_dir.join(crate::train::run_dir::TIME_FILE),
+            time_path: run_dir.join(crate::run::run_dir::TIME_FILE),
             steps,
             t0: Instant::now(),
             offset,
@@ -239,11 +239,11 @@ impl Reporter {
 }
 
 /// The training time of `run_dir`'s run at its checkpoint's `step`: from
-/// [`crate::train::run_dir::TIME_FILE`] when it holds that step, else (a run from an older xscale,
+/// [`crate::run::run_dir::TIME_FILE`] when it holds that step, else (a run from an older xscale,
 /// or one killed between writing its checkpoint and that file) as `metrics.jsonl` records it
 /// ([`elapsed_recorded`]; the resume has cut it back to the checkpoint's step).
 pub fn elapsed_at(run_dir: &Path, step: u64) -> Option<f64> {
-    let recorded = std::fs::read_to_string(run_dir.join(crate::train::run_dir::TIME_FILE))
+    let recorded = std::fs::read_to_string(run_dir.join(crate::run::run_dir::TIME_FILE))
         .ok()
         .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok())
         .filter(|j| j.get("step").and_then(|s| s.as_u64()) == Some(step))

@@ -1,5 +1,6 @@
-//! Joint refinement of the mesh during training (`[model.refine] enabled = true`; the geometry
-//! and its gradient are in `model/refine.rs`, the figures in docs/geometry.md).
+//! The refinement step driver: the mesh refinement during training (`[model.refine] enabled =
+//! true`; the offset field is `field.rs`, the hit points and their gradient `hit.rs`, the figures
+//! in docs/geometry.md).
 //!
 //! ## Schedule (steps k of a run of `train.steps` = T)
 //! - `k < k0 = floor(start·T)`: the mesh is fixed (the features settle first); batches are cast
@@ -17,14 +18,14 @@
 //!   The last update is at k1 − 1.
 //! - `k ≥ k1`: the mesh is fixed again and the features converge on it.
 //!
-//! With `photo` > 0 the photo-consistency term of the training photos (`train/photo.rs`) adds its
+//! With `photo` > 0 the photo-consistency term of the training photos (`photo_term.rs`) adds its
 //! vertex gradient at every moving step after the loss's (which is scaled by `features`, and not
 //! computed at all when that is 0), into the same pending sums; with `optimizer = "gauss-newton"`
 //! its curvature is gathered alongside (`refine.pending_h.*`) and an update divides the one by the
 //! other instead of taking an Adam step (SPEC §4.11).
 //!
 //! While the mesh moves, every batch's valid sub-samples are re-intersected with the current
-//! plane of the triangle their ray hit (`model::refine::reintersect_batch`): between updates the
+//! plane of the triangle their ray hit (`hit::reintersect_batch`): between updates the
 //! mesh does not change, so this reproduces the cast hit (up to the batch's 2⁻³² fixed point) and
 //! gives the records the vertex gradient needs. A pixel none of whose rays hits the rebuilt mesh
 //! is left out of its batch. The logged loss is the photometric loss alone.
@@ -41,30 +42,24 @@
 
 use crate::model::batch::Batch;
 use crate::model::params::Grads;
-use crate::model::refine::{
-    field_backward, grid_name, hits_backward, hits_backward_anchored, reintersect_batch,
-    reintersect_batch_anchored, smoothness, RayHit, RefineConfig, RefineGeom, RefineOptimizer,
-    VERTEX_NAME,
-};
+use crate::model::refine::{grid_name, RefineConfig, RefineOptimizer, VERTEX_NAME};
 use crate::raycast::Tracer;
+use crate::refine::diagnostics::Diagnostics;
+use crate::refine::field::{self, field_backward, smoothness, RefineGeom};
+use crate::refine::hit::{
+    hits_backward, hits_backward_anchored, reintersect_batch, reintersect_batch_anchored, RayHit,
+};
+use crate::refine::photo_term::{self, PhotoStats, PhotoTerm};
+use crate::refine::trust::{self, TrustPool};
 use crate::train::adam::{AdamGroup, LrSchedule};
-use crate::train::config::RunConfig;
 use crate::train::sampler::{sample_batch, Samples};
 use crate::train::setup::Prepared;
 use crate::train::state::{batch_mse, StepStats, TrainState};
 use anyhow::{ensure, Context, Result};
 use glam::DVec3;
-use rayon::prelude::*;
-use std::path::Path;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::Instant;
-
-/// Turn refinement on in a run configuration (the defaults of `[model.refine]`).
-pub fn enable(cfg: &mut RunConfig) -> Result<()> {
-    cfg.model.refine.enabled = true;
-    cfg.validate()
-}
 
 /// The refinement side of a training run (module docs).
 pub struct Refiner {
@@ -96,14 +91,14 @@ pub struct Refiner {
     /// Per active grid level at the last update: RMS of the summed gradient over the nodes it
     /// touched (diagnostics only).
     last_grad_rms: Vec<f64>,
-    /// Acceptance batches' pool (`trust_batches` > 0; `train/trust.rs`).
-    trust_pool: Option<crate::train::trust::TrustPool>,
+    /// Acceptance batches' pool (`trust_batches` > 0; `trust.rs`).
+    trust_pool: Option<TrustPool>,
     /// The field's parameters (grids, residual) before the update awaiting its acceptance test.
     trust_before: Option<(Vec<Vec<f32>>, Vec<f32>)>,
-    /// The photo-consistency term (`photo` > 0; `train/photo.rs`).
-    photo: Option<crate::train::photo::PhotoTerm>,
+    /// The photo-consistency term (`photo` > 0; `photo_term.rs`).
+    photo: Option<PhotoTerm>,
     /// Its sums since the last update (diagnostics only).
-    photo_stats: crate::train::photo::PhotoStats,
+    photo_stats: PhotoStats,
 }
 
 impl Refiner {
@@ -175,10 +170,7 @@ impl Refiner {
             last_grad_rms: Vec::new(),
             trust_pool: match cfg.trust_batches {
                 0 => None,
-                _ => Some(crate::train::trust::TrustPool::new(
-                    &prepared.samples,
-                    cfg.trust_holdout,
-                )?),
+                _ => Some(TrustPool::new(&prepared.samples, cfg.trust_holdout)?),
             },
             trust_before: None,
             photo: None,
@@ -187,10 +179,10 @@ impl Refiner {
             cfg,
         };
         if r.cfg.photo > 0.0 {
-            let crate::train::sampler::Samples::Stream(stream) = &prepared.samples else {
+            let Samples::Stream(stream) = &prepared.samples else {
                 anyhow::bail!("model.refine: the photo-consistency term needs streamed samples");
             };
-            let term = crate::train::photo::PhotoTerm::new(
+            let term = PhotoTerm::new(
                 stream,
                 &prepared.tracer,
                 norm.center,
@@ -220,7 +212,7 @@ impl Refiner {
             // draws a next batch): the offsets and BVH become those of the current parameters,
             // as the uninterrupted run made them.
             let p = state.ckpt.refine.as_mut().expect("refine params");
-            p.sync_offsets(&r.cfg, &r.geom);
+            field::sync_offsets(p, &r.cfg, &r.geom);
             p.traced = p.offsets.clone();
             r.traced = p.traced.iter().map(|&t| t as f64).collect();
         }
@@ -278,7 +270,7 @@ impl Refiner {
     }
 
     /// Image level of the photo term at step k (`photo_levels`, equal spans of the moving steps,
-    /// coarse to fine; `train/photo.rs`).
+    /// coarse to fine; `photo_term.rs`).
     pub fn photo_level(&self, k: u64) -> u32 {
         let [l0, l1] = self.cfg.photo_levels;
         let (k0, k1) = (self.start_step(), self.stop_step());
@@ -337,8 +329,7 @@ impl Refiner {
     /// stores them (what [`Refiner::install`] would build from them).
     fn candidate(&self, state: &TrainState) -> Result<Tracer> {
         let p = state.ckpt.refine.as_ref().expect("refine params");
-        let theta: Vec<f64> = p
-            .theta_all(&self.cfg, &self.geom)
+        let theta: Vec<f64> = field::theta_all(p, &self.cfg, &self.geom)
             .into_iter()
             .map(|t| t as f32 as f64)
             .collect();
@@ -349,7 +340,7 @@ impl Refiner {
     /// acceptance test from the current parameters; else built here).
     fn install(&mut self, state: &mut TrainState, built: Option<Tracer>) -> Result<()> {
         let p = state.ckpt.refine.as_mut().expect("refine params");
-        let theta = p.theta_all(&self.cfg, &self.geom);
+        let theta = field::theta_all(p, &self.cfg, &self.geom);
         if let Some(d) = &self.diag {
             d.record(
                 state.step,
@@ -373,7 +364,7 @@ impl Refiner {
     }
 
     /// The acceptance test of the update just made (`trust_batches` > 0; module docs of
-    /// `train/trust.rs`): `Ok(Some(bvh))` if the proposed step, or one of its halvings, lowers the
+    /// `trust.rs`): `Ok(Some(bvh))` if the proposed step, or one of its halvings, lowers the
     /// acceptance MSE (the parameters are left at the accepted point), `Ok(None)` if none does
     /// (the parameters are restored and the mesh does not move). `k` = the step just done.
     fn trust(
@@ -382,7 +373,6 @@ impl Refiner {
         prepared: &Prepared,
         k: u64,
     ) -> Result<Option<Tracer>> {
-        use crate::train::trust::{paired_mse, row_errors};
         let (g0, v0) = self
             .trust_before
             .take()
@@ -398,7 +388,7 @@ impl Refiner {
         let errors = |tracer: &Tracer, state: &TrainState| -> Result<Vec<Vec<Option<f64>>>> {
             sets.iter()
                 .map(|px| {
-                    row_errors(
+                    trust::row_errors(
                         &state.ckpt.model,
                         &state.ckpt.params,
                         prepared.samples.batch(tracer, px),
@@ -425,7 +415,7 @@ impl Refiner {
             p.vertex = scale(&v0, &v1);
             let tracer = self.candidate(state)?;
             let after = errors(&tracer, state)?;
-            let (mb, ma) = paired_mse(&before, &after);
+            let (mb, ma) = trust::paired_mse(&before, &after);
             tried.push((f, mb, ma));
             if ma < mb * (1.0 - self.cfg.trust_margin) {
                 self.log_trust(k, &tried, true)?;
@@ -520,7 +510,7 @@ impl Refiner {
                     // eval/render apply follow.
                     let tested = self.trust(state, prepared, k).map(|_| {
                         let p = state.ckpt.refine.as_mut().expect("refine params");
-                        p.sync_offsets(&self.cfg, &self.geom);
+                        field::sync_offsets(p, &self.cfg, &self.geom);
                     });
                     if let Err(e) = tested {
                         return (Err(e), None);
@@ -554,11 +544,9 @@ impl Refiner {
         };
         let holdout = self.cfg.trust_holdout;
         if holdout > 0 {
-            // The validation views give no offset gradient (`train/trust.rs`).
+            // The validation views give no offset gradient (`trust.rs`).
             let s = batch.samples_per_pixel();
-            hits.retain(|h| {
-                !crate::train::trust::is_validation_row(batch.view[h.sample / s], holdout)
-            });
+            hits.retain(|h| !trust::is_validation_row(batch.view[h.sample / s], holdout));
         }
         // The loss's gradient through the hit point is needed only if it moves the mesh.
         grads.inputs = moving && self.cfg.features > 0.0;
@@ -589,12 +577,8 @@ impl Refiner {
                 || !st.loss.is_finite()
                 || self.interrupt.is_some_and(|f| f.load(Ordering::SeqCst)))
         {
-            state
-                .ckpt
-                .refine
-                .as_mut()
-                .expect("refine params")
-                .sync_offsets(&self.cfg, &self.geom);
+            let p = state.ckpt.refine.as_mut().expect("refine params");
+            field::sync_offsets(p, &self.cfg, &self.geom);
         }
         Ok(st)
     }
@@ -617,15 +601,7 @@ impl Refiner {
             .collect();
         used.sort_unstable();
         used.dedup();
-        let cfg = &self.cfg;
-        let th: Vec<f64> = used
-            .par_iter()
-            .with_min_len(1024)
-            .map(|&i| params.theta(cfg, geom, i as usize))
-            .collect();
-        for (&i, &t) in used.iter().zip(&th) {
-            self.theta[i as usize] = t;
-        }
+        field::theta_of(params, &self.cfg, geom, &used, &mut self.theta);
         let (origins, views) = (&self.origins, batch.view.clone());
         let origin = move |p: usize| origins[views[p] as usize];
         if self.cfg.anchored {
@@ -678,26 +654,18 @@ impl Refiner {
             }
         }
         if let Some(photo) = &self.photo {
-            let crate::train::sampler::Samples::Stream(stream) = &prepared.samples else {
+            let Samples::Stream(stream) = &prepared.samples else {
                 unreachable!("checked when the refiner was built");
             };
             let k = state.step;
             let tracer = self.tracer.as_deref().unwrap_or(&prepared.tracer);
             let patches = photo.draw(stream, tracer, self.seed, k, self.photo_level(k));
-            let used = crate::train::photo::patch_vertices(geom, &patches);
+            let used = photo_term::patch_vertices(geom, &patches);
             let params = state.ckpt.refine.as_ref().expect("refine params");
-            let cfg = &self.cfg;
-            let th: Vec<f64> = used
-                .par_iter()
-                .with_min_len(1024)
-                .map(|&i| params.theta(cfg, geom, i as usize))
-                .collect();
-            for (&i, &t) in used.iter().zip(&th) {
-                self.theta[i as usize] = t;
-            }
+            field::theta_of(params, &self.cfg, geom, &used, &mut self.theta);
             let evals = photo.evaluate(geom, &self.theta, &patches);
             let curv = (!self.d_curv.is_empty()).then_some(&mut self.d_curv[..]);
-            let st = crate::train::photo::accumulate(&evals, &mut self.d_theta, curv);
+            let st = photo_term::accumulate(&evals, &mut self.d_theta, curv);
             self.photo_stats.add(&st);
             if let Some(d) = self.diag.as_mut() {
                 d.seen.resize(geom.n_vertices(), false);
@@ -831,154 +799,9 @@ fn gauss_newton_step(x: &mut [f32], g: &[f64], h: &[f64], lr: f64, n: f64, dampi
     }
 }
 
-/// Update-by-update diagnostics (`XSCALE_REFINE_LOG`, `XSCALE_REFINE_TRUTH`): one JSON line per
-/// update with the RMS / largest offset and the RMS change of this update (scene units), and, given
-/// a truth mesh with the same vertices, the RMS distance along the vertex normals to it.
-struct Diagnostics {
-    log: std::path::PathBuf,
-    truth: Option<Vec<DVec3>>,
-    /// Vertices the photo term has used so far (its error is also logged over them).
-    seen: Vec<bool>,
-}
-
-impl Diagnostics {
-    fn from_env(n_vertices: usize) -> Result<Option<Diagnostics>> {
-        let Some(log) = std::env::var_os("XSCALE_REFINE_LOG") else {
-            return Ok(None);
-        };
-        let truth = match std::env::var_os("XSCALE_REFINE_TRUTH") {
-            Some(p) => {
-                let m = crate::scene::mesh::load_mesh(std::path::Path::new(&p))?.0;
-                ensure!(
-                    m.vertices.len() == n_vertices,
-                    "XSCALE_REFINE_TRUTH: {} vertices, the training mesh has {n_vertices}",
-                    m.vertices.len()
-                );
-                Some(m.vertices)
-            }
-            None => None,
-        };
-        Ok(Some(Diagnostics {
-            log: log.into(),
-            truth,
-            seen: Vec::new(),
-        }))
-    }
-
-    fn record(
-        &self,
-        step: u64,
-        geom: &RefineGeom,
-        theta: &[f64],
-        before: &[f32],
-        grad_rms: &[f64],
-        photo: Option<crate::train::photo::PhotoStats>,
-    ) -> Result<()> {
-        let n = theta.len().max(1) as f64;
-        let s = geom.scale;
-        let rms = (theta.iter().map(|t| t * t).sum::<f64>() / n).sqrt() * s;
-        let max = theta.iter().fold(0.0f64, |m, t| m.max(t.abs())) * s;
-        let change = (theta
-            .iter()
-            .zip(before)
-            .map(|(a, &b)| (a - b as f64).powi(2))
-            .sum::<f64>()
-            / n)
-            .sqrt()
-            * s;
-        let err = self.truth.as_ref().map(|tv| {
-            let (mut e2, mut s2, mut ns) = (0.0, 0.0, 0usize);
-            for i in 0..theta.len() {
-                let v = geom.position(i, theta[i]) + geom.norm.center;
-                let e = (v - tv[i]).dot(geom.normals[i]).powi(2);
-                e2 += e;
-                if self.seen.get(i) == Some(&true) {
-                    s2 += e;
-                    ns += 1;
-                }
-            }
-            ((e2 / n).sqrt(), (s2 / ns.max(1) as f64).sqrt(), ns)
-        });
-        let mut line = serde_json::json!({"step": step, "offset_rms": rms, "offset_max": max,
-            "update_rms": change, "normal_error_rms": err.map(|e| e.0), "grad_rms": grad_rms});
-        if let (Some(e), false) = (err, self.seen.is_empty()) {
-            line["normal_error_rms_seen"] = serde_json::json!(e.1);
-            line["seen"] = serde_json::json!(e.2);
-        }
-        if let Some(p) = photo {
-            line["photo"] = serde_json::json!({"drawn": p.drawn, "valid": p.valid,
-                "energy_mean": p.energy / p.valid.max(1) as f64});
-        }
-        self.line(line)
-    }
-
-    fn line(&self, line: serde_json::Value) -> Result<()> {
-        use std::io::Write;
-        let mut f = std::fs::OpenOptions::new()
-            .create(true)
-            .append(true)
-            .open(&self.log)
-            .with_context(|| format!("{}: cannot append", self.log.display()))?;
-        writeln!(f, "{line}").with_context(|| format!("{}: cannot write", self.log.display()))
-    }
-}
-
 /// Batch k cast against `tracer` (pixels none of whose rays hit are dropped at use).
 fn draw_with(samples: &Samples, tracer: &Tracer, seed: u64, k: u64, n: usize) -> Batch {
     sample_batch(samples, tracer, seed, k, n)
-}
-
-/// The BVH to evaluate a state with: the refined mesh's when it refines one, else `None`.
-pub fn eval_tracer(state: &TrainState, prepared: &Prepared) -> Result<Option<Tracer>> {
-    match &state.ckpt.refine {
-        Some(p) => {
-            let m = crate::model::refine::refined_mesh(
-                &prepared.scene.mesh,
-                &state.ckpt.normalization,
-                &p.offsets,
-            )?;
-            let t = Tracer::new(&m, &state.ckpt.normalization)?;
-            if state.cfg.model.refine.anchored {
-                return Ok(Some(t.anchored(&prepared.scene.mesh)?));
-            }
-            Ok(Some(t))
-        }
-        None => Ok(None),
-    }
-}
-
-/// `RUN/refined.ply`: the training mesh with the offsets of `state` (written at the end of a run
-/// that refines the mesh; nothing otherwise). Returns the line that tells the user where it is
-/// and how far its vertices moved (scene units, and as a share of the mesh's diagonal).
-pub fn write_refined(
-    state: &TrainState,
-    prepared: &Prepared,
-    run_dir: &Path,
-) -> Result<Option<String>> {
-    let Some(p) = &state.ckpt.refine else {
-        return Ok(None);
-    };
-    let base = &prepared.scene.mesh;
-    let m = crate::model::refine::refined_mesh(base, &state.ckpt.normalization, &p.offsets)?;
-    let path = run_dir.join("refined.ply");
-    crate::scene::mesh::write_ply(&path, &m)?;
-    let moved: Vec<f64> = base
-        .vertices
-        .iter()
-        .zip(&m.vertices)
-        .map(|(a, b)| (*a - *b).length())
-        .collect();
-    let n = moved.len().max(1) as f64;
-    let rms = (moved.iter().map(|d| d * d).sum::<f64>() / n).sqrt();
-    let max = moved.iter().copied().fold(0.0, f64::max);
-    let (lo, hi) = base.bbox();
-    let diag = (hi - lo).length().max(f64::MIN_POSITIVE);
-    Ok(Some(format!(
-        "refined mesh written to {}: its vertices moved {rms:.3e} RMS, {max:.3e} at most ({:.3} % and {:.3} % of the mesh's diagonal)",
-        path.display(),
-        100.0 * rms / diag,
-        100.0 * max / diag
-    )))
 }
 
 /// Gather the per-vertex sums `d` of the `touched` vertices onto the offset field's pending sums

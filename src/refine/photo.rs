@@ -1,7 +1,7 @@
 //! Multi-view photo-consistency of the input photos: a source of vertex gradient for the mesh
 //! refinement that does not depend on the learned features (`[model.refine] photo`; beyond the
 //! paper; SPEC §4.11, docs/geometry.md §4). The sampling (which pixels, which neighbour view,
-//! visibility, image levels) is in `train/photo.rs`; this file is the energy of one patch and its
+//! visibility, image levels) is in `refine/photo_term.rs`; this file is the energy of one patch and its
 //! exact derivative with respect to the vertex offsets, in f64.
 //!
 //! ## One patch
@@ -9,7 +9,7 @@
 //! `2^l`, its camera's K divided by `2^l`): pixel q has the ray `o_i + t·d_q` through its centre,
 //! the triangle that ray hit (from the BVH of the last rebuild: data) and the reference colour
 //! `a_q` = the level-l photo of view i at q (data). The ray meets the triangle's *current* plane
-//! at `x_q = o_i + t_q·d_q` (Möller–Trumbore, `refine::intersect`, as the hit point of the
+//! at `x_q = o_i + t_q·d_q` (Möller–Trumbore, `hit::intersect`, as the hit point of the
 //! feature gradient), which is projected into the neighbour view j at the same level (pinhole:
 //! `c = R_j (x_q − o_j)`, `π = (f_x c_x/c_z + c_x', f_y c_y/c_z + c_y')`) and sampled there
 //! bilinearly between pixel centres: `b_q = I_j(π(x_q))`. The patch's energy is `w · ρ(a, b)`,
@@ -42,36 +42,17 @@
 //! `w·|∂b̂/∂θ_c|²` for zncc (`b̂ = b'/sqrt(b'·b' + ε)`, `1 − ncc ≈ ½|b̂ − â|²`) and
 //! `w·(1/3K)Σ J²/max(|r|, δ)` for huber (iteratively reweighted least squares).
 
-use crate::model::refine::{intersect, RefineGeom};
+use crate::model::refine::PhotoMeasure;
+use crate::refine::field::RefineGeom;
+use crate::refine::hit::{intersect, plane_hit_chain};
 use crate::scene::{Camera, Distortion, Image};
 use anyhow::{bail, Result};
 use glam::{DMat3, DVec3};
-use serde::{Deserialize, Serialize};
 
 /// Noise floor of the zncc's variances (colour units): `ε = 3K·σ₀²`.
 pub const ZNCC_SIGMA0: f64 = 0.01;
 /// Huber threshold of the `huber` measure (colour units).
 pub const HUBER_DELTA: f64 = 0.02;
-
-/// How a reference patch and its reprojection are compared.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
-#[serde(rename_all = "lowercase")]
-pub enum PhotoMeasure {
-    /// One minus the zero-mean normalised cross-correlation of the patch (RGB, per-channel means).
-    #[default]
-    Zncc,
-    /// Mean Huber penalty of the colour differences.
-    Huber,
-}
-
-impl PhotoMeasure {
-    pub fn name(self) -> &'static str {
-        match self {
-            PhotoMeasure::Zncc => "zncc",
-            PhotoMeasure::Huber => "huber",
-        }
-    }
-}
 
 /// A pinhole camera at one image level, in the refinement's local frame (world − normalisation
 /// centre).
@@ -332,7 +313,7 @@ pub fn measure(
 
 /// The energy of one patch at offsets `theta` (module docs): `origin` is the reference camera's
 /// centre (local frame), `cam`/`img` the neighbour view at the patch's level, `weight` = w.
-/// `None` when a ray misses its triangle's current plane (`refine::intersect` with `min_cos`) or a
+/// `None` when a ray misses its triangle's current plane (`hit::intersect` with `min_cos`) or a
 /// sample falls outside the neighbour's image or behind it. `theta` is read at the patch's
 /// triangles' vertices only.
 #[allow(clippy::too_many_arguments)]
@@ -398,24 +379,5 @@ pub fn patch_eval(
         curvature: weight * curv,
         share,
         cells,
-    })
-}
-
-/// `∂L/∂θ_k = s · (g·d) · β_k · (n·m_k) / (n·d)` for the three corners of a plane hit (SPEC §4.11):
-/// `g` = ∂L/∂x (local units) of the hit `o + t·d` of triangle `tri` (barycentrics `beta`,
-/// unnormalised normal `n`).
-#[inline]
-pub fn plane_hit_chain(
-    geom: &RefineGeom,
-    tri: [u32; 3],
-    beta: [f64; 3],
-    n: DVec3,
-    d: DVec3,
-    g: DVec3,
-) -> [(u32, f64); 3] {
-    let along = geom.scale * g.dot(d) / n.dot(d);
-    std::array::from_fn(|c| {
-        let i = tri[c];
-        (i, along * beta[c] * n.dot(geom.normals[i as usize]))
     })
 }

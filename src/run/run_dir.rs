@@ -376,7 +376,7 @@ fn remove_images(dir: &Path) -> Result<()> {
 }
 
 /// The run's training time when its checkpoint was written, `{"step": K, "elapsed_s": T}`
-/// ([`crate::train::report::elapsed_at`]). Not in the checkpoint, whose bytes must not depend on
+/// ([`crate::run::report::elapsed_at`]). Not in the checkpoint, whose bytes must not depend on
 /// wall time (a resumed run writes the same bytes as one never stopped), nor only in
 /// `metrics.jsonl`, a log a user may trim or delete (the resumed run's time then restarted at
 /// 0).
@@ -565,6 +565,11 @@ impl SceneFingerprint {
         }
         Ok(())
     }
+}
+
+/// `RUN/checkpoint.safetensors` of a run folder.
+pub fn run_checkpoint(run: &Path) -> PathBuf {
+    run.join("checkpoint.safetensors")
 }
 
 #[cfg(test)]

@@ -1,0 +1,134 @@
+//! A run's model and the scene to use it on (`xscale eval`, `render`, and tests): the checkpoint
+//! with the run configuration it was trained with, and the scene loaded for it — the model's
+//! normalisation, the refined mesh when the model refines it (and the BVH anchored to the
+//! training mesh when its features are), the appearance row of each view.
+
+use crate::model::checkpoint::Checkpoint;
+use crate::raycast::Tracer;
+use crate::refine::mesh::refined_mesh;
+use crate::scene::{LoadOptions, Scene};
+use crate::train::config::RunConfig;
+use anyhow::{bail, Context, Result};
+use std::path::Path;
+
+/// A model checkpoint and, when it has one, the run configuration it was trained with.
+pub fn load_model(path: &Path) -> Result<(Checkpoint, Option<RunConfig>)> {
+    let f = Checkpoint::read_model_tensors(path)?;
+    let ckpt = Checkpoint::from_tensor_file(&f)?;
+    let cfg = match f.metadata.get("run_config") {
+        Some(text) => Some(RunConfig::from_stored_toml(
+            text,
+            &path.display().to_string(),
+        )?),
+        None => None,
+    };
+    Ok((ckpt, cfg))
+}
+
+/// A scene loaded for a model: the model's normalisation (not the scene mesh's own, so a
+/// decimated or edited mesh still maps into the trained grid), its BVH, and the appearance row
+/// of each view (training views in order; held-out views −1).
+pub struct SceneForModel {
+    pub scene: Scene,
+    pub tracer: Tracer,
+    pub rows: Vec<i32>,
+}
+
+/// `mesh`: a mesh file overriding the scene's (default: the run config's `train.mesh`, else the
+/// scene's own). A vertex-featurization model checks that the mesh's triangles are the ones it
+/// was trained on (its table is indexed by them).
+pub fn scene_for_model(
+    dir: &Path,
+    ckpt: &Checkpoint,
+    cfg: Option<&RunConfig>,
+    downsample: Option<u32>,
+    mesh: Option<&Path>,
+) -> Result<SceneForModel> {
+    let opts = LoadOptions {
+        downsample: downsample.or(cfg.map(|c| c.train.downsample)).unwrap_or(1),
+        normalize: cfg.map(|c| c.train.normalize).unwrap_or_default(),
+        mesh: mesh
+            .map(Path::to_path_buf)
+            .or_else(|| cfg.and_then(|c| c.train.mesh.clone())),
+        ..LoadOptions::default()
+    };
+    if let (None, Some(m)) = (mesh, &opts.mesh) {
+        if !m.exists() {
+            bail!(
+                "{}: the mesh this model was trained on (train.mesh of its run configuration) no longer exists; give it with --mesh FILE",
+                m.display()
+            );
+        }
+    }
+    let mut scene = load_warning(dir, &opts)?;
+    if let Some(vt) = &ckpt.model.vertex {
+        if scene.mesh.vertices.len() != vt.n_vertices || scene.mesh.triangles[..] != vt.faces[..] {
+            bail!(
+                "the model has vertex features for a mesh of {} vertices / {} triangles, but the scene's mesh has {} / {} (or other triangles): pass the training mesh with --mesh",
+                vt.n_vertices,
+                vt.faces.len(),
+                scene.mesh.vertices.len(),
+                scene.mesh.triangles.len()
+            );
+        }
+    }
+    scene.normalization = ckpt.normalization;
+    let mut anchor = None;
+    if let Some(r) = &ckpt.refine {
+        // The model refined its training mesh (`[model.refine]`): render on the refined one.
+        let refined = refined_mesh(&scene.mesh, &scene.normalization, &r.offsets)?;
+        let base = std::mem::replace(&mut scene.mesh, refined);
+        // `anchored`: the features are queried on the training mesh.
+        if cfg.is_some_and(|c| c.model.refine.anchored) {
+            anchor = Some(base);
+        }
+    }
+    let mut tracer = Tracer::new(&scene.mesh, &scene.normalization).context("building the BVH")?;
+    if let Some(base) = &anchor {
+        tracer = tracer.anchored(base)?;
+    }
+    let train = scene.train();
+    let mut rows = vec![-1; scene.views.len()];
+    if ckpt.model.appearance_dim() > 0 {
+        if train.len() != ckpt.model.appearance_views() {
+            eprintln!(
+                "warning: the scene has {} training views but the model has {} appearance codes; every view uses the mean code",
+                train.len(),
+                ckpt.model.appearance_views()
+            );
+        } else {
+            for (r, &i) in train.iter().enumerate() {
+                rows[i] = r as i32;
+            }
+        }
+    }
+    Ok(SceneForModel {
+        scene,
+        tracer,
+        rows,
+    })
+}
+
+/// [`Scene::load`], printing the loader's warnings (a mesh in other units or another frame than
+/// the cameras, docs/spec.md §3.9) as `train` and `cast` do: `eval` and `render` would otherwise
+/// score or draw such a scene without a word.
+pub fn load_warning(dir: &Path, opts: &LoadOptions) -> Result<Scene> {
+    let (scene, report) = Scene::load_report(dir, opts)?;
+    for w in &report.warnings {
+        eprintln!("warning: {w}");
+    }
+    Ok(scene)
+}
+
+/// The scene alone, for renderers that need no model (ULR): its own normalisation, its BVH, every
+/// view without an appearance row.
+pub fn scene_without_model(dir: &Path, opts: &LoadOptions) -> Result<SceneForModel> {
+    let scene = load_warning(dir, opts)?;
+    let tracer = Tracer::new(&scene.mesh, &scene.normalization).context("building the BVH")?;
+    let rows = vec![-1; scene.views.len()];
+    Ok(SceneForModel {
+        scene,
+        tracer,
+        rows,
+    })
+}

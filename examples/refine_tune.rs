@@ -80,7 +80,7 @@ fn main() -> anyhow::Result<()> {
         }
     }
     let scores = evaluate(&st, &prepared, 0, None)?;
-    let (all, near, far) = xscale::train::bench_geometry::split_scores(&scores);
+    let (all, near, far) = xscale::experiments::bench_geometry::split_scores(&scores);
     println!(
         "masked PSNR {:.2} (close-up {:.2}, far {:.2}), SSIM {:.4}",
         all.psnr_masked, near.psnr_masked, far.psnr_masked, all.ssim_masked

@@ -42,6 +42,7 @@ macro_rules! print {
 
 pub mod cli;
 pub mod eval;
+pub mod experiments;
 pub mod io;
 pub mod memhint;
 pub mod model;

@@ -2,7 +2,7 @@
 //! with growing wall time, the ULR row, the plot, and a clear error for an unknown configuration.
 
 use std::path::{Path, PathBuf};
-use xscale::train::bench_quality::{bench_quality, read_rows, replot, Existing};
+use xscale::experiments::bench_quality::{bench_quality, read_rows, replot, Existing};
 
 /// A fresh output folder for this test process.
 fn fresh_out(tag: &str) -> PathBuf {
@@ -15,7 +15,7 @@ fn fresh_out(tag: &str) -> PathBuf {
 fn tiny_and_ulr(
     out: &Path,
     stop: &dyn Fn() -> bool,
-) -> (Vec<xscale::train::bench_quality::Row>, Vec<String>) {
+) -> (Vec<xscale::experiments::bench_quality::Row>, Vec<String>) {
     let root = Path::new(env!("CARGO_MANIFEST_DIR"));
     let configs = ["tiny".to_string(), "ulr".to_string()];
     bench_quality(

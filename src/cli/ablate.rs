@@ -3,11 +3,12 @@
 //! deformation, without multisampling; Table 5: decimated mesh) and the vertex-feature baseline
 //! (Fig. 2b) on one scene with one step budget, score the held-out views and write
 //! `DIR/ablation.md` (a table like the paper's) and `DIR/ablation.json`. See
-//! `src/train/ablate.rs` for the variants and how the baseline's feature width is chosen.
+//! `src/experiments/ablate.rs` for the variants and how the baseline's feature width is chosen.
 
 use super::common::RunArgs;
+use crate::experiments::ablate::{run_ablation, AblateOptions, Variant};
+use crate::experiments::variant::Runs;
 use crate::run::run_dir::Existing;
-use crate::train::ablate::{run_ablation, AblateOptions, Variant};
 use anyhow::Result;
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -64,17 +65,19 @@ pub fn run(a: Args) -> Result<ExitCode> {
         .filter(|v| a.variants.contains(v))
         .collect();
     let opts = AblateOptions {
-        base,
+        runs: Runs {
+            base,
+            interrupt: Some(super::common::on_interrupt(
+                "stopping the variant in training at its next step; the finished ones are kept",
+            )),
+            quiet: a.quiet,
+        },
         variants,
         ratio: a.ratio,
         subdivide: a.subdivide,
         minutes: a.minutes,
         steps_given: a.run.steps.is_some(),
         existing: Existing::from_flags(a.append, a.overwrite),
-        interrupt: Some(super::common::on_interrupt(
-            "stopping the variant in training at its next step; the finished ones are kept",
-        )),
-        quiet: a.quiet,
     };
     let rep = run_ablation(&a.scene, &a.out, &opts)?;
     if let Some(first) = rep.stopped.first() {
@@ -100,7 +103,7 @@ pub fn run(a: Args) -> Result<ExitCode> {
         );
         return Ok(ExitCode::from(super::common::EXIT_STOPPED));
     }
-    print!("{}", crate::train::ablate::markdown(&rep));
+    print!("{}", crate::experiments::ablate::markdown(&rep));
     eprintln!(
         "wrote {} and {}",
         a.out.join("ablation.md").display(),

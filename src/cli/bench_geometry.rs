@@ -1,12 +1,13 @@
 //! `xscale bench-geometry (--scene DIR | --scene-preset P) --out DIR [--steps N] [--rms LIST]
 //! [--decimate R] [--deform on,off] [--refine off,on]`: how much an imperfect mesh costs, and what
-//! refining it wins back (`train/bench_geometry.rs`, docs/geometry.md).
+//! refining it wins back (`experiments/bench_geometry.rs`, docs/geometry.md).
 
 use super::common::RunArgs;
-use crate::synth::Preset;
-use crate::train::bench_geometry::{
+use crate::experiments::bench_geometry::{
     bench_geometry, check_proxies, GeometryOptions, ProxySpec, DISTANCE_SAMPLES,
 };
+use crate::experiments::variant::Runs;
+use crate::synth::Preset;
 use anyhow::{bail, Context, Result};
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
@@ -161,13 +162,15 @@ pub fn run(a: Args) -> Result<ExitCode> {
         (None, None) => bail!("give --scene DIR or --scene-preset P"),
     };
     let opts = GeometryOptions {
-        base,
+        runs: Runs {
+            base,
+            quiet: a.quiet,
+            interrupt: Some(interrupt),
+        },
         proxies,
         deform: dedup(&a.deform),
         refine: dedup(&a.refine),
         samples: a.samples,
-        quiet: a.quiet,
-        interrupt: Some(interrupt),
     };
     let Some(rep) = bench_geometry(&scene, &a.out, &opts, &mut say)? else {
         eprintln!(
@@ -175,7 +178,7 @@ pub fn run(a: Args) -> Result<ExitCode> {
         );
         return Ok(ExitCode::from(super::common::EXIT_STOPPED));
     };
-    print!("{}", crate::train::bench_geometry::markdown(&rep));
+    print!("{}", crate::experiments::bench_geometry::markdown(&rep));
     eprintln!(
         "wrote {}, geometry.csv, geometry.json, geometry-psnr.png, geometry-ssim.png",
         a.out.join("geometry.md").display()

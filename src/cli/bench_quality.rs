@@ -1,8 +1,8 @@
 //! `xscale bench-quality --scene DIR --out DIR [--minutes M] [--configs a,b] [--append |
 //! --overwrite] [--list]`: run time
-//! against error (`train/bench_quality.rs`).
+//! against error (`experiments/bench_quality.rs`).
 
-use crate::train::bench_quality::{bench_quality, check_configs, replot, Existing, CONFIGS};
+use crate::experiments::bench_quality::{bench_quality, check_configs, replot, Existing, CONFIGS};
 use std::path::PathBuf;
 use std::process::ExitCode;
 

@@ -15,7 +15,7 @@ pub struct Args {
     #[arg(long)]
     pub truth: PathBuf,
     /// Area samples on each mesh.
-    #[arg(long, default_value_t = crate::train::bench_geometry::DISTANCE_SAMPLES, value_parser = super::common::parse_positive)]
+    #[arg(long, default_value_t = crate::experiments::bench_geometry::DISTANCE_SAMPLES, value_parser = super::common::parse_positive)]
     pub samples: usize,
 }
 

@@ -13,10 +13,7 @@
 //! | `state.rs` | the state of a run at a step ([`state::TrainState`]) and one optimisation step |
 //! | `precision.rs` | the step with the model in f64 |
 
-pub mod ablate;
 pub mod adam;
-pub mod bench_geometry;
-pub mod bench_quality;
 pub mod config;
 pub mod memory;
 pub mod precision;

@@ -15,7 +15,8 @@
 //! (written before it was recorded), whose rows it cannot check.
 
 use crate::eval::plot::{pareto_front, pareto_png, Curve};
-use crate::eval::protocol::{mean_score, scale_summary, score_rendered};
+use crate::eval::protocol::{mean_score, scale_summary};
+use crate::experiments::variant::ulr_scores;
 use crate::model::params::Grads;
 use crate::run::trainer::evaluate_until;
 use crate::train::config::RunConfig;
@@ -187,18 +188,9 @@ fn bench_one(
         let tracer = crate::raycast::Tracer::new(&sc.mesh, &sc.normalization)?;
         let sources = crate::render::ulr::training_sources(&sc)?;
         let setup_s = t_setup.elapsed().as_secs_f64();
-        let mut scores = Vec::new();
-        for &i in &sc.test {
-            // Cast as the `cpu` configurations cast their pixels (γ = 2).
-            let r = crate::render::ulr::render_ulr(
-                &tracer,
-                &sources,
-                &sc.views[i].camera,
-                crate::model::ModelConfig::cpu().gamma,
-                sc.background,
-            )?;
-            scores.push(score_rendered(&sc, i, r, sc.background)?.scored.score);
-        }
+        // Cast as the `cpu` configurations cast their pixels (γ = 2).
+        let gamma = crate::model::ModelConfig::cpu().gamma;
+        let scores = ulr_scores(&sc, &tracer, &sources, gamma)?;
         let m = mean_score(&scores);
         let (pn, pf) = near_far(&scores);
         log(Row {

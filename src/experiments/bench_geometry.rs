@@ -23,7 +23,7 @@
 
 use crate::eval::plot::{lines_png, Axes, Curve};
 use crate::eval::protocol::{mean_score, scale_summary, ViewScore};
-use crate::run::trainer::{train, TrainOptions};
+use crate::experiments::variant::Runs;
 use crate::scene::distance::{surface_distance, DistanceStats, SurfaceIndex};
 use crate::scene::mesh::{decimate_report, load_mesh, write_ply};
 use crate::scene::Mesh;
@@ -83,8 +83,9 @@ impl ProxySpec {
 /// How to run the benchmark.
 #[derive(Clone, Debug)]
 pub struct GeometryOptions {
-    /// Base configuration (preset, overrides, steps, seed) shared by every run.
-    pub base: RunConfig,
+    /// The base configuration every run is derived from, and how they train. An interrupt ends
+    /// the benchmark without its report; the same command continues it.
+    pub runs: Runs,
     pub proxies: Vec<ProxySpec>,
     /// ξ settings to train each proxy with (true = on).
     pub deform: Vec<bool>,
@@ -92,10 +93,6 @@ pub struct GeometryOptions {
     pub refine: Vec<bool>,
     /// Area samples per distance measurement.
     pub samples: usize,
-    pub quiet: bool,
-    /// Set by a Ctrl-C / SIGTERM handler: the run in training stops at its next step with a
-    /// checkpoint, and the benchmark ends without its report; the same command continues it.
-    pub interrupt: Option<&'static std::sync::atomic::AtomicBool>,
 }
 
 /// A proxy with its geometry error against the truth.
@@ -290,7 +287,7 @@ pub fn bench_geometry(
         !opts.deform.is_empty() && !opts.refine.is_empty(),
         "no variants to train"
     );
-    let mut base = opts.base.clone();
+    let mut base = opts.runs.base.clone();
     base.validate()?;
     crate::train::config::set_tool_run(&mut base);
     let truth = load_truth(scene)?;
@@ -442,21 +439,10 @@ fn run_variant(
         if resume {
             say(format!("   {name}: continuing the stopped run"));
         }
-        let s = train(
-            scene,
-            dir,
-            cfg.clone(),
-            &TrainOptions {
-                quiet: true,
-                resume,
-                overwrite: !resume,
-                interrupt: opts.interrupt,
-                settings: Some(cfg.results_toml()),
-                bar: !opts.quiet,
-                ..TrainOptions::default()
-            },
-        )
-        .with_context(|| format!("bench-geometry variant {name}"))?;
+        let s = opts
+            .runs
+            .train(scene, dir, &cfg, resume)
+            .with_context(|| format!("bench-geometry variant {name}"))?;
         if s.interrupted {
             return Ok(None);
         }

@@ -27,6 +27,7 @@
 //! the full model trains for about that long; every variant then uses that same step count.
 
 use crate::eval::protocol::ViewScore;
+use crate::experiments::variant::{ulr_scores, Runs};
 use crate::model::config::Featurization;
 use crate::run::run_dir::Existing;
 use crate::run::trainer::{train, TrainOptions};
@@ -125,8 +126,9 @@ impl<'de> Deserialize<'de> for Variant {
 /// How to run the ablation.
 #[derive(Clone, Debug)]
 pub struct AblateOptions {
-    /// Base configuration (preset + overrides) shared by every variant.
-    pub base: RunConfig,
+    /// The base configuration every variant is derived from, and how they train. An interrupt
+    /// ends the ablation with the variants it finished ([`AblationReport::stopped`]).
+    pub runs: Runs,
     /// Variants to run, in table order.
     pub variants: Vec<Variant>,
     /// Face ratio of the decimated mesh (`mesh10`); `None`: the earlier ablation's when appending,
@@ -140,10 +142,6 @@ pub struct AblateOptions {
     pub steps_given: bool,
     /// What to do with an earlier ablation in the output folder (`OUT/ablation.json`).
     pub existing: Existing,
-    /// Set by a Ctrl-C / SIGTERM handler: the variant training stops at its next step and the
-    /// ablation ends with the variants it finished ([`AblationReport::stopped`]).
-    pub interrupt: Option<&'static std::sync::atomic::AtomicBool>,
-    pub quiet: bool,
 }
 
 /// One variant's result.
@@ -287,11 +285,11 @@ pub fn run_ablation(scene: &Path, out: &Path, opts: &AblateOptions) -> Result<Ab
     let ratio = opts.ratio.or(earlier_ratio).unwrap_or(DEFAULT_RATIO);
     std::fs::create_dir_all(out).with_context(|| format!("{}: cannot create", out.display()))?;
     let say = |s: String| {
-        if !opts.quiet {
+        if !opts.runs.quiet {
             eprintln!("{s}");
         }
     };
-    let mut base = opts.base.clone();
+    let mut base = opts.runs.base.clone();
     base.validate()?;
     ensure!(
         base.model.featurization.is_hash(),
@@ -378,7 +376,8 @@ pub fn run_ablation(scene: &Path, out: &Path, opts: &AblateOptions) -> Result<Ab
         results = kept;
     }
     let interrupted = || {
-        opts.interrupt
+        opts.runs
+            .interrupt
             .is_some_and(|f| f.load(std::sync::atomic::Ordering::SeqCst))
     };
     let report_of = |results: &[VariantResult]| AblationReport {
@@ -697,22 +696,10 @@ fn run_variant(
             run_dir.display()
         ));
     }
-    let summary = train(
-        ctx.scene,
-        run_dir,
-        cfg.clone(),
-        &TrainOptions {
-            quiet: true,
-            resume,
-            // A variant run again, not stopped halfway, replaces its run.
-            overwrite: !resume,
-            interrupt: opts.interrupt,
-            settings: Some(cfg.results_toml()),
-            bar: !opts.quiet,
-            ..TrainOptions::default()
-        },
-    )
-    .with_context(|| format!("ablation variant {}", v.name()))?;
+    let summary = opts
+        .runs
+        .train(ctx.scene, run_dir, &cfg, resume)
+        .with_context(|| format!("ablation variant {}", v.name()))?;
     if summary.interrupted {
         return Ok(None);
     }
@@ -765,17 +752,7 @@ fn ulr_variant(ctx: &Shared, say: &dyn Fn(String)) -> Result<VariantResult> {
     let sc = Scene::load(ctx.scene, &ctx.load)?;
     let tracer = crate::raycast::Tracer::new(&sc.mesh, &sc.normalization)?;
     let sources = crate::render::ulr::training_sources(&sc)?;
-    let mut views = Vec::new();
-    for &i in &sc.test {
-        let camera = &sc.views[i].camera;
-        let r =
-            crate::render::ulr::render_ulr(&tracer, &sources, camera, ctx.gamma, sc.background)?;
-        views.push(
-            crate::eval::protocol::score_rendered(&sc, i, r, sc.background)?
-                .scored
-                .score,
-        );
-    }
+    let views = ulr_scores(&sc, &tracer, &sources, ctx.gamma)?;
     let mean = crate::eval::protocol::mean_score(&views);
     say(format!(
         "   ulr: PSNR masked {:.2} / full {:.2}, SSIM masked {:.4}, no training",

@@ -53,4 +53,5 @@ pub mod rng;
 pub mod run;
 pub mod scene;
 pub mod synth;
+pub mod sysmem;
 pub mod train;

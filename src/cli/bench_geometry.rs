@@ -109,7 +109,7 @@ fn synth_scene(
         preset.name(),
         dir.display()
     ));
-    super::synth::generate(
+    crate::synth::generate(
         preset,
         seed,
         dir,

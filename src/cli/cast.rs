@@ -7,6 +7,8 @@ use crate::raycast::consistency::PhotoCheck;
 use crate::raycast::{BuildPreset, CacheEvent, SampleCache, Tracer};
 use crate::scene::Camera;
 use crate::scene::{CameraFormat, LoadOptions, NormalizeMode, Scene};
+use crate::train::sampler::Samples;
+use crate::train::setup::CastViews;
 use anyhow::{bail, Context, Result};
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -93,7 +95,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
         bail!("{}: no views to cast", args.scene.display());
     }
     let (cache, rays, cast_s) = cast_views(&args, &scene, &tracer, &indices)?;
-    print_report(&args, &scene, &cache, indices.len(), rays, cast_s);
+    print_report(&args, &scene, &cache, &indices, rays, cast_s);
     if cache.is_empty() {
         eprintln!("error: no view sees the mesh");
         return Ok(ExitCode::from(1));
@@ -146,68 +148,68 @@ fn build_tracer(
     Ok(tracer)
 }
 
-/// Cast every view of `indices` into a sample cache: (cache, rays cast, seconds casting).
+/// Cast every view of `indices` into a sample cache (input index = position in `indices`), as
+/// `train`'s setup casts them: (cache, rays cast, seconds casting).
 fn cast_views(
     args: &Args,
     scene: &Scene,
     tracer: &Tracer,
     indices: &[usize],
 ) -> Result<(SampleCache, u64, f64)> {
-    let mut cache = SampleCache::new(args.gamma)?;
-    let (mut rays, mut cast_s) = (0u64, 0.0f64);
+    let mut samples = Samples::Cache(Box::new(SampleCache::new(args.gamma)?));
     // The photos against the mesh, as `train` checks them (`raycast/consistency.rs`).
     let mut photo_check = (!args.no_images).then(|| {
         let cams: Vec<&Camera> = indices.iter().map(|&i| &scene.views[i].camera).collect();
         PhotoCheck::plan(&scene.mesh, tracer, &cams)
     });
-    for (k, &i) in indices.iter().enumerate() {
-        let view = &scene.views[i];
-        let img = if args.no_images {
-            None
-        } else {
-            Some(scene.load_image(i)?)
-        };
-        if let (Some(c), Some(img)) = (&mut photo_check, &img) {
-            c.add_view(k, img);
-        }
-        let t = Instant::now();
-        // An alpha mask is the photo's own alpha channel: reading it would decode the photo.
-        let mask = if args.no_images && scene.masks[i] == crate::scene::MaskSource::Alpha {
-            None
-        } else {
-            scene.load_mask(i)?
-        };
-        let why = crate::scene::mask::drop_reason(mask.as_deref());
-        let mut on_event = |e: CacheEvent| match e {
-            CacheEvent::ViewCast { kept, pixels, .. } => eprintln!(
-                "[{}/{}] view {i} '{}': {kept} of {pixels} pixels see the mesh ({:.1}%)",
-                k + 1,
-                indices.len(),
-                view.name,
-                100.0 * kept as f64 / pixels.max(1) as f64
-            ),
-            CacheEvent::ViewDropped { .. } => {
-                eprintln!("warning: view {i} '{}' {why}; dropped", view.name)
-            }
-        };
-        cache.add_view(
-            tracer,
-            i,
-            &view.camera,
-            img.as_ref(),
-            mask.as_deref(),
-            &mut on_event,
-        )?;
-        cast_s += t.elapsed().as_secs_f64();
-        rays += (view.camera.width * view.camera.height * args.gamma * args.gamma) as u64;
+    let cast = CastViews {
+        scene,
+        tracer,
+        views: indices,
+        images: !args.no_images,
+        alpha_without_images: false,
     }
+    .into_samples(
+        &mut samples,
+        photo_check.as_mut(),
+        &|| false,
+        &mut |i, mask, e| match e {
+            CacheEvent::ViewCast { view, kept, pixels } => {
+                eprintln!(
+                    "[{}/{}] view {i} '{}': {kept} of {pixels} pixels see the mesh ({:.1}%)",
+                    view + 1,
+                    indices.len(),
+                    scene.views[i].name,
+                    100.0 * kept as f64 / pixels.max(1) as f64
+                )
+            }
+            CacheEvent::ViewDropped { .. } => {
+                eprintln!(
+                    "warning: view {i} '{}' {}; dropped",
+                    scene.views[i].name,
+                    crate::scene::mask::drop_reason(mask)
+                )
+            }
+        },
+    )?;
+    let cast_s = cast.cast_seconds;
+    let rays = indices
+        .iter()
+        .map(|&i| {
+            let c = &scene.views[i].camera;
+            (c.width * c.height * args.gamma * args.gamma) as u64
+        })
+        .sum();
     if let Some(c) = &photo_check {
         let name = |k: usize| scene.views[indices[k]].name.clone();
         for m in c.result().messages(&name) {
             eprintln!("{m}");
         }
     }
-    Ok((cache, rays, cast_s))
+    let Samples::Cache(cache) = samples else {
+        unreachable!("cast into a cache")
+    };
+    Ok((*cache, rays, cast_s))
 }
 
 /// What the cache holds, on stdout.
@@ -215,10 +217,11 @@ fn print_report(
     args: &Args,
     scene: &Scene,
     cache: &SampleCache,
-    n_cast: usize,
+    indices: &[usize],
     rays: u64,
     cast_s: f64,
 ) {
+    let n_cast = indices.len();
     let g2 = cache.samples_per_pixel();
     let valid: u64 = (0..cache.len())
         .map(|i| cache.valid(i).count_ones() as u64)
@@ -229,7 +232,7 @@ fn print_report(
         let names: Vec<&str> = cache
             .dropped
             .iter()
-            .map(|&i| scene.views[i].name.as_str())
+            .map(|&k| scene.views[indices[k]].name.as_str())
             .collect();
         println!(
             "views dropped:     {} ({})",
@@ -259,7 +262,7 @@ fn print_report(
         for v in &cache.views {
             println!(
                 "  view {:>4} '{}': {} pixels, min footprint {:.3e}",
-                v.view, scene.views[v.view].name, v.len, v.footprint_min
+                indices[v.view], scene.views[indices[v.view]].name, v.len, v.footprint_min
             );
         }
     }

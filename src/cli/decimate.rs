@@ -71,7 +71,7 @@ pub struct SubdivideArgs {
 pub fn run_subdivide(a: SubdivideArgs) -> Result<ExitCode> {
     crate::io::atomic::not_an_input(&a.out, "--out", &[("the input mesh (--in)", &a.input)])?;
     let (mesh, _) = load_mesh(&a.input)?;
-    crate::train::memory::check_subdivide(
+    crate::scene::remesh::check_subdivide(
         &mesh,
         a.levels,
         &format!("subdivide --levels {}", a.levels),

@@ -25,7 +25,7 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
     // Per direction: the samples (f64 points) and their distances; the area sums of the mesh.
     let faces = m.triangles.len().max(t.triangles.len()) as f64;
     let need = a.samples as f64 * 32.0 + 8.0 * faces;
-    crate::train::memory::check_fits(
+    crate::sysmem::check_fits(
         need,
         &format!("--samples {}", a.samples),
         "use fewer --samples",

@@ -118,7 +118,7 @@ fn check_frame_sizes(jobs: &[(PathBuf, Camera, i32)], scale: f64) -> Result<()> 
     let Some(&(p, w, h)) = largest else {
         return Ok(());
     };
-    crate::train::memory::check_fits(
+    crate::sysmem::check_fits(
         w * h * FRAME_BYTES_PER_PIXEL,
         &format!("--scale {scale}: {}, {w}×{h} pixels,", p.display()),
         "use a smaller --scale",

@@ -29,32 +29,6 @@ pub struct Args {
     pub write_truth: bool,
 }
 
-/// Build, render and write scene (`preset`, `seed`) into `dir` (`truth.ply` too with
-/// `write_truth`); `progress(i, n)` after view i of n is written (an error from it stops there).
-pub fn generate(
-    preset: Preset,
-    seed: u64,
-    dir: &std::path::Path,
-    write_truth: bool,
-    progress: &mut dyn FnMut(usize, usize) -> anyhow::Result<()>,
-) -> anyhow::Result<synth::Summary> {
-    let s = synth::build(preset, seed);
-    let summary = s.summary();
-    let n = s.views.len();
-    let sh = s.shader();
-    let spp = s.params.spp_side;
-    // One view rendered and written at a time (the `large` preset's 104 views would hold 1 GB).
-    synth::output::write_with(
-        &s,
-        &mut |i| synth::render::render(&sh, &s.views[i].camera, spp),
-        &summary,
-        dir,
-        write_truth,
-        &mut |i| progress(i, n),
-    )?;
-    Ok(summary)
-}
-
 /// Every file and folder `xscale synth` writes into its output folder.
 pub const SYNTH_FILES: [&str; 10] = [
     "synth.toml",
@@ -125,7 +99,7 @@ impl std::fmt::Display for Stopped {
 
 impl std::error::Error for Stopped {}
 
-/// [`generate`]'s `progress` for a command: `rendered I of N views (T s)` through `say` at least
+/// [`synth::generate`]'s `progress` for a command: `rendered I of N views (T s)` through `say` at least
 /// every [`PROGRESS_EVERY_S`] and after the last view, and, once `stop` is set (the interrupt
 /// flag), an end ([`Stopped`]) after the view just written — not after the last, when only the
 /// camera files are left to write.
@@ -164,7 +138,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     check_out(&args)?;
     let stop = super::common::on_interrupt("stopping after the view being rendered");
     let t0 = std::time::Instant::now();
-    let generated = generate(
+    let generated = synth::generate(
         args.preset,
         args.seed,
         &args.out,

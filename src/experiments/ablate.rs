@@ -622,7 +622,7 @@ fn hash_params(scene: &Path, base: &RunConfig) -> Result<usize> {
 /// memory (the check `xscale subdivide` makes: an allocation that fails aborted the ablation
 /// without a word, exit 134); `what` names the request.
 fn check_subdivision(mesh: &Mesh, levels: u32, what: &str) -> Result<()> {
-    crate::train::memory::check_subdivide(
+    crate::scene::remesh::check_subdivide(
         mesh,
         levels,
         &format!("vertex_subdiv: {what}"),

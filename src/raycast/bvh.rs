@@ -310,7 +310,7 @@ impl Tracer {
         // obvhs allocates its build arrays with an unwrap: short of memory, every command
         // that casts rays panicked in a dependency (`bytemuck … unwrap() on an Err value`, exit
         // 101; with RUST_BACKTRACE=1 it hung printing the backtrace). Refuse first, in words.
-        crate::train::memory::check_fits(
+        crate::sysmem::check_fits(
             mesh.triangles.len() as f64 * BVH_BYTES_PER_TRIANGLE as f64,
             &format!("the ray-casting BVH of the mesh's {} triangles", mesh.triangles.len()),
             "free memory, or cast against a mesh with fewer triangles (xscale decimate --ratio R, then --mesh)",

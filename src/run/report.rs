@@ -189,7 +189,7 @@ impl Reporter {
 
     /// A completed run: its time, checkpoint and peak memory (also in `metrics.jsonl`).
     pub fn trained(&mut self, step: u64, seconds: f64, ckpt_path: &Path) -> Result<()> {
-        let peak = crate::train::memory::peak_rss_bytes();
+        let peak = crate::sysmem::peak_rss_bytes();
         self.say(format!(
             "trained {step} steps in {seconds:.1} s; checkpoint {}{}",
             ckpt_path.display(),

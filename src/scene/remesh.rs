@@ -208,6 +208,19 @@ pub fn subdivide_bytes(mesh: &Mesh, levels: u32) -> u64 {
     peak
 }
 
+/// [`crate::sysmem::check_fits`] for `levels` rounds of midpoint subdivision of `mesh`
+/// ([`subdivide`], which holds [`subdivide_bytes`] at its peak): `what` names the request (`subdivide --levels 6`), `fix` what to change.
+pub fn check_subdivide(mesh: &Mesh, levels: u32, what: &str, fix: &str) -> Result<()> {
+    crate::sysmem::check_fits(
+        subdivide_bytes(mesh, levels) as f64,
+        &format!(
+            "{what}: {} faces",
+            mesh.triangles.len() as u64 * 4u64.pow(levels)
+        ),
+        fix,
+    )
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

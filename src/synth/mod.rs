@@ -27,6 +27,7 @@ use cameras::{CameraParams, Placed, ViewKind};
 use glam::{DVec2, DVec3};
 use noise::stream;
 use shade::{Look, Shader};
+use std::path::Path;
 use surface::{Building, Heightfield, TrueSurface};
 
 /// Named parameter sets.
@@ -494,4 +495,30 @@ impl std::fmt::Display for Summary {
 /// Convenience for tests: the surface point hit by a ray, if any.
 pub fn surface_point(s: &TrueSurface, o: DVec3, d: DVec3) -> Option<DVec3> {
     s.trace(o, d, 0.0, f64::INFINITY).map(|h| h.pos)
+}
+
+/// Build, render and write scene (`preset`, `seed`) into `dir` (`truth.ply` too with
+/// `write_truth`); `progress(i, n)` after view i of n is written (an error from it stops there).
+pub fn generate(
+    preset: Preset,
+    seed: u64,
+    dir: &Path,
+    write_truth: bool,
+    progress: &mut dyn FnMut(usize, usize) -> anyhow::Result<()>,
+) -> anyhow::Result<Summary> {
+    let s = build(preset, seed);
+    let summary = s.summary();
+    let n = s.views.len();
+    let sh = s.shader();
+    let spp = s.params.spp_side;
+    // One view rendered and written at a time (the `large` preset's 104 views would hold 1 GB).
+    output::write_with(
+        &s,
+        &mut |i| render::render(&sh, &s.views[i].camera, spp),
+        &summary,
+        dir,
+        write_truth,
+        &mut |i| progress(i, n),
+    )?;
+    Ok(summary)
 }

@@ -1,6 +1,6 @@
 //! The memory budget of a training run: an estimate made before anything large is allocated,
 //! checked against `[train] memory_gb` (or, when that is 0, against the memory the system says is
-//! available), and the peak resident memory reported at the end of a run.
+//! available, `sysmem.rs`).
 //!
 //! ## The estimate (bytes)
 //! - **samples** (`train/sampler.rs`): stream — per training view `w·h·3` (8-bit photo; 16-bit
@@ -23,9 +23,10 @@
 //! It errs on the high side; a run that fails the check names the figures and what to change.
 
 use crate::model::hfm::Hfm;
+use crate::sysmem::{available_bytes, size};
 use crate::train::config::RunConfig;
 use crate::train::sampler::SampleMode;
-use anyhow::{bail, Result};
+use anyhow::Result;
 
 /// Step scratch per sub-sample of a batch. Measured: peak RSS of `xscale train --preset cpu` on the
 /// `small` scene at batch 4,096 and 65,536 pixels (γ = 2), difference / (61,440 · 4) ≈ 1.1 kB,
@@ -207,100 +208,8 @@ fn estimate_for(
     })
 }
 
-/// Memory the system reports as available (Linux `MemAvailable`), if known; less when the
-/// process's address space is limited (`ulimit -v`, RLIMIT_AS): what the limit leaves of it.
-pub fn available_bytes() -> Option<u64> {
-    let text = std::fs::read_to_string("/proc/meminfo").ok()?;
-    let line = text.lines().find(|l| l.starts_with("MemAvailable:"))?;
-    let kb: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
-    Some(address_space_left().map_or(kb * 1024, |left| left.min(kb * 1024)))
-}
-
-/// What the address-space limit (`ulimit -v`) leaves this process (the limit less its `VmSize`),
-/// when there is a limit.
-fn address_space_left() -> Option<u64> {
-    #[cfg(unix)]
-    {
-        let mut lim = libc::rlimit {
-            rlim_cur: 0,
-            rlim_max: 0,
-        };
-        // SAFETY: getrlimit writes the struct it is given.
-        if unsafe { libc::getrlimit(libc::RLIMIT_AS, &mut lim) } != 0
-            || lim.rlim_cur == libc::RLIM_INFINITY
-        {
-            return None;
-        }
-        // `rlim_t` is u64 on Linux, not on every Unix.
-        #[allow(clippy::unnecessary_cast)]
-        let limit = lim.rlim_cur as u64;
-        Some(limit.saturating_sub(status_kb("VmSize:").unwrap_or(0) * 1024))
-    }
-    #[cfg(not(unix))]
-    None
-}
-
-/// A `KEY: N kB` line of `/proc/self/status`.
-fn status_kb(key: &str) -> Option<u64> {
-    let text = std::fs::read_to_string("/proc/self/status").ok()?;
-    let line = text.lines().find(|l| l.starts_with(key))?;
-    line.split_whitespace().nth(1)?.parse().ok()
-}
-
-/// Refuse, before allocating, `need` bytes that `what` would take when more than the memory
-/// available ([`available_bytes`]; where the system does not say, more than a process can
-/// address): an allocation that fails aborts the process without a word (`memory allocation
-/// of N bytes failed`, exit 134). `fix` says what to change. `need` is an f64 so that a
-/// request beyond what u64 counts (`render --scale 1e9`) is refused with its true size, not a
-/// wrapped or clamped one.
-pub fn check_fits(need: f64, what: &str, fix: &str) -> Result<()> {
-    // Without a reading, only what no process can address is refused (as [`beyond_addressing`]).
-    let avail = available_bytes().unwrap_or(isize::MAX as u64) as f64;
-    if need > avail {
-        bail!(
-            "{what} would take about {} in memory, and {} are available; {fix}",
-            size(need),
-            size(avail)
-        );
-    }
-    Ok(())
-}
-
-/// [`check_fits`] for `levels` rounds of midpoint subdivision of `mesh`
-/// ([`crate::scene::remesh::subdivide`], which holds [`crate::scene::remesh::subdivide_bytes`] at
-/// its peak): `what` names the request (`subdivide --levels 6`), `fix` what to change.
-pub fn check_subdivide(
-    mesh: &crate::scene::Mesh,
-    levels: u32,
-    what: &str,
-    fix: &str,
-) -> Result<()> {
-    check_fits(
-        crate::scene::remesh::subdivide_bytes(mesh, levels) as f64,
-        &format!(
-            "{what}: {} faces",
-            mesh.triangles.len() as u64 * 4u64.pow(levels)
-        ),
-        fix,
-    )
-}
-
-/// Peak resident memory of this process so far (Linux `VmHWM`), if known.
-pub fn peak_rss_bytes() -> Option<u64> {
-    Some(status_kb("VmHWM:")? * 1024)
-}
-
 fn gb(b: u64) -> f64 {
     b as f64 / 1e9
-}
-
-/// `b` bytes in MB below 1 GB, else in GB.
-fn size(b: f64) -> String {
-    if b < 1e9 {
-        format!("{:.1} MB", b / 1e6)
-    } else {
-        format!("{:.2} GB", b / 1e9)
-    }
 }
 
 /// What the memory check sizes: a training run, or the one batch `xscale batch` writes.

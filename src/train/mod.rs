@@ -8,7 +8,7 @@
 //! | `config.rs` | presets + TOML overrides → [`RunConfig`] |
 //! | `setup.rs` | scene → BVH → sample cache; dropping unresolved hash levels (SPEC §8) |
 //! | `sampler.rs` | batch k as a pure function of (seed, k); streamed or cached samples |
-//! | `memory.rs` | the memory estimate and budget |
+//! | `memory.rs` | a run's memory estimate and budget (what the machine has: `sysmem.rs`) |
 //! | `adam.rs` | the optimizer |
 //! | `state.rs` | the state of a run at a step ([`state::TrainState`]) and one optimisation step |
 //! | `precision.rs` | the step with the model in f64 |

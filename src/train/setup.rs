@@ -186,21 +186,18 @@ pub fn prepare_until(
         let cams: Vec<&Camera> = checked.iter().map(|&i| &scene.views[i].camera).collect();
         PhotoCheck::plan(&scene.mesh, &tracer, &cams)
     });
-    // One photo in memory at a time: load, cast, keep what the mode keeps.
-    let mut empty_masks = 0;
-    for (k, &i) in train_views.iter().enumerate() {
-        if stop() {
-            return Err(StoppedInSetup.into());
-        }
-        let img = if with_images {
-            Some(scene.load_image(i)?)
-        } else {
-            None
-        };
-        let mask = scene.load_mask(i)?;
-        let mask = mask.as_deref();
-        empty_masks += crate::scene::mask::excludes_all(mask) as usize;
-        let mut on_event = |e| {
+    let cast = CastViews {
+        scene: &scene,
+        tracer: &tracer,
+        views: &train_views,
+        images: with_images,
+        alpha_without_images: true,
+    }
+    .into_samples(
+        &mut samples,
+        photo_check.as_mut(),
+        stop,
+        &mut |i, mask, e| {
             if let CacheEvent::ViewDropped { .. } = e {
                 log(format!(
                     "warning: view {i} ({}) {}: dropped",
@@ -208,20 +205,9 @@ pub fn prepare_until(
                     crate::scene::mask::drop_reason(mask)
                 ));
             }
-        };
-        if let (Some(c), Some(img)) = (&mut photo_check, &img) {
-            c.add_view(k, img);
-        }
-        let cam = &scene.views[i].camera;
-        match &mut samples {
-            Samples::Stream(s) => {
-                let t = img.as_ref().map_or(Targets::None, Targets::from_image);
-                s.add_view(&tracer, k, cam, t, mask, &mut on_event)?
-            }
-            Samples::Cache(c) => c.add_view(&tracer, k, cam, img.as_ref(), mask, &mut on_event)?,
-        };
-    }
-    if samples.is_empty() && empty_masks == train_views.len() {
+        },
+    )?;
+    if samples.is_empty() && cast.empty_masks == train_views.len() {
         bail!(
             "{}: no training pixel is inside its view's object mask (every mask, from the photos' alpha channels or masks/, is empty)",
             dir.display()
@@ -281,6 +267,87 @@ pub fn prepare_until(
         samples,
         budget,
     })
+}
+
+/// Scene views cast one photo at a time (load, cast, keep what the samples keep) into the
+/// training samples: `train`'s setup and `xscale cast`.
+pub struct CastViews<'a> {
+    pub scene: &'a Scene,
+    pub tracer: &'a Tracer,
+    /// Scene indices of the views; a view's input index in the samples is its position here.
+    pub views: &'a [usize],
+    /// Read the photos: the targets, and what the photo check compares (else targets are zero).
+    pub images: bool,
+    /// Without `images`, read a mask held in the photo's alpha channel all the same (which decodes
+    /// the photo): the setup does, so its pixels are those a run trains on; `xscale cast
+    /// --no-images` does not.
+    pub alpha_without_images: bool,
+}
+
+impl CastViews<'_> {
+    /// Cast every view into `samples`, each photo also added to `check` (as its view k = the
+    /// position in `views`); `on_event(i, mask, event)` hears what the cast of scene view i did.
+    /// Gives up with [`StoppedInSetup`] between views once `stop()` says so.
+    pub fn into_samples(
+        &self,
+        samples: &mut Samples,
+        mut check: Option<&mut PhotoCheck>,
+        stop: &dyn Fn() -> bool,
+        on_event: &mut OnViewEvent<'_>,
+    ) -> Result<CastSummary> {
+        let scene = self.scene;
+        let mut out = CastSummary::default();
+        for (k, &i) in self.views.iter().enumerate() {
+            if stop() {
+                return Err(StoppedInSetup.into());
+            }
+            let img = if self.images {
+                Some(scene.load_image(i)?)
+            } else {
+                None
+            };
+            let t = std::time::Instant::now();
+            // An alpha mask is the photo's own alpha channel: reading it decodes the photo.
+            let mask = if !self.images
+                && !self.alpha_without_images
+                && scene.masks[i] == MaskSource::Alpha
+            {
+                None
+            } else {
+                scene.load_mask(i)?
+            };
+            let mask = mask.as_deref();
+            out.empty_masks += crate::scene::mask::excludes_all(mask) as usize;
+            if let (Some(c), Some(img)) = (check.as_deref_mut(), &img) {
+                c.add_view(k, img);
+            }
+            let cam = &scene.views[i].camera;
+            let mut on_event = |e| on_event(i, mask, e);
+            match samples {
+                Samples::Stream(s) => {
+                    let t = img.as_ref().map_or(Targets::None, Targets::from_image);
+                    s.add_view(self.tracer, k, cam, t, mask, &mut on_event)?
+                }
+                Samples::Cache(c) => {
+                    c.add_view(self.tracer, k, cam, img.as_ref(), mask, &mut on_event)?
+                }
+            };
+            out.cast_seconds += t.elapsed().as_secs_f64();
+        }
+        Ok(out)
+    }
+}
+
+/// Hears what the cast of scene view `i` did, with the view's mask: `(i, mask, event)`.
+pub type OnViewEvent<'a> = dyn FnMut(usize, Option<&[bool]>, CacheEvent) + 'a;
+
+/// What [`CastViews::into_samples`] saw.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct CastSummary {
+    /// Views whose mask excludes every pixel.
+    pub empty_masks: usize,
+    /// Seconds reading the masks and casting (the photos' loading and checking left out).
+    pub cast_seconds: f64,
 }
 
 /// Width and height of the scene views `views`.

@@ -26,7 +26,7 @@ use xscale::model::params::Grads;
 use xscale::model::Batch;
 use xscale::train::config::{LevelRange, RunConfig};
 use xscale::train::sampler::sample_batch;
-use xscale::train::setup::{prepare, resolve_levels, Prepared};
+use xscale::train::setup::{prepare, Prepared};
 use xscale::train::state::TrainState;
 
 struct Variant {
@@ -99,8 +99,7 @@ fn main() {
                 let mut cfg = RunConfig::preset("cpu").unwrap();
                 edit(&mut cfg);
                 let prepared = prepare(&dir, &cfg, true, &mut |_| {}).unwrap();
-                resolve_levels(&mut cfg, &prepared.samples);
-                let mut state = TrainState::init(cfg, &prepared).unwrap();
+                let mut state = TrainState::init(cfg, &prepared, &mut |_| {}).unwrap();
                 let mut grads = Grads::new(&state.ckpt.model.layout);
                 grads.inputs = false;
                 let (mut first, mut last) = (None, 0.0);

@@ -24,7 +24,7 @@ use std::time::Instant;
 use xscale::model::params::Grads;
 use xscale::train::config::RunConfig;
 use xscale::train::sampler::sample_batch;
-use xscale::train::setup::{prepare, resolve_levels};
+use xscale::train::setup::prepare;
 use xscale::train::state::TrainState;
 
 const TRAIN: u64 = 100;
@@ -64,13 +64,12 @@ fn main() {
         cfg.train.level_range = xscale::train::config::LevelRange::Fixed;
     }
     let prepared = prepare(&dir, &cfg, true, &mut |m| eprintln!("{m}")).unwrap();
-    resolve_levels(&mut cfg, &prepared.samples);
+    let mut state = TrainState::init(cfg, &prepared, &mut |_| {}).unwrap();
     eprintln!(
         "grid H: {} levels ({} range)",
-        cfg.model.grid_h.levels,
+        state.cfg.model.grid_h.levels,
         if fixed_levels { "fixed" } else { "automatic" }
     );
-    let mut state = TrainState::init(cfg, &prepared).unwrap();
     let mut grads = Grads::new(&state.ckpt.model.layout);
     grads.inputs = false;
     pool.install(|| {

@@ -19,7 +19,7 @@ use std::time::Instant;
 use xscale::model::params::Grads;
 use xscale::train::config::RunConfig;
 use xscale::train::sampler::{sample_batch, SampleMode};
-use xscale::train::setup::{prepare, resolve_levels};
+use xscale::train::setup::prepare;
 use xscale::train::state::TrainState;
 
 #[derive(Default, Clone, Copy)]
@@ -48,10 +48,7 @@ fn main() {
         Err(_) => {}
     }
     let prepared = prepare(&dir, &cfg, true, &mut |m| eprintln!("{m}")).unwrap();
-    for m in resolve_levels(&mut cfg, &prepared.samples) {
-        eprintln!("{m}");
-    }
-    let mut state = TrainState::init(cfg.clone(), &prepared).unwrap();
+    let mut state = TrainState::init(cfg, &prepared, &mut |m| eprintln!("{m}")).unwrap();
     let mut grads = Grads::new(&state.ckpt.model.layout);
     grads.inputs = false;
     // Warm-up, and the check that the loop learns.
@@ -82,7 +79,7 @@ fn main() {
         eprintln!(
             "one step touches {} grid-H entries ({} features) and {} grid-D entries; {} parameters in all",
             g.touched_h.entries.len(),
-            cfg.model.grid_h.features,
+            state.cfg.model.grid_h.features,
             g.touched_d.entries.len(),
             state.ckpt.model.layout.total
         );

@@ -13,7 +13,7 @@ use xscale::model::params::Grads;
 use xscale::run::trainer::evaluate;
 use xscale::train::config::RunConfig;
 use xscale::train::sampler::sample_batch;
-use xscale::train::setup::{prepare, resolve_levels};
+use xscale::train::setup::prepare;
 use xscale::train::state::TrainState;
 
 /// What a run of the example reached.
@@ -37,8 +37,7 @@ pub fn run(scene: &Path, steps: u64, log: bool) -> Result<Outcome> {
         }
     })?;
     // 3. Settings that follow the scene (grid H's level range), then the initial parameters.
-    resolve_levels(&mut cfg, &prepared.samples);
-    let mut state = TrainState::init(cfg, &prepared)?;
+    let mut state = TrainState::init(cfg, &prepared, &mut |_| {})?;
     let mut grads = Grads::new(&state.ckpt.model.layout);
     grads.inputs = false; // positions and directions are data, not parameters
                           // 4. The loop: batch k is a pure function of (seed, k); one step = forward, backward, Adam.

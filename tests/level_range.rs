@@ -309,11 +309,15 @@ fn the_memory_check_sees_the_levels_the_range_added() {
     let p = prepare(&scene, &cfg, false, &mut |_| {}).unwrap();
     let mut fixed = cfg.clone();
     fixed.train.level_range = LevelRange::Fixed;
-    resolve_levels(&mut fixed, &p.samples);
-    TrainState::init(fixed, &p).expect("the preset's grid fits");
-    resolve_levels(&mut cfg, &p.samples);
-    assert!(cfg.model.grid_h.levels > 30, "{:?}", cfg.model.grid_h);
-    let err = TrainState::init(cfg, &p)
+    TrainState::init(fixed, &p, &mut |_| {}).expect("the preset's grid fits");
+    let mut resolved = cfg.clone();
+    resolve_levels(&mut resolved, &p.samples);
+    assert!(
+        resolved.model.grid_h.levels > 30,
+        "{:?}",
+        resolved.model.grid_h
+    );
+    let err = TrainState::init(cfg, &p, &mut |_| {})
         .err()
         .expect("refused")
         .to_string();

@@ -2,8 +2,7 @@
 //! scene (appearance rows = its training views, hash levels dropped as SPEC §8 says).
 
 use super::common::resolve_config;
-use crate::model::checkpoint::init_checkpoint_for_mesh;
-use crate::train::setup::{prepare, resolve_levels};
+use crate::train::setup::prepare;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
@@ -32,18 +31,7 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
     let mut cfg = resolve_config(a.preset.as_deref(), a.config.as_deref())?;
     cfg.train.seed = a.seed;
     let p = prepare(&a.scene, &cfg, false, &mut |m| eprintln!("{m}"))?;
-    for msg in resolve_levels(&mut cfg, &p.samples) {
-        eprintln!("{msg}");
-    }
-    p.check_model(&cfg)?;
-    let norm = p.scene.normalization;
-    let ck = init_checkpoint_for_mesh(
-        &cfg.model,
-        a.seed,
-        norm,
-        p.train_views.len(),
-        Some(&p.scene.mesh),
-    )?;
+    let (cfg, ck) = p.init_model(cfg, &mut |m| eprintln!("{m}"))?;
     let mut f = ck.to_tensor_file()?;
     f.set_meta("run_config", cfg.to_toml());
     f.write_atomic(&a.out)?;

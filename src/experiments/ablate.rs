@@ -34,7 +34,6 @@ use crate::run::trainer::{train, TrainOptions};
 use crate::scene::mesh::{decimate_report, subdivide, write_ply};
 use crate::scene::{LoadOptions, Mesh, Scene};
 use crate::train::config::RunConfig;
-use crate::train::state::TrainState;
 use anyhow::{bail, ensure, Context, Result};
 use serde::{Deserialize, Serialize};
 use std::fmt::Write as _;
@@ -613,9 +612,8 @@ fn configure(
 /// (used to size the vertex baselines when `full` did not run first).
 fn hash_params(scene: &Path, base: &RunConfig) -> Result<usize> {
     let prepared = crate::train::setup::prepare(scene, base, false, &mut |_| {})?;
-    let mut cfg = base.clone();
-    crate::train::setup::resolve_levels(&mut cfg, &prepared.samples);
-    Ok(TrainState::init(cfg, &prepared)?.ckpt.model.layout.total)
+    let (_, ckpt) = prepared.init_model(base.clone(), &mut |_| {})?;
+    Ok(ckpt.model.layout.total)
 }
 
 /// Refuse, before subdividing, `levels` rounds of `mesh` for `vertex_subdiv` that cannot fit in

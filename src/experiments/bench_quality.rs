@@ -22,7 +22,7 @@ use crate::run::trainer::evaluate_until;
 use crate::train::config::RunConfig;
 use crate::train::memory::Job;
 use crate::train::sampler::sample_batch;
-use crate::train::setup::{prepare_until, resolve_levels, StoppedInSetup};
+use crate::train::setup::{prepare_until, StoppedInSetup};
 use crate::train::state::TrainState;
 use anyhow::{anyhow, bail, Context, Result};
 use std::io::Write;
@@ -215,9 +215,8 @@ fn bench_one(
             scene.display()
         );
     }
-    resolve_levels(&mut cfg, &prepared.samples);
     cfg.train.steps = u64::MAX / 4;
-    let mut state = TrainState::init(cfg, &prepared)?;
+    let mut state = TrainState::init(cfg, &prepared, &mut |_| {})?;
     let mut grads = Grads::new(&state.ckpt.model.layout);
     grads.inputs = false;
     let mut f64s = crate::train::precision::F64Step::for_config(&state);

@@ -26,7 +26,7 @@ use crate::run::run_dir::{
 use crate::train::config::{differences_but_steps, RunConfig};
 use crate::train::memory::Job;
 use crate::train::sampler::sample_batch;
-use crate::train::setup::{prepare_until, resolve_levels, Prepared};
+use crate::train::setup::{prepare_until, Prepared};
 use crate::train::state::TrainState;
 use anyhow::{bail, Context, Result};
 use std::path::Path;
@@ -362,11 +362,7 @@ fn open_run(
             s
         }
         None => {
-            let mut cfg = run_cfg;
-            for msg in resolve_levels(&mut cfg, &prepared.samples) {
-                say(msg);
-            }
-            let state = TrainState::init(cfg, &prepared)?;
+            let state = TrainState::init(run_cfg, &prepared, &mut |m| say(m))?;
             remove_run(run_dir, replaced)?;
             if let Some(settings) = &opts.settings {
                 crate::io::atomic::write_bytes(&run_dir.join(SETTINGS_FILE), settings)?;

@@ -3,6 +3,7 @@
 //! all its samples for the cache — `train/sampler.rs`) while checking its photo against the mesh
 //! (`raycast/consistency.rs`), and drop hash levels no view resolves.
 
+use crate::model::checkpoint::{init_checkpoint_for_mesh, Checkpoint};
 use crate::model::config::{per_level_scale_for, GridConfig};
 use crate::model::hashgrid::tcnn_scales;
 use crate::model::ModelConfig;
@@ -55,6 +56,30 @@ impl Prepared {
             self.budget.clone(),
         )
         .map(|_| ())
+    }
+
+    /// The first model of a new run of `cfg` on this scene, and the configuration it is made
+    /// of: grid H's levels resolved from what the training views see ([`resolve_levels`], its
+    /// messages to `log`), the model they size checked against the memory budget
+    /// ([`Prepared::check_model`]), then initialised with `cfg.train.seed`, one appearance row per
+    /// training view. Every new run, `xscale init` and the experiments start here.
+    pub fn init_model(
+        &self,
+        mut cfg: RunConfig,
+        log: &mut dyn FnMut(String),
+    ) -> Result<(RunConfig, Checkpoint)> {
+        for msg in resolve_levels(&mut cfg, &self.samples) {
+            log(msg);
+        }
+        self.check_model(&cfg)?;
+        let ckpt = init_checkpoint_for_mesh(
+            &cfg.model,
+            cfg.train.seed,
+            self.scene.normalization,
+            self.train_views.len(),
+            Some(&self.scene.mesh),
+        )?;
+        Ok((cfg, ckpt))
     }
 
     /// Appearance row of a scene view, or -1 (held-out / unknown view: mean code).

@@ -5,7 +5,7 @@
 
 use crate::io::tensors::TensorFile;
 use crate::model::batch::Batch;
-use crate::model::checkpoint::{init_checkpoint_for_mesh, Checkpoint};
+use crate::model::checkpoint::Checkpoint;
 use crate::model::params::{Grads, Group};
 use crate::train::adam::AdamState;
 use crate::train::config::RunConfig;
@@ -54,17 +54,15 @@ fn param_specs(ckpt: &Checkpoint) -> Vec<(String, Vec<usize>)> {
 }
 
 impl TrainState {
-    /// A fresh run for a prepared scene (`cfg.model` already has its levels resolved).
-    pub fn init(cfg: RunConfig, prepared: &Prepared) -> Result<TrainState> {
-        prepared.check_model(&cfg)?;
-        let norm = prepared.scene.normalization;
-        let ckpt = init_checkpoint_for_mesh(
-            &cfg.model,
-            cfg.train.seed,
-            norm,
-            prepared.train_views.len(),
-            Some(&prepared.scene.mesh),
-        )?;
+    /// A new run of `cfg` on a prepared scene: the model [`Prepared::init_model`] makes (grid
+    /// H's level range resolved for the scene, its messages to `log`, checked against the memory
+    /// budget) and fresh Adam state. The configuration it holds is the resolved one.
+    pub fn init(
+        cfg: RunConfig,
+        prepared: &Prepared,
+        log: &mut dyn FnMut(String),
+    ) -> Result<TrainState> {
+        let (cfg, ckpt) = prepared.init_model(cfg, log)?;
         let adam = AdamState::new(&param_specs(&ckpt));
         Ok(TrainState {
             cfg,

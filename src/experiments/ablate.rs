@@ -241,47 +241,9 @@ pub fn choose_z(
 /// not run again stay in the table; the step count and base configuration must be the same) or
 /// replaced.
 pub fn run_ablation(scene: &Path, out: &Path, opts: &AblateOptions) -> Result<AblationReport> {
-    ensure!(!opts.variants.is_empty(), "no variants to run");
-    // Options only a later variant uses are checked before the first one trains.
-    if let (true, Some(r)) = (opts.variants.contains(&Variant::Mesh10), opts.ratio) {
-        ensure!(
-            r.is_finite() && r > 0.0 && r <= 1.0,
-            "--ratio {r}: must be in (0, 1] (the fraction of faces mesh10 keeps)"
-        );
-    }
-    if let (true, Some(k)) = (
-        opts.variants.contains(&Variant::VertexSubdiv),
-        opts.subdivide,
-    ) {
-        ensure!(k <= 6, "--subdivide {k}: at most 6 levels (× 4096 faces)");
-    }
-    let json = out.join("ablation.json");
-    // Read before anything is written or trained: a refusal or a bad file loses nothing.
-    let earlier = match opts.existing {
-        Existing::Overwrite => None,
-        _ if !json.is_file() => None,
-        _ => Some(read_report(&json).context("an earlier ablation (--overwrite replaces it)")?),
-    };
-    if let (Some(old), Existing::Refuse) = (&earlier, opts.existing) {
-        bail!(
-            "{}: holds an earlier ablation ({} steps per variant: {}); add --append to run variants into it (a variant run again replaces its result), --overwrite to replace it, or choose another --out",
-            json.display(),
-            old.steps,
-            variant_names(&old.results)
-        );
-    }
-    // One table, one decimation ratio: an appended ablation keeps the earlier one (its mesh10
-    // row, kept or run again, is judged by the same Table 5 claim).
-    let earlier_ratio = earlier.as_ref().and_then(recorded_ratio);
-    if let (Some(r), Some(then)) = (opts.ratio, earlier_ratio) {
-        if r != then {
-            bail!(
-                "--append: the earlier ablation in {} has --ratio {then} (the fraction of faces mesh10 keeps); the variants of one table share it (leave out --ratio, or give --ratio {then})",
-                out.display()
-            );
-        }
-    }
-    let ratio = opts.ratio.or(earlier_ratio).unwrap_or(DEFAULT_RATIO);
+    check_options(opts)?;
+    let earlier = earlier_ablation(out, opts)?;
+    let ratio = table_ratio(out, opts, earlier.as_ref())?;
     std::fs::create_dir_all(out).with_context(|| format!("{}: cannot create", out.display()))?;
     let say = |s: String| {
         if !opts.runs.quiet {
@@ -294,31 +256,7 @@ pub fn run_ablation(scene: &Path, out: &Path, opts: &AblateOptions) -> Result<Ab
         base.model.featurization.is_hash(),
         "ablate: the base configuration must be a hash model (the vertex variants are derived from it)"
     );
-    // The scene's own mesh (or the base config's `train.mesh`).
-    let load = LoadOptions {
-        downsample: base.train.downsample,
-        normalize: base.train.normalize,
-        mesh: base.train.mesh.clone(),
-        ..LoadOptions::default()
-    };
-    let (sc, report) = Scene::load_report(scene, &load)?;
-    if sc.test.is_empty() {
-        bail!(
-            "{}: the scene has no held-out views to evaluate",
-            scene.display()
-        );
-    }
-    let ctx = Shared {
-        scene,
-        load: load.clone(),
-        mesh_dir: out.join("meshes"),
-        mesh_path: report.mesh_path.display().to_string(),
-        n_train: sc.views.len() - sc.test.len(),
-        mesh: sc.mesh,
-        ratio,
-        subdivide: opts.subdivide,
-        gamma: base.model.gamma,
-    };
+    let ctx = Shared::load(scene, out, &base, ratio, opts.subdivide)?;
     // A --subdivide that cannot fit is refused before the first variant trains, not hours later.
     if let (true, Some(k)) = (
         opts.variants.contains(&Variant::VertexSubdiv),
@@ -328,52 +266,13 @@ pub fn run_ablation(scene: &Path, out: &Path, opts: &AblateOptions) -> Result<Ab
     }
     std::fs::create_dir_all(&ctx.mesh_dir)
         .with_context(|| format!("{}: cannot create", ctx.mesh_dir.display()))?;
-    match &earlier {
-        // One table, one step budget: an appended ablation keeps the earlier step count.
-        Some(old) => {
-            if opts.minutes.is_some() || (opts.steps_given && base.train.steps != old.steps) {
-                bail!(
-                    "--append: the earlier ablation in {} ran {} steps per variant; the variants of one table share a step count (leave out --steps/--minutes, or give --steps {})",
-                    out.display(),
-                    old.steps,
-                    old.steps
-                );
-            }
-            base.train.steps = old.steps;
-        }
-        None => {
-            if let Some(m) = opts.minutes {
-                base.train.steps = probe_steps(scene, &out.join("probe"), &base, m)?;
-                say(format!(
-                    "probe: {} steps for {m} min of the full model",
-                    base.train.steps
-                ));
-            }
-        }
-    }
+    base.train.steps = step_budget(scene, out, opts, &base, earlier.as_ref(), &say)?;
     crate::train::config::set_tool_run(&mut base);
     let base_config = base.results_toml();
-    let mut results: Vec<VariantResult> = Vec::new();
-    if let Some(old) = earlier {
-        same_ablation(&old, scene, &base, &base_config)?;
-        let (again, kept): (Vec<_>, Vec<_>) = old
-            .results
-            .into_iter()
-            .partition(|r| opts.variants.contains(&r.name));
-        if !kept.is_empty() {
-            say(format!(
-                "--append: keeping {} from the earlier ablation",
-                variant_names(&kept)
-            ));
-        }
-        if !again.is_empty() {
-            say(format!(
-                "--append: {} run again (their earlier results are replaced)",
-                variant_names(&again)
-            ));
-        }
-        results = kept;
-    }
+    let mut results = match earlier {
+        Some(old) => kept_results(old, scene, opts, &base, &base_config, &say)?,
+        None => Vec::new(),
+    };
     let interrupted = || {
         opts.runs
             .interrupt
@@ -418,6 +317,127 @@ pub fn run_ablation(scene: &Path, out: &Path, opts: &AblateOptions) -> Result<Ab
         write_report(out, &report_of(&results))?;
     }
     Ok(report_of(&results))
+}
+
+/// Options only a later variant uses, checked before the first one trains.
+fn check_options(opts: &AblateOptions) -> Result<()> {
+    ensure!(!opts.variants.is_empty(), "no variants to run");
+    if let (true, Some(r)) = (opts.variants.contains(&Variant::Mesh10), opts.ratio) {
+        ensure!(
+            r.is_finite() && r > 0.0 && r <= 1.0,
+            "--ratio {r}: must be in (0, 1] (the fraction of faces mesh10 keeps)"
+        );
+    }
+    if let (true, Some(k)) = (
+        opts.variants.contains(&Variant::VertexSubdiv),
+        opts.subdivide,
+    ) {
+        ensure!(k <= 6, "--subdivide {k}: at most 6 levels (× 4096 faces)");
+    }
+    Ok(())
+}
+
+/// The earlier ablation in `out` that this one adds to (`--append`), `None` when there is none
+/// or it is to be replaced; one there without `--append` or `--overwrite` is refused. Read before
+/// anything is written or trained: a refusal or a bad file loses nothing.
+fn earlier_ablation(out: &Path, opts: &AblateOptions) -> Result<Option<AblationReport>> {
+    let json = out.join("ablation.json");
+    let earlier = match opts.existing {
+        Existing::Overwrite => None,
+        _ if !json.is_file() => None,
+        _ => Some(read_report(&json).context("an earlier ablation (--overwrite replaces it)")?),
+    };
+    if let (Some(old), Existing::Refuse) = (&earlier, opts.existing) {
+        bail!(
+            "{}: holds an earlier ablation ({} steps per variant: {}); add --append to run variants into it (a variant run again replaces its result), --overwrite to replace it, or choose another --out",
+            json.display(),
+            old.steps,
+            variant_names(&old.results)
+        );
+    }
+    Ok(earlier)
+}
+
+/// The fraction of faces `mesh10` keeps. One table, one decimation ratio: an appended ablation
+/// keeps the earlier one (its mesh10 row, kept or run again, is judged by the same Table 5
+/// claim).
+fn table_ratio(out: &Path, opts: &AblateOptions, earlier: Option<&AblationReport>) -> Result<f64> {
+    let earlier_ratio = earlier.and_then(recorded_ratio);
+    if let (Some(r), Some(then)) = (opts.ratio, earlier_ratio) {
+        if r != then {
+            bail!(
+                "--append: the earlier ablation in {} has --ratio {then} (the fraction of faces mesh10 keeps); the variants of one table share it (leave out --ratio, or give --ratio {then})",
+                out.display()
+            );
+        }
+    }
+    Ok(opts.ratio.or(earlier_ratio).unwrap_or(DEFAULT_RATIO))
+}
+
+/// The steps every variant trains: the base configuration's, an appended ablation's earlier
+/// count (one table, one step budget), or (`--minutes`) what a timing probe of the full model
+/// says fits.
+fn step_budget(
+    scene: &Path,
+    out: &Path,
+    opts: &AblateOptions,
+    base: &RunConfig,
+    earlier: Option<&AblationReport>,
+    say: &dyn Fn(String),
+) -> Result<u64> {
+    match earlier {
+        Some(old) => {
+            if opts.minutes.is_some() || (opts.steps_given && base.train.steps != old.steps) {
+                bail!(
+                    "--append: the earlier ablation in {} ran {} steps per variant; the variants of one table share a step count (leave out --steps/--minutes, or give --steps {})",
+                    out.display(),
+                    old.steps,
+                    old.steps
+                );
+            }
+            Ok(old.steps)
+        }
+        None => match opts.minutes {
+            Some(m) => {
+                let steps = probe_steps(scene, &out.join("probe"), base, m)?;
+                say(format!(
+                    "probe: {steps} steps for {m} min of the full model"
+                ));
+                Ok(steps)
+            }
+            None => Ok(base.train.steps),
+        },
+    }
+}
+
+/// The earlier ablation's results this one keeps (the variants it does not run again), once it
+/// is found to be the same ablation (scene and base configuration).
+fn kept_results(
+    old: AblationReport,
+    scene: &Path,
+    opts: &AblateOptions,
+    base: &RunConfig,
+    base_config: &str,
+    say: &dyn Fn(String),
+) -> Result<Vec<VariantResult>> {
+    same_ablation(&old, scene, base, base_config)?;
+    let (again, kept): (Vec<_>, Vec<_>) = old
+        .results
+        .into_iter()
+        .partition(|r| opts.variants.contains(&r.name));
+    if !kept.is_empty() {
+        say(format!(
+            "--append: keeping {} from the earlier ablation",
+            variant_names(&kept)
+        ));
+    }
+    if !again.is_empty() {
+        say(format!(
+            "--append: {} run again (their earlier results are replaced)",
+            variant_names(&again)
+        ));
+    }
+    Ok(kept)
 }
 
 /// `OUT/ablation.json` as written by [`run_ablation`].
@@ -508,6 +528,43 @@ struct Shared<'a> {
     subdivide: Option<u32>,
     /// The base configuration's γ: the ULR baseline casts its pixels as the models do.
     gamma: u32,
+}
+
+impl<'a> Shared<'a> {
+    /// The scene's own mesh (or the base configuration's `train.mesh`) and what every variant
+    /// shares; a scene without held-out views is refused (nothing to evaluate).
+    fn load(
+        scene: &'a Path,
+        out: &Path,
+        base: &RunConfig,
+        ratio: f64,
+        subdivide: Option<u32>,
+    ) -> Result<Shared<'a>> {
+        let load = LoadOptions {
+            downsample: base.train.downsample,
+            normalize: base.train.normalize,
+            mesh: base.train.mesh.clone(),
+            ..LoadOptions::default()
+        };
+        let (sc, report) = Scene::load_report(scene, &load)?;
+        if sc.test.is_empty() {
+            bail!(
+                "{}: the scene has no held-out views to evaluate",
+                scene.display()
+            );
+        }
+        Ok(Shared {
+            scene,
+            load,
+            mesh_dir: out.join("meshes"),
+            mesh_path: report.mesh_path.display().to_string(),
+            n_train: sc.views.len() - sc.test.len(),
+            mesh: sc.mesh,
+            ratio,
+            subdivide,
+            gamma: base.model.gamma,
+        })
+    }
 }
 
 /// The mesh a variant trained on: file, faces, vertices.

@@ -251,8 +251,22 @@ impl RefineConfig {
     }
 
     pub fn validate(&self) -> Result<()> {
-        let frac = |x: f64| (0.0..=1.0).contains(&x);
         let mut bad = Vec::new();
+        self.check_field(&mut bad);
+        self.check_adam(&mut bad);
+        self.check_trust(&mut bad);
+        self.check_weights(&mut bad);
+        self.check_photo(&mut bad);
+        self.check_gauss_newton(&mut bad);
+        if !bad.is_empty() {
+            bail!("{}", bad.join("; "));
+        }
+        Ok(())
+    }
+
+    /// The offset field and its schedule (each problem into `bad`, in the order [`RefineConfig::validate`] names them).
+    fn check_field(&self, bad: &mut Vec<String>) {
+        let frac = |x: f64| (0.0..=1.0).contains(&x);
         if !frac(self.start) {
             bad.push(format!(
                 "start = {} (a fraction of train.steps, in [0, 1])",
@@ -310,6 +324,10 @@ impl RefineConfig {
         if !(0.0..1.0).contains(&self.min_cos) {
             bad.push(format!("min_cos = {} (in [0, 1))", self.min_cos));
         }
+    }
+
+    /// Adam's settings.
+    fn check_adam(&self, bad: &mut Vec<String>) {
         if !(self.lr.is_finite() && self.lr >= 0.0) {
             bad.push(format!("lr = {} (a finite value ≥ 0)", self.lr));
         }
@@ -325,6 +343,10 @@ impl RefineConfig {
         if !(self.epsilon.is_finite() && self.epsilon >= 0.0) {
             bad.push(format!("epsilon = {} (a finite value ≥ 0)", self.epsilon));
         }
+    }
+
+    /// The trust region.
+    fn check_trust(&self, bad: &mut Vec<String>) {
         if !(self.trust_margin.is_finite() && (0.0..1.0).contains(&self.trust_margin)) {
             bad.push(format!("trust_margin = {} (in [0, 1))", self.trust_margin));
         }
@@ -349,6 +371,10 @@ impl RefineConfig {
                 self.trust_holdout
             ));
         }
+    }
+
+    /// The weights of the prior, the feature gradient and the photo term.
+    fn check_weights(&self, bad: &mut Vec<String>) {
         if !(self.prior.is_finite() && self.prior >= 0.0) {
             bad.push(format!("prior = {} (a finite value ≥ 0)", self.prior));
         }
@@ -364,6 +390,10 @@ impl RefineConfig {
                     .into(),
             );
         }
+    }
+
+    /// The photo term.
+    fn check_photo(&self, bad: &mut Vec<String>) {
         if !(1..=1 << 16).contains(&self.photo_pixels) {
             bad.push(format!(
                 "photo_pixels = {} (1..=65536 patches per step)",
@@ -403,6 +433,10 @@ impl RefineConfig {
         if !(self.photo_scale.is_finite() && self.photo_scale >= 1.0) {
             bad.push(format!("photo_scale = {} (≥ 1)", self.photo_scale));
         }
+    }
+
+    /// The Gauss–Newton step.
+    fn check_gauss_newton(&self, bad: &mut Vec<String>) {
         if !(self.damping.is_finite() && self.damping >= 0.0) {
             bad.push(format!("damping = {} (a finite value ≥ 0)", self.damping));
         }
@@ -412,10 +446,6 @@ impl RefineConfig {
                     .into(),
             );
         }
-        if !bad.is_empty() {
-            bail!("{}", bad.join("; "));
-        }
-        Ok(())
     }
 
     /// Cells per unit of grid level l.

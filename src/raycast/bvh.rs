@@ -791,7 +791,6 @@ impl Tracer {
             *r = RayLanes::<L>::new(g, c * n, k);
         }
         let ia = GroupBounds::new::<SHARED>(g);
-        let lane_mask = (1u32 << n) - 1;
         // The group's closest distances, -inf in the other lanes (they never bound a box).
         let mut bt = [f32::NEG_INFINITY; MAX_LANES];
         for i in 0..MAX_LANES {
@@ -816,76 +815,14 @@ impl Tracer {
             }
             loop {
                 if r & LEAF_BIT != 0 {
-                    let first = (r & (MAX_TRIANGLES as u32 - 1)) as usize;
-                    let count = ((r >> 27) & 15) as usize + 1;
-                    let mut changed = false;
-                    for j in first..first + count {
-                        for (c, rlc) in rl.iter().enumerate().take(chunks) {
-                            let ca = (active >> (c * n)) & lane_mask;
-                            if ca == 0 {
-                                continue;
-                            }
-                            let (hits, t) = intersect_lanes::<L, SHARED>(rlc, &self.tris[j], ca);
-                            if hits != 0 {
-                                let mut ta = [0.0f32; MAX_LANES];
-                                t.store(&mut ta);
-                                let mut h = hits;
-                                while h != 0 {
-                                    let i = h.trailing_zeros() as usize;
-                                    h &= h - 1;
-                                    let l = c * n + i;
-                                    // Ties go to the smaller mesh id (module docs; the ids are
-                                    // only read then). No hit yet ranks as (inf, u32::MAX): an
-                                    // f32 distance can overflow to inf.
-                                    let b = best_leaf[l];
-                                    if ta[i] < bt[l]
-                                        || (ta[i] == bt[l]
-                                            && (b == u32::MAX
-                                                || self.tri_ids[j] < self.tri_ids[b as usize]))
-                                    {
-                                        bt[l] = ta[i];
-                                        best_leaf[l] = j as u32;
-                                        changed = true;
-                                    }
-                                }
-                            }
-                        }
-                    }
-                    if changed {
+                    if self.leaf_hits::<L, SHARED>(r, &rl[..chunks], active, &mut bt, best_leaf) {
                         tmax_hi = tmax_hi_of(&bt);
                     }
                     break;
                 }
-                let nd = &self.nodes[r as usize];
-                // Interval test of the whole group against all children at once (module docs):
-                // a child is skipped only if no lane can hit it.
-                let (lo, mut bits) = ia.test::<L>(nd, tmax_hi);
-                let mut hit = [(0u32, 0.0f32); WIDTH];
-                let mut nh = 0;
-                while bits != 0 {
-                    let c = bits.trailing_zeros() as usize;
-                    bits &= bits - 1;
-                    hit[nh] = (nd.child[c], lo[c]);
-                    nh += 1;
-                }
-                match nh {
-                    0 => break,
-                    1 => r = hit[0].0,
-                    _ => {
-                        // Sort by entry distance, nearest last (insertion sort, ≤ WIDTH); push
-                        // all but the nearest, descend into it.
-                        for a in 1..nh {
-                            let x = hit[a];
-                            let mut b = a;
-                            while b > 0 && hit[b - 1].1 < x.1 {
-                                hit[b] = hit[b - 1];
-                                b -= 1;
-                            }
-                            hit[b] = x;
-                        }
-                        stack.extend_from_slice(&hit[..nh - 1]);
-                        r = hit[nh - 1].0;
-                    }
+                match visit_children::<L>(&self.nodes[r as usize], &ia, tmax_hi, stack) {
+                    Some(c) => r = c,
+                    None => break,
                 }
             }
         }
@@ -893,6 +830,97 @@ impl Tracer {
             if active >> i & 1 != 0 {
                 best_t[i] = bt[i];
             }
+        }
+    }
+
+    /// Test the triangles of leaf `r` against the group's active lanes (`rl[c]`: lanes
+    /// `c·L::N ..`), keeping each lane's closest hit in `bt` / `best_leaf`; whether one changed.
+    #[inline(always)]
+    fn leaf_hits<L: Lanes, const SHARED: bool>(
+        &self,
+        r: u32,
+        rl: &[RayLanes<'_, L>],
+        active: u32,
+        bt: &mut [f32; MAX_LANES],
+        best_leaf: &mut [u32; MAX_LANES],
+    ) -> bool {
+        let n = L::N;
+        let lane_mask = (1u32 << n) - 1;
+        let first = (r & (MAX_TRIANGLES as u32 - 1)) as usize;
+        let count = ((r >> 27) & 15) as usize + 1;
+        let mut changed = false;
+        for j in first..first + count {
+            for (c, rlc) in rl.iter().enumerate() {
+                let ca = (active >> (c * n)) & lane_mask;
+                if ca == 0 {
+                    continue;
+                }
+                let (hits, t) = intersect_lanes::<L, SHARED>(rlc, &self.tris[j], ca);
+                if hits != 0 {
+                    let mut ta = [0.0f32; MAX_LANES];
+                    t.store(&mut ta);
+                    let mut h = hits;
+                    while h != 0 {
+                        let i = h.trailing_zeros() as usize;
+                        h &= h - 1;
+                        let l = c * n + i;
+                        // Ties go to the smaller mesh id (module docs; the ids are only read
+                        // then). No hit yet ranks as (inf, u32::MAX): an f32 distance can
+                        // overflow to inf.
+                        let b = best_leaf[l];
+                        if ta[i] < bt[l]
+                            || (ta[i] == bt[l]
+                                && (b == u32::MAX || self.tri_ids[j] < self.tri_ids[b as usize]))
+                        {
+                            bt[l] = ta[i];
+                            best_leaf[l] = j as u32;
+                            changed = true;
+                        }
+                    }
+                }
+            }
+        }
+        changed
+    }
+}
+
+/// The children of node `nd` some lane of the group can hit (interval test of the whole group
+/// against all children at once, module docs: a child is skipped only if no lane can hit it):
+/// all but the nearest pushed on `stack` (nearest last), the nearest returned to descend into;
+/// `None` when there is none.
+#[inline(always)]
+fn visit_children<L: Lanes>(
+    nd: &Node,
+    ia: &GroupBounds,
+    tmax_hi: f32,
+    stack: &mut Vec<(u32, f32)>,
+) -> Option<u32> {
+    let (lo, mut bits) = ia.test::<L>(nd, tmax_hi);
+    let mut hit = [(0u32, 0.0f32); WIDTH];
+    let mut nh = 0;
+    while bits != 0 {
+        let c = bits.trailing_zeros() as usize;
+        bits &= bits - 1;
+        hit[nh] = (nd.child[c], lo[c]);
+        nh += 1;
+    }
+    match nh {
+        0 => None,
+        1 => Some(hit[0].0),
+        _ => {
+            // Sort by entry distance, nearest last (insertion sort, ≤ WIDTH); push all but the
+            // nearest, descend into it.
+            for a in 1..nh {
+                let x = hit[a];
+                let mut b = a;
+                while b > 0 && hit[b - 1].1 < x.1 {
+                    hit[b] = hit[b - 1];
+                    b -= 1;
+                }
+                hit[b] = x;
+            }
+            stack.extend_from_slice(&hit[..nh - 1]);
+            Some(hit[nh - 1].0)
         }
     }
 }

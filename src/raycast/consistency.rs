@@ -397,96 +397,12 @@ impl PhotoCheck {
 
     /// Correlate the views read so far ([module docs](self)).
     pub fn result(&self) -> Consistency {
-        let read: Vec<usize> = (0..self.seen.len())
-            .filter(|&s| self.lum[s].is_some())
-            .collect();
-        let pairs = (read.iter().enumerate())
-            .flat_map(|(i, &a)| read[i + 1..].iter().map(move |&b| (a, b)));
-        // Each correlated pair: (slot a, slot b, samples shared, correlation).
-        let mut corr: Vec<(usize, usize, usize, f64)> = Vec::new();
-        for (a, b) in pairs {
-            let (la, lb) = (self.lum[a].as_ref().unwrap(), self.lum[b].as_ref().unwrap());
-            let (sa, sb) = (&self.seen[a], &self.seen[b]);
-            let lattice = self.cast[a] || self.cast[b];
-            let xy: Vec<(f64, f64)> = (shared(sa, sb, self.area, lattice).into_iter())
-                .filter_map(|(i, j)| {
-                    let (qa, qb) = scales(&sa[i], &sb[j])?;
-                    Some((la[i][qa] as f64, lb[j][qb] as f64))
-                })
-                .collect();
-            if xy.len() < MIN_SHARED {
-                continue;
-            }
-            if let Some(r) = pearson(&xy) {
-                corr.push((a, b, xy.len(), r));
-            }
-        }
-        let mean = |keep: &dyn Fn(usize, usize) -> bool| {
-            let (mut w, mut sum) = (0usize, 0f64);
-            for &(_, _, n, r) in corr.iter().filter(|c| keep(c.0, c.1)) {
-                w += n;
-                sum += n as f64 * r;
-            }
-            (w, if w > 0 { sum / w as f64 } else { 0.0 })
-        };
-        let (shared, correlation) = mean(&|_, _| true);
-        // A view whose own pairs correlate [`OUTLIER_GAP`] below the others': its pose, not the
-        // mesh. Taken worst first, each against the pairs of neither it nor those taken before,
-        // so a close-up's peers are not blamed for their pairs with it. Only views compared with
-        // at least two others that are themselves so compared take part (the graph's 2-core):
-        // when two views disagree and nothing else judges one of them, which is wrong is unknown.
+        let corr = self.pair_correlations();
+        let (shared, correlation) = weighted_mean(&corr, &|_, _| true);
         let judged = (0..self.seen.len())
             .filter(|&s| corr.iter().any(|c| c.0 == s || c.1 == s))
             .count();
-        let mut low: Vec<(usize, f64)> = Vec::new();
-        let mut rest = correlation;
-        loop {
-            let mut live: Vec<bool> = (0..self.seen.len())
-                .map(|s| low.iter().all(|&(t, _)| t != s))
-                .collect();
-            loop {
-                let partners = |s: usize| {
-                    let with = |c: &&(usize, usize, usize, f64)| {
-                        (c.0 == s && live[c.1]) || (c.1 == s && live[c.0])
-                    };
-                    corr.iter().filter(with).count()
-                };
-                let drop: Vec<usize> = (0..live.len())
-                    .filter(|&s| live[s] && partners(s) < 2)
-                    .collect();
-                if drop.is_empty() {
-                    break;
-                }
-                drop.iter().for_each(|&s| live[s] = false);
-            }
-            let worst = (0..live.len())
-                .filter(|&s| live[s])
-                .map(|s| (s, mean(&|a, b| live[a] && live[b] && (a == s || b == s)).1))
-                .min_by(|x, y| x.1.total_cmp(&y.1));
-            let Some((s, m)) = worst else { break };
-            let (w, r) = mean(&|a, b| live[a] && live[b] && a != s && b != s);
-            // The views that judge it must agree among themselves: where the mesh is wrong,
-            // every view of that part disagrees with the others, not one.
-            let judge: Vec<bool> = (0..live.len())
-                .map(|t| {
-                    live[t]
-                        && corr
-                            .iter()
-                            .any(|c| (c.0, c.1) == (s, t) || (c.0, c.1) == (t, s))
-                })
-                .collect();
-            let (jw, local) = mean(&|a, b| judge[a] && judge[b]);
-            if w == 0
-                || m >= r - OUTLIER_GAP
-                || jw == 0
-                || local < OUTLIER_REST
-                || m >= local - OUTLIER_GAP
-            {
-                break;
-            }
-            low.push((s, m));
-            rest = r;
-        }
+        let (low, rest) = low_views(&corr, self.seen.len(), correlation);
         let confirmed = !low.is_empty() && 4 * low.len() <= judged && rest >= OUTLIER_REST;
         let outliers = if confirmed {
             low.iter().map(|&(s, m)| (self.planned[s], m)).collect()
@@ -499,13 +415,14 @@ impl PhotoCheck {
                 !named(a) && !named(b) && (self.cast[a] || self.cast[b]) == close
             };
             let n = corr.iter().filter(|c| keep(c.0, c.1)).count();
-            let (w, m) = mean(&keep);
+            let (w, m) = weighted_mean(&corr, &keep);
             (w > 0).then_some((n, m))
         };
         let mut worst_close_ups: Vec<(usize, f64)> = (0..self.seen.len())
             .filter(|&s| self.cast[s] && !named(s))
             .filter_map(|s| {
-                let (w, m) = mean(&|a, b| (a == s || b == s) && !named(a) && !named(b));
+                let (w, m) =
+                    weighted_mean(&corr, &|a, b| (a == s || b == s) && !named(a) && !named(b));
                 (w > 0).then_some((self.planned[s], m))
             })
             .collect();
@@ -525,6 +442,114 @@ impl PhotoCheck {
             },
             outliers,
         }
+    }
+
+    /// Each pair of views read that shares at least [`MIN_SHARED`] samples and whose samples'
+    /// luminances spread: (slot a, slot b, samples shared, correlation), a < b.
+    fn pair_correlations(&self) -> Vec<Pair> {
+        let read: Vec<usize> = (0..self.seen.len())
+            .filter(|&s| self.lum[s].is_some())
+            .collect();
+        let pairs = (read.iter().enumerate())
+            .flat_map(|(i, &a)| read[i + 1..].iter().map(move |&b| (a, b)));
+        let mut corr: Vec<Pair> = Vec::new();
+        for (a, b) in pairs {
+            let (la, lb) = (self.lum[a].as_ref().unwrap(), self.lum[b].as_ref().unwrap());
+            let (sa, sb) = (&self.seen[a], &self.seen[b]);
+            let lattice = self.cast[a] || self.cast[b];
+            let xy: Vec<(f64, f64)> = (shared(sa, sb, self.area, lattice).into_iter())
+                .filter_map(|(i, j)| {
+                    let (qa, qb) = scales(&sa[i], &sb[j])?;
+                    Some((la[i][qa] as f64, lb[j][qb] as f64))
+                })
+                .collect();
+            if xy.len() < MIN_SHARED {
+                continue;
+            }
+            if let Some(r) = pearson(&xy) {
+                corr.push((a, b, xy.len(), r));
+            }
+        }
+        corr
+    }
+}
+
+/// A correlated pair of views: (slot a, slot b, samples shared, correlation).
+type Pair = (usize, usize, usize, f64);
+
+/// The weight (samples shared) and the shared-weighted mean correlation of the pairs `keep`
+/// takes (0 when it takes none).
+fn weighted_mean(corr: &[Pair], keep: &dyn Fn(usize, usize) -> bool) -> (usize, f64) {
+    let (mut w, mut sum) = (0usize, 0f64);
+    for &(_, _, n, r) in corr.iter().filter(|c| keep(c.0, c.1)) {
+        w += n;
+        sum += n as f64 * r;
+    }
+    (w, if w > 0 { sum / w as f64 } else { 0.0 })
+}
+
+/// The views of `n` slots whose own pairs correlate [`OUTLIER_GAP`] below the others' (its pose,
+/// not the mesh), with their mean correlation, worst first, and the correlation of the pairs
+/// left (`correlation` when none). Taken worst first, each against the pairs of neither it nor
+/// those taken before, so a close-up's peers are not blamed for their pairs with it. Only views
+/// compared with at least two others that are themselves so compared take part (the graph's
+/// 2-core): when two views disagree and nothing else judges one of them, which is wrong is
+/// unknown.
+fn low_views(corr: &[Pair], n: usize, correlation: f64) -> (Vec<(usize, f64)>, f64) {
+    let mut low: Vec<(usize, f64)> = Vec::new();
+    let mut rest = correlation;
+    loop {
+        let live = two_core(corr, n, &low);
+        let worst = (0..live.len())
+            .filter(|&s| live[s])
+            .map(|s| {
+                let m = weighted_mean(corr, &|a, b| live[a] && live[b] && (a == s || b == s));
+                (s, m.1)
+            })
+            .min_by(|x, y| x.1.total_cmp(&y.1));
+        let Some((s, m)) = worst else { break };
+        let (w, r) = weighted_mean(corr, &|a, b| live[a] && live[b] && a != s && b != s);
+        // The views that judge it must agree among themselves: where the mesh is wrong, every
+        // view of that part disagrees with the others, not one.
+        let judge: Vec<bool> = (0..live.len())
+            .map(|t| {
+                live[t]
+                    && corr
+                        .iter()
+                        .any(|c| (c.0, c.1) == (s, t) || (c.0, c.1) == (t, s))
+            })
+            .collect();
+        let (jw, local) = weighted_mean(corr, &|a, b| judge[a] && judge[b]);
+        if w == 0
+            || m >= r - OUTLIER_GAP
+            || jw == 0
+            || local < OUTLIER_REST
+            || m >= local - OUTLIER_GAP
+        {
+            break;
+        }
+        low.push((s, m));
+        rest = r;
+    }
+    (low, rest)
+}
+
+/// The views (of `n` slots) not in `low` that keep at least two partners among themselves: the
+/// 2-core of the pair graph without them.
+fn two_core(corr: &[Pair], n: usize, low: &[(usize, f64)]) -> Vec<bool> {
+    let mut live: Vec<bool> = (0..n).map(|s| low.iter().all(|&(t, _)| t != s)).collect();
+    loop {
+        let partners = |s: usize| {
+            let with = |c: &&Pair| (c.0 == s && live[c.1]) || (c.1 == s && live[c.0]);
+            corr.iter().filter(with).count()
+        };
+        let drop: Vec<usize> = (0..live.len())
+            .filter(|&s| live[s] && partners(s) < 2)
+            .collect();
+        if drop.is_empty() {
+            return live;
+        }
+        drop.iter().for_each(|&s| live[s] = false);
     }
 }
 

@@ -679,105 +679,30 @@ fn load_ply_ascii(path: &Path, data: &[u8], h: &Header, lay: &Layout) -> Result<
     let mut lines = body.lines().enumerate().map(|(i, l)| (i + h.lines + 1, l));
     let mut out = PlyMesh::default();
     let mut face_buf: Vec<u32> = Vec::new();
-    let nv_decl = h
-        .elements
-        .iter()
-        .find(|e| e.name == "vertex")
-        .map(|e| e.count)
-        .unwrap_or(0);
+    let nv_decl = declared_vertices(h);
     for el in &h.elements {
         let is_vertex = el.name == "vertex";
         let is_face = el.name == "face";
         for k in 0..el.count {
             // Next non-blank line.
-            let (ln, line) = loop {
-                match lines.next() {
-                    Some((ln, l)) if l.trim().is_empty() => {
-                        let _ = ln;
-                        continue;
-                    }
-                    Some(x) => break x,
-                    None => bail!(
-                        "{p}: truncated: file ends in element '{}' at {} {k} of {} declared",
-                        el.name,
-                        el.name,
-                        el.count
-                    ),
-                }
+            let Some((ln, line)) = lines.find(|(_, l)| !l.trim().is_empty()) else {
+                bail!(
+                    "{p}: truncated: file ends in element '{}' at {} {k} of {} declared",
+                    el.name,
+                    el.name,
+                    el.count
+                );
             };
-            let tok: Vec<&str> = line.split_whitespace().collect();
-            let mut t = 0usize;
             let mut vals = [0.0f64; 3];
             face_buf.clear();
-            for (pi, prop) in el.props.iter().enumerate() {
-                let mut next = |what: &str, count: bool| -> Result<f64> {
-                    let what = || {
-                        if count {
-                            format!("{what} count")
-                        } else {
-                            what.to_string()
-                        }
-                    };
-                    let s = tok.get(t).ok_or_else(|| {
-                        anyhow!(
-                            "{p}: line {ln}: {} {k}: too few values (missing {}; header count or data wrong?)",
-                            el.name,
-                            what()
-                        )
-                    })?;
-                    t += 1;
-                    s.parse::<f64>().map_err(|_| {
-                        anyhow!(
-                            "{p}: line {ln}: {} {k}: '{s}' is not a number ({})",
-                            el.name,
-                            what()
-                        )
-                    })
-                };
-                match prop.kind {
-                    PropKind::Scalar(_) => {
-                        let v = next(&prop.name, false)?;
-                        if is_vertex {
-                            if let Some(axis) = lay.xyz.iter().position(|&x| x == pi) {
-                                if !v.is_finite() {
-                                    bail!(
-                                        "{p}: line {ln}: vertex {k}: coordinate {} is {v} (must be finite)",
-                                        ["x", "y", "z"][axis]
-                                    );
-                                }
-                                vals[axis] = v;
-                            }
-                        }
-                    }
-                    PropKind::List { .. } => {
-                        let n = next(&prop.name, true)?;
-                        if n.is_nan() || n < 0.0 || n.fract() != 0.0 {
-                            bail!("{p}: line {ln}: {} {k}: bad list count {n}", el.name);
-                        }
-                        let n = n as usize;
-                        let take_face = is_face && lay.face_list == Some(pi);
-                        for _ in 0..n {
-                            let v = next(&prop.name, false)?;
-                            if take_face {
-                                let i = check_index(
-                                    path,
-                                    || format!("line {ln}: face {k}"),
-                                    v,
-                                    nv_decl,
-                                )?;
-                                face_buf.push(i);
-                            }
-                        }
-                    }
-                }
-            }
-            if t != tok.len() {
-                bail!(
-                    "{p}: line {ln}: {} {k}: {} values, expected {t} (header and data disagree)",
-                    el.name,
-                    tok.len()
-                );
-            }
+            let row = AsciiRow {
+                path,
+                el,
+                k,
+                ln,
+                tokens: line.split_whitespace().collect(),
+            };
+            row.read(lay, nv_decl, &mut vals, &mut face_buf)?;
             if is_vertex {
                 out.mesh.vertices.push(DVec3::from_array(vals));
             }
@@ -793,6 +718,117 @@ fn load_ply_ascii(path: &Path, data: &[u8], h: &Header, lay: &Layout) -> Result<
         bail!("{p}: line {ln}: extra data after the last declared element (element counts in the header too small?)");
     }
     Ok((out.mesh, out.stats))
+}
+
+/// The vertex count the header declares (0 without a vertex element).
+fn declared_vertices(h: &Header) -> usize {
+    h.elements
+        .iter()
+        .find(|e| e.name == "vertex")
+        .map(|e| e.count)
+        .unwrap_or(0)
+}
+
+/// Row `k` of element `el` of an ASCII PLY, at file line `ln`, split into its values.
+struct AsciiRow<'a> {
+    path: &'a Path,
+    el: &'a Element,
+    k: usize,
+    ln: usize,
+    tokens: Vec<&'a str>,
+}
+
+impl AsciiRow<'_> {
+    /// The row's vertex coordinates into `vals` and its face's indices (checked against `nv`
+    /// vertices) into `face`, where `lay` says they are; every value must be a number and the
+    /// row must hold exactly the header's properties.
+    fn read(
+        &self,
+        lay: &Layout,
+        nv: usize,
+        vals: &mut [f64; 3],
+        face: &mut Vec<u32>,
+    ) -> Result<()> {
+        let (p, el, k, ln) = (self.path.display(), self.el, self.k, self.ln);
+        let is_vertex = el.name == "vertex";
+        let is_face = el.name == "face";
+        let mut t = 0usize;
+        for (pi, prop) in el.props.iter().enumerate() {
+            let mut next = |count: bool| -> Result<f64> {
+                let v = self.value(t, &prop.name, count);
+                t += 1;
+                v
+            };
+            match prop.kind {
+                PropKind::Scalar(_) => {
+                    let v = next(false)?;
+                    if is_vertex {
+                        if let Some(axis) = lay.xyz.iter().position(|&x| x == pi) {
+                            if !v.is_finite() {
+                                bail!(
+                                    "{p}: line {ln}: vertex {k}: coordinate {} is {v} (must be finite)",
+                                    ["x", "y", "z"][axis]
+                                );
+                            }
+                            vals[axis] = v;
+                        }
+                    }
+                }
+                PropKind::List { .. } => {
+                    let n = next(true)?;
+                    if n.is_nan() || n < 0.0 || n.fract() != 0.0 {
+                        bail!("{p}: line {ln}: {} {k}: bad list count {n}", el.name);
+                    }
+                    let take_face = is_face && lay.face_list == Some(pi);
+                    for _ in 0..n as usize {
+                        let v = next(false)?;
+                        if take_face {
+                            face.push(check_index(
+                                self.path,
+                                || format!("line {ln}: face {k}"),
+                                v,
+                                nv,
+                            )?);
+                        }
+                    }
+                }
+            }
+        }
+        if t != self.tokens.len() {
+            bail!(
+                "{p}: line {ln}: {} {k}: {} values, expected {t} (header and data disagree)",
+                el.name,
+                self.tokens.len()
+            );
+        }
+        Ok(())
+    }
+
+    /// Value `t` of the row, a number, for property `name` (its list's count with `count`).
+    fn value(&self, t: usize, name: &str, count: bool) -> Result<f64> {
+        let (p, el, k, ln) = (self.path.display(), self.el, self.k, self.ln);
+        let what = || {
+            if count {
+                format!("{name} count")
+            } else {
+                name.to_string()
+            }
+        };
+        let s = self.tokens.get(t).ok_or_else(|| {
+            anyhow!(
+                "{p}: line {ln}: {} {k}: too few values (missing {}; header count or data wrong?)",
+                el.name,
+                what()
+            )
+        })?;
+        s.parse::<f64>().map_err(|_| {
+            anyhow!(
+                "{p}: line {ln}: {} {k}: '{s}' is not a number ({})",
+                el.name,
+                what()
+            )
+        })
+    }
 }
 
 /// Binary PLY fast path: an element of scalars only is a fixed-size record (vertices,
@@ -855,14 +891,14 @@ fn load_ply_binary(
     big: bool,
 ) -> Result<(Mesh, MeshStats)> {
     let p = path.display();
-    let mut pos = h.body;
+    let mut body = BinaryBody {
+        path,
+        data,
+        pos: h.body,
+        big,
+    };
     let mut out = PlyMesh::default();
-    let nv_decl = h
-        .elements
-        .iter()
-        .find(|e| e.name == "vertex")
-        .map(|e| e.count)
-        .unwrap_or(0);
+    let nv_decl = declared_vertices(h);
     let mut face_buf: Vec<u32> = Vec::new();
     for el in &h.elements {
         let is_vertex = el.name == "vertex";
@@ -880,75 +916,13 @@ fn load_ply_binary(
             })
             .collect();
         if let Some(types) = scalars {
-            pos = read_fixed_records(path, data, pos, el, &types, lay, big, &mut out)?;
+            body.pos = read_fixed_records(path, data, body.pos, el, &types, lay, big, &mut out)?;
             continue;
         }
         for k in 0..el.count {
             let mut vals = [0.0f64; 3];
             face_buf.clear();
-            for (pi, prop) in el.props.iter().enumerate() {
-                let mut read = |s: Scalar| -> Result<f64> {
-                    let n = s.size();
-                    if pos + n > data.len() {
-                        bail!(
-                            "{p}: truncated: file ends inside {} {k} of {} declared (property '{}')",
-                            el.name,
-                            el.count,
-                            prop.name
-                        );
-                    }
-                    let v = s.read(&data[pos..pos + n], big);
-                    pos += n;
-                    Ok(v)
-                };
-                match prop.kind {
-                    PropKind::Scalar(s) => {
-                        let v = read(s)?;
-                        if is_vertex {
-                            if let Some(axis) = lay.xyz.iter().position(|&x| x == pi) {
-                                if !v.is_finite() {
-                                    bail!(
-                                        "{p}: vertex {k}: coordinate {} is {v} (must be finite)",
-                                        ["x", "y", "z"][axis]
-                                    );
-                                }
-                                vals[axis] = v;
-                            }
-                        }
-                    }
-                    PropKind::List { count, item } => {
-                        let n = read(count)?;
-                        if n < 0.0 {
-                            bail!("{p}: {} {k}: negative list count {n}", el.name);
-                        }
-                        let n = n as usize;
-                        let take_face = is_face && lay.face_list == Some(pi);
-                        if take_face {
-                            for _ in 0..n {
-                                let v = read(item)?;
-                                face_buf.push(check_index(
-                                    path,
-                                    || format!("face {k}"),
-                                    v,
-                                    nv_decl,
-                                )?);
-                            }
-                        } else {
-                            // Overflow-checked: a list count is read from the file.
-                            let end = n.checked_mul(item.size()).and_then(|b| pos.checked_add(b));
-                            match end {
-                                Some(e) if e <= data.len() => pos = e,
-                                _ => bail!(
-                                    "{p}: truncated: file ends inside {} {k} of {} declared (list '{}')",
-                                    el.name,
-                                    el.count,
-                                    prop.name
-                                ),
-                            }
-                        }
-                    }
-                }
-            }
+            body.row(el, k, lay, nv_decl, &mut vals, &mut face_buf)?;
             if is_vertex {
                 out.mesh.vertices.push(DVec3::from_array(vals));
             }
@@ -961,7 +935,7 @@ fn load_ply_binary(
         }
     }
     // Tolerate a trailing newline some writers add; anything more means the counts are wrong.
-    let rest = &data[pos..];
+    let rest = &data[body.pos..];
     if rest.iter().any(|c| !c.is_ascii_whitespace()) {
         bail!(
             "{p}: {} bytes of extra data after the last declared element (element counts in the header too small?)",
@@ -969,6 +943,110 @@ fn load_ply_binary(
         );
     }
     Ok((out.mesh, out.stats))
+}
+
+/// A binary PLY's body as it is read: the bytes, the position reached, the byte order.
+struct BinaryBody<'a> {
+    path: &'a Path,
+    data: &'a [u8],
+    pos: usize,
+    big: bool,
+}
+
+impl BinaryBody<'_> {
+    /// Row `k` of element `el` (one with lists): its vertex coordinates into `vals` and its
+    /// face's indices (checked against `nv` vertices) into `face`, where `lay` says they are;
+    /// other lists are skipped.
+    fn row(
+        &mut self,
+        el: &Element,
+        k: usize,
+        lay: &Layout,
+        nv: usize,
+        vals: &mut [f64; 3],
+        face: &mut Vec<u32>,
+    ) -> Result<()> {
+        let p = self.path.display();
+        let is_vertex = el.name == "vertex";
+        let is_face = el.name == "face";
+        for (pi, prop) in el.props.iter().enumerate() {
+            match prop.kind {
+                PropKind::Scalar(s) => {
+                    let v = self.read(s, el, k, &prop.name)?;
+                    if is_vertex {
+                        if let Some(axis) = lay.xyz.iter().position(|&x| x == pi) {
+                            if !v.is_finite() {
+                                bail!(
+                                    "{p}: vertex {k}: coordinate {} is {v} (must be finite)",
+                                    ["x", "y", "z"][axis]
+                                );
+                            }
+                            vals[axis] = v;
+                        }
+                    }
+                }
+                PropKind::List { count, item } => {
+                    let n = self.read(count, el, k, &prop.name)?;
+                    if n < 0.0 {
+                        bail!("{p}: {} {k}: negative list count {n}", el.name);
+                    }
+                    let n = n as usize;
+                    if is_face && lay.face_list == Some(pi) {
+                        for _ in 0..n {
+                            let v = self.read(item, el, k, &prop.name)?;
+                            face.push(check_index(self.path, || format!("face {k}"), v, nv)?);
+                        }
+                    } else {
+                        self.skip_list(n, item, el, k, &prop.name)?;
+                    }
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// The next value, of type `s` (row `k` of `el`, property `prop` in errors).
+    fn read(&mut self, s: Scalar, el: &Element, k: usize, prop: &str) -> Result<f64> {
+        let n = s.size();
+        if self.pos + n > self.data.len() {
+            bail!(
+                "{}: truncated: file ends inside {} {k} of {} declared (property '{prop}')",
+                self.path.display(),
+                el.name,
+                el.count
+            );
+        }
+        let v = s.read(&self.data[self.pos..self.pos + n], self.big);
+        self.pos += n;
+        Ok(v)
+    }
+
+    /// Past a list of `n` values of type `item` (overflow-checked: the count is read from the
+    /// file).
+    fn skip_list(
+        &mut self,
+        n: usize,
+        item: Scalar,
+        el: &Element,
+        k: usize,
+        list: &str,
+    ) -> Result<()> {
+        let end = n
+            .checked_mul(item.size())
+            .and_then(|b| self.pos.checked_add(b));
+        match end {
+            Some(e) if e <= self.data.len() => {
+                self.pos = e;
+                Ok(())
+            }
+            _ => bail!(
+                "{}: truncated: file ends inside {} {k} of {} declared (list '{list}')",
+                self.path.display(),
+                el.name,
+                el.count
+            ),
+        }
+    }
 }
 
 pub use super::remesh::{decimate, decimate_report, subdivide, DecimateReport};

@@ -244,15 +244,30 @@ fn sensor(src: &Source, n: Node) -> Result<Option<Intrinsics>> {
         .children()
         .filter(|c| c.has_tag_name("calibration"))
         .collect();
-    let Some(cal) = calibs
+    let Some(&cal) = calibs
         .iter()
         .find(|c| c.attribute("class") == Some("adjusted"))
         .or(calibs.first())
     else {
         return Ok(None);
     };
-    let res = child(*cal, "resolution")
-        .or_else(|| child(n, "resolution"))
+    let (w, h) = resolution(src, n, cal, &at)?;
+    let (fx, fy, cx, cy, skew_px) = focal(src, cal, w, h)?;
+    Ok(Some(Intrinsics {
+        width: w as u32,
+        height: h as u32,
+        fx,
+        fy,
+        cx,
+        cy,
+        distortion: distortion(src, cal, kind == "fisheye", fx, skew_px)?,
+    }))
+}
+
+/// A calibration's `<resolution>` (else its sensor's): width and height, whole and positive.
+fn resolution(src: &Source, sensor: Node, cal: Node, at: &str) -> Result<(f64, f64)> {
+    let res = child(cal, "resolution")
+        .or_else(|| child(sensor, "resolution"))
         .ok_or_else(|| anyhow!("{at}: sensor has no <resolution width=… height=…>"))?;
     let (w, h) = (
         src.attr_number(res, "width")?,
@@ -269,56 +284,68 @@ fn sensor(src: &Source, n: Node) -> Result<Option<Intrinsics>> {
             src.at(res)
         );
     }
-    let get = |name: &str| -> Result<f64> { Ok(src.child_number(*cal, name)?.unwrap_or(0.0)) };
-    // `(fx, fy, principal point, skew in pixels)`. Metashape and PhotoScan from 1.4 (document
-    // 1.4.0 on) write `f`, `b1`, `b2` and cx, cy from the image centre; PhotoScan before 1.4
-    // wrote `fx`, `fy`, `skew` and cx, cy from the image corner, in pixels.
-    let (fx, fy, cx, cy, skew_px) = match src.child_number(*cal, "f")? {
-        Some(f) => {
-            let (b1, b2) = (get("b1")?, get("b2")?);
-            if !(f + b1 > 0.0 && f > 0.0) {
-                bail!(
-                    "{}: focal length f = {f}, b1 = {b1}: expected f > 0 and f + b1 > 0",
-                    src.at(*cal)
-                );
-            }
-            (f + b1, f, 0.5 * w + get("cx")?, 0.5 * h + get("cy")?, b2)
+    Ok((w, h))
+}
+
+/// A calibration's number `<name>`, 0 when absent.
+fn number_or_zero(src: &Source, cal: Node, name: &str) -> Result<f64> {
+    Ok(src.child_number(cal, name)?.unwrap_or(0.0))
+}
+
+/// `(fx, fy, principal point, skew in pixels)` of a calibration of a `w`×`h` sensor. Metashape
+/// and PhotoScan from 1.4 (document 1.4.0 on) write `f`, `b1`, `b2` and cx, cy from the image
+/// centre; PhotoScan before 1.4 wrote `fx`, `fy`, `skew` and cx, cy from the image corner, in
+/// pixels.
+fn focal(src: &Source, cal: Node, w: f64, h: f64) -> Result<(f64, f64, f64, f64, f64)> {
+    let get = |name: &str| number_or_zero(src, cal, name);
+    if let Some(f) = src.child_number(cal, "f")? {
+        let (b1, b2) = (get("b1")?, get("b2")?);
+        if !(f + b1 > 0.0 && f > 0.0) {
+            bail!(
+                "{}: focal length f = {f}, b1 = {b1}: expected f > 0 and f + b1 > 0",
+                src.at(cal)
+            );
         }
-        None => {
-            let need = |name: &str| -> Result<f64> {
-                src.child_number(*cal, name)?.ok_or_else(|| {
-                    anyhow!(
-                        "{}: calibration has no <f> (nor the <fx>, <fy>, <cx>, <cy> of PhotoScan before 1.4): no <{name}>",
-                        src.at(*cal)
-                    )
-                })
-            };
-            let (fx, fy) = (need("fx")?, need("fy")?);
-            let (cx, cy) = (need("cx")?, need("cy")?);
-            if !(fx > 0.0 && fy > 0.0) {
-                bail!(
-                    "{}: focal lengths fx = {fx}, fy = {fy}: expected positive numbers",
-                    src.at(*cal)
-                );
-            }
-            // Agisoft documented this form's tangential terms both ways round (Agisoft Lens'
-            // manual: P2 with r² + 2x², OpenCV's order; PhotoScan's Appendix C: P1 with it).
-            for name in ["p1", "p2"] {
-                if get(name)? != 0.0 {
-                    bail!(
-                        "{}: <{name}> in a calibration of PhotoScan before 1.4 (<fx>, <fy>): Agisoft's manuals disagree on which term it multiplies, so xscale does not guess; export the cameras from PhotoScan 1.4 or Metashape (which write <f>), or the photos undistorted",
-                        src.at(*cal)
-                    );
-                }
-            }
-            (fx, fy, cx, cy, get("skew")?)
-        }
+        return Ok((f + b1, f, 0.5 * w + get("cx")?, 0.5 * h + get("cy")?, b2));
+    }
+    let need = |name: &str| -> Result<f64> {
+        src.child_number(cal, name)?.ok_or_else(|| {
+            anyhow!(
+                "{}: calibration has no <f> (nor the <fx>, <fy>, <cx>, <cy> of PhotoScan before 1.4): no <{name}>",
+                src.at(cal)
+            )
+        })
     };
+    let (fx, fy) = (need("fx")?, need("fy")?);
+    let (cx, cy) = (need("cx")?, need("cy")?);
+    if !(fx > 0.0 && fy > 0.0) {
+        bail!(
+            "{}: focal lengths fx = {fx}, fy = {fy}: expected positive numbers",
+            src.at(cal)
+        );
+    }
+    // Agisoft documented this form's tangential terms both ways round (Agisoft Lens' manual: P2
+    // with r² + 2x², OpenCV's order; PhotoScan's Appendix C: P1 with it).
+    for name in ["p1", "p2"] {
+        if get(name)? != 0.0 {
+            bail!(
+                "{}: <{name}> in a calibration of PhotoScan before 1.4 (<fx>, <fy>): Agisoft's manuals disagree on which term it multiplies, so xscale does not guess; export the cameras from PhotoScan 1.4 or Metashape (which write <f>), or the photos undistorted",
+                src.at(cal)
+            );
+        }
+    }
+    Ok((fx, fy, cx, cy, get("skew")?))
+}
+
+/// A calibration's lens distortion: Brown's (frame sensors; none when every term is zero) or the
+/// equidistant fisheye's, with skew `skew_px` (pixels) of focal length `fx`.
+fn distortion(src: &Source, cal: Node, fisheye: bool, fx: f64, skew_px: f64) -> Result<Distortion> {
+    let get = |name: &str| number_or_zero(src, cal, name);
     for extra in ["p3", "p4"] {
         if get(extra)? != 0.0 {
             bail!(
                 "{}: <{extra}> is not supported (k1…k4, p1, p2, b1, b2 are); export the photos undistorted from Metashape instead",
-                src.at(*cal)
+                src.at(cal)
             );
         }
     }
@@ -326,11 +353,11 @@ fn sensor(src: &Source, n: Node) -> Result<Option<Intrinsics>> {
     // Metashape's P1 goes with r² + 2x² (OpenCV's p2), its P2 with 2xy (OpenCV's p1).
     let (p1, p2) = (get("p2")?, get("p1")?);
     let skew = skew_px / fx;
-    let distortion = if kind == "fisheye" {
+    Ok(if fisheye {
         if skew_px != 0.0 {
             bail!(
                 "{}: a fisheye sensor with skew (b2) {skew_px} is not supported",
-                src.at(*cal)
+                src.at(cal)
             );
         }
         Distortion::ThinPrismFisheye {
@@ -344,16 +371,7 @@ fn sensor(src: &Source, n: Node) -> Result<Option<Intrinsics>> {
         Distortion::None
     } else {
         Distortion::Brown { k, p1, p2, skew }
-    };
-    Ok(Some(Intrinsics {
-        width: w as u32,
-        height: h as u32,
-        fx,
-        fy,
-        cx,
-        cy,
-        distortion,
-    }))
+    })
 }
 
 /// The photo of a camera label in `images`: the label itself when it names a file there (labels
@@ -393,32 +411,7 @@ pub fn load(xml: &Path, images: &Path) -> Result<Loaded> {
         path: xml,
         doc: &doc,
     };
-    let root = doc.root_element();
-    if !root.has_tag_name("document") {
-        bail!(
-            "{}: the root element is <{}>, expected <document> (an Agisoft XML camera export)",
-            xml.display(),
-            root.tag_name().name()
-        );
-    }
-    let chunks: Vec<Node> = root
-        .children()
-        .filter(|c| c.has_tag_name("chunk"))
-        .collect();
-    let chunk = match chunks.as_slice() {
-        [c] => *c,
-        [] => bail!("{}: no <chunk> in the document", xml.display()),
-        _ => bail!(
-            "{}: {} chunks ({}); export the cameras of one chunk",
-            xml.display(),
-            chunks.len(),
-            chunks
-                .iter()
-                .map(|c| format!("'{}'", c.attribute("label").unwrap_or("?")))
-                .collect::<Vec<_>>()
-                .join(", ")
-        ),
-    };
+    let chunk = the_chunk(&src)?;
     if !images.is_dir() {
         bail!(
             "{}: photo folder not found (the cameras are in {})",
@@ -426,139 +419,19 @@ pub fn load(xml: &Path, images: &Path) -> Result<Loaded> {
             xml.display()
         );
     }
-    // Each sensor's intrinsics, or why it has none we can use: a sensor no read camera uses may
-    // be of a kind xscale does not model.
-    let mut sensors: HashMap<&str, Result<Option<Intrinsics>>> = HashMap::new();
-    // The slave sensors of a multi-camera system (a `master_id` other than their own id, or a
-    // `<location>` / `<rotation>` offset from the master).
-    let mut slave_sensors: Vec<&str> = Vec::new();
-    for s in child(chunk, "sensors")
-        .into_iter()
-        .flat_map(|s| s.children().filter(|c| c.has_tag_name("sensor")))
-    {
-        let id = s.attribute("id").unwrap_or("");
-        if s.attribute("master_id").is_some_and(|m| m != id)
-            || child(s, "location").is_some()
-            || child(s, "rotation").is_some()
-        {
-            slave_sensors.push(id);
-        }
-        sensors.insert(id, sensor(&src, s));
-    }
-    let mut components: HashMap<&str, Similarity> = HashMap::new();
-    for c in child(chunk, "components")
-        .into_iter()
-        .flat_map(|s| s.children().filter(|c| c.has_tag_name("component")))
-    {
-        if let Some(t) = child(c, "transform") {
-            components.insert(c.attribute("id").unwrap_or(""), src.similarity(t)?);
-        }
-    }
-    let chunk_transform = match child(chunk, "transform") {
-        Some(t) => Some((src.similarity(t)?, t)),
-        None => None,
-    };
-    // PhotoScan and Metashape 1.x before components place the chunk with the chunk's
-    // <transform>; later versions with each component's. A file with both has them mean the same
-    // placement (applying both would place the cameras twice) or something not documented.
-    let chunk_transform = match chunk_transform {
-        Some((ch, _)) if components.values().all(|c| c.same_as(&ch)) => Some(ch),
-        Some((_, t)) => bail!(
-            "{}: the chunk's <transform> differs from its components' <transform>s: whether the cameras are placed by one, the other or both is not documented, so xscale does not guess; export the cameras of a chunk with one of them",
-            src.at(t)
-        ),
-        None => None,
-    };
+    let sensors = Sensors::read(&src, chunk);
+    let placement = Placement::read(&src, chunk)?;
     let cameras = child(chunk, "cameras")
         .ok_or_else(|| anyhow!("{}: the chunk has no <cameras>", src.at(chunk)))?;
-    let (mut unaligned, mut disabled, mut uncalibrated, mut slaves) = (0, 0, 0, 0);
+    let mut left = LeftOut::default();
     let mut views = Vec::new();
     for cam in cameras.descendants().filter(|c| c.has_tag_name("camera")) {
-        let at = src.at(cam);
-        let label = cam
-            .attribute("label")
-            .ok_or_else(|| anyhow!("{at}: <camera> has no label"))?;
-        if matches!(cam.attribute("enabled"), Some("false" | "0")) {
-            disabled += 1;
-            continue;
+        if let Some(v) = read_camera(&src, cam, &sensors, &placement, images, &mut left)? {
+            views.push(v);
         }
-        let Some(t) = child(cam, "transform") else {
-            unaligned += 1;
-            continue;
-        };
-        let sensor_id = cam
-            .attribute("sensor_id")
-            .ok_or_else(|| anyhow!("{at}: camera '{label}' has no sensor_id"))?;
-        // A slave camera of a multi-camera system: Metashape places it by its master camera and
-        // its sensor's offset, which xscale does not compose.
-        if slave_sensors.contains(&sensor_id)
-            || cam
-                .attribute("master_id")
-                .is_some_and(|m| Some(m) != cam.attribute("id"))
-        {
-            slaves += 1;
-            continue;
-        }
-        let intr = match sensors.get(sensor_id) {
-            None => bail!(
-                "{at}: camera '{label}': sensor {sensor_id} is not among the chunk's <sensors>"
-            ),
-            Some(Err(e)) => bail!("{e:#}"),
-            Some(Ok(None)) => {
-                uncalibrated += 1;
-                continue;
-            }
-            Some(Ok(Some(i))) => i,
-        };
-        let (r_c, c) = src.matrix(t)?;
-        if let Some(what) = not_a_rotation(&r_c, 1e-6) {
-            bail!("{at}: camera '{label}': the rotation of its <transform> {what}");
-        }
-        let mut pose = (r_c, c);
-        // Its component's similarity, else the chunk's: never both (they are one when both).
-        let placing = match cam.attribute("component_id") {
-            Some(id) => components.get(id).or(chunk_transform.as_ref()),
-            None if chunk_transform.is_none() && !components.is_empty() => bail!(
-                "{at}: camera '{label}' has no component_id, but the chunk's components are placed by their <transform>s: which one places it is not known"
-            ),
-            None => chunk_transform.as_ref(),
-        };
-        if let Some(sim) = placing {
-            pose = sim.apply(pose);
-        }
-        let photo = find_photo(images, label).ok_or_else(|| {
-            anyhow!(
-                "{at}: no photo for camera '{label}': tried {}/{label} and {label}.{{{}}} (a label that is a path: its file name)",
-                images.display(),
-                super::mvsnet::IMAGE_EXTS.join(",")
-            )
-        })?;
-        let rotation = pose.0.transpose();
-        views.push(View {
-            name: photo
-                .strip_prefix(images)
-                .unwrap_or(&photo)
-                .to_string_lossy()
-                .to_string(),
-            camera: intr.posed(rotation, -(rotation * pose.1)),
-            image_path: photo,
-        });
     }
     views.sort_by(|a, b| a.name.cmp(&b.name));
-    let mut notes = Vec::new();
-    let left: Vec<String> = [
-        (unaligned, "not aligned (no <transform>)"),
-        (disabled, "disabled"),
-        (uncalibrated, "on a sensor without calibration"),
-        (
-            slaves,
-            "slave cameras of a multi-camera system (placed by their master camera and their sensor's offset, which xscale does not compose)",
-        ),
-    ]
-    .iter()
-    .filter(|(n, _)| *n > 0)
-    .map(|(n, why)| format!("{n} {why}"))
-    .collect();
+    let left = left.reasons();
     if views.is_empty() {
         bail!(
             "{}: no camera to read{}",
@@ -570,6 +443,7 @@ pub fn load(xml: &Path, images: &Path) -> Result<Loaded> {
             }
         );
     }
+    let mut notes = Vec::new();
     if !left.is_empty() {
         notes.push(format!(
             "{}: {} cameras read, left out: {}",
@@ -581,10 +455,229 @@ pub fn load(xml: &Path, images: &Path) -> Result<Loaded> {
     let georeferenced = child(chunk, "reference")
         .and_then(|r| r.text())
         .is_some_and(|t| !t.trim_start().starts_with("LOCAL_CS"));
-    if georeferenced && (chunk_transform.is_some() || !components.is_empty()) {
+    if georeferenced && placement.placed() {
         notes.push(georeference_note(xml));
     }
     Ok(Loaded { views, notes })
+}
+
+/// The document's one `<chunk>` (an export of several is refused: which was meant is not known).
+fn the_chunk<'a, 'i>(src: &Source<'a>) -> Result<Node<'a, 'i>>
+where
+    'a: 'i,
+{
+    let xml = src.path;
+    let root = src.doc.root_element();
+    if !root.has_tag_name("document") {
+        bail!(
+            "{}: the root element is <{}>, expected <document> (an Agisoft XML camera export)",
+            xml.display(),
+            root.tag_name().name()
+        );
+    }
+    let chunks: Vec<Node> = root
+        .children()
+        .filter(|c| c.has_tag_name("chunk"))
+        .collect();
+    match chunks.as_slice() {
+        [c] => Ok(*c),
+        [] => bail!("{}: no <chunk> in the document", xml.display()),
+        _ => bail!(
+            "{}: {} chunks ({}); export the cameras of one chunk",
+            xml.display(),
+            chunks.len(),
+            chunks
+                .iter()
+                .map(|c| format!("'{}'", c.attribute("label").unwrap_or("?")))
+                .collect::<Vec<_>>()
+                .join(", ")
+        ),
+    }
+}
+
+/// The chunk's sensors: each one's intrinsics, or why it has none we can use (a sensor no read
+/// camera uses may be of a kind xscale does not model), and the slave sensors of a multi-camera
+/// system (a `master_id` other than their own id, or a `<location>` / `<rotation>` offset from
+/// the master).
+struct Sensors<'a> {
+    intrinsics: HashMap<&'a str, Result<Option<Intrinsics>>>,
+    slaves: Vec<&'a str>,
+}
+
+impl<'a> Sensors<'a> {
+    fn read(src: &Source, chunk: Node<'a, '_>) -> Sensors<'a> {
+        let mut out = Sensors {
+            intrinsics: HashMap::new(),
+            slaves: Vec::new(),
+        };
+        for s in child(chunk, "sensors")
+            .into_iter()
+            .flat_map(|s| s.children().filter(|c| c.has_tag_name("sensor")))
+        {
+            let id = s.attribute("id").unwrap_or("");
+            if s.attribute("master_id").is_some_and(|m| m != id)
+                || child(s, "location").is_some()
+                || child(s, "rotation").is_some()
+            {
+                out.slaves.push(id);
+            }
+            out.intrinsics.insert(id, sensor(src, s));
+        }
+        out
+    }
+}
+
+/// What places the chunk's cameras in its world frame: each component's similarity (Metashape
+/// 2), the chunk's (PhotoScan and Metashape 1.x before components).
+struct Placement<'a> {
+    components: HashMap<&'a str, Similarity>,
+    chunk: Option<Similarity>,
+}
+
+impl<'a> Placement<'a> {
+    fn read(src: &Source, chunk: Node<'a, '_>) -> Result<Placement<'a>> {
+        let mut components: HashMap<&str, Similarity> = HashMap::new();
+        for c in child(chunk, "components")
+            .into_iter()
+            .flat_map(|s| s.children().filter(|c| c.has_tag_name("component")))
+        {
+            if let Some(t) = child(c, "transform") {
+                components.insert(c.attribute("id").unwrap_or(""), src.similarity(t)?);
+            }
+        }
+        let chunk_transform = match child(chunk, "transform") {
+            Some(t) => Some((src.similarity(t)?, t)),
+            None => None,
+        };
+        // A file with both has them mean the same placement (applying both would place the
+        // cameras twice) or something not documented.
+        let chunk = match chunk_transform {
+            Some((ch, _)) if components.values().all(|c| c.same_as(&ch)) => Some(ch),
+            Some((_, t)) => bail!(
+                "{}: the chunk's <transform> differs from its components' <transform>s: whether the cameras are placed by one, the other or both is not documented, so xscale does not guess; export the cameras of a chunk with one of them",
+                src.at(t)
+            ),
+            None => None,
+        };
+        Ok(Placement { components, chunk })
+    }
+
+    /// Whether anything places the cameras (else they stand in the chunk's own frame).
+    fn placed(&self) -> bool {
+        self.chunk.is_some() || !self.components.is_empty()
+    }
+
+    /// The similarity that places camera `cam` (labelled `label`, `at` in the file): its
+    /// component's, else the chunk's; never both (they are one when both).
+    fn of(&self, cam: Node, at: &str, label: &str) -> Result<Option<&Similarity>> {
+        Ok(match cam.attribute("component_id") {
+            Some(id) => self.components.get(id).or(self.chunk.as_ref()),
+            None if self.chunk.is_none() && !self.components.is_empty() => bail!(
+                "{at}: camera '{label}' has no component_id, but the chunk's components are placed by their <transform>s: which one places it is not known"
+            ),
+            None => self.chunk.as_ref(),
+        })
+    }
+}
+
+/// Cameras [`load`] left out, by cause.
+#[derive(Default)]
+struct LeftOut {
+    unaligned: usize,
+    disabled: usize,
+    uncalibrated: usize,
+    slaves: usize,
+}
+
+impl LeftOut {
+    /// `N why` for each cause with cameras.
+    fn reasons(&self) -> Vec<String> {
+        [
+            (self.unaligned, "not aligned (no <transform>)"),
+            (self.disabled, "disabled"),
+            (self.uncalibrated, "on a sensor without calibration"),
+            (
+                self.slaves,
+                "slave cameras of a multi-camera system (placed by their master camera and their sensor's offset, which xscale does not compose)",
+            ),
+        ]
+        .iter()
+        .filter(|(n, _)| *n > 0)
+        .map(|(n, why)| format!("{n} {why}"))
+        .collect()
+    }
+}
+
+/// The view of `<camera>` `cam`, or `None` when it is left out (counted in `left`).
+fn read_camera(
+    src: &Source,
+    cam: Node,
+    sensors: &Sensors,
+    placement: &Placement,
+    images: &Path,
+    left: &mut LeftOut,
+) -> Result<Option<View>> {
+    let at = src.at(cam);
+    let label = cam
+        .attribute("label")
+        .ok_or_else(|| anyhow!("{at}: <camera> has no label"))?;
+    if matches!(cam.attribute("enabled"), Some("false" | "0")) {
+        left.disabled += 1;
+        return Ok(None);
+    }
+    let Some(t) = child(cam, "transform") else {
+        left.unaligned += 1;
+        return Ok(None);
+    };
+    let sensor_id = cam
+        .attribute("sensor_id")
+        .ok_or_else(|| anyhow!("{at}: camera '{label}' has no sensor_id"))?;
+    // A slave camera of a multi-camera system: Metashape places it by its master camera and
+    // its sensor's offset, which xscale does not compose.
+    if sensors.slaves.contains(&sensor_id)
+        || cam
+            .attribute("master_id")
+            .is_some_and(|m| Some(m) != cam.attribute("id"))
+    {
+        left.slaves += 1;
+        return Ok(None);
+    }
+    let intr = match sensors.intrinsics.get(sensor_id) {
+        None => {
+            bail!("{at}: camera '{label}': sensor {sensor_id} is not among the chunk's <sensors>")
+        }
+        Some(Err(e)) => bail!("{e:#}"),
+        Some(Ok(None)) => {
+            left.uncalibrated += 1;
+            return Ok(None);
+        }
+        Some(Ok(Some(i))) => i,
+    };
+    let (r_c, c) = src.matrix(t)?;
+    if let Some(what) = not_a_rotation(&r_c, 1e-6) {
+        bail!("{at}: camera '{label}': the rotation of its <transform> {what}");
+    }
+    let mut pose = (r_c, c);
+    if let Some(sim) = placement.of(cam, &at, label)? {
+        pose = sim.apply(pose);
+    }
+    let photo = find_photo(images, label).ok_or_else(|| {
+        anyhow!(
+            "{at}: no photo for camera '{label}': tried {}/{label} and {label}.{{{}}} (a label that is a path: its file name)",
+            images.display(),
+            super::mvsnet::IMAGE_EXTS.join(",")
+        )
+    })?;
+    let rotation = pose.0.transpose();
+    Ok(Some(View {
+        name: photo
+            .strip_prefix(images)
+            .unwrap_or(&photo)
+            .to_string_lossy()
+            .to_string(),
+        camera: intr.posed(rotation, -(rotation * pose.1)),
+        image_path: photo,
+    }))
 }
 
 /// What a georeferenced chunk's frame means for the mesh.

@@ -38,6 +38,27 @@ pub enum Samples {
 }
 
 impl Samples {
+    /// No views yet, in mode `mode` (`auto` streams: [`crate::train::memory::resolve_samples`]
+    /// has decided it before), for γ×γ rays per pixel, keeping each sub-sample's triangle and
+    /// barycentrics when `keep_triangles` (the vertex featurization, the mesh refinement).
+    pub fn empty(
+        mode: SampleMode,
+        gamma: u32,
+        keep_triangles: bool,
+        tracer: &Tracer,
+    ) -> anyhow::Result<Samples> {
+        Ok(match mode {
+            SampleMode::Stream | SampleMode::Auto => {
+                Samples::Stream(RayStream::new(gamma, keep_triangles)?)
+            }
+            SampleMode::Cache => Samples::Cache(Box::new(if keep_triangles {
+                SampleCache::build_with_triangles(tracer, &[], gamma, &mut |_| {})?
+            } else {
+                SampleCache::new(gamma)?
+            })),
+        })
+    }
+
     /// Number of kept pixels (pixels with at least one sub-sample on the mesh).
     pub fn len(&self) -> usize {
         match self {

@@ -8,9 +8,9 @@ use crate::model::config::{per_level_scale_for, GridConfig};
 use crate::model::hashgrid::tcnn_scales;
 use crate::model::ModelConfig;
 use crate::raycast::consistency::PhotoCheck;
-use crate::raycast::{CacheEvent, RayStream, SampleCache, Targets, Tracer};
+use crate::raycast::{CacheEvent, Targets, Tracer};
 use crate::scene::Camera;
-use crate::scene::{LoadOptions, MaskSource, Scene};
+use crate::scene::{LoadOptions, LoadReport, MaskSource, Scene};
 use crate::train::config::{LevelRange, RunConfig};
 use crate::train::memory;
 use crate::train::sampler::{SampleMode, Samples};
@@ -129,6 +129,97 @@ pub fn prepare_until(
     stop: &dyn Fn() -> bool,
     job: memory::Job,
 ) -> Result<Prepared> {
+    let (scene, report) = load_for_training(dir, cfg, log)?;
+    let train_views = scene.train();
+    let tracer = Tracer::new(&scene.mesh, &scene.normalization).context("building the BVH")?;
+    let sizes = view_sizes(&scene, &train_views);
+    let budget = memory::budget(cfg);
+    let (mode, why) =
+        memory::check_job_against(cfg, &sizes, scene.downsample, job, budget.clone())?;
+    let t0 = std::time::Instant::now();
+    let gamma = cfg.model.gamma;
+    // The vertex featurization needs each sub-sample's triangle and barycentrics, the mesh
+    // refinement its triangle (`refine/`).
+    let keep_triangles = !cfg.model.featurization.is_hash() || cfg.model.refine.enabled;
+    let mut samples = Samples::empty(mode, gamma, keep_triangles, &tracer)?;
+    // The photos against the mesh (`raycast/consistency.rs`): the training views, read as they go
+    // by, then the held-out views (a wrong pose there spoils only the evaluation, found here before
+    // a run is spent on it).
+    let checked: Vec<usize> = train_views.iter().chain(&scene.test).copied().collect();
+    let mut photo_check = with_images.then(|| {
+        let cams: Vec<&Camera> = checked.iter().map(|&i| &scene.views[i].camera).collect();
+        PhotoCheck::plan(&scene.mesh, &tracer, &cams)
+    });
+    let cast = CastViews {
+        scene: &scene,
+        tracer: &tracer,
+        views: &train_views,
+        images: with_images,
+        alpha_without_images: true,
+    }
+    .into_samples(
+        &mut samples,
+        photo_check.as_mut(),
+        stop,
+        &mut |i, mask, e| {
+            if let CacheEvent::ViewDropped { .. } = e {
+                log(format!(
+                    "warning: view {i} ({}) {}: dropped",
+                    scene.views[i].name,
+                    crate::scene::mask::drop_reason(mask)
+                ));
+            }
+        },
+    )?;
+    if samples.is_empty() && cast.empty_masks == train_views.len() {
+        bail!(
+            "{}: no training pixel is inside its view's object mask (every mask, from the photos' alpha channels or masks/, is empty)",
+            dir.display()
+        );
+    }
+    if samples.is_empty() {
+        bail!(
+            "{}: no training pixel sees the mesh: check that the mesh and the cameras are in one frame and unit (`xscale cast` lists each view's share; a mesh from nerfstudio's ns-export: `xscale align-mesh`)",
+            dir.display()
+        );
+    }
+    if let Some(c) = &mut photo_check {
+        finish_photo_check(c, &scene, &checked, train_views.len(), stop, log)?;
+    }
+    let all: u64 = sizes.iter().map(|&(w, h)| w as u64 * h as u64).sum();
+    let agreed = report.frame_check.as_ref().filter(|(_, a)| a.agrees());
+    let agreed = agreed.map(|(source, _)| source.as_path());
+    if let Some(w) = few_hits_warning(samples.len() as u64, all, agreed) {
+        log(w);
+    }
+    log(format!(
+        "cast {} training views with γ={gamma} in {:.2} s: {} pixels see the mesh; {} {:.1} MB ({why})",
+        train_views.len(),
+        t0.elapsed().as_secs_f64(),
+        samples.len(),
+        match samples.mode() {
+            SampleMode::Cache => "sample cache:",
+            _ => "hit maps + photos (rays cast per batch):",
+        },
+        samples.bytes() as f64 / 1e6
+    ));
+    Ok(Prepared {
+        scene,
+        tracer,
+        train_views,
+        samples,
+        budget,
+    })
+}
+
+/// The scene of `dir` as `cfg` loads it (downsample, normalisation, mesh), with what loading it
+/// found said through `log`: the views, the mesh, notes and warnings, the object masks. A scene
+/// whose every view is held out is refused.
+fn load_for_training(
+    dir: &Path,
+    cfg: &RunConfig,
+    log: &mut dyn FnMut(String),
+) -> Result<(Scene, LoadReport)> {
     let opts = LoadOptions {
         downsample: cfg.train.downsample,
         normalize: cfg.train.normalize,
@@ -183,115 +274,39 @@ pub fn prepare_until(
             }
         ));
     }
-    let tracer = Tracer::new(&scene.mesh, &scene.normalization).context("building the BVH")?;
-    let sizes = view_sizes(&scene, &train_views);
-    let budget = memory::budget(cfg);
-    let (mode, why) =
-        memory::check_job_against(cfg, &sizes, scene.downsample, job, budget.clone())?;
-    let t0 = std::time::Instant::now();
-    let gamma = cfg.model.gamma;
-    // The vertex featurization needs each sub-sample's triangle and barycentrics, the mesh
-    // refinement its triangle (`refine/`).
-    let keep_triangles = !cfg.model.featurization.is_hash() || cfg.model.refine.enabled;
-    let mut samples = match mode {
-        SampleMode::Stream | SampleMode::Auto => {
-            Samples::Stream(RayStream::new(gamma, keep_triangles)?)
+    Ok((scene, report))
+}
+
+/// The photo check's held-out views (read after the training views were cast; a held-out photo
+/// that cannot be read is the evaluation's error to report), then its messages through `log`.
+/// `checked` lists the scene views the check was planned for: the `n_train` training views,
+/// then the held-out ones.
+fn finish_photo_check(
+    c: &mut PhotoCheck,
+    scene: &Scene,
+    checked: &[usize],
+    n_train: usize,
+    stop: &dyn Fn() -> bool,
+    log: &mut dyn FnMut(String),
+) -> Result<()> {
+    for (k, &i) in checked.iter().enumerate().skip(n_train) {
+        if stop() {
+            return Err(StoppedInSetup.into());
         }
-        SampleMode::Cache => Samples::Cache(Box::new(if keep_triangles {
-            SampleCache::build_with_triangles(&tracer, &[], gamma, &mut |_| {})?
-        } else {
-            SampleCache::new(gamma)?
-        })),
+        if c.wants(k) {
+            if let Ok(img) = scene.load_image(i) {
+                c.add_view(k, &img);
+            }
+        }
+    }
+    let name = |k: usize| {
+        let held_out = if k >= n_train { " (held out)" } else { "" };
+        format!("{}{held_out}", scene.views[checked[k]].name)
     };
-    // The photos against the mesh (`raycast/consistency.rs`): the training views, read as they go
-    // by, then the held-out views (a wrong pose there spoils only the evaluation, found here before
-    // a run is spent on it).
-    let checked: Vec<usize> = train_views.iter().chain(&scene.test).copied().collect();
-    let mut photo_check = with_images.then(|| {
-        let cams: Vec<&Camera> = checked.iter().map(|&i| &scene.views[i].camera).collect();
-        PhotoCheck::plan(&scene.mesh, &tracer, &cams)
-    });
-    let cast = CastViews {
-        scene: &scene,
-        tracer: &tracer,
-        views: &train_views,
-        images: with_images,
-        alpha_without_images: true,
+    for m in c.result().messages(&name) {
+        log(m);
     }
-    .into_samples(
-        &mut samples,
-        photo_check.as_mut(),
-        stop,
-        &mut |i, mask, e| {
-            if let CacheEvent::ViewDropped { .. } = e {
-                log(format!(
-                    "warning: view {i} ({}) {}: dropped",
-                    scene.views[i].name,
-                    crate::scene::mask::drop_reason(mask)
-                ));
-            }
-        },
-    )?;
-    if samples.is_empty() && cast.empty_masks == train_views.len() {
-        bail!(
-            "{}: no training pixel is inside its view's object mask (every mask, from the photos' alpha channels or masks/, is empty)",
-            dir.display()
-        );
-    }
-    if samples.is_empty() {
-        bail!(
-            "{}: no training pixel sees the mesh: check that the mesh and the cameras are in one frame and unit (`xscale cast` lists each view's share; a mesh from nerfstudio's ns-export: `xscale align-mesh`)",
-            dir.display()
-        );
-    }
-    if let Some(c) = &mut photo_check {
-        for (k, &i) in checked.iter().enumerate().skip(train_views.len()) {
-            if stop() {
-                return Err(StoppedInSetup.into());
-            }
-            if c.wants(k) {
-                // A held-out photo that cannot be read is the evaluation's error to report.
-                if let Ok(img) = scene.load_image(i) {
-                    c.add_view(k, &img);
-                }
-            }
-        }
-        let name = |k: usize| {
-            let held_out = if k >= train_views.len() {
-                " (held out)"
-            } else {
-                ""
-            };
-            format!("{}{held_out}", scene.views[checked[k]].name)
-        };
-        for m in c.result().messages(&name) {
-            log(m);
-        }
-    }
-    let all: u64 = sizes.iter().map(|&(w, h)| w as u64 * h as u64).sum();
-    let agreed = report.frame_check.as_ref().filter(|(_, a)| a.agrees());
-    let agreed = agreed.map(|(source, _)| source.as_path());
-    if let Some(w) = few_hits_warning(samples.len() as u64, all, agreed) {
-        log(w);
-    }
-    log(format!(
-        "cast {} training views with γ={gamma} in {:.2} s: {} pixels see the mesh; {} {:.1} MB ({why})",
-        train_views.len(),
-        t0.elapsed().as_secs_f64(),
-        samples.len(),
-        match samples.mode() {
-            SampleMode::Cache => "sample cache:",
-            _ => "hit maps + photos (rays cast per batch):",
-        },
-        samples.bytes() as f64 / 1e6
-    ));
-    Ok(Prepared {
-        scene,
-        tracer,
-        train_views,
-        samples,
-        budget,
-    })
+    Ok(())
 }
 
 /// Scene views cast one photo at a time (load, cast, keep what the samples keep) into the

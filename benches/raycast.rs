@@ -240,7 +240,7 @@ fn main() {
     let time_cache = |t: &Tracer| {
         time_both(
             &|| {
-                SampleCache::build(t, &[(&cam, None)], gamma, &mut |_| {})
+                SampleCache::build(t, &[(&cam, None)], gamma, false, &mut |_| {})
                     .unwrap()
                     .len()
             },

@@ -434,7 +434,7 @@ fn cache_compaction() {
     ];
     let gamma = 2;
     let mut events = Vec::new();
-    let cache = SampleCache::build(&tracer, &views, gamma, &mut |e| events.push(e)).unwrap();
+    let cache = SampleCache::build(&tracer, &views, gamma, false, &mut |e| events.push(e)).unwrap();
     assert_eq!(cache.dropped, vec![1]);
     assert!(events.contains(&CacheEvent::ViewDropped { view: 1 }));
     assert_eq!(
@@ -533,14 +533,14 @@ fn cache_identical_with_1_and_2_threads() {
             .num_threads(threads)
             .build()
             .unwrap();
-        pool.install(|| SampleCache::build(&tracer, &views, gamma, &mut |_| {}).unwrap())
+        pool.install(|| SampleCache::build(&tracer, &views, gamma, false, &mut |_| {}).unwrap())
     };
     for gamma in [1, 2, 3] {
         let a = build(1, gamma);
         let b = build(2, gamma);
         let mut no_avx = Tracer::new(&mesh, &n).unwrap();
         no_avx.set_avx(false);
-        let c = SampleCache::build(&no_avx, &views, gamma, &mut |_| {}).unwrap();
+        let c = SampleCache::build(&no_avx, &views, gamma, false, &mut |_| {}).unwrap();
         assert_eq!(a, c, "γ={gamma}: SSE and AVX traversals differ");
         assert!(a.len() > 1000);
         assert_eq!(a, b, "γ={gamma}");
@@ -560,14 +560,14 @@ fn bad_input_is_an_error() {
     for g in [0, 5] {
         let e = cast_view(&tracer, &cam, g).unwrap_err().to_string();
         assert!(e.contains("γ"), "{e}");
-        assert!(SampleCache::build(&tracer, &[(&cam, None)], g, &mut |_| {}).is_err());
+        assert!(SampleCache::build(&tracer, &[(&cam, None)], g, false, &mut |_| {}).is_err());
     }
     let img = Image {
         width: 7,
         height: 6,
         data: vec![0.0; 7 * 6 * 3],
     };
-    let e = SampleCache::build(&tracer, &[(&cam, Some(&img))], 1, &mut |_| {})
+    let e = SampleCache::build(&tracer, &[(&cam, Some(&img))], 1, false, &mut |_| {})
         .unwrap_err()
         .to_string();
     assert!(e.contains("view 0") && e.contains("7×6"), "{e}");

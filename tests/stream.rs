@@ -42,11 +42,7 @@ fn stream_batches_equal_cache_batches() {
         .collect();
     for gamma in 1..=4 {
         for tri in [false, true] {
-            let cache = if tri {
-                SampleCache::build_with_triangles(&tracer, &views, gamma, &mut |_| {}).unwrap()
-            } else {
-                SampleCache::build(&tracer, &views, gamma, &mut |_| {}).unwrap()
-            };
+            let cache = SampleCache::build(&tracer, &views, gamma, tri, &mut |_| {}).unwrap();
             let stream = RayStream::build(&tracer, &views, gamma, tri, &mut |_| {}).unwrap();
             assert_eq!(stream.len(), cache.len(), "γ={gamma}");
             assert_eq!(stream.dropped, cache.dropped);

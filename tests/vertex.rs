@@ -46,8 +46,8 @@ fn cached_barycentrics_reproduce_the_positions() {
         .take(3)
         .map(|&i| (&scene.views[i].camera, None))
         .collect();
-    let plain = SampleCache::build(&tracer, &views, 2, &mut |_| {}).unwrap();
-    let c = SampleCache::build_with_triangles(&tracer, &views, 2, &mut |_| {}).unwrap();
+    let plain = SampleCache::build(&tracer, &views, 2, false, &mut |_| {}).unwrap();
+    let c = SampleCache::build(&tracer, &views, 2, true, &mut |_| {}).unwrap();
     assert!(c.has_triangles() && !plain.has_triangles());
     // Same pixels and positions as the plain cache; 12 more bytes per sub-sample slot.
     assert_eq!(c.len(), plain.len());

@@ -156,7 +156,7 @@ fn cast_views(
     tracer: &Tracer,
     indices: &[usize],
 ) -> Result<(SampleCache, u64, f64)> {
-    let mut samples = Samples::Cache(Box::new(SampleCache::new(args.gamma)?));
+    let mut samples = Samples::Cache(Box::new(SampleCache::new(args.gamma, false)?));
     // The photos against the mesh, as `train` checks them (`raycast/consistency.rs`).
     let mut photo_check = (!args.no_images).then(|| {
         let cams: Vec<&Camera> = indices.iter().map(|&i| &scene.views[i].camera).collect();

@@ -34,6 +34,26 @@ pub struct Batch {
 }
 
 impl Batch {
+    /// `n` pixels of `s` sub-samples to be filled in: positions, directions, targets and
+    /// footprints zero, every sub-sample invalid, views 0; with `triangles`, triangle ids
+    /// `u32::MAX` (none) and barycentrics zero.
+    pub fn zeros(n: usize, s: usize, triangles: bool) -> Batch {
+        let mut b = Batch {
+            positions: vec![[0.0; 3]; n * s],
+            valid: vec![0; n * s],
+            dirs: vec![[0.0; 3]; n],
+            view: vec![0; n],
+            target: vec![[0.0; 3]; n],
+            footprint: vec![0.0; n],
+            ..Batch::default()
+        };
+        if triangles {
+            b.triangle = vec![u32::MAX; n * s];
+            b.bary = vec![[0.0; 2]; n * s];
+        }
+        b
+    }
+
     pub fn n_pixels(&self) -> usize {
         self.dirs.len()
     }

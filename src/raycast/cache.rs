@@ -22,7 +22,7 @@
 //! = 12γ² + 42 bytes: 54 (γ=1), 90 (γ=2), 234 (γ=4).
 //!
 //! ## Optional: triangle ids and barycentrics
-//! Only when asked for ([`SampleCache::build_with_triangles`], for the vertex-feature
+//! Only when asked for (`keep_triangles`, for the vertex-feature
 //! featurization): per sub-sample slot the triangle id (u32, `MISS` for an invalid slot) and
 //! the barycentrics `(u, v)` of vertices 1 and 2 in the same 32-bit fixed point as positions
 //! (error ≤ 2⁻³³, decoded exactly to f64): 12 more bytes per slot (γ=2: 138 bytes per pixel).
@@ -120,7 +120,24 @@ pub fn decode_coord(q: u32) -> f64 {
     q as f64 / SCALE
 }
 
-fn check_image(i: usize, cam: &Camera, img: Option<&Image>) -> Result<()> {
+/// Every image of `views` checked against its camera first (a bad one costs no cast), then
+/// every view cast by `add(i, camera, image)` in order: the whole-list builders of the cache and
+/// the stream.
+pub(crate) fn cast_all(
+    views: &[(&Camera, Option<&Image>)],
+    mut add: impl FnMut(usize, &Camera, Option<&Image>) -> Result<usize>,
+) -> Result<()> {
+    for (i, (cam, img)) in views.iter().enumerate() {
+        check_image(i, cam, *img)?;
+    }
+    for (i, (cam, img)) in views.iter().enumerate() {
+        add(i, cam, *img)?;
+    }
+    Ok(())
+}
+
+/// An image must have the camera's size and three values per pixel.
+pub(crate) fn check_image(i: usize, cam: &Camera, img: Option<&Image>) -> Result<()> {
     if let Some(img) = img {
         if img.width != cam.width || img.height != cam.height {
             bail!(
@@ -271,8 +288,9 @@ impl Part {
 }
 
 impl SampleCache {
-    /// An empty cache for multisampling factor `gamma` (1..=4).
-    pub fn new(gamma: u32) -> Result<SampleCache> {
+    /// An empty cache for multisampling factor `gamma` (1..=4), keeping each sub-sample's
+    /// triangle id and barycentrics with `keep_triangles`.
+    pub fn new(gamma: u32, keep_triangles: bool) -> Result<SampleCache> {
         check_gamma(gamma)?;
         Ok(SampleCache {
             gamma,
@@ -285,49 +303,29 @@ impl SampleCache {
             pixel: Vec::new(),
             view: Vec::new(),
             target: Vec::new(),
-            keep_triangles: false,
+            keep_triangles,
             triangles: Vec::new(),
             bary: Vec::new(),
         })
     }
 
-    /// [`SampleCache::build`] that also keeps each sub-sample's triangle id and barycentrics
-    /// (module docs), for the vertex-feature featurization.
-    pub fn build_with_triangles(
-        tracer: &Tracer,
-        views: &[(&Camera, Option<&Image>)],
-        gamma: u32,
-        on_event: &mut dyn FnMut(CacheEvent),
-    ) -> Result<SampleCache> {
-        let mut c = SampleCache::new(gamma)?;
-        c.keep_triangles = true;
-        for (i, (cam, img)) in views.iter().enumerate() {
-            check_image(i, cam, *img)?;
-        }
-        for (i, (cam, img)) in views.iter().enumerate() {
-            c.add_view(tracer, i, cam, *img, None, on_event)?;
-        }
-        Ok(c)
-    }
-
     /// Cast every view and keep the pixels that see the mesh. `views[i]` is a camera and,
     /// optionally, its image (same size as the camera); `i` is the view index stored in the
-    /// cache. `on_event` receives the events of each view, in order. Views are cast one after
-    /// another, each in parallel over constant-size strips, so the cache is bit-identical for
-    /// any thread count.
+    /// cache. With `keep_triangles`, each sub-sample's triangle id and barycentrics are kept too
+    /// (module docs; the vertex-feature featurization). `on_event` receives the events of each
+    /// view, in order. Views are cast one after another, each in parallel over constant-size
+    /// strips, so the cache is bit-identical for any thread count.
     pub fn build(
         tracer: &Tracer,
         views: &[(&Camera, Option<&Image>)],
         gamma: u32,
+        keep_triangles: bool,
         on_event: &mut dyn FnMut(CacheEvent),
     ) -> Result<SampleCache> {
-        let mut c = SampleCache::new(gamma)?;
-        for (i, (cam, img)) in views.iter().enumerate() {
-            check_image(i, cam, *img)?;
-        }
-        for (i, (cam, img)) in views.iter().enumerate() {
-            c.add_view(tracer, i, cam, *img, None, on_event)?;
-        }
+        let mut c = SampleCache::new(gamma, keep_triangles)?;
+        cast_all(views, |i, cam, img| {
+            c.add_view(tracer, i, cam, img, None, on_event)
+        })?;
         Ok(c)
     }
 
@@ -494,7 +492,7 @@ impl SampleCache {
     pub fn footprint_min(&self) -> Option<f32> {
         self.views.iter().map(|v| v.footprint_min).reduce(f32::min)
     }
-    /// Whether triangle ids and barycentrics are kept ([`SampleCache::build_with_triangles`]).
+    /// Whether triangle ids and barycentrics are kept (`keep_triangles` of [`SampleCache::new`]).
     pub fn has_triangles(&self) -> bool {
         self.keep_triangles
     }

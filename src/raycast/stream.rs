@@ -207,29 +207,6 @@ pub struct RayStream {
     total: usize,
 }
 
-fn check_image(i: usize, cam: &Camera, img: Option<&Image>) -> Result<()> {
-    if let Some(img) = img {
-        if img.width != cam.width || img.height != cam.height {
-            bail!(
-                "view {i}: image is {}×{} but the camera is {}×{}",
-                img.width,
-                img.height,
-                cam.width,
-                cam.height
-            );
-        }
-        if img.data.len() != 3 * img.width as usize * img.height as usize {
-            bail!(
-                "view {i}: image data has {} values, expected 3×{}×{}",
-                img.data.len(),
-                img.width,
-                img.height
-            );
-        }
-    }
-    Ok(())
-}
-
 /// Hit bits and smallest footprint of one strip of a view.
 fn strip_hits(
     tracer: &Tracer,
@@ -294,19 +271,10 @@ impl RayStream {
         on_event: &mut dyn FnMut(CacheEvent),
     ) -> Result<RayStream> {
         let mut s = RayStream::new(gamma, keep_triangles)?;
-        for (i, (cam, img)) in views.iter().enumerate() {
-            check_image(i, cam, *img)?;
-        }
-        for (i, (cam, img)) in views.iter().enumerate() {
-            s.add_view(
-                tracer,
-                i,
-                cam,
-                img.map_or(Targets::None, Targets::from_image),
-                None,
-                on_event,
-            )?;
-        }
+        super::cache::cast_all(views, |i, cam, img| {
+            let targets = img.map_or(Targets::None, Targets::from_image);
+            s.add_view(tracer, i, cam, targets, None, on_event)
+        })?;
         Ok(s)
     }
 
@@ -455,19 +423,7 @@ impl RayStream {
                     }
                 },
             );
-        let mut b = Batch {
-            positions: vec![[0.0; 3]; n * s],
-            valid: vec![0; n * s],
-            dirs: vec![[0.0; 3]; n],
-            view: vec![0; n],
-            target: vec![[0.0; 3]; n],
-            footprint: vec![0.0; n],
-            ..Batch::default()
-        };
-        if keep {
-            b.triangle = vec![u32::MAX; n * s];
-            b.bary = vec![[0.0; 2]; n * s];
-        }
+        let mut b = Batch::zeros(n, s, keep);
         for (i, (&(slot, v, u, k), sum)) in order.iter().zip(&sums).enumerate() {
             let subs = &subs_all[i * s..(i + 1) * s];
             let sv = &self.views[slot];

@@ -621,6 +621,21 @@ fn load_ply(path: &Path) -> Result<(Mesh, MeshStats)> {
     }
 }
 
+/// Vertex coordinate `axis` (0..3) read as `v`, which must be finite; `at` builds the row's
+/// place (`line 12: vertex 3`) only on failure.
+#[inline]
+fn finite_coordinate(path: &Path, at: impl Fn() -> String, axis: usize, v: f64) -> Result<f64> {
+    if !v.is_finite() {
+        bail!(
+            "{}: {}: coordinate {} is {v} (must be finite)",
+            path.display(),
+            at(),
+            ["x", "y", "z"][axis]
+        );
+    }
+    Ok(v)
+}
+
 /// Range-check a face index; `where_` builds the error location only on failure.
 #[inline]
 fn check_index(path: &Path, where_: impl Fn() -> String, i: f64, nv: usize) -> Result<u32> {
@@ -764,13 +779,8 @@ impl AsciiRow<'_> {
                     let v = next(false)?;
                     if is_vertex {
                         if let Some(axis) = lay.xyz.iter().position(|&x| x == pi) {
-                            if !v.is_finite() {
-                                bail!(
-                                    "{p}: line {ln}: vertex {k}: coordinate {} is {v} (must be finite)",
-                                    ["x", "y", "z"][axis]
-                                );
-                            }
-                            vals[axis] = v;
+                            let at = || format!("line {ln}: vertex {k}");
+                            vals[axis] = finite_coordinate(self.path, at, axis, v)?;
                         }
                     }
                 }
@@ -865,16 +875,9 @@ fn read_fixed_records(
         for k in 0..el.count {
             let r = &data[pos + k * rec..pos + (k + 1) * rec];
             let mut v = [0f64; 3];
-            for axis in 0..3 {
-                let pi = lay.xyz[axis];
+            for (axis, (c, &pi)) in v.iter_mut().zip(&lay.xyz).enumerate() {
                 let x = types[pi].read(&r[offs[pi]..], big);
-                if !x.is_finite() {
-                    bail!(
-                        "{p}: vertex {k}: coordinate {} is {x} (must be finite)",
-                        ["x", "y", "z"][axis]
-                    );
-                }
-                v[axis] = x;
+                *c = finite_coordinate(path, || format!("vertex {k}"), axis, x)?;
             }
             out.mesh.vertices.push(DVec3::from_array(v));
         }
@@ -975,13 +978,8 @@ impl BinaryBody<'_> {
                     let v = self.read(s, el, k, &prop.name)?;
                     if is_vertex {
                         if let Some(axis) = lay.xyz.iter().position(|&x| x == pi) {
-                            if !v.is_finite() {
-                                bail!(
-                                    "{p}: vertex {k}: coordinate {} is {v} (must be finite)",
-                                    ["x", "y", "z"][axis]
-                                );
-                            }
-                            vals[axis] = v;
+                            let at = || format!("vertex {k}");
+                            vals[axis] = finite_coordinate(self.path, at, axis, v)?;
                         }
                     }
                 }

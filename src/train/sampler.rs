@@ -41,21 +41,12 @@ impl Samples {
     /// No views yet, in mode `mode` (`auto` streams: [`crate::train::memory::resolve_samples`]
     /// has decided it before), for γ×γ rays per pixel, keeping each sub-sample's triangle and
     /// barycentrics when `keep_triangles` (the vertex featurization, the mesh refinement).
-    pub fn empty(
-        mode: SampleMode,
-        gamma: u32,
-        keep_triangles: bool,
-        tracer: &Tracer,
-    ) -> anyhow::Result<Samples> {
+    pub fn empty(mode: SampleMode, gamma: u32, keep_triangles: bool) -> anyhow::Result<Samples> {
         Ok(match mode {
             SampleMode::Stream | SampleMode::Auto => {
                 Samples::Stream(RayStream::new(gamma, keep_triangles)?)
             }
-            SampleMode::Cache => Samples::Cache(Box::new(if keep_triangles {
-                SampleCache::build_with_triangles(tracer, &[], gamma, &mut |_| {})?
-            } else {
-                SampleCache::new(gamma)?
-            })),
+            SampleMode::Cache => Samples::Cache(Box::new(SampleCache::new(gamma, keep_triangles)?)),
         })
     }
 
@@ -135,19 +126,7 @@ pub fn batch_from_pixels(cache: &SampleCache, pixels: &[usize]) -> Batch {
     let s = cache.samples_per_pixel();
     let n = pixels.len();
     let tri = cache.has_triangles();
-    let mut b = Batch {
-        positions: vec![[0.0; 3]; n * s],
-        valid: vec![0; n * s],
-        dirs: vec![[0.0; 3]; n],
-        view: vec![0; n],
-        target: vec![[0.0; 3]; n],
-        footprint: vec![0.0; n],
-        ..Batch::default()
-    };
-    if tri {
-        b.triangle = vec![u32::MAX; n * s];
-        b.bary = vec![[0.0; 2]; n * s];
-    }
+    let mut b = Batch::zeros(n, s, tri);
     let c = CACHE_BATCH_CHUNK;
     pixels
         .par_chunks(c)

@@ -141,7 +141,7 @@ pub fn prepare_until(
     // The vertex featurization needs each sub-sample's triangle and barycentrics, the mesh
     // refinement its triangle (`refine/`).
     let keep_triangles = !cfg.model.featurization.is_hash() || cfg.model.refine.enabled;
-    let mut samples = Samples::empty(mode, gamma, keep_triangles, &tracer)?;
+    let mut samples = Samples::empty(mode, gamma, keep_triangles)?;
     // The photos against the mesh (`raycast/consistency.rs`): the training views, read as they go
     // by, then the held-out views (a wrong pose there spoils only the evaluation, found here before
     // a run is spent on it).

@@ -14,7 +14,7 @@
 //! ```
 //! The optional arguments are `[model.refine]` keys (`photo_patch = 3`, `photo_measure = "huber"` …).
 
-use xscale::refine::field::{field_backward, RefineGeom};
+use xscale::refine::field::{field_backward, Active, RefineGeom};
 
 use xscale::model::refine::RefineConfig;
 use xscale::refine::photo_term::{accumulate, PhotoTerm};
@@ -136,11 +136,55 @@ fn main() -> anyhow::Result<()> {
         };
         let (mut ga, mut gb, mut gw, mut gh) = (mk(), mk(), mk(), mk());
         let mut dr = Vec::new();
-        field_backward(&fcfg, &geom, &all, &curv, l + 1, false, &mut gh, &mut dr);
+        field_backward(
+            &fcfg,
+            &geom,
+            &all,
+            &curv,
+            Active {
+                grids: l + 1,
+                residual: false,
+            },
+            &mut gh,
+            &mut dr,
+        );
         let hess = &gh;
-        field_backward(&fcfg, &geom, &all, &d_theta, l + 1, false, &mut ga, &mut dr);
-        field_backward(&fcfg, &geom, &all, &err_t, l + 1, false, &mut gb, &mut dr);
-        field_backward(&fcfg, &geom, &all, &ones, l + 1, false, &mut gw, &mut dr);
+        field_backward(
+            &fcfg,
+            &geom,
+            &all,
+            &d_theta,
+            Active {
+                grids: l + 1,
+                residual: false,
+            },
+            &mut ga,
+            &mut dr,
+        );
+        field_backward(
+            &fcfg,
+            &geom,
+            &all,
+            &err_t,
+            Active {
+                grids: l + 1,
+                residual: false,
+            },
+            &mut gb,
+            &mut dr,
+        );
+        field_backward(
+            &fcfg,
+            &geom,
+            &all,
+            &ones,
+            Active {
+                grids: l + 1,
+                residual: false,
+            },
+            &mut gw,
+            &mut dr,
+        );
         let nodes: Vec<usize> = (0..ga[l].len()).filter(|&i| ga[l][i] != 0.0).collect();
         let rms = (nodes.iter().map(|&i| ga[l][i].powi(2)).sum::<f64>()
             / nodes.len().max(1) as f64)

@@ -16,7 +16,7 @@
 
 use glam::DVec3;
 use xscale::model::params::Grads;
-use xscale::refine::field::{field_backward, RefineGeom};
+use xscale::refine::field::{field_backward, Active, RefineGeom};
 use xscale::refine::hit::{hits_backward, reintersect_batch};
 use xscale::train::sampler::sample_batch;
 use xscale::train::setup::prepare;
@@ -134,8 +134,30 @@ fn main() -> anyhow::Result<()> {
                 .collect();
             let mut gb = ga.clone();
             let mut dr = Vec::new();
-            field_backward(&rcfg, &geom, &all, &d_theta, l + 1, false, &mut ga, &mut dr);
-            field_backward(&rcfg, &geom, &all, &err_t, l + 1, false, &mut gb, &mut dr);
+            field_backward(
+                &rcfg,
+                &geom,
+                &all,
+                &d_theta,
+                Active {
+                    grids: l + 1,
+                    residual: false,
+                },
+                &mut ga,
+                &mut dr,
+            );
+            field_backward(
+                &rcfg,
+                &geom,
+                &all,
+                &err_t,
+                Active {
+                    grids: l + 1,
+                    residual: false,
+                },
+                &mut gb,
+                &mut dr,
+            );
             print!(" {:>8.3}", cosine(&ga[l], &gb[l]));
         }
         println!();

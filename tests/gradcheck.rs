@@ -988,7 +988,7 @@ fn vertex_pipeline_gradients_match_fd() {
 
 use glam::DVec3;
 use xscale::model::refine::RefineConfig;
-use xscale::refine::field::{field_backward, field_theta, smoothness, RefineGeom};
+use xscale::refine::field::{field_backward, field_theta, smoothness, Active, RefineGeom};
 use xscale::refine::hit::{
     hits_backward, hits_backward_anchored, intersect, reintersect_batch,
     reintersect_batch_anchored, RayHit,
@@ -1324,8 +1324,10 @@ impl RefineCheck {
             &self.geom,
             &all,
             &d_theta,
-            self.grids.len(),
-            true,
+            Active {
+                grids: self.grids.len(),
+                residual: true,
+            },
             &mut d_grids,
             &mut d_r,
         );
@@ -1490,7 +1492,9 @@ fn broken_anchored_mesh_refinement_gradients_fail_the_check() {
 // The refinement's photo-consistency term (src/refine/photo.rs)
 // ---------------------------------------------------------------------------------------------
 
-use xscale::refine::photo::{measure, patch_eval, PatchEval, PatchPoint, PhotoCamera, PhotoImage};
+use xscale::refine::photo::{
+    measure, patch_eval, Neighbour, PatchEval, PatchPoint, PhotoCamera, PhotoImage, Scoring,
+};
 
 use xscale::refine::hit::plane_hit_chain;
 
@@ -1613,18 +1617,17 @@ impl PhotoCheck {
 
     /// One patch's energy, gradient and cells at offsets `theta`.
     fn patch(&self, theta: &[f64], pts: &[PatchPoint]) -> PatchEval {
-        patch_eval(
-            &self.geom,
-            theta,
-            self.origin,
-            pts,
-            &self.cam,
-            &self.img,
-            self.measure,
-            self.cfg.min_cos,
-            self.weight,
-        )
-        .expect("every patch is seen by the neighbour")
+        let neighbour = Neighbour {
+            cam: &self.cam,
+            img: &self.img,
+        };
+        let scoring = Scoring {
+            measure: self.measure,
+            min_cos: self.cfg.min_cos,
+            weight: self.weight,
+        };
+        patch_eval(&self.geom, theta, self.origin, pts, neighbour, scoring)
+            .expect("every patch is seen by the neighbour")
     }
 
     /// Energy (photo + smoothness) and every sample's bilinear cell, from scratch.
@@ -1714,8 +1717,10 @@ impl PhotoCheck {
             &self.geom,
             &all,
             d_theta,
-            self.grids.len(),
-            true,
+            Active {
+                grids: self.grids.len(),
+                residual: true,
+            },
             &mut d_grids,
             &mut d_r,
         );

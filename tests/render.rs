@@ -6,7 +6,7 @@
 use std::path::Path;
 use xscale::model::{Hfm, ModelConfig};
 use xscale::raycast::Tracer;
-use xscale::render::{render_camera, render_camera_in_bands, Rendered, WHITE};
+use xscale::render::{ModelRenderer, Rendered, WHITE};
 use xscale::scene::{LoadOptions, Scene};
 
 #[path = "common/pool.rs"]
@@ -34,27 +34,28 @@ fn bands_do_not_show_in_the_frame() {
     let cam = scene.views[scene.test[0]].camera.scaled(2.5);
     let g = cfg.gamma;
     let per_row = (cam.width * g * g) as usize;
-    let whole =
-        render_camera_in_bands(&model, &params, &tracer, &cam, g, -1, WHITE, usize::MAX).unwrap();
+    let r = ModelRenderer {
+        model: &model,
+        params: &params,
+        tracer: &tracer,
+        gamma: g,
+        background: WHITE,
+    };
+    let whole = r.render_in_bands(&cam, -1, usize::MAX).unwrap();
     assert_eq!(whole.image.width, 160);
     assert!(whole.hit.iter().filter(|&&h| h).count() > 1000);
     let reference = bits(&whole);
     // One row per band; 7 rows (120 = 17·7 + 1: a short last band); the default.
     for samples in [1, 7 * per_row, 7 * per_row + 3] {
-        let r =
-            render_camera_in_bands(&model, &params, &tracer, &cam, g, -1, WHITE, samples).unwrap();
+        let frame = r.render_in_bands(&cam, -1, samples).unwrap();
         assert!(
-            bits(&r) == reference,
+            bits(&frame) == reference,
             "bands of {samples} sub-samples change the frame"
         );
     }
-    let dflt = in_pool(1, || {
-        render_camera(&model, &params, &tracer, &cam, g, -1, WHITE).unwrap()
-    });
+    let dflt = in_pool(1, || r.render(&cam, -1).unwrap());
     assert!(bits(&dflt) == reference);
-    let two = in_pool(2, || {
-        render_camera_in_bands(&model, &params, &tracer, &cam, g, -1, WHITE, per_row).unwrap()
-    });
+    let two = in_pool(2, || r.render_in_bands(&cam, -1, per_row).unwrap());
     assert!(bits(&two) == reference, "thread count changes the frame");
 }
 

@@ -9,6 +9,7 @@ use crate::eval::protocol::{
     write_evaluated,
 };
 use crate::render::ulr::{render_ulr, training_sources, Source};
+use crate::render::ModelRenderer;
 use anyhow::{Context, Result};
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -87,16 +88,14 @@ pub fn run(a: Args) -> Result<ExitCode> {
         let e = match a.method {
             Method::Model => {
                 let ck = ck.as_ref().expect("a model is loaded for --method model");
-                evaluate_view(
-                    &ck.model,
-                    &ck.params,
-                    &s.tracer,
-                    &s.scene,
-                    i,
-                    ck.model.cfg.gamma,
-                    s.rows[i],
+                let renderer = ModelRenderer {
+                    model: &ck.model,
+                    params: &ck.params,
+                    tracer: &s.tracer,
+                    gamma: ck.model.cfg.gamma,
                     background,
-                )?
+                };
+                evaluate_view(&renderer, &s.scene, i, s.rows[i])?
             }
             Method::Ulr => {
                 let camera = &s.scene.views[i].camera;

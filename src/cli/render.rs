@@ -8,7 +8,7 @@
 use super::common::{select_views, Method, ModelArgs};
 use crate::eval::protocol::output_name;
 use crate::render::ulr::{render_ulr, training_sources, Source};
-use crate::render::{fly_camera, footprint_image, look_at_point, mask_image, render_camera};
+use crate::render::{fly_camera, footprint_image, look_at_point, mask_image, ModelRenderer};
 use crate::scene::image::{write_exr, write_png8};
 use crate::scene::{Camera, Image};
 use anyhow::{bail, Context, Result};
@@ -206,9 +206,14 @@ pub fn run(a: Args) -> Result<ExitCode> {
         let r = match a.method {
             Method::Model => {
                 let ck = (loaded.ck.as_ref()).expect("a model is loaded for --method model");
-                render_camera(
-                    &ck.model, &ck.params, &s.tracer, cam, gamma, *row, background,
-                )?
+                let renderer = ModelRenderer {
+                    model: &ck.model,
+                    params: &ck.params,
+                    tracer: &s.tracer,
+                    gamma,
+                    background,
+                };
+                renderer.render(cam, *row)?
             }
             Method::Ulr => render_ulr(&s.tracer, &sources, cam, gamma, background)?,
         };

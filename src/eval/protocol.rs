@@ -15,9 +15,7 @@
 //! With masks, `mask_miss` is the fraction of mask pixels the mesh misses (silhouette coverage).
 
 use crate::eval::metrics::{flip_map, masked_mean, psnr_masked, ssim, ssim_masked};
-use crate::model::hfm::Hfm;
-use crate::raycast::Tracer;
-use crate::render::{comparison, render_camera, Rendered};
+use crate::render::{comparison, ModelRenderer, Rendered};
 use crate::scene::image::write_png8;
 use crate::scene::{Image, Scene};
 use anyhow::{Context, Result};
@@ -294,22 +292,16 @@ pub struct Evaluated {
     pub scored: Scored,
 }
 
-/// Render scene view `i` with the model (appearance row `row`, −1 = mean code) at γ = `gamma`,
-/// misses in `background`, and score it against its photo inside its mask (module docs).
-#[allow(clippy::too_many_arguments)]
+/// Render scene view `i` with `renderer` (appearance row `row`, −1 = mean code) and score it
+/// against its photo inside its mask (module docs).
 pub fn evaluate_view(
-    model: &Hfm,
-    params: &[f32],
-    tracer: &Tracer,
+    renderer: &ModelRenderer,
     scene: &Scene,
     i: usize,
-    gamma: u32,
     row: i32,
-    background: [f32; 3],
 ) -> Result<Evaluated> {
-    let view = &scene.views[i];
-    let rendered = render_camera(model, params, tracer, &view.camera, gamma, row, background)?;
-    score_rendered(scene, i, rendered, background)
+    let rendered = renderer.render(&scene.views[i].camera, row)?;
+    score_rendered(scene, i, rendered, renderer.background)
 }
 
 /// Score a render of view `i` (by the model or any other method, e.g. `render::ulr`) against its

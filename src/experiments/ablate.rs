@@ -305,9 +305,9 @@ pub fn run_ablation(scene: &Path, out: &Path, opts: &AblateOptions) -> Result<Ab
         let r = if v == Variant::Ulr {
             ulr_variant(&ctx, &say)?
         } else {
-            let (cfg, used_mesh) = configure(v, &base, &ctx, full_params, &say)?;
+            let variant = configure(v, &base, &ctx, full_params, &say)?;
             let run = out.join(v.name());
-            match run_variant(v, cfg, used_mesh, &ctx, &run, full_params, opts, &say)? {
+            match run_variant(variant, &ctx, &run, full_params, opts, &say)? {
                 Some(r) => r,
                 None => return Ok(stop(&results)),
             }
@@ -570,6 +570,13 @@ impl<'a> Shared<'a> {
 /// The mesh a variant trained on: file, faces, vertices.
 type UsedMesh = (String, usize, usize);
 
+/// A variant ready to train: its configuration and the mesh it trains on.
+struct Configured {
+    variant: Variant,
+    cfg: RunConfig,
+    mesh: UsedMesh,
+}
+
 /// The step count that makes the full model train about `minutes` (a 20-step timing probe).
 fn probe_steps(scene: &Path, probe_dir: &Path, base: &RunConfig, minutes: f64) -> Result<u64> {
     ensure!(minutes > 0.0, "--minutes must be positive");
@@ -601,7 +608,7 @@ fn configure(
     ctx: &Shared,
     full_params: Option<usize>,
     say: &dyn Fn(String),
-) -> Result<(RunConfig, UsedMesh)> {
+) -> Result<Configured> {
     let mut cfg = base.clone();
     let mut used: UsedMesh = (
         ctx.mesh_path.clone(),
@@ -662,7 +669,11 @@ fn configure(
             cfg.model.level_weight = crate::model::config::LevelWeight::None;
         }
     }
-    Ok((cfg, used))
+    Ok(Configured {
+        variant: v,
+        cfg,
+        mesh: used,
+    })
 }
 
 /// The hash model's parameter count on this scene, from an initialisation-only model of `base`
@@ -722,17 +733,19 @@ fn subdivided(ctx: &Shared, target: usize, say: &dyn Fn(String)) -> Result<(Mesh
 
 /// Train one variant into `run_dir` and collect its scores (returned by the trainer); `None`
 /// when an interrupt stopped its training.
-#[allow(clippy::too_many_arguments)]
 fn run_variant(
-    v: Variant,
-    cfg: RunConfig,
-    used_mesh: UsedMesh,
+    variant: Configured,
     ctx: &Shared,
     run_dir: &Path,
     full_params: Option<usize>,
     opts: &AblateOptions,
     say: &dyn Fn(String),
 ) -> Result<Option<VariantResult>> {
+    let Configured {
+        variant: v,
+        cfg,
+        mesh: used_mesh,
+    } = variant;
     say(format!(
         "== {}: {} ({} steps of {} pixels) → {}",
         v.name(),

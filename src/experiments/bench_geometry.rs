@@ -322,15 +322,19 @@ pub fn bench_geometry(
                     cfg.model.refine = Default::default();
                 }
                 let name = variant_name(&p.name, deform, refine);
-                let dir = runs.join(&name);
-                let key = VariantKey {
-                    proxy: p.name.clone(),
-                    mesh: p.path.clone(),
-                    deform,
-                    refine,
-                    config: cfg.results_toml(),
+                let run = PlannedRun {
+                    dir: runs.join(&name),
+                    key: VariantKey {
+                        proxy: p.name.clone(),
+                        mesh: p.path.clone(),
+                        deform,
+                        refine,
+                        config: cfg.results_toml(),
+                    },
+                    name: name.clone(),
+                    cfg,
                 };
-                let Some(v) = run_variant(&name, &key, cfg, scene, &dir, &index, opts, say)? else {
+                let Some(v) = run_variant(run, scene, &index, opts, say)? else {
                     return Ok(None);
                 };
                 say(format!(
@@ -399,17 +403,31 @@ fn recorded(dir: &Path) -> Result<(Vec<ViewScore>, u64, f64)> {
     Ok((views, step, seconds))
 }
 
-#[allow(clippy::too_many_arguments)]
-fn run_variant(
-    name: &str,
-    key: &VariantKey,
+/// One run of the benchmark: its name and folder, its configuration, and what its `bench.json`
+/// records to tell whether a run there can be reused.
+struct PlannedRun {
+    name: String,
+    dir: PathBuf,
     cfg: RunConfig,
+    key: VariantKey,
+}
+
+/// Train (or reuse) one run on `scene` and score it: its held-out views, and with refinement
+/// its refined mesh against the `truth`; `None` when an interrupt stopped its training.
+fn run_variant(
+    run: PlannedRun,
     scene: &Path,
-    dir: &Path,
     truth: &SurfaceIndex,
     opts: &GeometryOptions,
     say: &mut dyn FnMut(String),
 ) -> Result<Option<VariantResult>> {
+    let PlannedRun {
+        name,
+        dir,
+        cfg,
+        key,
+    } = run;
+    let (name, dir, key) = (name.as_str(), dir.as_path(), &key);
     let key_path = dir.join("bench.json");
     let reuse = std::fs::read_to_string(&key_path)
         .ok()

@@ -264,7 +264,6 @@ pub use crate::run::run_dir::Existing;
 /// training step and between the views being cast or evaluated), then the stopped one first
 /// (its rows up to its last evaluation are kept; `--append` runs it again). An existing
 /// `OUT/bench.csv` is handled as `existing` says.
-#[allow(clippy::too_many_arguments)]
 pub fn bench_quality(
     scene: &Path,
     out: &Path,

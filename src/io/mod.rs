@@ -6,6 +6,8 @@
 //! - [`text`]: reading other tools' text files (a Windows byte-order mark dropped).
 
 pub mod atomic;
+// `to_table` and `compare` run over 120 lines; their split is the Python-oracle branch's.
+#[allow(clippy::too_many_lines)]
 pub mod compare;
 pub mod tensors;
 pub mod text;

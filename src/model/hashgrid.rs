@@ -968,6 +968,8 @@ mod kernels {
     /// around the generic `$imp::<R, F, I>`. Both builds compute identical bits.
     macro_rules! kernel {
         ($name:ident, $fma:ident, $plain:ident, $imp:ident, ($($arg:ident : $ty:ty),*)) => {
+            // A hot kernel (inner loop of a step): its arguments are the buffers and sizes it works on,
+            // llm.c style; kept as they are rather than re-measure its speed behind a struct.
             #[allow(clippy::too_many_arguments)]
             pub(super) fn $name<R: Real>(fast: bool, nf: u32, g: &Level, $($arg: $ty),*) {
                 #[cfg(any(target_arch = "x86", target_arch = "x86_64"))]
@@ -983,12 +985,16 @@ mod kernels {
 
             #[cfg(any(target_arch = "x86", target_arch = "x86_64"))]
             #[target_feature(enable = "fma,avx2")]
+            // A hot kernel (inner loop of a step): its arguments are the buffers and sizes it works on,
+            // llm.c style; kept as they are rather than re-measure its speed behind a struct.
             #[allow(clippy::too_many_arguments)]
             unsafe fn $fma<R: Real>(nf: u32, g: &Level, $($arg: $ty),*) {
                 dispatch!(nf, g, |F, ix| $imp::<R, F, _>(g, ix, $($arg),*))
             }
 
             #[inline(never)]
+            // A hot kernel (inner loop of a step): its arguments are the buffers and sizes it works on,
+            // llm.c style; kept as they are rather than re-measure its speed behind a struct.
             #[allow(clippy::too_many_arguments)]
             fn $plain<R: Real>(nf: u32, g: &Level, $($arg: $ty),*) {
                 dispatch!(nf, g, |F, ix| $imp::<R, F, _>(g, ix, $($arg),*))
@@ -1003,6 +1009,8 @@ mod kernels {
 
     /// One level for a chunk of points: `out[i, l*F..(l+1)*F] = Σ_k w_k · table[idx_k]` (Eq. 2).
     #[inline(always)]
+    // A hot kernel (inner loop of a step): its arguments are the buffers and sizes it works on,
+    // llm.c style; kept as they are rather than re-measure its speed behind a struct.
     #[allow(clippy::too_many_arguments)]
     fn forward_level_impl<R: Real, const F: usize, I: BlockIndexer>(
         g: &Level,
@@ -1062,6 +1070,8 @@ mod kernels {
 
     /// One level, points in order: `d_table[idx_k, f] += w_k · d_out[i, l*F+f]`.
     #[inline(always)]
+    // A hot kernel (inner loop of a step): its arguments are the buffers and sizes it works on,
+    // llm.c style; kept as they are rather than re-measure its speed behind a struct.
     #[allow(clippy::too_many_arguments)]
     fn backward_table_level_impl<R: Real, const F: usize, I: BlockIndexer>(
         g: &Level,
@@ -1126,6 +1136,8 @@ mod kernels {
     /// (fma chain in f order), with
     /// `∂out/∂x_d = Σ_{4 edges along d} ((scale·w_a')·w_b') · (v_hi - v_lo) · dw_d/dt`.
     #[inline(always)]
+    // A hot kernel (inner loop of a step): its arguments are the buffers and sizes it works on,
+    // llm.c style; kept as they are rather than re-measure its speed behind a struct.
     #[allow(clippy::too_many_arguments)]
     fn backward_points_level_impl<R: Real, const F: usize, I: BlockIndexer>(
         g: &Level,

@@ -621,6 +621,8 @@ impl Hfm {
     /// Backward pass: ACCUMULATES ∂L/∂params, ∂L/∂positions `[N*S*3]` and ∂L/∂dirs `[N*3]` into
     /// `grads` (input-gradient buffers are sized to the batch if empty). `fwd` must come from
     /// [`Hfm::forward`] with the same parameters and batch.
+    // A hand-written backward pass (llm.c style): every stage in reverse order in one function.
+    #[allow(clippy::too_many_lines)]
     pub fn backward<R: Real>(
         &self,
         params: &[R],
@@ -769,6 +771,8 @@ impl Hfm {
         );
     }
 
+    // A hot kernel (inner loop of a step): its arguments are the buffers and sizes it works on,
+    // llm.c style; kept as they are rather than re-measure its speed behind a struct.
     #[allow(clippy::too_many_arguments)]
     fn backward_chunk<R: Real>(
         &self,

@@ -142,6 +142,8 @@ impl Mlp {
     /// Backward over the same rows. `d_out [rows, out]` is ∂L/∂(last linear output) and is
     /// consumed as scratch. Accumulates `dp += ∂L/∂params` (the MLP's own parameter layout) and,
     /// if given, `dx [rows, in] += ∂L/∂x`.
+    // A hot kernel (inner loop of a step): its arguments are the buffers and sizes it works on,
+    // llm.c style; kept as they are rather than re-measure its speed behind a struct.
     #[allow(clippy::too_many_arguments)]
     pub fn backward<R: Real>(
         &self,
@@ -294,6 +296,8 @@ const NR: usize = 16;
 /// bits as zeroing C and accumulating, without the pass that zeroes it (the AVX2 kernel starts
 /// its tiles at +0 instead of loading C; C's earlier contents are never read).
 #[inline(always)]
+// A hot kernel (inner loop of a step): its arguments are the buffers and sizes it works on,
+// llm.c style; kept as they are rather than re-measure its speed behind a struct.
 #[allow(clippy::too_many_arguments)]
 fn gemm<R: Real, const AVX2: bool>(
     m: usize,
@@ -350,6 +354,8 @@ fn gemm<R: Real, const AVX2: bool>(
 
 /// The portable [`gemm`] (any `R`; the f64 model and machines without AVX2).
 #[inline(always)]
+// A hot kernel (inner loop of a step): its arguments are the buffers and sizes it works on,
+// llm.c style; kept as they are rather than re-measure its speed behind a struct.
 #[allow(clippy::too_many_arguments)]
 fn gemm_acc_generic<R: Real>(
     m: usize,
@@ -444,6 +450,8 @@ mod avx2 {
     /// AVX2 must be available; for i < m, kk < k, j < n: `a[i*a_rs + kk*a_cs]`,
     /// `b[kk*ldb + j]` and `c[i*ldc + j]` must be in bounds.
     #[target_feature(enable = "avx2")]
+    // A hot kernel (inner loop of a step): its arguments are the buffers and sizes it works on,
+    // llm.c style; kept as they are rather than re-measure its speed behind a struct.
     #[allow(clippy::too_many_arguments)]
     pub unsafe fn gemm_acc_f32(
         m: usize,
@@ -603,6 +611,8 @@ pub fn relu_backward<R: Real>(y: &[R], dy: &mut [R]) {
 
 /// Accumulate the gradients of `y = x Wᵀ + b` over `rows` rows: `dw [out, in] += dyᵀ x`,
 /// `db [out] += Σ dy`, `dx [rows, in] += dy W`.
+// A hot kernel (inner loop of a step): its arguments are the buffers and sizes it works on,
+// llm.c style; kept as they are rather than re-measure its speed behind a struct.
 #[allow(clippy::too_many_arguments)]
 pub fn linear_backward<R: Real>(
     w: &[R],
@@ -626,6 +636,8 @@ pub fn linear_backward<R: Real>(
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
+// A hot kernel (inner loop of a step): its arguments are the buffers and sizes it works on,
+// llm.c style; kept as they are rather than re-measure its speed behind a struct.
 #[allow(clippy::too_many_arguments)]
 unsafe fn linear_backward_avx2<R: Real>(
     w: &[R],
@@ -643,6 +655,8 @@ unsafe fn linear_backward_avx2<R: Real>(
 
 /// `AVX2`: the caller has checked that the CPU has AVX2 (see [`gemm`]).
 #[inline(always)]
+// A hot kernel (inner loop of a step): its arguments are the buffers and sizes it works on,
+// llm.c style; kept as they are rather than re-measure its speed behind a struct.
 #[allow(clippy::too_many_arguments)]
 fn linear_backward_body<R: Real, const AVX2: bool>(
     w: &[R],

@@ -707,6 +707,8 @@ impl Tracer {
     }
 
     /// [`Tracer::trace_group`] with the lane width of this CPU and the shared-origin flag.
+    // A hot kernel (inner loop of a step): its arguments are the buffers and sizes it works on,
+    // llm.c style; kept as they are rather than re-measure its speed behind a struct.
     #[allow(clippy::too_many_arguments)]
     #[inline(always)]
     fn trace_group_dispatch(

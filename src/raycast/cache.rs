@@ -29,7 +29,7 @@
 
 use super::advise_huge_pages;
 use super::bvh::Tracer;
-use super::cast::{cast_strip, check_gamma, strips, CamCtx, PixelSummary, SubSample};
+use super::cast::{cast_strip, check_gamma, strips, CamCtx, PixelSummary, Strip, SubSample};
 use crate::scene::{Camera, Image};
 use anyhow::{bail, Result};
 use rayon::prelude::*;
@@ -176,18 +176,17 @@ pub(crate) fn check_mask(i: usize, cam: &Camera, mask: Option<&[bool]>) -> Resul
     Ok(())
 }
 
-/// Keep the pixels of one cast strip that see the mesh (and lie inside the mask, if any).
-#[allow(clippy::too_many_arguments)]
+/// Keep the pixels of a cast strip of view `cam` that see the mesh (and lie inside the mask, if
+/// any), with their targets from `img`.
 fn compact(
     cam: &Camera,
     img: Option<&Image>,
     mask: Option<&[bool]>,
-    y0: u32,
-    g2: usize,
-    subs: &[SubSample],
-    pixels: &[PixelSummary],
+    strip: &Strip,
     keep_triangles: bool,
 ) -> Part {
+    let (y0, subs, pixels) = (strip.y0, &*strip.subs, &*strip.pixels);
+    let g2 = subs.len() / pixels.len().max(1);
     let inside = |k: usize| mask.is_none_or(|m| m[y0 as usize * cam.width as usize + k]);
     let kept = (0..pixels.len())
         .filter(|&k| pixels[k].valid != 0 && inside(k))
@@ -355,26 +354,14 @@ impl SampleCache {
                     let npix = (rows * cam.width) as usize;
                     subs.resize(npix * g2, SubSample::default());
                     pixels.resize(npix, PixelSummary::default());
-                    cast_strip(
-                        tracer,
-                        &ctx,
-                        gamma,
+                    let mut strip = Strip {
                         y0,
                         rows,
-                        sc,
-                        &mut subs[..npix * g2],
-                        &mut pixels[..npix],
-                    );
-                    compact(
-                        cam,
-                        img,
-                        mask,
-                        y0,
-                        g2,
-                        &subs[..npix * g2],
-                        &pixels[..npix],
-                        keep,
-                    )
+                        subs: &mut subs[..npix * g2],
+                        pixels: &mut pixels[..npix],
+                    };
+                    cast_strip(tracer, &ctx, gamma, sc, &mut strip);
+                    compact(cam, img, mask, &strip, keep)
                 },
             )
             .collect();

@@ -166,19 +166,25 @@ pub fn check_gamma(gamma: u32) -> Result<()> {
     Ok(())
 }
 
-#[allow(clippy::too_many_arguments)]
-/// Cast the strip of pixel rows `y0 .. y0+rows` into `subs` (`[rows][width][γ²]`) and `pixels`
-/// (`[rows][width]`); every element is overwritten.
+/// A strip of pixel rows `y0 .. y0+rows` of a view as cast: each pixel's summary (`pixels`,
+/// `[rows][width]`) and its sub-samples (`subs`, `[rows][width][γ²]`).
+pub(crate) struct Strip<'a> {
+    pub y0: u32,
+    pub rows: u32,
+    pub subs: &'a mut [SubSample],
+    pub pixels: &'a mut [PixelSummary],
+}
+
+/// Cast `strip`'s rows with γ×γ rays per pixel; every element of its buffers is overwritten.
 pub(crate) fn cast_strip(
     tracer: &Tracer,
     ctx: &CamCtx,
     gamma: u32,
-    y0: u32,
-    rows: u32,
     scratch: &mut Scratch,
-    subs: &mut [SubSample],
-    pixels: &mut [PixelSummary],
+    strip: &mut Strip,
 ) {
+    let (y0, rows) = (strip.y0, strip.rows);
+    let (subs, pixels) = (&mut *strip.subs, &mut *strip.pixels);
     // γ as a constant, so the sub-sample index arithmetic has no run-time divisions.
     match gamma {
         1 => cast_strip_g::<1>(tracer, ctx, y0, rows, scratch, subs, pixels),
@@ -435,7 +441,13 @@ pub fn cast_rows_into(
             |sc, (k, (s, p))| {
                 let y = y0 + (k * strip) as u32;
                 let r = (p.len() / w.max(1)) as u32;
-                cast_strip(tracer, &ctx, gamma, y, r, sc, s, p)
+                let mut strip = Strip {
+                    y0: y,
+                    rows: r,
+                    subs: s,
+                    pixels: p,
+                };
+                cast_strip(tracer, &ctx, gamma, sc, &mut strip)
             },
         );
     out.width = camera.width;

@@ -31,7 +31,9 @@
 
 use super::bvh::Tracer;
 use super::cache::{decode_coord, encode_coord, CacheEvent};
-use super::cast::{cast_pixel, cast_strip, check_gamma, strips, CamCtx, PixelSummary, SubSample};
+use super::cast::{
+    cast_pixel, cast_strip, check_gamma, strips, CamCtx, PixelSummary, Strip, SubSample,
+};
 use super::footprint::FootprintHist;
 use crate::model::batch::Batch;
 use crate::scene::{Camera, Image};
@@ -222,16 +224,13 @@ fn strip_hits(
     let npix = (rows * cam.width) as usize;
     subs.resize(npix * g2, SubSample::default());
     pixels.resize(npix, PixelSummary::default());
-    cast_strip(
-        tracer,
-        ctx,
-        gamma,
+    let mut strip = Strip {
         y0,
         rows,
-        sc,
-        &mut subs[..npix * g2],
-        &mut pixels[..npix],
-    );
+        subs: &mut subs[..npix * g2],
+        pixels: &mut pixels[..npix],
+    };
+    cast_strip(tracer, ctx, gamma, sc, &mut strip);
     let wpr = (cam.width as usize).div_ceil(64);
     let mut bits = vec![0u64; wpr * rows as usize];
     let mut fmin = f32::INFINITY;

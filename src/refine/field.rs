@@ -189,16 +189,23 @@ pub fn field_theta<R: Real>(
     th
 }
 
+/// The levels of the offset field that take part (at a step of the schedule, `refiner.rs`): the
+/// first `grids` grid levels, and the per-vertex residual when `residual`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Active {
+    pub grids: usize,
+    pub residual: bool,
+}
+
 /// Accumulate `∂L/∂θ_i = d_theta[i]` of the listed vertices (in list order) into the gradients
-/// of grid levels `< levels` (`d_grids[l]`) and, if `residual`, of the residual (`d_r`).
-#[allow(clippy::too_many_arguments)]
+/// of the `active` grid levels (`d_grids[l]`) and, when the residual is active, of the residual
+/// (`d_r`).
 pub fn field_backward(
     cfg: &RefineConfig,
     geom: &RefineGeom,
     vertices: &[u32],
     d_theta: &[f64],
-    levels: usize,
-    residual: bool,
+    active: Active,
     d_grids: &mut [Vec<f64>],
     d_r: &mut [f64],
 ) {
@@ -207,13 +214,13 @@ pub fn field_backward(
         if g == 0.0 {
             continue;
         }
-        for (l, dg) in d_grids.iter_mut().enumerate().take(levels) {
+        for (l, dg) in d_grids.iter_mut().enumerate().take(active.grids) {
             let (idx, w) = trilinear(cfg.resolution(l as u32), geom.unit[i]);
             for k in 0..8 {
                 dg[idx[k]] += w[k] * g;
             }
         }
-        if residual && !d_r.is_empty() {
+        if active.residual && !d_r.is_empty() {
             d_r[i] += g;
         }
     }

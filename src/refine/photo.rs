@@ -311,23 +311,41 @@ pub fn measure(
     }
 }
 
+/// A neighbour view at a patch's level: its camera and its photo.
+#[derive(Clone, Copy)]
+pub struct Neighbour<'a> {
+    pub cam: &'a PhotoCamera,
+    pub img: &'a PhotoImage,
+}
+
+/// How a patch is scored: the measure ρ, the plane-hit cut-off (`hit::intersect`'s `min_cos`)
+/// and the weight w of the energy `w · ρ`.
+#[derive(Clone, Copy, Debug)]
+pub struct Scoring {
+    pub measure: PhotoMeasure,
+    pub min_cos: f64,
+    pub weight: f64,
+}
+
 /// The energy of one patch at offsets `theta` (module docs): `origin` is the reference camera's
-/// centre (local frame), `cam`/`img` the neighbour view at the patch's level, `weight` = w.
-/// `None` when a ray misses its triangle's current plane (`hit::intersect` with `min_cos`) or a
-/// sample falls outside the neighbour's image or behind it. `theta` is read at the patch's
-/// triangles' vertices only.
-#[allow(clippy::too_many_arguments)]
+/// centre (local frame), `neighbour` the other view at the patch's level. `None` when a ray
+/// misses its triangle's current plane (`hit::intersect` with `min_cos`) or a sample falls
+/// outside the neighbour's image or behind it. `theta` is read at the patch's triangles'
+/// vertices only.
 pub fn patch_eval(
     geom: &RefineGeom,
     theta: &[f64],
     origin: DVec3,
     points: &[PatchPoint],
-    cam: &PhotoCamera,
-    img: &PhotoImage,
-    m: PhotoMeasure,
-    min_cos: f64,
-    weight: f64,
+    neighbour: Neighbour,
+    scoring: Scoring,
 ) -> Option<PatchEval> {
+    let (cam, img) = (neighbour.cam, neighbour.img);
+    let Scoring {
+        measure: m,
+        min_cos,
+        weight,
+    } = scoring;
     let k = points.len();
     let mut a = Vec::with_capacity(k);
     let mut b = Vec::with_capacity(k);

@@ -33,7 +33,9 @@
 use crate::model::refine::RefineConfig;
 use crate::raycast::{Packet, RayStream, Scratch, Tracer};
 use crate::refine::field::RefineGeom;
-use crate::refine::photo::{patch_eval, PatchEval, PatchPoint, PhotoCamera, PhotoImage};
+use crate::refine::photo::{
+    patch_eval, Neighbour, PatchEval, PatchPoint, PhotoCamera, PhotoImage, Scoring,
+};
 use crate::refine::trust::is_validation_row;
 use crate::rng::{below, Purpose};
 use crate::scene::Image;
@@ -74,6 +76,17 @@ pub struct Patch {
     pub neighbour: usize,
     pub level: u32,
     pub points: Vec<PatchPoint>,
+}
+
+/// The patches of step k are drawn from the training views' `stream` (kept pixels, photos) with
+/// the run's `seed`, at image level `level`, their rays cast against `tracer`.
+#[derive(Clone, Copy)]
+struct StepDraw<'a> {
+    stream: &'a RayStream,
+    tracer: &'a Tracer,
+    seed: u64,
+    k: u64,
+    level: u32,
 }
 
 /// The photo-consistency term of a run (module docs).
@@ -232,27 +245,29 @@ impl PhotoTerm {
         level: u32,
     ) -> Vec<Option<Patch>> {
         let n = self.cfg.photo_pixels as usize;
+        let draw = StepDraw {
+            stream,
+            tracer,
+            seed,
+            k,
+            level,
+        };
         (0..n)
             .into_par_iter()
             .with_min_len(PHOTO_CHUNK)
-            .map_init(
-                || tracer.scratch(),
-                |sc, s| self.draw_one(stream, tracer, sc, seed, k, level, s),
-            )
+            .map_init(|| tracer.scratch(), |sc, s| self.draw_one(&draw, sc, s))
             .collect()
     }
 
-    #[allow(clippy::too_many_arguments)]
-    fn draw_one(
-        &self,
-        stream: &RayStream,
-        tracer: &Tracer,
-        sc: &mut Scratch,
-        seed: u64,
-        k: u64,
-        level: u32,
-        s: usize,
-    ) -> Option<Patch> {
+    /// Patch slot `s` of `draw` (module docs), `None` when it is dropped.
+    fn draw_one(&self, draw: &StepDraw, sc: &mut Scratch, s: usize) -> Option<Patch> {
+        let StepDraw {
+            stream,
+            tracer,
+            seed,
+            k,
+            level,
+        } = *draw;
         if self.total == 0 {
             return None;
         }
@@ -331,24 +346,23 @@ impl PhotoTerm {
         theta: &[f64],
         patches: &[Option<Patch>],
     ) -> Vec<Option<PatchEval>> {
-        let w = self.cfg.photo / self.cfg.photo_pixels as f64;
+        let scoring = Scoring {
+            measure: self.cfg.photo_measure,
+            min_cos: self.cfg.min_cos,
+            weight: self.cfg.photo / self.cfg.photo_pixels as f64,
+        };
         patches
             .par_iter()
             .with_min_len(PHOTO_CHUNK)
             .map(|p| {
                 let p = p.as_ref()?;
                 let j = &self.views[p.neighbour];
-                patch_eval(
-                    geom,
-                    theta,
-                    self.views[p.view].cams[p.level as usize].origin,
-                    &p.points,
-                    &j.cams[p.level as usize],
-                    j.images[p.level as usize].as_ref()?,
-                    self.cfg.photo_measure,
-                    self.cfg.min_cos,
-                    w,
-                )
+                let neighbour = Neighbour {
+                    cam: &j.cams[p.level as usize],
+                    img: j.images[p.level as usize].as_ref()?,
+                };
+                let origin = self.views[p.view].cams[p.level as usize].origin;
+                patch_eval(geom, theta, origin, &p.points, neighbour, scoring)
             })
             .collect()
     }

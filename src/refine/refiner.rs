@@ -45,7 +45,7 @@ use crate::model::params::Grads;
 use crate::model::refine::{grid_name, RefineConfig, RefineOptimizer, VERTEX_NAME};
 use crate::raycast::Tracer;
 use crate::refine::diagnostics::Diagnostics;
-use crate::refine::field::{self, field_backward, smoothness, RefineGeom};
+use crate::refine::field::{self, field_backward, smoothness, Active, RefineGeom};
 use crate::refine::hit::{
     hits_backward, hits_backward_anchored, reintersect_batch, reintersect_batch_anchored, RayHit,
 };
@@ -244,19 +244,24 @@ impl Refiner {
                 || k + 1 == self.stop_step())
     }
 
-    /// Active (grid levels, residual) at step k.
-    pub fn active(&self, k: u64) -> (usize, bool) {
+    /// The field levels active at step k.
+    pub fn active(&self, k: u64) -> Active {
         let k0 = self.start_step();
         if !self.moving(k) {
-            return (0, false);
+            return Active {
+                grids: 0,
+                residual: false,
+            };
         }
         let n = self.cfg.n_levels() as u64;
         let span = self.cfg.coarse_to_fine * self.steps as f64;
         let on = (0..n)
             .filter(|&j| k >= k0 + (j as f64 * span / n as f64).floor() as u64)
             .count();
-        let grids = on.min(self.cfg.levels as usize);
-        (grids, on > self.cfg.levels as usize)
+        Active {
+            grids: on.min(self.cfg.levels as usize),
+            residual: on > self.cfg.levels as usize,
+        }
     }
 
     /// `Grads::position_max_scale` at step k (`gradient_cells`, geometric from the first moving
@@ -530,7 +535,7 @@ impl Refiner {
         grads: &mut Grads<f32>,
     ) -> Result<StepStats> {
         let k = state.step;
-        let (levels, residual) = self.active(k);
+        let active = self.active(k);
         let moving = self.moving(k);
         let t0 = Instant::now();
         // Cast against a moved mesh, a pixel of the training mesh's hit map may see nothing.
@@ -558,9 +563,9 @@ impl Refiner {
         let t2 = Instant::now();
         let mse = batch_mse(&fwd, batch);
         if moving {
-            self.accumulate(state, prepared, &hits, &grads.positions, levels, residual);
+            self.accumulate(state, prepared, &hits, &grads.positions, active);
             if self.updates_after(k) {
-                self.update(state, levels, residual, k);
+                self.update(state, active, k);
             }
         }
         grads.inputs = false;
@@ -632,8 +637,7 @@ impl Refiner {
         prepared: &Prepared,
         hits: &[RayHit],
         d_positions: &[f32],
-        levels: usize,
-        residual: bool,
+        active: Active,
     ) {
         let geom = &*self.geom;
         let w = self.cfg.features;
@@ -680,7 +684,7 @@ impl Refiner {
         let params = state.ckpt.refine.as_mut().expect("refine params");
         let ng = params.grids.len();
         let gather = |d: &mut [f64], pending: &mut [Vec<f64>]| {
-            gather_and_clear(&self.cfg, geom, &touched, d, levels, residual, ng, pending)
+            gather_and_clear(&self.cfg, geom, &touched, d, active, ng, pending)
         };
         gather(&mut self.d_theta, &mut params.pending);
         if !self.d_curv.is_empty() {
@@ -690,7 +694,11 @@ impl Refiner {
 
     /// One Adam step of the active levels on the pending sums (plus the smoothness gradient for
     /// every step summed), which are then cleared; the BVH is rebuilt before the next batch.
-    fn update(&mut self, state: &mut TrainState, levels: usize, residual: bool, k: u64) {
+    fn update(&mut self, state: &mut TrainState, active: Active, k: u64) {
+        let Active {
+            grids: levels,
+            residual,
+        } = active;
         let k0 = self.start_step();
         let every = self.cfg.update_every as u64;
         let summed = (k - k0) % every + 1;
@@ -806,14 +814,12 @@ fn draw_with(samples: &Samples, tracer: &Tracer, seed: u64, k: u64, n: usize) ->
 
 /// Gather the per-vertex sums `d` of the `touched` vertices onto the offset field's pending sums
 /// (`pending`: the `ng` grids, then the per-vertex residual when there is one) and clear them.
-#[allow(clippy::too_many_arguments)]
 fn gather_and_clear(
     cfg: &RefineConfig,
     geom: &RefineGeom,
     touched: &[u32],
     d: &mut [f64],
-    levels: usize,
-    residual: bool,
+    active: Active,
     ng: usize,
     pending: &mut [Vec<f64>],
 ) {
@@ -822,7 +828,7 @@ fn gather_and_clear(
         Some(v) => v,
         None => &mut [],
     };
-    field_backward(cfg, geom, touched, d, levels, residual, grids, d_r);
+    field_backward(cfg, geom, touched, d, active, grids, d_r);
     for &i in touched {
         d[i as usize] = 0.0;
     }

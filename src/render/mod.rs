@@ -44,63 +44,57 @@ fn band_rows_for(width: u32, gamma: u32, band_samples: usize) -> u32 {
     (band_samples / per_row).clamp(1, u32::MAX as usize) as u32
 }
 
-/// Render `camera` with the model; `view_row` is the appearance row (−1: mean code); pixels whose
-/// rays all miss get `background`. Cast and shaded in bands of rows ([`RENDER_BAND_SAMPLES`]).
-pub fn render_camera(
-    model: &Hfm,
-    params: &[f32],
-    tracer: &Tracer,
-    camera: &Camera,
-    gamma: u32,
-    view_row: i32,
-    background: [f32; 3],
-) -> Result<Rendered> {
-    render_camera_in_bands(
-        model,
-        params,
-        tracer,
-        camera,
-        gamma,
-        view_row,
-        background,
-        RENDER_BAND_SAMPLES,
-    )
+/// A model rendered on a mesh: the model and its parameters, the BVH its rays are cast against
+/// (and its features queried on), γ×γ rays per pixel, and the colour of pixels whose rays all
+/// miss. What changes from frame to frame is the camera and the view's appearance row.
+#[derive(Clone, Copy)]
+pub struct ModelRenderer<'a> {
+    pub model: &'a Hfm,
+    pub params: &'a [f32],
+    pub tracer: &'a Tracer,
+    pub gamma: u32,
+    pub background: [f32; 3],
 }
 
-/// [`render_camera`] with bands of at most `band_samples` sub-samples (at least one row each;
-/// `usize::MAX`: the whole frame at once). The frame does not depend on it (tests/render.rs).
-#[allow(clippy::too_many_arguments)]
-pub fn render_camera_in_bands(
-    model: &Hfm,
-    params: &[f32],
-    tracer: &Tracer,
-    camera: &Camera,
-    gamma: u32,
-    view_row: i32,
-    background: [f32; 3],
-    band_samples: usize,
-) -> Result<Rendered> {
-    let s = (gamma * gamma) as usize;
-    render_in_bands(
-        tracer,
-        camera,
-        gamma,
-        background,
-        band_samples,
-        |cast, _, colours| {
-            let hits: Vec<usize> = (0..cast.pixels.len())
-                .filter(|&i| cast.pixels[i].valid != 0)
-                .collect();
-            for chunk in hits.chunks(RENDER_CHUNK) {
-                let b = render_batch(model, cast, chunk, s, view_row);
-                let rgb = model.infer(params, &b)?;
-                for (&i, c) in chunk.iter().zip(rgb.chunks_exact(3)) {
-                    colours[i * 3..i * 3 + 3].copy_from_slice(c);
+impl ModelRenderer<'_> {
+    /// Render `camera` with appearance row `view_row` (−1: mean code); pixels whose rays all miss
+    /// get the background. Cast and shaded in bands of rows ([`RENDER_BAND_SAMPLES`]).
+    pub fn render(&self, camera: &Camera, view_row: i32) -> Result<Rendered> {
+        self.render_in_bands(camera, view_row, RENDER_BAND_SAMPLES)
+    }
+
+    /// [`ModelRenderer::render`] with bands of at most `band_samples` sub-samples (at least one
+    /// row each; `usize::MAX`: the whole frame at once). The frame does not depend on it
+    /// (tests/render.rs).
+    pub fn render_in_bands(
+        &self,
+        camera: &Camera,
+        view_row: i32,
+        band_samples: usize,
+    ) -> Result<Rendered> {
+        let (model, params, gamma) = (self.model, self.params, self.gamma);
+        let s = (gamma * gamma) as usize;
+        render_in_bands(
+            self.tracer,
+            camera,
+            gamma,
+            self.background,
+            band_samples,
+            |cast, _, colours| {
+                let hits: Vec<usize> = (0..cast.pixels.len())
+                    .filter(|&i| cast.pixels[i].valid != 0)
+                    .collect();
+                for chunk in hits.chunks(RENDER_CHUNK) {
+                    let b = render_batch(model, cast, chunk, s, view_row);
+                    let rgb = model.infer(params, &b)?;
+                    for (&i, c) in chunk.iter().zip(rgb.chunks_exact(3)) {
+                        colours[i * 3..i * 3 + 3].copy_from_slice(c);
+                    }
                 }
-            }
-            Ok(())
-        },
-    )
+                Ok(())
+            },
+        )
+    }
 }
 
 /// The frame loop every renderer shares: cast `camera` with γ×γ rays per pixel in bands of rows

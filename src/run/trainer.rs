@@ -18,6 +18,7 @@
 
 use crate::eval::protocol::{evaluate_view, write_evaluated, ViewScore};
 use crate::model::params::Grads;
+use crate::render::ModelRenderer;
 use crate::run::divergence::Guard;
 use crate::run::report::Reporter;
 use crate::run::run_dir::{
@@ -145,21 +146,19 @@ pub fn evaluate_until(
     };
     let refined = crate::refine::mesh::eval_tracer(state, prepared)?;
     let tracer = refined.as_ref().unwrap_or(&prepared.tracer);
+    let renderer = ModelRenderer {
+        model: &state.ckpt.model,
+        params: &state.ckpt.params,
+        tracer,
+        gamma: state.cfg.model.gamma,
+        background: prepared.scene.background,
+    };
     let mut scores = Vec::new();
     for &i in &views {
         if stop() {
             return Ok(None);
         }
-        let e = evaluate_view(
-            &state.ckpt.model,
-            &state.ckpt.params,
-            tracer,
-            &prepared.scene,
-            i,
-            state.cfg.model.gamma,
-            prepared.appearance_row(i),
-            prepared.scene.background,
-        )?;
+        let e = evaluate_view(&renderer, &prepared.scene, i, prepared.appearance_row(i))?;
         if let Some(dir) = out {
             let name = &prepared.scene.views[i].name;
             write_evaluated(&e, name, Some(&dir.join("render")), Some(&dir.join("eval")))?;

@@ -841,51 +841,6 @@ impl AsciiRow<'_> {
     }
 }
 
-/// Binary PLY fast path: an element of scalars only is a fixed-size record (vertices,
-/// usually); returns the position after it.
-#[allow(clippy::too_many_arguments)]
-fn read_fixed_records(
-    path: &Path,
-    data: &[u8],
-    pos: usize,
-    el: &Element,
-    types: &[Scalar],
-    lay: &Layout,
-    big: bool,
-    out: &mut PlyMesh,
-) -> Result<usize> {
-    let p = path.display();
-    let mut offs = Vec::with_capacity(types.len());
-    let mut rec = 0usize;
-    for t in types {
-        offs.push(rec);
-        rec += t.size();
-    }
-    // Overflow-checked: a declared count near usize::MAX / rec must be an error, not a wrap.
-    let end = rec.checked_mul(el.count).and_then(|n| pos.checked_add(n));
-    if end.is_none_or(|e| e > data.len()) {
-        let k = (data.len() - pos) / rec.max(1);
-        bail!(
-            "{p}: truncated: file ends inside {} {k} of {} declared",
-            el.name,
-            el.count
-        );
-    }
-    if el.name == "vertex" {
-        for k in 0..el.count {
-            let r = &data[pos + k * rec..pos + (k + 1) * rec];
-            let mut v = [0f64; 3];
-            for (axis, (c, &pi)) in v.iter_mut().zip(&lay.xyz).enumerate() {
-                let x = types[pi].read(&r[offs[pi]..], big);
-                *c = finite_coordinate(path, || format!("vertex {k}"), axis, x)?;
-            }
-            out.mesh.vertices.push(DVec3::from_array(v));
-        }
-        out.vertices_done();
-    }
-    Ok(pos + rec * el.count)
-}
-
 fn load_ply_binary(
     path: &Path,
     data: &[u8],
@@ -919,7 +874,7 @@ fn load_ply_binary(
             })
             .collect();
         if let Some(types) = scalars {
-            body.pos = read_fixed_records(path, data, body.pos, el, &types, lay, big, &mut out)?;
+            body.fixed_records(el, &types, lay, &mut out)?;
             continue;
         }
         for k in 0..el.count {
@@ -1000,6 +955,49 @@ impl BinaryBody<'_> {
                 }
             }
         }
+        Ok(())
+    }
+
+    /// Binary PLY fast path: an element of scalars only (vertices, usually) is `count`
+    /// fixed-size records of `types`; read past them, keeping a vertex element's coordinates.
+    fn fixed_records(
+        &mut self,
+        el: &Element,
+        types: &[Scalar],
+        lay: &Layout,
+        out: &mut PlyMesh,
+    ) -> Result<()> {
+        let (path, data, pos, big) = (self.path, self.data, self.pos, self.big);
+        let p = path.display();
+        let mut offs = Vec::with_capacity(types.len());
+        let mut rec = 0usize;
+        for t in types {
+            offs.push(rec);
+            rec += t.size();
+        }
+        // Overflow-checked: a declared count near usize::MAX / rec must be an error, not a wrap.
+        let end = rec.checked_mul(el.count).and_then(|n| pos.checked_add(n));
+        if end.is_none_or(|e| e > data.len()) {
+            let k = (data.len() - pos) / rec.max(1);
+            bail!(
+                "{p}: truncated: file ends inside {} {k} of {} declared",
+                el.name,
+                el.count
+            );
+        }
+        if el.name == "vertex" {
+            for k in 0..el.count {
+                let r = &data[pos + k * rec..pos + (k + 1) * rec];
+                let mut v = [0f64; 3];
+                for (axis, (c, &pi)) in v.iter_mut().zip(&lay.xyz).enumerate() {
+                    let x = types[pi].read(&r[offs[pi]..], big);
+                    *c = finite_coordinate(path, || format!("vertex {k}"), axis, x)?;
+                }
+                out.mesh.vertices.push(DVec3::from_array(v));
+            }
+            out.vertices_done();
+        }
+        self.pos = pos + rec * el.count;
         Ok(())
     }
 

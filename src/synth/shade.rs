@@ -70,24 +70,28 @@ fn octave(seed: u64, s: u64, x: f64, y: f64, wavelength: f64, fp: f64) -> f64 {
     }
 }
 
-/// A running-bond tile pattern of period `(px, py)` (rows offset by `offset·px`): returns a
-/// brightness factor with mean 1 over the area: per-tile jitter ±`jitter`, mortar joints of
-/// relative width `joint` at brightness `mortar`, normalised so the area mean is exactly 1,
-/// and faded to 1 by LOD.
-#[allow(clippy::too_many_arguments)]
-fn tiles(
-    seed: u64,
-    s: u64,
-    x: f64,
-    y: f64,
-    px: f64,
-    py: f64,
+/// A running-bond tile pattern: period `[px, py]`, rows offset by `offset·px`, mortar joints of
+/// relative width `joint` at brightness `mortar`, per-tile jitter ±`jitter`.
+#[derive(Clone, Copy, Debug)]
+struct Tiles {
+    period: [f64; 2],
     offset: f64,
     joint: f64,
     mortar: f64,
     jitter: f64,
-    fp: f64,
-) -> f64 {
+}
+
+/// The brightness factor of `pattern` at (x, y) (tiles drawn from stream `s` of `seed`), with
+/// mean 1 over the area (normalised so the area mean is exactly 1), faded to 1 by LOD for a
+/// footprint `fp`.
+fn tiles(seed: u64, s: u64, x: f64, y: f64, pattern: &Tiles, fp: f64) -> f64 {
+    let Tiles {
+        period: [px, py],
+        offset,
+        joint,
+        mortar,
+        jitter,
+    } = *pattern;
     let w = lod(py.min(px), fp);
     if w == 0.0 {
         return 1.0;
@@ -138,19 +142,14 @@ impl Shader<'_> {
         if self.paved(x, y) {
             // Pavement: warm grey, square tiles at the fine period.
             let base = DVec3::new(0.62, 0.58, 0.52) + DVec3::new(0.10, 0.06, 0.0) * tint * 2.0;
-            let t = tiles(
-                seed,
-                stream::TILE,
-                x,
-                y,
-                l.fine_period,
-                l.fine_period,
-                0.0,
-                0.12,
-                0.45,
-                0.22,
-                fp,
-            );
+            let pattern = Tiles {
+                period: [l.fine_period, l.fine_period],
+                offset: 0.0,
+                joint: 0.12,
+                mortar: 0.45,
+                jitter: 0.22,
+            };
+            let t = tiles(seed, stream::TILE, x, y, &pattern, fp);
             Material {
                 albedo: base * (1.0 + 0.6 * mid) * t,
                 ks: 0.10,
@@ -173,19 +172,14 @@ impl Shader<'_> {
         let (seed, l) = (self.seed, self.look);
         let base = DVec3::from_array(self.surface.buildings[b].wall_colour);
         let st = stream::BRICK + 16 * b as u64;
-        let bricks = tiles(
-            seed,
-            st,
-            s,
-            z,
-            2.0 * l.fine_period,
-            l.fine_period,
-            0.5,
-            0.10,
-            0.55,
-            0.25,
-            fp,
-        );
+        let pattern = Tiles {
+            period: [2.0 * l.fine_period, l.fine_period],
+            offset: 0.5,
+            joint: 0.10,
+            mortar: 0.55,
+            jitter: 0.25,
+        };
+        let bricks = tiles(seed, st, s, z, &pattern, fp);
         let weather = octave(
             seed,
             stream::WEATHER,
@@ -211,19 +205,14 @@ impl Shader<'_> {
         // Standing-seam panels along the longer side, period = a quarter of mid_wavelength.
         let along_x = bd.hi[0] - bd.lo[0] >= bd.hi[1] - bd.lo[1];
         let (u, v) = if along_x { (y, x) } else { (x, y) };
-        let seams = tiles(
-            seed,
-            stream::ROOF + b as u64,
-            u,
-            v,
-            0.25 * l.mid_wavelength,
-            1e6,
-            0.0,
-            0.06,
-            0.6,
-            0.05,
-            fp,
-        );
+        let pattern = Tiles {
+            period: [0.25 * l.mid_wavelength, 1e6],
+            offset: 0.0,
+            joint: 0.06,
+            mortar: 0.6,
+            jitter: 0.05,
+        };
+        let seams = tiles(seed, stream::ROOF + b as u64, u, v, &pattern, fp);
         let grain = octave(seed, stream::ROOF + 64, x, y, l.fine_period, fp);
         let stain = octave(seed, stream::ROOF + 65, x, y, l.mid_wavelength, fp);
         Material {

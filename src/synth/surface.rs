@@ -128,37 +128,37 @@ impl Heightfield {
             let (za, zb) = (o.z + d.z * ta, o.z + d.z * tb);
             (za.min(zb) - margin, za.max(zb) + margin)
         };
-        dda(
-            o2,
-            d2,
-            self.origin,
-            self.cell * BLOCK as f64,
-            nb,
-            t0,
-            t1,
-            |bi, bj, ta, tb| {
-                let (bmin, bmax) = self.block_range[bj * nb + bi];
-                let (zlo, zhi) = z_range(ta, tb);
-                if zhi < bmin || zlo > bmax {
-                    return None;
-                }
-                let borig =
-                    self.origin + DVec2::new(bi as f64, bj as f64) * self.cell * BLOCK as f64;
-                dda(o2, d2, borig, self.cell, BLOCK, ta, tb, |ci, cj, _, _| {
-                    let (i, j) = (bi * BLOCK + ci, bj * BLOCK + cj);
-                    let mut best: Option<(f64, DVec3)> = None;
-                    for tri in self.cell_triangles(i, j) {
-                        if let Some(t) = intersect_triangle(o, d, &tri) {
-                            if t >= tmin && t <= tmax && best.is_none_or(|b| t < b.0) {
-                                let n = (tri[1] - tri[0]).cross(tri[2] - tri[0]).normalize();
-                                best = Some((t, n));
-                            }
+        let blocks = SquareGrid {
+            origin: self.origin,
+            cell: self.cell * BLOCK as f64,
+            n: nb,
+        };
+        dda(blocks, o2, d2, t0, t1, |bi, bj, ta, tb| {
+            let (bmin, bmax) = self.block_range[bj * nb + bi];
+            let (zlo, zhi) = z_range(ta, tb);
+            if zhi < bmin || zlo > bmax {
+                return None;
+            }
+            let borig = self.origin + DVec2::new(bi as f64, bj as f64) * self.cell * BLOCK as f64;
+            let cells = SquareGrid {
+                origin: borig,
+                cell: self.cell,
+                n: BLOCK,
+            };
+            dda(cells, o2, d2, ta, tb, |ci, cj, _, _| {
+                let (i, j) = (bi * BLOCK + ci, bj * BLOCK + cj);
+                let mut best: Option<(f64, DVec3)> = None;
+                for tri in self.cell_triangles(i, j) {
+                    if let Some(t) = intersect_triangle(o, d, &tri) {
+                        if t >= tmin && t <= tmax && best.is_none_or(|b| t < b.0) {
+                            let n = (tri[1] - tri[0]).cross(tri[2] - tri[0]).normalize();
+                            best = Some((t, n));
                         }
                     }
-                    best
-                })
-            },
-        )
+                }
+                best
+            })
+        })
     }
 }
 
@@ -382,21 +382,27 @@ fn box_entry(o: DVec3, d: DVec3, lo: DVec3, hi: DVec3) -> Option<(f64, usize)> {
     (t0 <= t1 && t0 > 0.0).then_some((t0, axis))
 }
 
-/// 2-D DDA over an `n × n` grid of square cells (side `cell`, corner `origin`), visiting in ray
-/// order the cells the ray `o + t·d` crosses for `t ∈ [t0, t1]`; `f(i, j, t_enter, t_exit)`
-/// stops the walk by returning `Some`. Indices are clamped at the start (the entry point may
-/// round just outside the grid).
-#[allow(clippy::too_many_arguments)]
-fn dda<R>(
-    o: DVec2,
-    d: DVec2,
+/// An `n × n` grid of square cells of side `cell`, corner `origin` (the xy plane).
+#[derive(Clone, Copy)]
+struct SquareGrid {
     origin: DVec2,
     cell: f64,
     n: usize,
+}
+
+/// 2-D DDA over the square cells of `grid`, visiting in ray
+/// order the cells the ray `o + t·d` crosses for `t ∈ [t0, t1]`; `f(i, j, t_enter, t_exit)`
+/// stops the walk by returning `Some`. Indices are clamped at the start (the entry point may
+/// round just outside the grid).
+fn dda<R>(
+    grid: SquareGrid,
+    o: DVec2,
+    d: DVec2,
     t0: f64,
     t1: f64,
     mut f: impl FnMut(usize, usize, f64, f64) -> Option<R>,
 ) -> Option<R> {
+    let SquareGrid { origin, cell, n } = grid;
     let p = o + d * t0;
     let last = n as i64 - 1;
     let mut ix = (((p.x - origin.x) / cell).floor() as i64).clamp(0, last);

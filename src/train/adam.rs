@@ -618,6 +618,8 @@ impl AdamState {
     ///
     /// # Panics
     /// If `entries` is not strictly increasing, an entry is out of range, or lengths disagree.
+    // A hot kernel (inner loop of a step): its arguments are the buffers and sizes it works on,
+    // llm.c style; kept as they are rather than re-measure its speed behind a struct.
     #[allow(clippy::too_many_arguments)]
     pub fn step_sparse(
         &mut self,
@@ -644,6 +646,8 @@ impl AdamState {
     /// [`AdamState::step_sparse`] that also sets the listed entries' gradients to zero as it
     /// reads them (the training loop's gradient zeroing, fused: the entries are read once).
     /// Same parameter and state bits as `step_sparse`.
+    // A hot kernel (inner loop of a step): its arguments are the buffers and sizes it works on,
+    // llm.c style; kept as they are rather than re-measure its speed behind a struct.
     #[allow(clippy::too_many_arguments)]
     pub fn step_sparse_and_zero(
         &mut self,

@@ -70,6 +70,13 @@ const SECTIONS: &[Spec] = &[
         run: torch_peer,
     },
     Spec {
+        name: "oracle",
+        title: "The oracle's dump: time against error (`cargo bench --bench oracle`)",
+        measures: "Every precision mode of `xscale dump` on one workload (the golden `cpu-t10` checkpoint on a seeded batch of 4,096 pixels × 4 sub-samples, in memory), timed in alternating rounds (median), with each tensor family's error against the f64 dump: the largest `max abs / peak` of the family (what the tolerance files limit). The f32 dumps pass `tolerances-f32.toml` before they are timed.",
+        cost: "about a minute",
+        run: oracle,
+    },
+    Spec {
         name: "render",
         title: "Rendering a 1.08-megapixel frame",
         measures: "`xscale render --scale 6` of one held-out `small` view (1200×900, γ = 2) from the `small` section's checkpoint: the whole command (mapping the checkpoint, casting, shading, writing the PNG), median of 5 runs, and its peak memory.",
@@ -434,24 +441,31 @@ fn small(c: &Ctx) -> Result<Section> {
     Ok(s)
 }
 
+/// A bench's `rows`, each as the values of `keys` in that order.
+fn columns(v: &Value, bench: &str, keys: &[&str]) -> Result<Vec<Vec<Value>>> {
+    Ok(v["rows"]
+        .as_array()
+        .ok_or_else(|| anyhow!("{bench}: no rows"))?
+        .iter()
+        .map(|r| keys.iter().map(|k| r[*k].clone()).collect())
+        .collect())
+}
+
 fn train_loop(c: &Ctx) -> Result<Section> {
     let v = c.bench("train_loop", &[])?;
-    let rows = v["rows"]
-        .as_array()
-        .ok_or_else(|| anyhow!("train_loop: no rows"))?
-        .iter()
-        .map(|r| {
-            vec![
-                r["threads"].clone(),
-                r["pixels_per_s"].clone(),
-                r["ms_per_step"].clone(),
-                r["batch_ms"].clone(),
-                r["forward_ms"].clone(),
-                r["backward_ms"].clone(),
-                r["adam_ms"].clone(),
-            ]
-        })
-        .collect();
+    let rows = columns(
+        &v,
+        "train_loop",
+        &[
+            "threads",
+            "pixels_per_s",
+            "ms_per_step",
+            "batch_ms",
+            "forward_ms",
+            "backward_ms",
+            "adam_ms",
+        ],
+    )?;
     Ok(Section {
         commands: vec!["cargo bench --bench train_loop".into()],
         tables: vec![
@@ -485,20 +499,17 @@ fn train_loop(c: &Ctx) -> Result<Section> {
 
 fn skips(c: &Ctx) -> Result<Section> {
     let v = c.bench("skips", &[])?;
-    let rows = v["rows"]
-        .as_array()
-        .ok_or_else(|| anyhow!("skips: no rows"))?
-        .iter()
-        .map(|r| {
-            vec![
-                r["configuration"].clone(),
-                r["ms_per_step"].clone(),
-                r["vs_default"].clone(),
-                r["sub_samples"].clone(),
-                r["levels"].clone(),
-            ]
-        })
-        .collect();
+    let rows = columns(
+        &v,
+        "skips",
+        &[
+            "configuration",
+            "ms_per_step",
+            "vs_default",
+            "sub_samples",
+            "levels",
+        ],
+    )?;
     Ok(Section {
         commands: vec!["cargo bench --bench skips".into()],
         tables: vec![table(
@@ -552,6 +563,70 @@ fn torch_peer(c: &Ctx) -> Result<Section> {
         ]],
     ));
     Ok(s)
+}
+
+fn oracle(c: &Ctx) -> Result<Section> {
+    let v = c.bench("oracle", &[])?;
+    let modes: Vec<String> = v["modes"]
+        .as_array()
+        .ok_or_else(|| anyhow!("oracle: no modes"))?
+        .iter()
+        .map(|m| m.as_str().unwrap_or("?").to_string())
+        .collect();
+    let mut cols = vec!["".to_string()];
+    cols.extend(modes.iter().cloned());
+    let cols: Vec<&str> = cols.iter().map(String::as_str).collect();
+    let row = |label: &str, key: &str| {
+        let mut r = vec![json!(label)];
+        r.extend(v[key].as_array().cloned().unwrap_or_default());
+        r
+    };
+    let mut err_rows = Vec::new();
+    for f in v["families"].as_array().into_iter().flatten() {
+        let mut r = vec![f["family"].clone()];
+        for e in f["max_abs_over_peak"].as_array().into_iter().flatten() {
+            r.push(json!(match e.as_f64() {
+                Some(0.0) => "0".to_string(),
+                Some(x) => format!("{x:.2e}"),
+                None => "—".to_string(),
+            }));
+        }
+        err_rows.push(r);
+    }
+    let mut digits = vec![0];
+    digits.extend(std::iter::repeat_n(1, modes.len()));
+    let mut d2 = vec![0];
+    d2.extend(std::iter::repeat_n(2, modes.len()));
+    Ok(Section {
+        commands: vec!["cargo bench --bench oracle".into()],
+        tables: vec![
+            table(
+                &format!(
+                    "{} pixels, {} threads, median of {} rounds; {} kink pixels",
+                    v["pixels"], v["threads"], v["rounds"], v["kink_pixels"]
+                ),
+                &cols,
+                &digits,
+                vec![
+                    row("time per dump (ms)", "wall_ms"),
+                    row("CPU time per dump (ms)", "cpu_ms"),
+                ],
+            ),
+            table(
+                "",
+                &cols,
+                &d2,
+                vec![row("time against the f64 dump (×)", "over_f64")],
+            ),
+            table(
+                "Error against the f64 dump (max abs / peak)",
+                &cols,
+                &digits,
+                err_rows,
+            ),
+        ],
+        ..Section::default()
+    })
 }
 
 fn render(c: &Ctx) -> Result<Section> {

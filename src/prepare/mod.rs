@@ -1,0 +1,14 @@
+//! Photos to a scene on a CPU (`xscale prepare`): COLMAP's CPU structure-from-motion when a
+//! `colmap` binary is on the PATH, then a mesh of its sparse points made here.
+//!
+//! | file | what |
+//! |---|---|
+//! | `delaunay.rs` | 3-D Delaunay tetrahedralisation (Bowyer–Watson, exact predicates) |
+//! | `maxflow.rs` | minimum s–t cut (Boykov–Kolmogorov max flow) |
+//! | `mesher.rs` | the visibility graph-cut surface of Labatut et al. 2009 from points and cameras |
+//! | `sparse.rs` | a whole COLMAP sparse model: views, points with tracks, keypoints |
+
+pub mod delaunay;
+pub mod maxflow;
+pub mod mesher;
+pub mod sparse;

@@ -17,6 +17,7 @@ pub mod dump;
 pub mod eval;
 pub mod init;
 pub mod mesh_distance;
+pub mod prepare;
 pub mod render;
 pub mod synth;
 pub mod train;
@@ -37,6 +38,8 @@ pub struct Cli {
 
 #[derive(Subcommand, Debug)]
 pub enum Command {
+    /// Photos to a scene: COLMAP's CPU pipeline, then a mesh of its points (Delaunay graph cut).
+    Prepare(prepare::Args),
     /// Generate a cross-scale synthetic scene with independent ground truth.
     Synth(synth::Args),
     /// Load a scene, cast its rays once and report what the sample cache holds.
@@ -90,6 +93,7 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
             .build_global()?;
     }
     match cli.command {
+        Command::Prepare(a) => prepare::run(a),
         Command::Synth(a) => synth::run(a),
         Command::Cast(a) => cast::run(a),
         Command::Init(a) => init::run(a),

@@ -81,6 +81,7 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
             quality: a.quality,
             max_side_factor: a.max_side,
             min_track: a.min_track,
+            ..mesher::Options::default()
         },
     };
     match pipeline::run(&o, stop) {

@@ -2,9 +2,9 @@
 //! "An Experimental Comparison of Min-Cut/Max-Flow Algorithms for Energy Minimization in
 //! Vision", PAMI 2004), the algorithm graph-cut surface reconstruction uses.
 //!
-//! Why our own: no maintained Rust crate has it. `petgraph`'s `dinics` resets an O(nodes)
-//! visited map and allocates per augmenting path, and the surface graphs here have ~10⁵–10⁶
-//! nodes and ~10⁴ augmenting paths (measured: docs/prepare.md); `rs-graph` is GPL.
+//! Why our own: no maintained Rust crate has it. `petgraph`'s `dinics` (0.8) resets an
+//! O(nodes) visited map and allocates an O(nodes) array for every augmenting path (read in its
+//! source, not measured), and the surface graphs here have 10⁵–10⁶ nodes; `rs-graph` is GPL.
 //!
 //! The graph: `n` nodes, each with a capacity from the source and one to the sink (the
 //! "terminal links"), and directed arcs added in pairs (an edge `i → j` with capacity `c_ij`

@@ -49,14 +49,18 @@ pub struct Options {
     pub max_side_factor: f64,
     /// Points seen by fewer cameras than this are left out (2 = every triangulated point).
     pub min_track: usize,
+    /// Drop connected pieces of the surface with fewer triangles than this share of the
+    /// largest piece's (the closed bubbles a wrong match leaves floating in free space).
+    pub min_component: f64,
 }
 
 impl Default for Options {
     fn default() -> Self {
         Options {
             quality: 1.0,
-            max_side_factor: 25.0,
+            max_side_factor: 8.0,
             min_track: 2,
+            min_component: 0.01,
         }
     }
 }
@@ -82,6 +86,8 @@ pub struct Stats {
     /// Triangles of the surface, and those dropped as too long.
     pub triangles: usize,
     pub dropped_long: usize,
+    /// Triangles dropped with pieces smaller than [`Options::min_component`].
+    pub dropped_small: usize,
     /// Seconds per stage: tetrahedralisation, lines of sight, graph cut, surface.
     pub seconds: [f64; 4],
 }
@@ -248,6 +254,11 @@ pub fn mesh(
         tris = drop_long(&tet.points, tris, opts.max_side_factor);
     }
     stats.dropped_long = before - tris.len();
+    let before = tris.len();
+    if opts.min_component > 0.0 {
+        tris = drop_small_components(tris, tet.points.len(), opts.min_component);
+    }
+    stats.dropped_small = before - tris.len();
     stats.triangles = tris.len();
     // Keep the vertices the triangles use, in point order.
     let mut index = vec![u32::MAX; n];
@@ -436,6 +447,35 @@ fn drop_long(points: &[DVec3], tris: Vec<[u32; 3]>, factor: f64) -> Vec<[u32; 3]
     let (_, &mut limit, _) = sides.select_nth_unstable_by(k, f64::total_cmp);
     let limit = limit * factor;
     tris.into_iter().filter(|t| (0..3).all(|k| side(t, k) <= limit)).collect()
+}
+
+/// Keep the pieces (triangles connected through shared vertices) with at least `share` of the
+/// largest piece's triangles.
+fn drop_small_components(tris: Vec<[u32; 3]>, n_vertices: usize, share: f64) -> Vec<[u32; 3]> {
+    let mut parent: Vec<u32> = (0..n_vertices as u32).collect();
+    fn find(p: &mut [u32], mut x: u32) -> u32 {
+        while p[x as usize] != x {
+            p[x as usize] = p[p[x as usize] as usize];
+            x = p[x as usize];
+        }
+        x
+    }
+    for t in &tris {
+        for k in 1..3 {
+            let (a, b) = (find(&mut parent, t[0]), find(&mut parent, t[k]));
+            if a != b {
+                parent[a.max(b) as usize] = a.min(b);
+            }
+        }
+    }
+    let mut size = vec![0usize; n_vertices];
+    let roots: Vec<u32> = tris.iter().map(|t| find(&mut parent, t[0])).collect();
+    for &r in &roots {
+        size[r as usize] += 1;
+    }
+    let largest = size.iter().copied().max().unwrap_or(0);
+    let keep = (share * largest as f64).ceil() as usize;
+    tris.into_iter().zip(roots).filter(|(_, r)| size[*r as usize] >= keep).map(|(t, _)| t).collect()
 }
 
 /// Seconds as a short string for progress lines.

@@ -9,6 +9,7 @@
 //! | `maxflow.rs` | minimum s–t cut (Boykov–Kolmogorov max flow) |
 //! | `mesher.rs` | the visibility graph-cut surface of Labatut et al. 2009 from points and cameras |
 //! | `sparse.rs` | a whole COLMAP sparse model: views, points with tracks, keypoints |
+//! | `synthetic.rs` | sparse points and tracks of a synthetic scene (tests, measurements) |
 
 pub mod colmap_run;
 pub mod delaunay;
@@ -16,3 +17,4 @@ pub mod maxflow;
 pub mod mesher;
 pub mod pipeline;
 pub mod sparse;
+pub mod synthetic;

@@ -85,6 +85,9 @@ struct Inputs {
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 struct State {
     inputs: Option<Inputs>,
+    /// The mesher settings the mesh was made with (other ones redo only the mesh).
+    #[serde(default)]
+    mesher: Option<String>,
     done: Vec<String>,
     seconds: Vec<(String, f64)>,
 }
@@ -540,12 +543,15 @@ pub fn run(o: &Options, stop: &AtomicBool) -> Result<Option<Report>> {
         notes: Vec::new(),
     };
     // Known poses, matched to the photos.
-    if !o.dry_run {
+    let colmap_exe = Colmap::find(o.colmap.as_deref());
+    // Nothing is written by a dry run, nor when COLMAP is missing and needed.
+    let writes = !o.dry_run && (colmap_exe.is_some() || o.sparse.is_some());
+    if writes {
         std::fs::create_dir_all(&work).with_context(|| format!("{}: cannot create", work.display()))?;
     }
     let views: Option<Vec<View>> = match &o.poses {
         Some(p) => {
-            let scratch = if o.dry_run { std::env::temp_dir() } else { work.clone() };
+            let scratch = if writes { work.clone() } else { std::env::temp_dir() };
             let (mut v, notes) = load_poses(p, &photos, &scratch)?;
             for n in notes {
                 say(format!("note: {n}"));
@@ -564,7 +570,6 @@ pub fn run(o: &Options, stop: &AtomicBool) -> Result<Option<Report>> {
         Some(v) => v.iter().map(|x| x.image_path.clone()).collect(),
         None => photos.clone(),
     };
-    let colmap_exe = Colmap::find(o.colmap.as_deref());
     let steps = if o.sparse.is_none() {
         colmap_steps(o, &work, views.as_deref(), used.len())?
     } else {
@@ -594,6 +599,11 @@ pub fn run(o: &Options, stop: &AtomicBool) -> Result<Option<Report>> {
     if ctx.state.inputs.is_none() {
         ctx.state.inputs = Some(inputs.clone());
         ctx.save()?;
+    }
+    let mesher_key = format!("{:?}", o.mesher);
+    if ctx.done("mesh") && ctx.state.mesher.as_deref() != Some(mesher_key.as_str()) {
+        say("note: other mesher settings than the mesh was made with: meshing again");
+        ctx.state.done.retain(|s| s != "mesh");
     }
     let all_done = ["photos", "sparse", "mesh"].iter().all(|s| ctx.done(s)) && out.join("mesh.ply").is_file();
     if all_done && (!o.undistort || ctx.done("undistort")) {
@@ -781,6 +791,7 @@ pub fn run(o: &Options, stop: &AtomicBool) -> Result<Option<Report>> {
     crate::io::atomic::write_bytes(&out.join("prepare.json"), &json)?;
     // Last: the mesh under its final name makes the folder a scene.
     std::fs::rename(&tmp_mesh, out.join("mesh.ply")).with_context(|| format!("{}: cannot move", tmp_mesh.display()))?;
+    ctx.state.mesher = Some(mesher_key);
     ctx.finish("mesh", secs)?;
     println!("{}", summary_of_json(&json));
     println!("scene ready: xscale train --scene {}", out.display());

@@ -35,7 +35,11 @@ fn main() -> anyhow::Result<()> {
     std::fs::create_dir_all(&out)?;
     let s = xscale::synth::build(preset, 7);
     let pts = synthetic::points(&s, per_view, noise, outliers, seed);
-    eprintln!("{} points from {} cameras", pts.tracks.len(), pts.cameras.len());
+    eprintln!(
+        "{} points from {} cameras",
+        pts.tracks.len(),
+        pts.cameras.len()
+    );
     xscale::scene::mesh::write_ply(&out.join("truth.ply"), &s.truth.to_mesh())?;
     let t = std::time::Instant::now();
     let (m, stats) = mesher::mesh(&pts.tracks, &pts.cameras, &opts, &|_, _, _| {}, &|| false)?;
@@ -46,7 +50,11 @@ fn main() -> anyhow::Result<()> {
     let normals: Vec<DVec3> = (0..xyz.len())
         .into_par_iter()
         .map(|i| {
-            let mut d: Vec<(f64, usize)> = xyz.iter().enumerate().map(|(j, q)| ((*q - xyz[i]).length_squared(), j)).collect();
+            let mut d: Vec<(f64, usize)> = xyz
+                .iter()
+                .enumerate()
+                .map(|(j, q)| ((*q - xyz[i]).length_squared(), j))
+                .collect();
             d.select_nth_unstable_by(12, |a, b| a.0.total_cmp(&b.0));
             let nb: Vec<DVec3> = d[..13].iter().map(|x| xyz[x.1]).collect();
             let c = nb.iter().copied().sum::<DVec3>() / nb.len() as f64;
@@ -56,13 +64,19 @@ fn main() -> anyhow::Result<()> {
                 cov += DMat3::from_cols(r * r.x, r * r.y, r * r.z);
             }
             // Smallest eigenvector by inverse power iteration on the shifted matrix.
-            let shift = DMat3::from_diagonal(DVec3::splat(1e-12 * (cov.x_axis.x + cov.y_axis.y + cov.z_axis.z)));
+            let shift = DMat3::from_diagonal(DVec3::splat(
+                1e-12 * (cov.x_axis.x + cov.y_axis.y + cov.z_axis.z),
+            ));
             let inv = (cov + shift).inverse();
             let mut n = DVec3::new(0.3, 0.5, 0.8).normalize();
             for _ in 0..30 {
                 n = (inv * n).normalize();
             }
-            let towards: DVec3 = pts.tracks[i].cameras.iter().map(|&c| (pts.cameras[c as usize] - xyz[i]).normalize()).sum();
+            let towards: DVec3 = pts.tracks[i]
+                .cameras
+                .iter()
+                .map(|&c| (pts.cameras[c as usize] - xyz[i]).normalize())
+                .sum();
             if n.dot(towards) < 0.0 {
                 -n
             } else {
@@ -74,14 +88,21 @@ fn main() -> anyhow::Result<()> {
     writeln!(f, "ply\nformat ascii 1.0\nelement vertex {}\nproperty float x\nproperty float y\nproperty float z\nproperty float nx\nproperty float ny\nproperty float nz\nproperty uchar red\nproperty uchar green\nproperty uchar blue\nend_header", xyz.len())?;
     for (p, n) in xyz.iter().zip(&normals) {
         // COLMAP's poisson_mesher refuses points without colours.
-        writeln!(f, "{} {} {} {} {} {} 128 128 128", p.x, p.y, p.z, n.x, n.y, n.z)?;
+        writeln!(
+            f,
+            "{} {} {} {} {} {} 128 128 128",
+            p.x, p.y, p.z, n.x, n.y, n.z
+        )?;
     }
     drop(f);
     // Accuracy (mesh → truth) and completeness (the truth that two cameras see → mesh).
     let truth = s.truth.to_mesh();
     let diag = xscale::synth::perturb::diagonal(&truth);
     let seen = synthetic::seen_samples(&s, 50_000);
-    println!("scene diagonal {diag:.3}; {} seen samples of the truth", seen.len());
+    println!(
+        "scene diagonal {diag:.3}; {} seen samples of the truth",
+        seen.len()
+    );
     for name in ["mesh.ply", "meshed-poisson.ply"] {
         let p = out.join(name);
         if !p.is_file() {

@@ -28,7 +28,11 @@ fn xscale(args: &[&str]) -> Output {
 }
 
 fn text(o: &Output) -> String {
-    format!("{}{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr))
+    format!(
+        "{}{}",
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr)
+    )
 }
 
 fn report(out: &Path) -> serde_json::Value {
@@ -40,14 +44,26 @@ fn report(out: &Path) -> serde_json::Value {
 #[test]
 fn real_colmap_model_to_a_scene() {
     let out = tmp("real");
-    let o = xscale(&["prepare", "--sparse", fixture().to_str().unwrap(), "--out", out.to_str().unwrap()]);
+    let o = xscale(&[
+        "prepare",
+        "--sparse",
+        fixture().to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
     assert!(o.status.success(), "{}", text(&o));
     let r = report(&out);
     assert_eq!(r["views"], 10);
     assert!(r["points"].as_u64().unwrap() > 500, "{r}");
     // COLMAP's keypoints reproject through xscale's cameras as COLMAP says they do.
-    let (mean, colmap) = (r["reprojection"]["mean"].as_f64().unwrap(), r["colmap_mean_error"].as_f64().unwrap());
-    assert!(mean < 1.5 && (mean - colmap).abs() < 0.5, "{mean} vs COLMAP's {colmap}");
+    let (mean, colmap) = (
+        r["reprojection"]["mean"].as_f64().unwrap(),
+        r["colmap_mean_error"].as_f64().unwrap(),
+    );
+    assert!(
+        mean < 1.5 && (mean - colmap).abs() < 0.5,
+        "{mean} vs COLMAP's {colmap}"
+    );
     // The skull fills about a fifth of each photo (black background): the mesh covers it.
     for v in r["per_view"].as_array().unwrap() {
         assert!(v["hit"].as_f64().unwrap() > 0.08, "{v}");
@@ -57,17 +73,47 @@ fn real_colmap_model_to_a_scene() {
     assert_eq!(scene.views.len(), 10);
     assert!(scene.mesh.triangles.len() > 300);
     // Again: nothing redone.
-    let mesh_time = std::fs::metadata(out.join("mesh.ply")).unwrap().modified().unwrap();
-    let o = xscale(&["prepare", "--sparse", fixture().to_str().unwrap(), "--out", out.to_str().unwrap()]);
-    assert!(o.status.success() && text(&o).contains("already prepared"), "{}", text(&o));
-    assert_eq!(std::fs::metadata(out.join("mesh.ply")).unwrap().modified().unwrap(), mesh_time);
+    let mesh_time = std::fs::metadata(out.join("mesh.ply"))
+        .unwrap()
+        .modified()
+        .unwrap();
+    let o = xscale(&[
+        "prepare",
+        "--sparse",
+        fixture().to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(
+        o.status.success() && text(&o).contains("already prepared"),
+        "{}",
+        text(&o)
+    );
+    assert_eq!(
+        std::fs::metadata(out.join("mesh.ply"))
+            .unwrap()
+            .modified()
+            .unwrap(),
+        mesh_time
+    );
     // Other photos into the same folder: refused, naming what changed.
     let other = tmp("other-photos");
     std::fs::create_dir_all(&other).unwrap();
     std::fs::copy(fixture().join("images/22.JPG"), other.join("22.JPG")).unwrap();
-    let o = xscale(&["prepare", "--photos", other.to_str().unwrap(), "--out", out.to_str().unwrap(), "--dry-run"]);
+    let o = xscale(&[
+        "prepare",
+        "--photos",
+        other.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--dry-run",
+    ]);
     assert_eq!(o.status.code(), Some(2), "{}", text(&o));
-    assert!(text(&o).contains("prepared from other photos or settings"), "{}", text(&o));
+    assert!(
+        text(&o).contains("prepared from other photos or settings"),
+        "{}",
+        text(&o)
+    );
     let _ = std::fs::remove_dir_all(&out);
     let _ = std::fs::remove_dir_all(&other);
 }
@@ -77,22 +123,49 @@ fn real_colmap_model_to_a_scene() {
 fn without_colmap_says_what_to_install() {
     let out = tmp("nocolmap");
     let photos = fixture().join("images");
-    let o = xscale(&["prepare", "--photos", photos.to_str().unwrap(), "--out", out.to_str().unwrap()]);
+    let o = xscale(&[
+        "prepare",
+        "--photos",
+        photos.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
     assert_eq!(o.status.code(), Some(2));
     let t = text(&o);
-    assert!(t.contains("apt-get install colmap") && t.contains("--sparse"), "{t}");
-    for cmd in ["colmap feature_extractor", "colmap exhaustive_matcher", "colmap mapper"] {
-        assert!(String::from_utf8_lossy(&o.stdout).contains(cmd), "{cmd}: {t}");
+    assert!(
+        t.contains("apt-get install colmap") && t.contains("--sparse"),
+        "{t}"
+    );
+    for cmd in [
+        "colmap feature_extractor",
+        "colmap exhaustive_matcher",
+        "colmap mapper",
+    ] {
+        assert!(
+            String::from_utf8_lossy(&o.stdout).contains(cmd),
+            "{cmd}: {t}"
+        );
     }
     assert!(!out.join("mesh.ply").exists());
     // A dry run prints the same and succeeds; known poses give the triangulator and pairs.
     let o = xscale(&[
-        "prepare", "--photos", photos.to_str().unwrap(), "--poses", fixture().to_str().unwrap(),
-        "--out", out.to_str().unwrap(), "--dry-run",
+        "prepare",
+        "--photos",
+        photos.to_str().unwrap(),
+        "--poses",
+        fixture().to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--dry-run",
     ]);
     assert!(o.status.success(), "{}", text(&o));
     let s = String::from_utf8_lossy(&o.stdout);
-    assert!(s.contains("colmap point_triangulator") && s.contains("matches_importer") && s.contains("--clear_points 1"), "{s}");
+    assert!(
+        s.contains("colmap point_triangulator")
+            && s.contains("matches_importer")
+            && s.contains("--clear_points 1"),
+        "{s}"
+    );
     assert!(!out.join(".prepare").exists());
 }
 
@@ -127,8 +200,13 @@ fn stages_resume_after_sigterm() {
     let out = dir.join("scene");
     let photos = fixture().join("images");
     let args = [
-        "prepare", "--photos", photos.to_str().unwrap(), "--out", out.to_str().unwrap(),
-        "--colmap", colmap.to_str().unwrap(),
+        "prepare",
+        "--photos",
+        photos.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--colmap",
+        colmap.to_str().unwrap(),
     ];
     let child = Command::new(env!("CARGO_BIN_EXE_xscale"))
         .args(args)
@@ -142,21 +220,34 @@ fn stages_resume_after_sigterm() {
     let t = Instant::now();
     let state = out.join(".prepare/state.json");
     while !std::fs::read_to_string(&state).is_ok_and(|s| s.contains("features")) {
-        assert!(t.elapsed() < Duration::from_secs(60), "features never finished");
+        assert!(
+            t.elapsed() < Duration::from_secs(60),
+            "features never finished"
+        );
         std::thread::sleep(Duration::from_millis(50));
     }
     std::thread::sleep(Duration::from_millis(300));
-    let st = Command::new("kill").args(["-TERM", &child.id().to_string()]).status().unwrap();
+    let st = Command::new("kill")
+        .args(["-TERM", &child.id().to_string()])
+        .status()
+        .unwrap();
     assert!(st.success());
     let o = child.wait_with_output().unwrap();
     assert_eq!(o.status.code(), Some(3), "{}", text(&o));
-    assert!(t.elapsed() < Duration::from_secs(25), "the stand-in's sleep was not cut short");
+    assert!(
+        t.elapsed() < Duration::from_secs(25),
+        "the stand-in's sleep was not cut short"
+    );
     assert!(!out.join("mesh.ply").exists() && !out.join("sparse").exists());
     // Resumed: features are not extracted again.
     let o = xscale(&args);
     assert!(o.status.success(), "{}", text(&o));
     let t = text(&o);
-    assert!(t.contains("features: done before") && t.contains("[3/5] matches: colmap exhaustive_matcher"), "{t}");
+    assert!(
+        t.contains("features: done before")
+            && t.contains("[3/5] matches: colmap exhaustive_matcher"),
+        "{t}"
+    );
     assert!(out.join("mesh.ply").is_file() && out.join("sparse/0").is_dir());
     assert_eq!(report(&out)["views"], 10);
     xscale::scene::Scene::load(&out, &Default::default()).unwrap();
@@ -166,17 +257,38 @@ fn stages_resume_after_sigterm() {
 /// Bad input: a typo in the photo folder, an --out that holds something else.
 #[test]
 fn clear_errors() {
-    let o = xscale(&["prepare", "--photos", "/nonexistent/photos", "--out", "/tmp/x"]);
+    let o = xscale(&[
+        "prepare",
+        "--photos",
+        "/nonexistent/photos",
+        "--out",
+        "/tmp/x",
+    ]);
     assert_eq!(o.status.code(), Some(2));
-    assert!(text(&o).contains("/nonexistent/photos: photo folder not found"), "{}", text(&o));
+    assert!(
+        text(&o).contains("/nonexistent/photos: photo folder not found"),
+        "{}",
+        text(&o)
+    );
     let busy = tmp("busy");
     std::fs::create_dir_all(&busy).unwrap();
     std::fs::write(busy.join("notes.txt"), "mine").unwrap();
     let o = xscale(&[
-        "prepare", "--sparse", fixture().to_str().unwrap(), "--out", busy.to_str().unwrap(),
+        "prepare",
+        "--sparse",
+        fixture().to_str().unwrap(),
+        "--out",
+        busy.to_str().unwrap(),
     ]);
     assert_eq!(o.status.code(), Some(2));
-    assert!(text(&o).contains("was not made by `xscale prepare`"), "{}", text(&o));
-    assert_eq!(std::fs::read_to_string(busy.join("notes.txt")).unwrap(), "mine");
+    assert!(
+        text(&o).contains("was not made by `xscale prepare`"),
+        "{}",
+        text(&o)
+    );
+    assert_eq!(
+        std::fs::read_to_string(busy.join("notes.txt")).unwrap(),
+        "mine"
+    );
     let _ = std::fs::remove_dir_all(&busy);
 }

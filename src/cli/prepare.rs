@@ -62,7 +62,9 @@ pub struct Args {
 }
 
 pub fn run(a: Args) -> anyhow::Result<ExitCode> {
-    let stop = super::common::on_interrupt("stopping prepare; the same command again resumes where it stopped");
+    let stop = super::common::on_interrupt(
+        "stopping prepare; the same command again resumes where it stopped",
+    );
     let threads = rayon::current_num_threads();
     let o = pipeline::Options {
         photos: a.photos,

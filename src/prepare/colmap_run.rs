@@ -48,7 +48,10 @@ impl Step {
     /// The command as a shell line (arguments with spaces or quotes single-quoted).
     pub fn shell(&self, exe: &str) -> String {
         let quote = |s: &str| {
-            if !s.is_empty() && s.chars().all(|c| c.is_ascii_alphanumeric() || "-_./,:=+@".contains(c)) {
+            if !s.is_empty()
+                && s.chars()
+                    .all(|c| c.is_ascii_alphanumeric() || "-_./,:=+@".contains(c))
+            {
                 s.to_string()
             } else {
                 format!("'{}'", s.replace('\'', "'\\''"))
@@ -66,7 +69,9 @@ impl Colmap {
     /// `explicit`, else the first `colmap` on the PATH; `None` when there is none.
     pub fn find(explicit: Option<&Path>) -> Option<Colmap> {
         if let Some(p) = explicit {
-            return p.is_file().then(|| Colmap { exe: p.to_path_buf() });
+            return p.is_file().then(|| Colmap {
+                exe: p.to_path_buf(),
+            });
         }
         let path = std::env::var_os("PATH")?;
         std::env::split_paths(&path)
@@ -79,12 +84,20 @@ impl Colmap {
     pub fn version(&self) -> Option<String> {
         let out = Command::new(&self.exe).arg("help").output().ok()?;
         let text = String::from_utf8_lossy(&out.stdout).to_string();
-        text.lines().find(|l| l.starts_with("COLMAP")).map(|l| l.trim().to_string())
+        text.lines()
+            .find(|l| l.starts_with("COLMAP"))
+            .map(|l| l.trim().to_string())
     }
 
     /// Run `step`, its output appended to `log`; `progress(line)` gets COLMAP's progress lines
     /// (at most every 2 s). Stops (killing COLMAP) when `stop` is set, with an error saying so.
-    pub fn run(&self, step: &Step, log: &Path, stop: &AtomicBool, progress: &mut dyn FnMut(&str)) -> Result<Duration> {
+    pub fn run(
+        &self,
+        step: &Step,
+        log: &Path,
+        stop: &AtomicBool,
+        progress: &mut dyn FnMut(&str),
+    ) -> Result<Duration> {
         let t0 = Instant::now();
         let mut file = std::fs::OpenOptions::new()
             .create(true)
@@ -106,7 +119,10 @@ impl Colmap {
         let mut readers = Vec::new();
         let out = child.stdout.take().unwrap();
         let err = child.stderr.take().unwrap();
-        for stream in [Box::new(out) as Box<dyn std::io::Read + Send>, Box::new(err)] {
+        for stream in [
+            Box::new(out) as Box<dyn std::io::Read + Send>,
+            Box::new(err),
+        ] {
             let tx = tx.clone();
             readers.push(std::thread::spawn(move || {
                 for line in BufReader::new(stream).lines().map_while(|l| l.ok()) {
@@ -155,12 +171,23 @@ impl Colmap {
             let _ = r.join();
         }
         if !status.success() {
-            let last_lines: Vec<&String> = tail.iter().rev().take(6).collect::<Vec<_>>().into_iter().rev().collect();
+            let last_lines: Vec<&String> = tail
+                .iter()
+                .rev()
+                .take(6)
+                .collect::<Vec<_>>()
+                .into_iter()
+                .rev()
+                .collect();
             bail!(
                 "`colmap {}` failed ({status}); its output is in {}; it ended:\n  {}",
                 step.command,
                 log.display(),
-                last_lines.iter().map(|s| s.as_str()).collect::<Vec<_>>().join("\n  ")
+                last_lines
+                    .iter()
+                    .map(|s| s.as_str())
+                    .collect::<Vec<_>>()
+                    .join("\n  ")
             );
         }
         Ok(t0.elapsed())
@@ -171,7 +198,8 @@ fn is_executable(p: &Path) -> bool {
     #[cfg(unix)]
     {
         use std::os::unix::fs::PermissionsExt;
-        p.metadata().is_ok_and(|m| m.is_file() && m.permissions().mode() & 0o111 != 0)
+        p.metadata()
+            .is_ok_and(|m| m.is_file() && m.permissions().mode() & 0o111 != 0)
     }
     #[cfg(not(unix))]
     {
@@ -183,7 +211,14 @@ fn is_executable(p: &Path) -> bool {
 /// [1/4, 2/4]`, `Registering image #12 (7)`, `Triangulating image #4 (3)`.
 fn progress_of(line: &str) -> Option<String> {
     let l = line.trim();
-    for key in ["Processed file", "Matching block", "Registering image", "Triangulating image", "Undistorting image", "Importing matches"] {
+    for key in [
+        "Processed file",
+        "Matching block",
+        "Registering image",
+        "Triangulating image",
+        "Undistorting image",
+        "Importing matches",
+    ] {
         if let Some(k) = l.find(key) {
             let rest = &l[k..];
             let end = rest.find(" in ").unwrap_or(rest.len());
@@ -210,7 +245,10 @@ mod tests {
 
     #[test]
     fn progress_lines() {
-        assert_eq!(progress_of("Processed file [3/50]").as_deref(), Some("Processed file [3/50]"));
+        assert_eq!(
+            progress_of("Processed file [3/50]").as_deref(),
+            Some("Processed file [3/50]")
+        );
         assert_eq!(
             progress_of("Matching block [1/2, 2/2] in 12.3s").as_deref(),
             Some("Matching block [1/2, 2/2]")
@@ -240,15 +278,27 @@ mod tests {
         let log = dir.join("log.txt");
         let stop = AtomicBool::new(false);
         let mut seen = Vec::new();
-        c.run(&Step::new("ok").arg("x", 1), &log, &stop, &mut |p| seen.push(p.to_string())).unwrap();
+        c.run(&Step::new("ok").arg("x", 1), &log, &stop, &mut |p| {
+            seen.push(p.to_string())
+        })
+        .unwrap();
         assert_eq!(seen, ["Processed file [1/2]"]);
         let logged = std::fs::read_to_string(&log).unwrap();
         assert!(logged.contains("args: ok --x 1"), "{logged}");
-        let e = c.run(&Step::new("fail"), &log, &stop, &mut |_| {}).unwrap_err().to_string();
-        assert!(e.contains("`colmap fail` failed") && e.contains("ERROR: broken"), "{e}");
+        let e = c
+            .run(&Step::new("fail"), &log, &stop, &mut |_| {})
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("`colmap fail` failed") && e.contains("ERROR: broken"),
+            "{e}"
+        );
         stop.store(true, Ordering::SeqCst);
         let t = Instant::now();
-        let e = c.run(&Step::new("slow"), &log, &stop, &mut |_| {}).unwrap_err().to_string();
+        let e = c
+            .run(&Step::new("slow"), &log, &stop, &mut |_| {})
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("interrupted"), "{e}");
         assert!(t.elapsed() < Duration::from_secs(10));
         std::fs::remove_dir_all(&dir).ok();

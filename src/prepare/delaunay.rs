@@ -145,9 +145,10 @@ impl Tetrahedralization {
         let (lo, hi) = points
             .iter()
             .chain(also_inside.iter().filter(|p| p.is_finite()))
-            .fold((DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY)), |(a, b), p| {
-                (a.min(*p), b.max(*p))
-            });
+            .fold(
+                (DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY)),
+                |(a, b), p| (a.min(*p), b.max(*p)),
+            );
         let centre = 0.5 * (lo + hi);
         let r = (hi - lo).max_element().max(1e-300) * FAR;
         // A regular tetrahedron around the box, its vertices ~FAR extents away.
@@ -161,7 +162,13 @@ impl Tetrahedralization {
         all.extend_from_slice(&far);
         let f = n as u32;
         let mut first = [f, f + 1, f + 2, f + 3];
-        if orient(all[first[0] as usize], all[first[1] as usize], all[first[2] as usize], all[first[3] as usize]) < 0.0 {
+        if orient(
+            all[first[0] as usize],
+            all[first[1] as usize],
+            all[first[2] as usize],
+            all[first[3] as usize],
+        ) < 0.0
+        {
             first.swap(0, 1);
         }
         let mut t = Tetrahedralization {
@@ -181,7 +188,12 @@ impl Tetrahedralization {
             }
         }
         t.compact(&st.free);
-        let distinct = t.vertex_of.iter().enumerate().filter(|(i, v)| **v == *i as u32).count();
+        let distinct = t
+            .vertex_of
+            .iter()
+            .enumerate()
+            .filter(|(i, v)| **v == *i as u32)
+            .count();
         if distinct < 4 {
             anyhow::bail!("only {distinct} distinct points: a tetrahedralisation needs 4");
         }
@@ -391,7 +403,10 @@ impl Tetrahedralization {
             }
         }
         let keep = |t: usize| !dead[t];
-        let cells: Vec<[u32; 4]> = (0..self.cells.len()).filter(|&t| keep(t)).map(|t| self.cells[t]).collect();
+        let cells: Vec<[u32; 4]> = (0..self.cells.len())
+            .filter(|&t| keep(t))
+            .map(|t| self.cells[t])
+            .collect();
         let neighbors: Vec<[u32; 4]> = (0..self.neighbors.len())
             .filter(|&t| keep(t))
             .map(|t| self.neighbors[t].map(|x| if x == NONE { NONE } else { new_id[x as usize] }))
@@ -420,11 +435,10 @@ impl Tetrahedralization {
             let t = out[k];
             k += 1;
             let c = &self.cells[t as usize];
-            for i in 0..4 {
+            for (i, &nb) in self.neighbors[t as usize].iter().enumerate() {
                 if c[i] == v {
                     continue;
                 }
-                let nb = self.neighbors[t as usize][i];
                 if nb != NONE && !out.contains(&nb) {
                     out.push(nb);
                 }
@@ -466,16 +480,25 @@ mod tests {
     fn check(t: &Tetrahedralization) {
         for (i, c) in t.cells.iter().enumerate() {
             let p = c.map(|v| t.points[v as usize]);
-            assert!(orient(p[0], p[1], p[2], p[3]) > 0.0, "cell {i} not positive");
+            assert!(
+                orient(p[0], p[1], p[2], p[3]) > 0.0,
+                "cell {i} not positive"
+            );
             for k in 0..4 {
                 let nb = t.neighbors[i][k];
                 if nb == NONE {
                     continue;
                 }
-                assert!(t.neighbors[nb as usize].contains(&(i as u32)), "link {i}->{nb}");
+                assert!(
+                    t.neighbors[nb as usize].contains(&(i as u32)),
+                    "link {i}->{nb}"
+                );
                 // The shared face has the same three vertices.
                 let mut a = face(c, k).to_vec();
-                let back = t.neighbors[nb as usize].iter().position(|&x| x == i as u32).unwrap();
+                let back = t.neighbors[nb as usize]
+                    .iter()
+                    .position(|&x| x == i as u32)
+                    .unwrap();
                 let mut b = face(&t.cells[nb as usize], back).to_vec();
                 a.sort();
                 b.sort();
@@ -488,7 +511,10 @@ mod tests {
                 if c.contains(&(v as u32)) || t.vertex_of[v] != v as u32 {
                     continue;
                 }
-                assert!(insphere(p[0], p[1], p[2], p[3], *q) <= 0.0, "point {v} inside cell {i}'s sphere");
+                assert!(
+                    insphere(p[0], p[1], p[2], p[3], *q) <= 0.0,
+                    "point {v} inside cell {i}'s sphere"
+                );
             }
         }
     }
@@ -564,10 +590,14 @@ mod tests {
 
     #[test]
     fn bad_inputs_are_errors() {
-        let flat: Vec<DVec3> = (0..20).map(|k| DVec3::new(k as f64, (k * k % 7) as f64, 0.0)).collect();
+        let flat: Vec<DVec3> = (0..20)
+            .map(|k| DVec3::new(k as f64, (k * k % 7) as f64, 0.0))
+            .collect();
         let e = Tetrahedralization::new(&flat, &[]).unwrap_err().to_string();
         assert!(e.contains("one plane"), "{e}");
-        let e = Tetrahedralization::new(&flat[..3], &[]).unwrap_err().to_string();
+        let e = Tetrahedralization::new(&flat[..3], &[])
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("at least 4"), "{e}");
         let mut nan = random_points(10, 3);
         nan[4].y = f64::NAN;
@@ -582,7 +612,9 @@ mod tests {
         let mut star = Vec::new();
         for v in [0u32, 17, 199] {
             t.star(v, &mut star);
-            let want: Vec<u32> = (0..t.cells.len() as u32).filter(|&c| t.cells[c as usize].contains(&v)).collect();
+            let want: Vec<u32> = (0..t.cells.len() as u32)
+                .filter(|&c| t.cells[c as usize].contains(&v))
+                .collect();
             let mut got = star.clone();
             got.sort();
             assert_eq!(got, want);

@@ -177,7 +177,11 @@ impl Graph {
                     active.push_back(j as u32);
                 } else if self.tree[j] != self.tree[i] {
                     // Arc in the source→sink direction.
-                    meet = if self.tree[i] == Tree::Source { a } else { a ^ 1 };
+                    meet = if self.tree[i] == Tree::Source {
+                        a
+                    } else {
+                        a ^ 1
+                    };
                     break;
                 }
             }
@@ -276,7 +280,12 @@ impl Graph {
     }
 
     /// Give each orphan a new parent in its tree, or free it.
-    fn adopt(&mut self, orphans: &mut Vec<u32>, active: &mut std::collections::VecDeque<u32>, time: u32) {
+    fn adopt(
+        &mut self,
+        orphans: &mut Vec<u32>,
+        active: &mut std::collections::VecDeque<u32>,
+        time: u32,
+    ) {
         while let Some(o) = orphans.pop() {
             let o = o as usize;
             let tree = self.tree[o];
@@ -345,7 +354,11 @@ impl Graph {
                 if self.tree_res(tree, a) > self.zero {
                     active.push_back(j as u32);
                 }
-                if pj != TERMINAL && pj != ORPHAN && pj != NO_ARC && self.head[pj as usize] as usize == o {
+                if pj != TERMINAL
+                    && pj != ORPHAN
+                    && pj != NO_ARC
+                    && self.head[pj as usize] as usize == o
+                {
                     self.parent[j] = ORPHAN;
                     orphans.push(j as u32);
                 }
@@ -417,7 +430,11 @@ mod tests {
             }
             edges.push((i, j, r(3000 + e, 0), r(3000 + e, 1)));
         }
-        Case { n, terminals, edges }
+        Case {
+            n,
+            terminals,
+            edges,
+        }
     }
 
     fn solve(c: &Case) -> (f64, Vec<bool>) {
@@ -446,9 +463,15 @@ mod tests {
                     cut_cost(&c, &side)
                 })
                 .fold(f64::INFINITY, f64::min);
-            assert!((f - best).abs() <= 1e-9 * (1.0 + best), "seed {seed}: flow {f}, min cut {best}");
+            assert!(
+                (f - best).abs() <= 1e-9 * (1.0 + best),
+                "seed {seed}: flow {f}, min cut {best}"
+            );
             let got = cut_cost(&c, &side);
-            assert!((got - best).abs() <= 1e-9 * (1.0 + best), "seed {seed}: cut {got}, min {best}");
+            assert!(
+                (got - best).abs() <= 1e-9 * (1.0 + best),
+                "seed {seed}: cut {got}, min {best}"
+            );
         }
     }
 

@@ -123,7 +123,10 @@ pub fn mesh(
         .collect();
     for t in &used {
         if let Some(&c) = t.cameras.iter().find(|&&c| c as usize >= cameras.len()) {
-            bail!("a point is seen by camera {c}, but there are only {} cameras", cameras.len());
+            bail!(
+                "a point is seen by camera {c}, but there are only {} cameras",
+                cameras.len()
+            );
         }
     }
     stats.points_used = used.len();
@@ -139,7 +142,9 @@ pub fn mesh(
 
     let t0 = Instant::now();
     let n = xyz.len();
-    let tet = Tetrahedralization::with_progress(&xyz, cameras, &mut |k| progress("tetrahedralise", k, n))?;
+    let tet = Tetrahedralization::with_progress(&xyz, cameras, &mut |k| {
+        progress("tetrahedralise", k, n)
+    })?;
     progress("tetrahedralise", n, n);
     stats.points_merged = (0..n).filter(|&i| tet.vertex_of[i] != i as u32).count();
     stats.cells = tet.cells.len();
@@ -174,9 +179,15 @@ pub fn mesh(
                 return (0, 0);
             }
             for &(v, c) in chunk {
-                let sight = line_of_sight(&tet, v, cameras[c as usize], &mut star, &mut |into, face| {
-                    votes_in[into as usize * 4 + face].fetch_add(1, Relaxed);
-                });
+                let sight = line_of_sight(
+                    &tet,
+                    v,
+                    cameras[c as usize],
+                    &mut star,
+                    &mut |into, face| {
+                        votes_in[into as usize * 4 + face].fetch_add(1, Relaxed);
+                    },
+                );
                 crossed += sight.crossed;
                 short += sight.cut_short as usize;
                 source[sight.camera_cell as usize].fetch_add(1, Relaxed);
@@ -208,13 +219,20 @@ pub fn mesh(
     };
     let mut g = Graph::new(cells);
     for t in 0..cells {
-        g.add_terminal(t, source[t].load(Relaxed) as f64, sink[t].load(Relaxed) as f64);
+        g.add_terminal(
+            t,
+            source[t].load(Relaxed) as f64,
+            sink[t].load(Relaxed) as f64,
+        );
         for i in 0..4 {
             let nb = tet.neighbors[t][i];
             if nb == NONE || (nb as usize) < t {
                 continue;
             }
-            let back = tet.neighbors[nb as usize].iter().position(|&x| x == t as u32).unwrap();
+            let back = tet.neighbors[nb as usize]
+                .iter()
+                .position(|&x| x == t as u32)
+                .unwrap();
             let q = if quality.is_empty() {
                 0.0
             } else {
@@ -278,7 +296,13 @@ pub fn mesh(
     }
     let triangles = tris.iter().map(|t| t.map(|v| index[v as usize])).collect();
     stats.seconds[3] = t3.elapsed().as_secs_f64();
-    Ok((Mesh { vertices, triangles }, stats))
+    Ok((
+        Mesh {
+            vertices,
+            triangles,
+        },
+        stats,
+    ))
 }
 
 /// What walking one line of sight found.
@@ -337,7 +361,10 @@ fn line_of_sight(
         }
         cross(t, exit);
         sight.crossed += 1;
-        let entry = tet.neighbors[nb as usize].iter().position(|&x| x == t).unwrap();
+        let entry = tet.neighbors[nb as usize]
+            .iter()
+            .position(|&x| x == t)
+            .unwrap();
         t = nb;
         exit = match next_exit(tet, t, entry, p, cam) {
             Some(e) => e,
@@ -354,7 +381,13 @@ fn line_of_sight(
 
 /// The face of cell `t` (entered through `entry`) the segment `p → cam` leaves through; `None`
 /// when `cam` is inside `t`.
-fn next_exit(tet: &Tetrahedralization, t: u32, entry: usize, p: DVec3, cam: DVec3) -> Option<usize> {
+fn next_exit(
+    tet: &Tetrahedralization,
+    t: u32,
+    entry: usize,
+    p: DVec3,
+    cam: DVec3,
+) -> Option<usize> {
     let c = &tet.cells[t as usize];
     let mut beyond = [0usize; 3];
     let mut m = 0;
@@ -378,7 +411,13 @@ fn next_exit(tet: &Tetrahedralization, t: u32, entry: usize, p: DVec3, cam: DVec
                 ];
                 s.iter().all(|&x| x >= 0.0) || s.iter().all(|&x| x <= 0.0)
             };
-            Some(beyond[..m].iter().copied().find(|&j| through(j)).unwrap_or(beyond[0]))
+            Some(
+                beyond[..m]
+                    .iter()
+                    .copied()
+                    .find(|&j| through(j))
+                    .unwrap_or(beyond[0]),
+            )
         }
     }
 }
@@ -390,7 +429,10 @@ fn circumsphere(a: DVec3, b: DVec3, c: DVec3, d: DVec3) -> Option<(DVec3, f64)> 
     if det.abs() <= f64::MIN_POSITIVE {
         return None;
     }
-    let o = (v.cross(w) * u.length_squared() + w.cross(u) * v.length_squared() + u.cross(v) * w.length_squared()) / det;
+    let o = (v.cross(w) * u.length_squared()
+        + w.cross(u) * v.length_squared()
+        + u.cross(v) * w.length_squared())
+        / det;
     o.is_finite().then(|| (a + o, o.length()))
 }
 
@@ -438,15 +480,21 @@ fn face_quality(tet: &Tetrahedralization) -> Vec<f64> {
 
 /// Drop triangles with a side longer than `factor ×` the [`SIDE_PERCENTILE`] side length.
 fn drop_long(points: &[DVec3], tris: Vec<[u32; 3]>, factor: f64) -> Vec<[u32; 3]> {
-    let side = |t: &[u32; 3], k: usize| (points[t[k] as usize] - points[t[(k + 1) % 3] as usize]).length();
-    let mut sides: Vec<f64> = tris.iter().flat_map(|t| (0..3).map(move |k| side(t, k))).collect();
+    let side =
+        |t: &[u32; 3], k: usize| (points[t[k] as usize] - points[t[(k + 1) % 3] as usize]).length();
+    let mut sides: Vec<f64> = tris
+        .iter()
+        .flat_map(|t| (0..3).map(move |k| side(t, k)))
+        .collect();
     if sides.is_empty() {
         return tris;
     }
     let k = ((sides.len() - 1) as f64 * SIDE_PERCENTILE).round() as usize;
     let (_, &mut limit, _) = sides.select_nth_unstable_by(k, f64::total_cmp);
     let limit = limit * factor;
-    tris.into_iter().filter(|t| (0..3).all(|k| side(t, k) <= limit)).collect()
+    tris.into_iter()
+        .filter(|t| (0..3).all(|k| side(t, k) <= limit))
+        .collect()
 }
 
 /// Keep the pieces (triangles connected through shared vertices) with at least `share` of the
@@ -475,7 +523,11 @@ fn drop_small_components(tris: Vec<[u32; 3]>, n_vertices: usize, share: f64) -> 
     }
     let largest = size.iter().copied().max().unwrap_or(0);
     let keep = (share * largest as f64).ceil() as usize;
-    tris.into_iter().zip(roots).filter(|(_, r)| size[*r as usize] >= keep).map(|(t, _)| t).collect()
+    tris.into_iter()
+        .zip(roots)
+        .filter(|(_, r)| size[*r as usize] >= keep)
+        .map(|(t, _)| t)
+        .collect()
 }
 
 /// Seconds as a short string for progress lines.
@@ -496,7 +548,11 @@ mod tests {
         let cams: Vec<DVec3> = (0..12)
             .map(|k| {
                 let a = k as f64 * std::f64::consts::TAU / 12.0;
-                DVec3::new(4.0 * a.cos(), 4.0 * a.sin(), if k % 2 == 0 { 1.5 } else { -1.5 })
+                DVec3::new(
+                    4.0 * a.cos(),
+                    4.0 * a.sin(),
+                    if k % 2 == 0 { 1.5 } else { -1.5 },
+                )
             })
             .collect();
         let tracks: Vec<Track> = (0..3000u64)
@@ -508,11 +564,16 @@ mod tests {
                 let n = DVec3::new(s * a.cos(), s * a.sin(), z);
                 let p = n * (1.0 + 0.005 * (r(2) - 0.5));
                 // Cameras in front of the point's tangent plane.
-                let cameras = (0..12u32).filter(|&c| (cams[c as usize] - p).dot(n) > 0.3).collect();
+                let cameras = (0..12u32)
+                    .filter(|&c| (cams[c as usize] - p).dot(n) > 0.3)
+                    .collect();
                 Track { xyz: p, cameras }
             })
             .collect();
-        let (m, stats) = mesh(&tracks, &cams, &Options::default(), &|_, _, _| {}, &|| false).unwrap();
+        let (m, stats) = mesh(&tracks, &cams, &Options::default(), &|_, _, _| {}, &|| {
+            false
+        })
+        .unwrap();
         assert_eq!(stats.rays_cut_short, 0);
         assert!(stats.triangles > 4000, "{stats:?}");
         // Every vertex is on the sphere; area samples are within the noise of it.
@@ -523,9 +584,16 @@ mod tests {
         let back = surface_distance(&truth, &SurfaceIndex::new(&m), 5000);
         assert!(back.rms < 0.03, "{back:?}");
         // The same on one thread and on several (votes are integer counts).
-        let one = rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap();
+        let one = rayon::ThreadPoolBuilder::new()
+            .num_threads(1)
+            .build()
+            .unwrap();
         let (m1, _) = one
-            .install(|| mesh(&tracks, &cams, &Options::default(), &|_, _, _| {}, &|| false))
+            .install(|| {
+                mesh(&tracks, &cams, &Options::default(), &|_, _, _| {}, &|| {
+                    false
+                })
+            })
             .unwrap();
         assert_eq!(m1, m);
     }

@@ -189,7 +189,9 @@ pub fn list_photos(dir: &Path) -> Result<Vec<PathBuf>> {
 }
 
 fn file_name(p: &Path) -> String {
-    p.file_name().map(|s| s.to_string_lossy().to_string()).unwrap_or_default()
+    p.file_name()
+        .map(|s| s.to_string_lossy().to_string())
+        .unwrap_or_default()
 }
 
 /// Known poses from a scene folder, matched to the photos by file name (or stem): the views
@@ -209,8 +211,13 @@ fn load_poses(dir: &Path, photos: &[PathBuf], work: &Path) -> Result<(Vec<View>,
         ),
     };
     let by_name = |n: &str| -> Option<&PathBuf> {
-        let base = Path::new(n).file_name().map(|s| s.to_string_lossy().to_string()).unwrap_or_default();
-        let stem = Path::new(&base).file_stem().map(|s| s.to_string_lossy().to_string());
+        let base = Path::new(n)
+            .file_name()
+            .map(|s| s.to_string_lossy().to_string())
+            .unwrap_or_default();
+        let stem = Path::new(&base)
+            .file_stem()
+            .map(|s| s.to_string_lossy().to_string());
         photos.iter().find(|p| file_name(p) == base).or_else(|| {
             let matches: Vec<&PathBuf> = photos
                 .iter()
@@ -225,7 +232,10 @@ fn load_poses(dir: &Path, photos: &[PathBuf], work: &Path) -> Result<(Vec<View>,
             // Only the frames with a photo: a trimmed public capture lists more than it ships.
             let file = dir.join("transforms.json");
             if !file.is_file() {
-                bail!("{}: --poses reads transforms.json (not the NeRF-synthetic split files)", dir.display());
+                bail!(
+                    "{}: --poses reads transforms.json (not the NeRF-synthetic split files)",
+                    dir.display()
+                );
             }
             let mut root: serde_json::Value = serde_json::from_str(&crate::io::text::read(&file)?)
                 .map_err(|e| anyhow!("{}: {e}", file.display()))?;
@@ -236,7 +246,11 @@ fn load_poses(dir: &Path, photos: &[PathBuf], work: &Path) -> Result<(Vec<View>,
             let total = frames.len();
             let mut missing = Vec::new();
             frames.retain_mut(|f| {
-                let Some(fp) = f.get("file_path").and_then(|v| v.as_str()).map(str::to_string) else {
+                let Some(fp) = f
+                    .get("file_path")
+                    .and_then(|v| v.as_str())
+                    .map(str::to_string)
+                else {
                     return true; // the loader names it
                 };
                 match by_name(&fp) {
@@ -262,11 +276,18 @@ fn load_poses(dir: &Path, photos: &[PathBuf], work: &Path) -> Result<(Vec<View>,
             let copy = work.join("poses-transforms.json");
             crate::io::atomic::write_bytes(&copy, serde_json::to_string_pretty(&root)?)?;
             scene::transforms::load_full(&copy, scene::transforms::AppliedTransform::Undo)
-                .map_err(|e| anyhow!("{} (read from the frames of {} that have photos): {e:#}", copy.display(), file.display()))?
+                .map_err(|e| {
+                    anyhow!(
+                        "{} (read from the frames of {} that have photos): {e:#}",
+                        copy.display(),
+                        file.display()
+                    )
+                })?
                 .views
         }
         CameraFormat::Colmap => {
-            let l = colmap::find_layout(dir).ok_or_else(|| anyhow!("{}: no COLMAP model", dir.display()))?;
+            let l = colmap::find_layout(dir)
+                .ok_or_else(|| anyhow!("{}: no COLMAP model", dir.display()))?;
             colmap::load(&l.model, &l.images)?
         }
         CameraFormat::MvsNet => {
@@ -277,7 +298,8 @@ fn load_poses(dir: &Path, photos: &[PathBuf], work: &Path) -> Result<(Vec<View>,
             scene::mvsnet::load(&l)?
         }
         CameraFormat::Metashape => {
-            let xml = scene::metashape::find(dir).ok_or_else(|| anyhow!("{}: no cameras.xml", dir.display()))?;
+            let xml = scene::metashape::find(dir)
+                .ok_or_else(|| anyhow!("{}: no cameras.xml", dir.display()))?;
             let loaded = scene::metashape::load(&xml, &dir.join("images"))?;
             notes.extend(loaded.notes);
             loaded.views
@@ -312,16 +334,27 @@ fn load_poses(dir: &Path, photos: &[PathBuf], work: &Path) -> Result<(Vec<View>,
         notes.push(format!(
             "{} of the known views have no photo and are left out: {}",
             missing.len(),
-            missing.iter().take(8).cloned().collect::<Vec<_>>().join(", ")
+            missing
+                .iter()
+                .take(8)
+                .cloned()
+                .collect::<Vec<_>>()
+                .join(", ")
         ));
     }
     let unposed = photos.len() - kept.len();
     if unposed > 0 {
-        notes.push(format!("{unposed} photos have no known pose and are not used"));
+        notes.push(format!(
+            "{unposed} photos have no known pose and are not used"
+        ));
     }
     kept.sort_by(|a, b| a.name.cmp(&b.name));
     if kept.len() < 2 {
-        bail!("{}: only {} known views have a photo: two at least are needed", dir.display(), kept.len());
+        bail!(
+            "{}: only {} known views have a photo: two at least are needed",
+            dir.display(),
+            kept.len()
+        );
     }
     Ok((kept, notes))
 }
@@ -341,7 +374,11 @@ pub fn pose_pairs(views: &[View], k: usize) -> Vec<(usize, usize)> {
                 (c > 0.0).then(|| (-c, (a.camera.center() - b.camera.center()).length(), j))
             })
             .collect();
-        cand.sort_by(|x, y| x.0.total_cmp(&y.0).then(x.1.total_cmp(&y.1)).then(x.2.cmp(&y.2)));
+        cand.sort_by(|x, y| {
+            x.0.total_cmp(&y.0)
+                .then(x.1.total_cmp(&y.1))
+                .then(x.2.cmp(&y.2))
+        });
         for &(_, _, j) in cand.iter().take(k) {
             pairs.insert((i.min(j), i.max(j)));
         }
@@ -354,20 +391,37 @@ pub fn pose_pairs(views: &[View], k: usize) -> Vec<(usize, usize)> {
 fn copy_photo(src: &Path, dst: &Path, s: u32) -> Result<()> {
     if s <= 1 {
         if std::fs::hard_link(src, dst).is_err() {
-            std::fs::copy(src, dst).with_context(|| format!("{}: cannot copy to {}", src.display(), dst.display()))?;
+            std::fs::copy(src, dst)
+                .with_context(|| format!("{}: cannot copy to {}", src.display(), dst.display()))?;
         }
         return Ok(());
     }
     let img = scene::image::load_rgb(src)?;
     let small = scene::image::downsample(&img, s);
-    let ext = dst.extension().and_then(|e| e.to_str()).unwrap_or("").to_ascii_lowercase();
+    let ext = dst
+        .extension()
+        .and_then(|e| e.to_str())
+        .unwrap_or("")
+        .to_ascii_lowercase();
     if ext == "jpg" || ext == "jpeg" {
-        let bytes: Vec<u8> = small.data.iter().map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8).collect();
+        let bytes: Vec<u8> = small
+            .data
+            .iter()
+            .map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8)
+            .collect();
         crate::io::atomic::write_atomic(dst, false, |tmp| {
             let f = std::fs::File::create(tmp)?;
-            let mut enc = ::image::codecs::jpeg::JpegEncoder::new_with_quality(std::io::BufWriter::new(f), 95);
-            enc.encode(&bytes, small.width, small.height, ::image::ExtendedColorType::Rgb8)
-                .map_err(|e| anyhow!("{}: cannot encode JPEG: {e}", dst.display()))
+            let mut enc = ::image::codecs::jpeg::JpegEncoder::new_with_quality(
+                std::io::BufWriter::new(f),
+                95,
+            );
+            enc.encode(
+                &bytes,
+                small.width,
+                small.height,
+                ::image::ExtendedColorType::Rgb8,
+            )
+            .map_err(|e| anyhow!("{}: cannot encode JPEG: {e}", dst.display()))
         })
     } else {
         scene::image::write_png8(dst, &small)
@@ -381,7 +435,12 @@ fn colmap_camera(v: &View) -> Result<(&'static str, Vec<f64>)> {
 }
 
 /// The COLMAP commands of the run, in order (the sparse stage's depend on whether poses are known).
-fn colmap_steps(o: &Options, work: &Path, views: Option<&[View]>, n_photos: usize) -> Result<Vec<(&'static str, Step)>> {
+fn colmap_steps(
+    o: &Options,
+    work: &Path,
+    views: Option<&[View]>,
+    n_photos: usize,
+) -> Result<Vec<(&'static str, Step)>> {
     let db = work.join("database.db");
     let images = o.out.join("images");
     let t = o.threads.max(1);
@@ -397,12 +456,22 @@ fn colmap_steps(o: &Options, work: &Path, views: Option<&[View]>, n_photos: usiz
         // One COLMAP camera when every view shares the intrinsics (it helps the matcher's
         // geometric verification; triangulation uses the known cameras either way).
         let first = colmap_camera(&vs[0])?;
-        let shared = vs.iter().all(|v| colmap_camera(v).map(|c| c == first).unwrap_or(false));
+        let shared = vs
+            .iter()
+            .all(|v| colmap_camera(v).map(|c| c == first).unwrap_or(false));
         if shared {
             fe = fe
                 .arg("ImageReader.single_camera", 1)
                 .arg("ImageReader.camera_model", first.0)
-                .arg("ImageReader.camera_params", first.1.iter().map(|x| format!("{x}")).collect::<Vec<_>>().join(","));
+                .arg(
+                    "ImageReader.camera_params",
+                    first
+                        .1
+                        .iter()
+                        .map(|x| format!("{x}"))
+                        .collect::<Vec<_>>()
+                        .join(","),
+                );
         }
     } else {
         fe = fe.arg("ImageReader.single_camera", 1);
@@ -416,7 +485,9 @@ fn colmap_steps(o: &Options, work: &Path, views: Option<&[View]>, n_photos: usiz
     };
     let mt = match matcher {
         Matcher::Exhaustive => Step::new("exhaustive_matcher"),
-        Matcher::Sequential => Step::new("sequential_matcher").arg("SequentialMatching.overlap", 10),
+        Matcher::Sequential => {
+            Step::new("sequential_matcher").arg("SequentialMatching.overlap", 10)
+        }
         _ => Step::new("matches_importer")
             .arg("match_list_path", work.join("pairs.txt").display())
             .arg("match_type", "pairs"),
@@ -475,7 +546,10 @@ pub fn run(o: &Options, stop: &AtomicBool) -> Result<Option<Report>> {
         (None, Some(p), _) => {
             let i = p.join("images");
             if !i.is_dir() {
-                bail!("--poses {} has no images/ folder: name the photos with --photos DIR", p.display());
+                bail!(
+                    "--poses {} has no images/ folder: name the photos with --photos DIR",
+                    p.display()
+                );
             }
             i
         }
@@ -486,7 +560,9 @@ pub fn run(o: &Options, stop: &AtomicBool) -> Result<Option<Report>> {
                 None => s.join("..").join("..").join("images"),
             }
         }
-        (None, None, None) => bail!("give the photos (--photos DIR), or a COLMAP model to mesh (--sparse DIR)"),
+        (None, None, None) => {
+            bail!("give the photos (--photos DIR), or a COLMAP model to mesh (--sparse DIR)")
+        }
     };
     let photos = list_photos(&photo_dir)?;
     let inputs = Inputs {
@@ -504,8 +580,13 @@ pub fn run(o: &Options, stop: &AtomicBool) -> Result<Option<Report>> {
     // The output folder: new, ours (resumed or finished), or refused.
     let state_path = work.join("state.json");
     let mut state = if state_path.is_file() {
-        serde_json::from_str::<State>(&crate::io::text::read(&state_path)?)
-            .map_err(|e| anyhow!("{}: {e} (remove {} to start over)", state_path.display(), work.display()))?
+        serde_json::from_str::<State>(&crate::io::text::read(&state_path)?).map_err(|e| {
+            anyhow!(
+                "{}: {e} (remove {} to start over)",
+                state_path.display(),
+                work.display()
+            )
+        })?
     } else {
         State::default()
     };
@@ -513,13 +594,16 @@ pub fn run(o: &Options, stop: &AtomicBool) -> Result<Option<Report>> {
         for m in MADE {
             let p = out.join(m);
             if p.is_dir() {
-                std::fs::remove_dir_all(&p).with_context(|| format!("{}: cannot remove", p.display()))?;
+                std::fs::remove_dir_all(&p)
+                    .with_context(|| format!("{}: cannot remove", p.display()))?;
             } else if p.exists() {
-                std::fs::remove_file(&p).with_context(|| format!("{}: cannot remove", p.display()))?;
+                std::fs::remove_file(&p)
+                    .with_context(|| format!("{}: cannot remove", p.display()))?;
             }
         }
         if work.exists() {
-            std::fs::remove_dir_all(&work).with_context(|| format!("{}: cannot remove", work.display()))?;
+            std::fs::remove_dir_all(&work)
+                .with_context(|| format!("{}: cannot remove", work.display()))?;
         }
         state = State::default();
     } else if out.is_dir() && !work.is_dir() && std::fs::read_dir(out)?.next().is_some() {
@@ -547,11 +631,16 @@ pub fn run(o: &Options, stop: &AtomicBool) -> Result<Option<Report>> {
     // Nothing is written by a dry run, nor when COLMAP is missing and needed.
     let writes = !o.dry_run && (colmap_exe.is_some() || o.sparse.is_some());
     if writes {
-        std::fs::create_dir_all(&work).with_context(|| format!("{}: cannot create", work.display()))?;
+        std::fs::create_dir_all(&work)
+            .with_context(|| format!("{}: cannot create", work.display()))?;
     }
     let views: Option<Vec<View>> = match &o.poses {
         Some(p) => {
-            let scratch = if writes { work.clone() } else { std::env::temp_dir() };
+            let scratch = if writes {
+                work.clone()
+            } else {
+                std::env::temp_dir()
+            };
             let (mut v, notes) = load_poses(p, &photos, &scratch)?;
             for n in notes {
                 say(format!("note: {n}"));
@@ -580,17 +669,28 @@ pub fn run(o: &Options, stop: &AtomicBool) -> Result<Option<Report>> {
             .as_ref()
             .map(|c| c.exe.display().to_string())
             .unwrap_or_else(|| "colmap".into());
-        println!("# photos: {} from {} into {}", used.len(), photo_dir.display(), out.join("images").display());
+        println!(
+            "# photos: {} from {} into {}",
+            used.len(),
+            photo_dir.display(),
+            out.join("images").display()
+        );
         for (stage, s) in &steps {
             if *stage == "matches" && s.command == "matches_importer" {
                 println!("# pairs.txt: each view with its {PAIR_NEIGHBOURS} nearest known poses");
             }
             if *stage == "sparse" && views.is_some() {
-                println!("# {}: the known poses as a COLMAP model", work.join("known").display());
+                println!(
+                    "# {}: the known poses as a COLMAP model",
+                    work.join("known").display()
+                );
             }
             println!("{}", s.shell(&exe));
         }
-        println!("# then: the Delaunay graph-cut mesh of the points → {}", out.join("mesh.ply").display());
+        println!(
+            "# then: the Delaunay graph-cut mesh of the points → {}",
+            out.join("mesh.ply").display()
+        );
         if colmap_exe.is_none() && !o.dry_run {
             bail!("{INSTALL_HINT}\nThe commands above are what would have run.");
         }
@@ -605,7 +705,8 @@ pub fn run(o: &Options, stop: &AtomicBool) -> Result<Option<Report>> {
         say("note: other mesher settings than the mesh was made with: meshing again");
         ctx.state.done.retain(|s| s != "mesh");
     }
-    let all_done = ["photos", "sparse", "mesh"].iter().all(|s| ctx.done(s)) && out.join("mesh.ply").is_file();
+    let all_done =
+        ["photos", "sparse", "mesh"].iter().all(|s| ctx.done(s)) && out.join("mesh.ply").is_file();
     if all_done && (!o.undistort || ctx.done("undistort")) {
         let text = crate::io::text::read(&out.join("prepare.json")).unwrap_or_default();
         say(format!(
@@ -618,7 +719,11 @@ pub fn run(o: &Options, stop: &AtomicBool) -> Result<Option<Report>> {
         }
         return Ok(None);
     }
-    let n_stages = if o.sparse.is_some() { 2 } else { 4 + o.undistort as usize + 1 };
+    let n_stages = if o.sparse.is_some() {
+        2
+    } else {
+        4 + o.undistort as usize + 1
+    };
     let mut k = 0;
     let mut header = |name: &str, what: String| {
         k += 1;
@@ -628,9 +733,22 @@ pub fn run(o: &Options, stop: &AtomicBool) -> Result<Option<Report>> {
     // Stage: photos (or the given model).
     let images = out.join("images");
     if !ctx.done("photos") {
-        header("photos", format!("{} photos → {}{}", used.len(), images.display(), if o.downsample > 1 { format!(" (downsampled {}×)", o.downsample) } else { String::new() }));
+        header(
+            "photos",
+            format!(
+                "{} photos → {}{}",
+                used.len(),
+                images.display(),
+                if o.downsample > 1 {
+                    format!(" (downsampled {}×)", o.downsample)
+                } else {
+                    String::new()
+                }
+            ),
+        );
         let t = Instant::now();
-        std::fs::create_dir_all(&images).with_context(|| format!("{}: cannot create", images.display()))?;
+        std::fs::create_dir_all(&images)
+            .with_context(|| format!("{}: cannot create", images.display()))?;
         for (i, p) in used.iter().enumerate() {
             ctx.check_stop()?;
             copy_photo(p, &images.join(file_name(p)), o.downsample)?;
@@ -661,7 +779,9 @@ pub fn run(o: &Options, stop: &AtomicBool) -> Result<Option<Report>> {
         let _ = s;
     }
     // COLMAP stages.
-    let colmap_exe = colmap_exe.unwrap_or(Colmap { exe: "colmap".into() });
+    let colmap_exe = colmap_exe.unwrap_or(Colmap {
+        exe: "colmap".into(),
+    });
     if o.sparse.is_none() {
         if ctx.state.done.len() == 1 {
             if let Some(v) = colmap_exe.version() {
@@ -681,9 +801,16 @@ pub fn run(o: &Options, stop: &AtomicBool) -> Result<Option<Report>> {
                 "matches" if step.command == "matches_importer" => {
                     let v = views.as_deref().unwrap();
                     let pairs = pose_pairs(v, PAIR_NEIGHBOURS);
-                    let text: String = pairs.iter().map(|&(a, b)| format!("{} {}\n", v[a].name, v[b].name)).collect();
+                    let text: String = pairs
+                        .iter()
+                        .map(|&(a, b)| format!("{} {}\n", v[a].name, v[b].name))
+                        .collect();
                     crate::io::atomic::write_bytes(&work.join("pairs.txt"), text)?;
-                    say(format!("  {} pairs of nearby views (of {} in all)", pairs.len(), v.len() * (v.len() - 1) / 2));
+                    say(format!(
+                        "  {} pairs of nearby views (of {} in all)",
+                        pairs.len(),
+                        v.len() * (v.len() - 1) / 2
+                    ));
                 }
                 "sparse" => {
                     let new = work.join("sparse-new");
@@ -709,13 +836,19 @@ pub fn run(o: &Options, stop: &AtomicBool) -> Result<Option<Report>> {
                 "sparse" => {
                     let new = work.join("sparse-new");
                     // The mapper writes one model per connected part (0, 1, …): the largest.
-                    let model = if views.is_some() { new.clone() } else { largest_model(&new, &images, used.len(), &mut ctx.notes)? };
+                    let model = if views.is_some() {
+                        new.clone()
+                    } else {
+                        largest_model(&new, &images, used.len(), &mut ctx.notes)?
+                    };
                     let dst = out.join("sparse").join("0");
                     if dst.exists() {
                         std::fs::remove_dir_all(&dst)?;
                     }
                     std::fs::create_dir_all(out.join("sparse"))?;
-                    std::fs::rename(&model, &dst).with_context(|| format!("{}: cannot move to {}", model.display(), dst.display()))?;
+                    std::fs::rename(&model, &dst).with_context(|| {
+                        format!("{}: cannot move to {}", model.display(), dst.display())
+                    })?;
                 }
                 "undistort" => {
                     let dst = out.join("dense");
@@ -745,7 +878,10 @@ pub fn run(o: &Options, stop: &AtomicBool) -> Result<Option<Report>> {
             let mut c: Vec<u32> = p.track.iter().map(|t| t.0).collect();
             c.sort_unstable();
             c.dedup();
-            Track { xyz: p.xyz, cameras: c }
+            Track {
+                xyz: p.xyz,
+                cameras: c,
+            }
         })
         .collect();
     let last = std::sync::Mutex::new(Instant::now());
@@ -760,7 +896,12 @@ pub fn run(o: &Options, stop: &AtomicBool) -> Result<Option<Report>> {
     let (mesh, mstats) = mesher::mesh(&tracks, &cams, &o.mesher, &progress, &stop_fn)?;
     say(format!(
         "  {} points ({} used), {} cells, {} lines of sight; {} triangles ({} long ones dropped)",
-        mstats.points, mstats.points_used, mstats.cells, mstats.rays, mstats.triangles, mstats.dropped_long
+        mstats.points,
+        mstats.points_used,
+        mstats.cells,
+        mstats.rays,
+        mstats.triangles,
+        mstats.dropped_long
     ));
     if mesh.triangles.is_empty() {
         bail!("the graph cut found no surface (every cell on one side): too few points or views");
@@ -778,7 +919,8 @@ pub fn run(o: &Options, stop: &AtomicBool) -> Result<Option<Report>> {
         views: model.views.len(),
         points: model.points.len(),
         reprojection,
-        colmap_mean_error: model.points.iter().map(|p| p.error).sum::<f64>() / model.points.len().max(1) as f64,
+        colmap_mean_error: model.points.iter().map(|p| p.error).sum::<f64>()
+            / model.points.len().max(1) as f64,
         mesh_vertices: mesh.vertices.len(),
         mesh_triangles: mesh.triangles.len(),
         mesher: mstats,
@@ -790,7 +932,8 @@ pub fn run(o: &Options, stop: &AtomicBool) -> Result<Option<Report>> {
     let json = serde_json::to_string_pretty(&report)?;
     crate::io::atomic::write_bytes(&out.join("prepare.json"), &json)?;
     // Last: the mesh under its final name makes the folder a scene.
-    std::fs::rename(&tmp_mesh, out.join("mesh.ply")).with_context(|| format!("{}: cannot move", tmp_mesh.display()))?;
+    std::fs::rename(&tmp_mesh, out.join("mesh.ply"))
+        .with_context(|| format!("{}: cannot move", tmp_mesh.display()))?;
     ctx.state.mesher = Some(mesher_key);
     ctx.finish("mesh", secs)?;
     println!("{}", summary_of_json(&json));
@@ -799,7 +942,12 @@ pub fn run(o: &Options, stop: &AtomicBool) -> Result<Option<Report>> {
 }
 
 /// The mapper's largest model in `dir` (subfolders 0, 1, …), noting when there are several.
-fn largest_model(dir: &Path, images: &Path, photos: usize, notes: &mut Vec<String>) -> Result<PathBuf> {
+fn largest_model(
+    dir: &Path,
+    images: &Path,
+    photos: usize,
+    notes: &mut Vec<String>,
+) -> Result<PathBuf> {
     let mut models: Vec<(usize, PathBuf)> = std::fs::read_dir(dir)?
         .flatten()
         .map(|e| e.path())
@@ -816,7 +964,14 @@ fn largest_model(dir: &Path, images: &Path, photos: usize, notes: &mut Vec<Strin
     if models.len() > 1 || n < photos {
         let msg = format!(
             "COLMAP's mapper registered {n} of {photos} photos{}",
-            if models.len() > 1 { format!(" in its largest of {} models; the others are left out", models.len()) } else { String::new() }
+            if models.len() > 1 {
+                format!(
+                    " in its largest of {} models; the others are left out",
+                    models.len()
+                )
+            } else {
+                String::new()
+            }
         );
         say(format!("note: {msg}"));
         notes.push(msg);
@@ -835,7 +990,11 @@ fn hit_fractions(model: &Model, mesh: &scene::Mesh) -> Result<Vec<ViewReport>> {
         let cam = v.camera.downsampled(s);
         let cast = crate::raycast::cast::cast_view(&tracer, &cam, 1)?;
         let hits = cast.pixels.iter().filter(|p| p.valid != 0).count();
-        let observations = model.points.iter().map(|p| p.track.iter().filter(|t| t.0 as usize == i).count()).sum();
+        let observations = model
+            .points
+            .iter()
+            .map(|p| p.track.iter().filter(|t| t.0 as usize == i).count())
+            .sum();
         out.push(ViewReport {
             name: v.name.clone(),
             observations,
@@ -849,7 +1008,11 @@ fn hit_fractions(model: &Model, mesh: &scene::Mesh) -> Result<Vec<ViewReport>> {
 fn describe_change(a: &Inputs, b: &Inputs) -> String {
     let mut d = Vec::new();
     if a.photos != b.photos {
-        d.push(format!("photos: {} then, {} now", a.photos.len(), b.photos.len()));
+        d.push(format!(
+            "photos: {} then, {} now",
+            a.photos.len(),
+            b.photos.len()
+        ));
     }
     if a.poses != b.poses {
         d.push("--poses".into());
@@ -858,7 +1021,10 @@ fn describe_change(a: &Inputs, b: &Inputs) -> String {
         d.push("--sparse".into());
     }
     if a.downsample != b.downsample {
-        d.push(format!("--downsample {} then, {} now", a.downsample, b.downsample));
+        d.push(format!(
+            "--downsample {} then, {} now",
+            a.downsample, b.downsample
+        ));
     }
     if a.matcher != b.matcher {
         d.push("--matcher".into());
@@ -891,12 +1057,22 @@ pub fn summary_of_json(json: &str) -> String {
     if let Some(views) = v["per_view"].as_array() {
         let mut worst: Vec<(f64, String)> = views
             .iter()
-            .map(|x| (x["hit"].as_f64().unwrap_or(0.0), x["name"].as_str().unwrap_or("").to_string()))
+            .map(|x| {
+                (
+                    x["hit"].as_f64().unwrap_or(0.0),
+                    x["name"].as_str().unwrap_or("").to_string(),
+                )
+            })
             .collect();
         worst.sort_by(|a, b| a.0.total_cmp(&b.0));
         s += &format!(
             "\nfewest hits: {}",
-            worst.iter().take(3).map(|(h, n)| format!("{n} {:.1} %", 100.0 * h)).collect::<Vec<_>>().join(", ")
+            worst
+                .iter()
+                .take(3)
+                .map(|(h, n)| format!("{n} {:.1} %", 100.0 * h))
+                .collect::<Vec<_>>()
+                .join(", ")
         );
     }
     if let Some(secs) = v["seconds"].as_array() {

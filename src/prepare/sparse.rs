@@ -45,7 +45,11 @@ impl Model {
     /// Read the model in `dir`, with image paths `images_dir/NAME`.
     pub fn read(dir: &Path, images_dir: &Path) -> Result<Model> {
         let views = colmap::load(dir, images_dir)?;
-        let index: HashMap<&str, u32> = views.iter().enumerate().map(|(i, v)| (v.name.as_str(), i as u32)).collect();
+        let index: HashMap<&str, u32> = views
+            .iter()
+            .enumerate()
+            .map(|(i, v)| (v.name.as_str(), i as u32))
+            .collect();
         let text = dir.join("images.txt").is_file() && dir.join("cameras.txt").is_file();
         let images = if text {
             read_images_text(&dir.join("images.txt"))?
@@ -55,9 +59,12 @@ impl Model {
         let mut keypoints = vec![Vec::new(); views.len()];
         let mut by_id = HashMap::new();
         for (id, name, kp) in images {
-            let v = *index
-                .get(name.as_str())
-                .ok_or_else(|| anyhow!("{}: image '{name}' is not among the model's views", dir.display()))?;
+            let v = *index.get(name.as_str()).ok_or_else(|| {
+                anyhow!(
+                    "{}: image '{name}' is not among the model's views",
+                    dir.display()
+                )
+            })?;
             by_id.insert(id, v);
             keypoints[v as usize] = kp;
         }
@@ -69,7 +76,10 @@ impl Model {
         } else if ptxt.is_file() {
             read_points_text(&ptxt)?
         } else {
-            bail!("{}: the model has no points3D.txt or points3D.bin", dir.display())
+            bail!(
+                "{}: the model has no points3D.txt or points3D.bin",
+                dir.display()
+            )
         };
         let mut points = Vec::with_capacity(raw.len());
         for (origin, xyz, error, track) in raw {
@@ -87,7 +97,11 @@ impl Model {
                 }
                 t.push((v, k));
             }
-            points.push(Point { xyz, error, track: t });
+            points.push(Point {
+                xyz,
+                error,
+                track: t,
+            });
         }
         Ok(Model {
             views,
@@ -127,7 +141,8 @@ type RawImage = (u32, String, Vec<[f64; 2]>);
 type RawPoint = (String, DVec3, f64, Vec<(u32, u32)>);
 
 fn num<T: std::str::FromStr>(s: &str, wh: &str, what: &str) -> Result<T> {
-    s.parse().map_err(|_| anyhow!("{wh}: {what} '{s}' is not a valid number"))
+    s.parse()
+        .map_err(|_| anyhow!("{wh}: {what} '{s}' is not a valid number"))
 }
 
 /// `images.txt`: per image a pose line `IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME` and a
@@ -135,7 +150,10 @@ fn num<T: std::str::FromStr>(s: &str, wh: &str, what: &str) -> Result<T> {
 fn read_images_text(path: &Path) -> Result<Vec<RawImage>> {
     let content = text::read(path)?;
     let mut out = Vec::new();
-    let mut lines = content.lines().enumerate().filter(|(_, l)| !l.trim_start().starts_with('#'));
+    let mut lines = content
+        .lines()
+        .enumerate()
+        .filter(|(_, l)| !l.trim_start().starts_with('#'));
     while let Some((i, line)) = lines.next() {
         if line.trim().is_empty() {
             continue;
@@ -147,12 +165,19 @@ fn read_images_text(path: &Path) -> Result<Vec<RawImage>> {
         }
         let id: u32 = num(f[0], &wh, "image id")?;
         // The name may hold spaces: everything after the 9th field.
-        let name = line.split_whitespace().skip(9).collect::<Vec<_>>().join(" ");
+        let name = line
+            .split_whitespace()
+            .skip(9)
+            .collect::<Vec<_>>()
+            .join(" ");
         let (j, kp_line) = lines.next().unwrap_or((i + 1, ""));
         let wh = format!("{}: line {}", path.display(), j + 1);
         let g: Vec<&str> = kp_line.split_whitespace().collect();
         if g.len() % 3 != 0 {
-            bail!("{wh}: expected X Y POINT3D_ID triples, got {} fields", g.len());
+            bail!(
+                "{wh}: expected X Y POINT3D_ID triples, got {} fields",
+                g.len()
+            );
         }
         let kp = g
             .chunks(3)
@@ -177,14 +202,23 @@ fn read_points_text(path: &Path) -> Result<Vec<RawPoint>> {
         if f.len() < 8 || (f.len() - 8) % 2 != 0 {
             bail!("{wh}: expected POINT3D_ID X Y Z R G B ERROR and (IMAGE_ID, POINT2D_IDX) pairs");
         }
-        let xyz = DVec3::new(num(f[1], &wh, "x")?, num(f[2], &wh, "y")?, num(f[3], &wh, "z")?);
+        let xyz = DVec3::new(
+            num(f[1], &wh, "x")?,
+            num(f[2], &wh, "y")?,
+            num(f[3], &wh, "z")?,
+        );
         if !xyz.is_finite() {
             bail!("{wh}: non-finite point {xyz}");
         }
         let error = num(f[7], &wh, "error")?;
         let track = f[8..]
             .chunks(2)
-            .map(|c| Ok((num(c[0], &wh, "image id")?, num(c[1], &wh, "keypoint index")?)))
+            .map(|c| {
+                Ok((
+                    num(c[0], &wh, "image id")?,
+                    num(c[1], &wh, "keypoint index")?,
+                ))
+            })
             .collect::<Result<Vec<_>>>()?;
         out.push((wh, xyz, error, track));
     }
@@ -224,8 +258,13 @@ impl Bytes<'_> {
     /// before anything is allocated.
     fn count(&mut self, size: usize, what: &str) -> Result<usize> {
         let n = self.u64(what)?;
-        if n.checked_mul(size as u64).is_none_or(|b| b > (self.data.len() - self.pos) as u64) {
-            bail!("{}: {what}: {n} records do not fit in the file", self.path.display());
+        if n.checked_mul(size as u64)
+            .is_none_or(|b| b > (self.data.len() - self.pos) as u64)
+        {
+            bail!(
+                "{}: {what}: {n} records do not fit in the file",
+                self.path.display()
+            );
         }
         Ok(n as usize)
     }
@@ -235,7 +274,11 @@ impl Bytes<'_> {
 /// name, a keypoint count and per keypoint x, y (f64) and a point id (u64).
 fn read_images_binary(path: &Path) -> Result<Vec<RawImage>> {
     let data = std::fs::read(path).with_context(|| format!("{}: cannot read", path.display()))?;
-    let mut r = Bytes { data: &data, pos: 0, path };
+    let mut r = Bytes {
+        data: &data,
+        pos: 0,
+        path,
+    };
     let n = r.count(4 + 56 + 4 + 1 + 8, "the image count")?;
     let mut out = Vec::with_capacity(n);
     for k in 0..n {
@@ -247,7 +290,8 @@ fn read_images_binary(path: &Path) -> Result<Vec<RawImage>> {
             .iter()
             .position(|&c| c == 0)
             .ok_or_else(|| anyhow!("{}: {what}: the name has no end", path.display()))?;
-        let name = String::from_utf8(rest[..end].to_vec()).map_err(|_| anyhow!("{}: {what}: name is not UTF-8", path.display()))?;
+        let name = String::from_utf8(rest[..end].to_vec())
+            .map_err(|_| anyhow!("{}: {what}: name is not UTF-8", path.display()))?;
         r.pos += end + 1;
         let m = r.count(24, &format!("{what}: the keypoint count"))?;
         let mut kp = Vec::with_capacity(m);
@@ -266,7 +310,11 @@ fn read_images_binary(path: &Path) -> Result<Vec<RawImage>> {
 /// track length (u64) and (image id, keypoint index) u32 pairs.
 fn read_points_binary(path: &Path) -> Result<Vec<RawPoint>> {
     let data = std::fs::read(path).with_context(|| format!("{}: cannot read", path.display()))?;
-    let mut r = Bytes { data: &data, pos: 0, path };
+    let mut r = Bytes {
+        data: &data,
+        pos: 0,
+        path,
+    };
     let n = r.count(8 + 24 + 3 + 8 + 8, "the point count")?;
     let mut out = Vec::with_capacity(n);
     for k in 0..n {
@@ -287,7 +335,11 @@ fn read_points_binary(path: &Path) -> Result<Vec<RawPoint>> {
         out.push((origin, xyz, error, track));
     }
     if r.pos != data.len() {
-        bail!("{}: {} bytes after the {n} declared points", path.display(), data.len() - r.pos);
+        bail!(
+            "{}: {} bytes after the {n} declared points",
+            path.display(),
+            data.len() - r.pos
+        );
     }
     Ok(out)
 }

@@ -67,16 +67,28 @@ pub fn points(s: &Synth, per_view: usize, noise: f64, outliers: f64, seed: u64) 
             if seen.len() < 2 {
                 continue;
             }
-            let mut q = p + DVec3::new(2.0 * r(id, 2) - 1.0, 2.0 * r(id, 3) - 1.0, 2.0 * r(id, 4) - 1.0) * noise * diag;
+            let mut q = p + DVec3::new(
+                2.0 * r(id, 2) - 1.0,
+                2.0 * r(id, 3) - 1.0,
+                2.0 * r(id, 4) - 1.0,
+            ) * noise
+                * diag;
             let mut seen = seen;
             if r(id, 5) < outliers {
                 // A wrong match: two cameras, the point anywhere along the finding camera's ray.
                 let c = centres[ci];
                 q = c + (p - c) * (0.5 + r(id, 6));
-                let other = seen.iter().copied().filter(|&j| j as usize != ci).nth((r(id, 7) * (seen.len() - 1) as f64) as usize);
+                let other = seen
+                    .iter()
+                    .copied()
+                    .filter(|&j| j as usize != ci)
+                    .nth((r(id, 7) * (seen.len() - 1) as f64) as usize);
                 seen = vec![ci as u32, other.unwrap_or(seen[0])];
             }
-            out.tracks.push(Track { xyz: q, cameras: seen });
+            out.tracks.push(Track {
+                xyz: q,
+                cameras: seen,
+            });
             out.normals.push(hit.normal);
         }
     }
@@ -99,7 +111,9 @@ pub fn seen_samples(s: &Synth, n: usize) -> Vec<DVec3> {
                     let Some((u, w)) = cam.project(p) else {
                         return false;
                     };
-                    if !(0.0..cam.width as f64).contains(&u) || !(0.0..cam.height as f64).contains(&w) {
+                    if !(0.0..cam.width as f64).contains(&u)
+                        || !(0.0..cam.height as f64).contains(&w)
+                    {
                         return false;
                     }
                     let to = p - **c;
@@ -122,15 +136,26 @@ pub const CAP: f64 = 0.1;
 /// Accuracy (`n` area samples of `mesh` to the true surface) and completeness (the seen samples
 /// of the true surface to `mesh`): (mean, RMS) each, in scene units, each distance capped at
 /// [`CAP`] × the truth's diagonal.
-pub fn distances(s: &Synth, mesh: &crate::scene::Mesh, seen: &[DVec3], n: usize) -> ((f64, f64), (f64, f64)) {
+pub fn distances(
+    s: &Synth,
+    mesh: &crate::scene::Mesh,
+    seen: &[DVec3],
+    n: usize,
+) -> ((f64, f64), (f64, f64)) {
     use crate::scene::distance::{area_samples, SurfaceIndex};
     use rayon::prelude::*;
     let truth = s.truth.to_mesh();
     let cap = CAP * crate::synth::perturb::diagonal(&truth);
     let stats = |idx: &SurfaceIndex, pts: &[DVec3]| {
-        let d: Vec<f64> = pts.par_iter().map(|&p| idx.distance_within(p, cap).min(cap)).collect();
+        let d: Vec<f64> = pts
+            .par_iter()
+            .map(|&p| idx.distance_within(p, cap).min(cap))
+            .collect();
         let m = d.len().max(1) as f64;
-        (d.iter().sum::<f64>() / m, (d.iter().map(|x| x * x).sum::<f64>() / m).sqrt())
+        (
+            d.iter().sum::<f64>() / m,
+            (d.iter().map(|x| x * x).sum::<f64>() / m).sqrt(),
+        )
     };
     let acc = stats(&SurfaceIndex::new(&truth), &area_samples(mesh, n));
     let comp = stats(&SurfaceIndex::new(mesh), seen);
@@ -150,20 +175,47 @@ mod tests {
         let s = crate::synth::build(crate::synth::Preset::Tiny, 3);
         let pts = points(&s, 400, 0.001, 0.02, 1);
         assert!(pts.tracks.len() > 2500, "{}", pts.tracks.len());
-        let (m, stats) = mesh(&pts.tracks, &pts.cameras, &Options::default(), &|_, _, _| {}, &|| false).unwrap();
+        let (m, stats) = mesh(
+            &pts.tracks,
+            &pts.cameras,
+            &Options::default(),
+            &|_, _, _| {},
+            &|| false,
+        )
+        .unwrap();
         assert_eq!(stats.rays_cut_short, 0);
         let truth = s.truth.to_mesh();
         let diag = crate::synth::perturb::diagonal(&truth);
         let seen = seen_samples(&s, 20000);
         assert!(seen.len() > 5000, "{}", seen.len());
         let (acc, comp) = distances(&s, &m, &seen, 20000);
-        eprintln!("accuracy RMS {:.4} %, completeness RMS {:.4} % of {diag}", 100.0 * acc.1 / diag, 100.0 * comp.1 / diag);
-        assert!(acc.1 / diag < 0.01, "mesh → truth {acc:?} (diagonal {diag})");
-        assert!(comp.1 / diag < 0.01, "seen truth → mesh {comp:?} (diagonal {diag})");
+        eprintln!(
+            "accuracy RMS {:.4} %, completeness RMS {:.4} % of {diag}",
+            100.0 * acc.1 / diag,
+            100.0 * comp.1 / diag
+        );
+        assert!(
+            acc.1 / diag < 0.01,
+            "mesh → truth {acc:?} (diagonal {diag})"
+        );
+        assert!(
+            comp.1 / diag < 0.01,
+            "seen truth → mesh {comp:?} (diagonal {diag})"
+        );
         // Outliers and noise cost little against clean points: within 2× the clean RMS + 0.5 %.
         let clean = points(&s, 400, 0.0, 0.0, 1);
-        let (mc, _) = mesh(&clean.tracks, &clean.cameras, &Options::default(), &|_, _, _| {}, &|| false).unwrap();
+        let (mc, _) = mesh(
+            &clean.tracks,
+            &clean.cameras,
+            &Options::default(),
+            &|_, _, _| {},
+            &|| false,
+        )
+        .unwrap();
         let (acc_clean, _) = distances(&s, &mc, &seen, 20000);
-        assert!(acc.1 <= 2.0 * acc_clean.1 + 0.005 * diag, "{acc:?} vs clean {acc_clean:?}");
+        assert!(
+            acc.1 <= 2.0 * acc_clean.1 + 0.005 * diag,
+            "{acc:?} vs clean {acc_clean:?}"
+        );
     }
 }

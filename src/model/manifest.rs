@@ -152,6 +152,10 @@ fn names(f: &TensorFile) -> BTreeMap<String, Vec<usize>> {
 /// The dump names (and shapes) of a model with config `cfg` on `batch`'s first pixel, with N
 /// and S of the whole batch substituted into the batch axes.
 fn names_for(cfg: &ModelConfig, batch: &Batch) -> Result<BTreeMap<String, Vec<usize>>> {
+    let mut cfg = cfg.clone();
+    // The mesh refinement's state is not part of a backend's step (and needs the mesh).
+    cfg.refine = Default::default();
+    let cfg = &cfg;
     let views = if cfg.appearance_dim > 0 {
         cfg.appearance_views.max(1) as usize
     } else {
@@ -207,6 +211,10 @@ fn diff(base: &BTreeMap<String, Vec<usize>>, other: &BTreeMap<String, Vec<usize>
 /// The model's switches and their effect on a backend (see the module doc).
 pub fn switches(ckpt: &Checkpoint, batch: &Batch) -> Result<Vec<Switch>> {
     let cfg = &ckpt.model.cfg;
+    anyhow::ensure!(
+        cfg.featurization.is_hash(),
+        "the vertex featurization is the Fig. 2b baseline, not a model a backend reproduces: no manifest"
+    );
     let base = names_for(cfg, batch)?;
     let flipped = |f: &dyn Fn(&mut ModelConfig)| -> Result<Diff> {
         let mut c = cfg.clone();
@@ -319,6 +327,36 @@ pub fn switches(ckpt: &Checkpoint, batch: &Batch) -> Result<Vec<Switch>> {
         note: "gamma^2 sub-samples per pixel (the S axis); pooling divides by the pixel's VALID sub-samples",
     });
     Ok(out)
+}
+
+/// [`manifest_json`] without a dump at hand: the tensor list from a dump of `batch`'s first
+/// pixels, with N set to the whole batch's.
+pub fn manifest_for(
+    ckpt: &Checkpoint,
+    batch: &Batch,
+    files: &BTreeMap<&str, String>,
+) -> Result<serde_json::Value> {
+    let n = batch.n_pixels();
+    let m = n.min(8);
+    let s = batch.samples_per_pixel();
+    let mut few = batch.clone();
+    few.positions.truncate(m * s);
+    few.valid.truncate(m * s);
+    few.dirs.truncate(m);
+    few.view.truncate(m);
+    few.target.truncate(m);
+    few.footprint.truncate(m);
+    few.triangle.truncate(m * s);
+    few.bary.truncate(m * s);
+    let mut dump = dump_with::<f64>(ckpt, &few, None)?;
+    for (k, t) in dump.tensors.iter_mut() {
+        if (k.starts_with("batch.") || k.starts_with("fwd.") || k.starts_with("grad.batch."))
+            && !t.shape.is_empty()
+        {
+            t.shape[0] = n;
+        }
+    }
+    manifest_json(ckpt, batch, &dump, files)
 }
 
 /// The whole manifest as JSON: the tensors of `dump` and the switches of `ckpt`.

@@ -2307,6 +2307,24 @@ fn _cli(py: Python<'_>, argv: Vec<String>) -> PyResult<u8> {
     Ok(py.detach(move || xscale::cli::exit_code_value(xscale::cli::main_with(argv))))
 }
 
+/// For the tests: a Rust panic in a computation (in the calling thread, or in a worker of the
+/// pool with `worker=True`) becomes a `RuntimeError`; the interpreter goes on.
+#[pyfunction]
+#[pyo3(signature = (worker=false))]
+fn _panic_for_test(py: Python<'_>, worker: bool) -> PyResult<()> {
+    compute(py, move || -> anyhow::Result<()> {
+        if worker {
+            use rayon::prelude::*;
+            (0..64).into_par_iter().for_each(|i| {
+                if i == 63 {
+                    panic!("deliberate panic in a worker (test)");
+                }
+            });
+        }
+        panic!("deliberate panic (test)")
+    })
+}
+
 #[pymodule]
 fn _xscale(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
@@ -2346,5 +2364,6 @@ fn _xscale(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(tolerance_text, m)?)?;
     m.add_function(wrap_pyfunction!(tolerance_sets, m)?)?;
     m.add_function(wrap_pyfunction!(_cli, m)?)?;
+    m.add_function(wrap_pyfunction!(_panic_for_test, m)?)?;
     Ok(())
 }

@@ -172,7 +172,11 @@ fn untyped<'a, 'py>(
 }
 
 /// `obj` as an input array of `T` (`tname` names the dtype in errors).
-fn input<'py, T: Element>(obj: &Bound<'py, PyAny>, what: &str, tname: &str) -> PyResult<In<'py, T>> {
+fn input<'py, T: Element>(
+    obj: &Bound<'py, PyAny>,
+    what: &str,
+    tname: &str,
+) -> PyResult<In<'py, T>> {
     let py = obj.py();
     let u = untyped(obj, what)?;
     if !u.dtype().is_equiv_to(&numpy::dtype::<T>(py)) {
@@ -187,7 +191,9 @@ fn input<'py, T: Element>(obj: &Bound<'py, PyAny>, what: &str, tname: &str) -> P
         )));
     }
     let shape = u.shape().to_vec();
-    let arr = obj.cast::<PyArrayDyn<T>>().map_err(|e| type_error(format!("{what}: {e}")))?;
+    let arr = obj
+        .cast::<PyArrayDyn<T>>()
+        .map_err(|e| type_error(format!("{what}: {e}")))?;
     let ro = arr
         .try_readonly()
         .map_err(|e| value_error(format!("{what}: {e}")))?;
@@ -290,7 +296,11 @@ impl Dims {
 }
 
 /// A new array of `shape` holding `v`.
-fn out<'py, T: Element>(py: Python<'py>, v: Vec<T>, shape: &[usize]) -> PyResult<Bound<'py, PyAny>> {
+fn out<'py, T: Element>(
+    py: Python<'py>,
+    v: Vec<T>,
+    shape: &[usize],
+) -> PyResult<Bound<'py, PyAny>> {
     Ok(PyArray1::from_vec(py, v)
         .reshape(shape.to_vec())?
         .into_any())
@@ -462,9 +472,13 @@ fn file_from_py(
     }
     if let Some(m) = metadata {
         for (k, v) in m.iter() {
-            let key: String = k.extract().map_err(|_| type_error("metadata keys must be str"))?;
+            let key: String = k
+                .extract()
+                .map_err(|_| type_error("metadata keys must be str"))?;
             let val: String = v.extract().map_err(|_| {
-                type_error(format!("metadata {key:?}: values must be str (safetensors metadata is text)"))
+                type_error(format!(
+                    "metadata {key:?}: values must be str (safetensors metadata is text)"
+                ))
             })?;
             f.set_meta(key, val);
         }
@@ -612,7 +626,8 @@ impl PyHashGrid {
         }
         let cfg: GridConfig = serde_json::from_str(&to_json(py, all.as_any())?)
             .map_err(|e| value_error(format!("grid config: {e}")))?;
-        xscale::model::hashgrid::validate_config(&cfg).map_err(|e| value_error(format!("{e:#}")))?;
+        xscale::model::hashgrid::validate_config(&cfg)
+            .map_err(|e| value_error(format!("{e:#}")))?;
         let grid = match scales {
             Some(s) => {
                 let s = input::<f32>(s, "scales", "float32")?;
@@ -646,7 +661,7 @@ impl PyHashGrid {
         dims.check("positions", &p.shape, &[A::N("M"), A::K(3)])?;
         check_finite_f64("positions", p.slice(), 3)?;
         let kind = float_kind(table, "table")?;
-        self.check_table(&mut dims, "table", &untyped(table, "table")?.shape().to_vec())?;
+        self.check_table(&mut dims, "table", untyped(table, "table")?.shape())?;
         let act = match active {
             Some(a) => {
                 let a = input::<u8>(a, "active", "uint8")?;
@@ -684,8 +699,12 @@ impl PyHashGrid {
             &[A::N("M"), A::K(self.grid.out_dim())],
         )?;
         match kind {
-            Fk::F32 => grid_backward_table::<f32>(py, &self.grid, p.slice(), d_out, mode, "float32"),
-            Fk::F64 => grid_backward_table::<f64>(py, &self.grid, p.slice(), d_out, mode, "float64"),
+            Fk::F32 => {
+                grid_backward_table::<f32>(py, &self.grid, p.slice(), d_out, mode, "float32")
+            }
+            Fk::F64 => {
+                grid_backward_table::<f64>(py, &self.grid, p.slice(), d_out, mode, "float64")
+            }
         }
     }
 
@@ -713,12 +732,24 @@ impl PyHashGrid {
             &[A::N("M"), A::K(self.grid.out_dim())],
         )?;
         match kind {
-            Fk::F32 => {
-                grid_backward_points::<f32>(py, &self.grid, table, p.slice(), d_out, mode, "float32")
-            }
-            Fk::F64 => {
-                grid_backward_points::<f64>(py, &self.grid, table, p.slice(), d_out, mode, "float64")
-            }
+            Fk::F32 => grid_backward_points::<f32>(
+                py,
+                &self.grid,
+                table,
+                p.slice(),
+                d_out,
+                mode,
+                "float32",
+            ),
+            Fk::F64 => grid_backward_points::<f64>(
+                py,
+                &self.grid,
+                table,
+                p.slice(),
+                d_out,
+                mode,
+                "float64",
+            ),
         }
     }
 
@@ -782,7 +813,10 @@ impl PyHashGrid {
     /// The grid's config as a dict.
     #[getter]
     fn config<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
-        from_json(py, &serde_json::to_string(&self.grid.cfg).map_err(value_error)?)
+        from_json(
+            py,
+            &serde_json::to_string(&self.grid.cfg).map_err(value_error)?,
+        )
     }
     /// The default positions mode ("f64" or "tcnn").
     #[getter]
@@ -802,7 +836,12 @@ impl PyHashGrid {
     /// Grid vertices per axis of each level, uint32 [L].
     #[getter]
     fn resolutions(&self, py: Python<'_>) -> PyResult<Py<PyAny>> {
-        Ok(out(py, self.grid.resolutions.clone(), &[self.grid.resolutions.len()])?.unbind())
+        Ok(out(
+            py,
+            self.grid.resolutions.clone(),
+            &[self.grid.resolutions.len()],
+        )?
+        .unbind())
     }
     /// Whether each level is indexed densely (no hashing), list of bool.
     #[getter]
@@ -909,7 +948,11 @@ fn sh_backward(
     let mut dims = Dims::default();
     let dk = float_kind(dirs, "dirs")?;
     let gk = float_kind(d_sh, "d_sh")?;
-    dims.check("d_sh", untyped(d_sh, "d_sh")?.shape(), &[A::N("N"), A::K(sh::SH_DIM)])?;
+    dims.check(
+        "d_sh",
+        untyped(d_sh, "d_sh")?.shape(),
+        &[A::N("N"), A::K(sh::SH_DIM)],
+    )?;
     fn bwd<R: Real + Element>(
         py: Python<'_>,
         d: &[[f32; 3]],
@@ -1028,7 +1071,10 @@ fn net_from_py<R: Real + Element>(
     Ok(Net { mlp, params })
 }
 
-fn list_of<'py, T: Element>(py: Python<'py>, arrays: Vec<(Vec<T>, Vec<usize>)>) -> PyResult<Bound<'py, PyList>> {
+fn list_of<'py, T: Element>(
+    py: Python<'py>,
+    arrays: Vec<(Vec<T>, Vec<usize>)>,
+) -> PyResult<Bound<'py, PyList>> {
     let items: Vec<Bound<'py, PyAny>> = arrays
         .into_iter()
         .map(|(v, s)| out(py, v, &s))
@@ -1039,8 +1085,7 @@ fn list_of<'py, T: Element>(py: Python<'py>, arrays: Vec<(Vec<T>, Vec<usize>)>) 
 /// Row chunk boundaries `[0, …, rows]` (default one chunk).
 fn chunk_bounds(chunks: Option<Vec<usize>>, rows: usize) -> PyResult<Vec<usize>> {
     let c = chunks.unwrap_or_else(|| vec![0, rows]);
-    if c.len() < 2 || c[0] != 0 || *c.last().unwrap() != rows || c.windows(2).any(|w| w[1] < w[0])
-    {
+    if c.len() < 2 || c[0] != 0 || *c.last().unwrap() != rows || c.windows(2).any(|w| w[1] < w[0]) {
         return Err(value_error(format!(
             "chunks: expected row boundaries [0, …, {rows}] in ascending order, got {c:?}"
         )));
@@ -1130,7 +1175,11 @@ fn mlp_backward_impl<R: Real + Element>(
     for (k, h) in hs.iter().enumerate() {
         let what = format!("hidden[{k}]");
         let hi = input::<R>(h, &what, tname)?;
-        dims.check(&what, &hi.shape, &[A::N("rows"), A::K(net.mlp.layers[k].out_dim)])?;
+        dims.check(
+            &what,
+            &hi.shape,
+            &[A::N("rows"), A::K(net.mlp.layers[k].out_dim)],
+        )?;
         his.push(hi);
     }
     let d = input::<R>(d_out, "d_out", tname)?;
@@ -1210,8 +1259,12 @@ fn mlp_backward(
     chunks: Option<Vec<usize>>,
 ) -> PyResult<BwdOut> {
     match float_kind(x, "x")? {
-        Fk::F32 => mlp_backward_impl::<f32>(py, x, weights, hidden, d_out, biases, chunks, "float32"),
-        Fk::F64 => mlp_backward_impl::<f64>(py, x, weights, hidden, d_out, biases, chunks, "float64"),
+        Fk::F32 => {
+            mlp_backward_impl::<f32>(py, x, weights, hidden, d_out, biases, chunks, "float32")
+        }
+        Fk::F64 => {
+            mlp_backward_impl::<f64>(py, x, weights, hidden, d_out, biases, chunks, "float64")
+        }
     }
 }
 
@@ -1361,7 +1414,11 @@ fn relu_forward(py: Python<'_>, y: &Bound<'_, PyAny>) -> PyResult<Py<PyAny>> {
 
 /// `d_y` where the ReLU output `y` is > 0, else 0 (`mlp::relu_backward`), a new array.
 #[pyfunction]
-fn relu_backward(py: Python<'_>, y: &Bound<'_, PyAny>, d_y: &Bound<'_, PyAny>) -> PyResult<Py<PyAny>> {
+fn relu_backward(
+    py: Python<'_>,
+    y: &Bound<'_, PyAny>,
+    d_y: &Bound<'_, PyAny>,
+) -> PyResult<Py<PyAny>> {
     fn go<R: Real + Element>(
         py: Python<'_>,
         y: &Bound<'_, PyAny>,
@@ -1752,20 +1809,15 @@ fn apply_level_weights(
 }
 
 /// ξ's input rows `[F_D(x_j), SH(d_n)]` of the valid sub-samples.
-fn deform_input<R: Real>(
-    gd: &[R],
-    shs: &[R],
-    start: &[usize],
-    idx: &[usize],
-    ld: usize,
-) -> Vec<R> {
+fn deform_input<R: Real>(gd: &[R], shs: &[R], start: &[usize], idx: &[usize], ld: usize) -> Vec<R> {
     let din = ld + sh::SH_DIM;
     let mut x = vec![R::ZERO; idx.len() * din];
     for i in 0..start.len() - 1 {
         for r in start[i]..start[i + 1] {
             let k = idx[r];
             x[r * din..r * din + ld].copy_from_slice(&gd[k * ld..(k + 1) * ld]);
-            x[r * din + ld..(r + 1) * din].copy_from_slice(&shs[i * sh::SH_DIM..(i + 1) * sh::SH_DIM]);
+            x[r * din + ld..(r + 1) * din]
+                .copy_from_slice(&shs[i * sh::SH_DIM..(i + 1) * sh::SH_DIM]);
         }
     }
     x
@@ -1895,7 +1947,11 @@ fn deform_backward(
         for (k, h) in hs.iter().enumerate() {
             let what = format!("hidden[{k}]");
             let hi = input::<R>(h, &what, t)?;
-            dims.check(&what, &hi.shape, &[A::N("N"), A::N("S"), A::K(net.mlp.layers[k].out_dim)])?;
+            dims.check(
+                &what,
+                &hi.shape,
+                &[A::N("N"), A::N("S"), A::K(net.mlp.layers[k].out_dim)],
+            )?;
             his.push(hi);
         }
         let dd = input::<R>(d_delta, "d_delta", t)?;
@@ -1992,8 +2048,12 @@ fn deform_backward(
         ))
     }
     match float_kind(grid_d, "grid_d")? {
-        Fk::F32 => go::<f32>(py, grid_d, sh, valid, weights, hidden, d_delta, biases, d_sh, "float32"),
-        Fk::F64 => go::<f64>(py, grid_d, sh, valid, weights, hidden, d_delta, biases, d_sh, "float64"),
+        Fk::F32 => go::<f32>(
+            py, grid_d, sh, valid, weights, hidden, d_delta, biases, d_sh, "float32",
+        ),
+        Fk::F64 => go::<f64>(
+            py, grid_d, sh, valid, weights, hidden, d_delta, biases, d_sh, "float64",
+        ),
     }
 }
 
@@ -2109,7 +2169,11 @@ impl PyModel {
     /// validates a checkpoint file.
     #[new]
     #[pyo3(signature = (tensors, metadata, label="checkpoint"))]
-    fn new(tensors: &Bound<'_, PyDict>, metadata: &Bound<'_, PyDict>, label: &str) -> PyResult<Self> {
+    fn new(
+        tensors: &Bound<'_, PyDict>,
+        metadata: &Bound<'_, PyDict>,
+        label: &str,
+    ) -> PyResult<Self> {
         let f = file_from_py(tensors, Some(metadata), Some(label))?;
         let ckpt = Checkpoint::from_tensor_file(&f).map_err(|e| value_error(format!("{e:#}")))?;
         Ok(PyModel { ckpt })
@@ -2141,7 +2205,11 @@ impl PyModel {
         let ck = &self.ckpt;
         let f = match fk_of_dtype(precision)? {
             Fk::F64 => compute(py, || {
-                xscale::model::checkpoint::dump_with::<f64>(ck, &b, kink_threshold.filter(|&t| t > 0.0))
+                xscale::model::checkpoint::dump_with::<f64>(
+                    ck,
+                    &b,
+                    kink_threshold.filter(|&t| t > 0.0),
+                )
             })?,
             Fk::F32 => {
                 if kink_threshold.is_some_and(|t| t > 0.0) {
@@ -2149,7 +2217,9 @@ impl PyModel {
                         "kink_threshold: the kink analysis is part of the f64 oracle dump",
                     ));
                 }
-                compute(py, || xscale::model::checkpoint::dump_with::<f32>(ck, &b, None))?
+                compute(py, || {
+                    xscale::model::checkpoint::dump_with::<f32>(ck, &b, None)
+                })?
             }
         };
         file_to_py(py, &f)
@@ -2185,7 +2255,10 @@ impl PyModel {
     fn params<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
         let d = PyDict::new(py);
         for t in &self.ckpt.model.layout.tensors {
-            d.set_item(&t.name, out(py, self.ckpt.params[t.range()].to_vec(), &t.shape)?)?;
+            d.set_item(
+                &t.name,
+                out(py, self.ckpt.params[t.range()].to_vec(), &t.shape)?,
+            )?;
         }
         Ok(d)
     }
@@ -2265,20 +2338,33 @@ fn _compare(
             fb.tensors.contains_key(k)
                 || k == "kink.pixels"
                 || k == "kink.threshold"
-                || k.strip_prefix("kink.slack.").is_some_and(|n| fb.tensors.contains_key(n))
+                || k.strip_prefix("kink.slack.")
+                    .is_some_and(|n| fb.tensors.contains_key(n))
         };
         fa.tensors.retain(|k, _| keep(k));
-        let missing: Vec<&String> = fb.tensors.keys().filter(|k| !fa.tensors.contains_key(*k)).collect();
+        let missing: Vec<&String> = fb
+            .tensors
+            .keys()
+            .filter(|k| !fa.tensors.contains_key(*k))
+            .collect();
         if !missing.is_empty() {
             return Err(value_error(format!(
                 "not in the oracle: {}",
-                missing.iter().map(|s| s.as_str()).collect::<Vec<_>>().join(", ")
+                missing
+                    .iter()
+                    .map(|s| s.as_str())
+                    .collect::<Vec<_>>()
+                    .join(", ")
             )));
         }
     }
     let (code, table, json) = compute(py, || {
         let r = xscale::io::compare::compare(&fa, &fb, &tol);
-        Ok((r.exit_code(), r.to_table(), xscale::io::compare::report_json(&r)?))
+        Ok((
+            r.exit_code(),
+            r.to_table(),
+            xscale::io::compare::report_json(&r)?,
+        ))
     })?;
     Ok((code, table, json))
 }
@@ -2330,7 +2416,10 @@ fn _xscale(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
     m.add("PIXEL_CHUNK", hfm::PIXEL_CHUNK)?;
     m.add("SH_DIM", sh::SH_DIM)?;
-    m.add("DEFAULT_KINK_THRESHOLD", xscale::model::kink::DEFAULT_THRESHOLD)?;
+    m.add(
+        "DEFAULT_KINK_THRESHOLD",
+        xscale::model::kink::DEFAULT_THRESHOLD,
+    )?;
     m.add_class::<PyHashGrid>()?;
     m.add_class::<PyModel>()?;
     m.add_function(wrap_pyfunction!(set_num_threads, m)?)?;

@@ -395,7 +395,35 @@ fn _json_to_toml(text: &str) -> PyResult<String> {
 // ---------------------------------------------------------------------------------------------
 // Files as dicts
 
+/// A new array of `shape` from little-endian bytes: one copy into the array's own memory.
+fn array_from_le_bytes<'py, T: Element + bytemuck::Pod>(
+    py: Python<'py>,
+    data: &[u8],
+    shape: &[usize],
+) -> PyResult<Bound<'py, PyAny>> {
+    // SAFETY: the array is uninitialised only until every byte is written just below, before
+    // Python can see it.
+    let arr = unsafe { PyArrayDyn::<T>::new(py, numpy::ndarray::IxDyn(shape), false) };
+    {
+        let mut rw = arr
+            .try_readwrite()
+            .map_err(|e| value_error(format!("{e}")))?;
+        let dst = rw.as_slice_mut().map_err(value_error)?;
+        bytemuck::cast_slice_mut::<T, u8>(dst).copy_from_slice(data);
+    }
+    Ok(arr.into_any())
+}
+
 fn tensor_to_py<'py>(py: Python<'py>, t: &Tensor) -> PyResult<Bound<'py, PyAny>> {
+    if cfg!(target_endian = "little") {
+        return match t.dtype {
+            DType::F64 => array_from_le_bytes::<f64>(py, &t.data, &t.shape),
+            DType::F32 => array_from_le_bytes::<f32>(py, &t.data, &t.shape),
+            DType::U32 => array_from_le_bytes::<u32>(py, &t.data, &t.shape),
+            DType::I32 => array_from_le_bytes::<i32>(py, &t.data, &t.shape),
+            DType::U8 => array_from_le_bytes::<u8>(py, &t.data, &t.shape),
+        };
+    }
     let e = |e: anyhow::Error| value_error(format!("{e:#}"));
     match t.dtype {
         DType::F64 => out(py, t.to_f64().map_err(e)?, &t.shape),
@@ -1870,23 +1898,24 @@ fn deform_forward(
         let (n, ns, c) = (dims.get("N"), dims.get("S"), dims.get("C"));
         let (start, idx) = valid_rows(&v)?;
         let (gs, ss) = (g.slice(), s.slice());
-        let acts = compute(py, || {
+        let lf = net.mlp.out_dim();
+        let (hidden, delta) = compute(py, || {
             let x = deform_input(gs, ss, &start, &idx, c);
             let wt = net.mlp.transpose_weights(&net.params);
             let mut acts = MlpActs::default();
             net.mlp.forward(&net.params, &wt, &x, idx.len(), &mut acts);
-            Ok(acts)
+            // Back to [N, S, ·] with zero rows for the invalid sub-samples, as the dump.
+            let hidden: Vec<(Vec<R>, Vec<usize>)> = acts
+                .hidden
+                .iter()
+                .zip(&net.mlp.layers)
+                .map(|(h, l)| (scatter(h, &idx, l.out_dim, n * ns), vec![n, ns, l.out_dim]))
+                .collect();
+            Ok((hidden, scatter(&acts.out, &idx, lf, n * ns)))
         })?;
-        let hidden: Vec<(Vec<R>, Vec<usize>)> = acts
-            .hidden
-            .iter()
-            .zip(&net.mlp.layers)
-            .map(|(h, l)| (scatter(h, &idx, l.out_dim, n * ns), vec![n, ns, l.out_dim]))
-            .collect();
-        let lf = net.mlp.out_dim();
         Ok((
             list_of(py, hidden)?.into_any().unbind(),
-            out(py, scatter(&acts.out, &idx, lf, n * ns), &[n, ns, lf])?.unbind(),
+            out(py, delta, &[n, ns, lf])?.unbind(),
         ))
     }
     match float_kind(grid_d, "grid_d")? {

@@ -2,6 +2,7 @@
 
 import os
 import shutil
+import sys
 from pathlib import Path
 
 import pytest
@@ -20,13 +21,16 @@ def xscale_binary():
 
 
 @pytest.fixture(scope="session")
-def xscale_bin():
+def xscale_cli():
+    """The command line to run `xscale` with: the binary cargo built, else the installed package's
+    own (`python -m xscale`, the same program: `xscale::cli::main_with`). XSCALE_REQUIRE_BIN
+    (CI) insists on the binary."""
     b = xscale_binary()
-    if b is None:
-        if os.environ.get("XSCALE_REQUIRE_BIN"):
-            pytest.fail("XSCALE_REQUIRE_BIN is set but no xscale binary was found (cargo build --release)")
-        pytest.skip("no xscale binary (cargo build --release, or XSCALE_BIN=...): the CLI comparisons need it")
-    return b
+    if b is not None:
+        return [b]
+    if os.environ.get("XSCALE_REQUIRE_BIN"):
+        pytest.fail("XSCALE_REQUIRE_BIN is set but no xscale binary was found (cargo build --release)")
+    return [sys.executable, "-m", "xscale"]
 
 
 @pytest.fixture(params=GOLDEN_CASES)

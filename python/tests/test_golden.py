@@ -13,9 +13,9 @@ from xscale.testing import assert_matches
 from conftest import GOLDEN
 
 
-def cli_dump(xscale_bin, case, tmp_path, precision):
+def cli_dump(xscale_cli, case, tmp_path, precision):
     out = tmp_path / f"cli-{precision}.safetensors"
-    subprocess.run([xscale_bin, "dump", "--checkpoint", str(case / "checkpoint.safetensors"),
+    subprocess.run([*xscale_cli, "dump", "--checkpoint", str(case / "checkpoint.safetensors"),
                     "--batch", str(case / "batch.safetensors"), "--precision", precision, "--out", str(out)],
                    check=True, capture_output=True)
     return xscale.load(out)
@@ -25,8 +25,8 @@ DT = {"f64": np.float64, "f32": np.float32}
 
 
 @pytest.mark.parametrize("precision", ["f64", "f32"])
-def test_each_forward_op_equals_the_cli_dump(golden_case, xscale_bin, tmp_path, precision):
-    d = cli_dump(xscale_bin, golden_case, tmp_path, precision)
+def test_each_forward_op_equals_the_cli_dump(golden_case, xscale_cli, tmp_path, precision):
+    d = cli_dump(xscale_cli, golden_case, tmp_path, precision)
     m = xscale.Model(golden_case / "checkpoint.safetensors")
     dt = DT[precision]
     P = {k: v.astype(dt) for k, v in m.params.items()}
@@ -76,8 +76,8 @@ def test_each_forward_op_equals_the_cli_dump(golden_case, xscale_bin, tmp_path, 
 
 
 @pytest.mark.parametrize("precision", ["f64", "f32"])
-def test_backward_ops_and_whole_step_equal_the_cli_dump(golden_case, xscale_bin, tmp_path, precision):
-    d = cli_dump(xscale_bin, golden_case, tmp_path, precision)
+def test_backward_ops_and_whole_step_equal_the_cli_dump(golden_case, xscale_cli, tmp_path, precision):
+    d = cli_dump(xscale_cli, golden_case, tmp_path, precision)
     m = xscale.Model(golden_case / "checkpoint.safetensors")
     b = xscale.load(golden_case / "batch.safetensors")
     # Every backward op chained (loss, sigmoid, MLP, pooling, xi, grids, SH, codes): every grad.*.

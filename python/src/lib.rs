@@ -200,6 +200,16 @@ fn input<'py, T: Element>(
     Ok(In { ro, shape })
 }
 
+/// `f::<f32>(args…, "float32")` or `f::<f64>(args…, "float64")` by a float kind.
+macro_rules! dispatch {
+    ($kind:expr, $f:ident($($arg:expr),* $(,)?)) => {
+        match $kind {
+            Fk::F32 => $f::<f32>($($arg,)* "float32"),
+            Fk::F64 => $f::<f64>($($arg,)* "float64"),
+        }
+    };
+}
+
 /// Float kind of an array argument (`float32` or `float64`; anything else is a TypeError).
 #[derive(Clone, Copy, PartialEq, Eq, Debug)]
 enum Fk {
@@ -699,10 +709,10 @@ impl PyHashGrid {
             None => None,
         };
         let acts = act.as_ref().map(|a| a.slice());
-        match kind {
-            Fk::F32 => grid_forward::<f32>(py, &self.grid, table, p.slice(), mode, acts, "float32"),
-            Fk::F64 => grid_forward::<f64>(py, &self.grid, table, p.slice(), mode, acts, "float64"),
-        }
+        dispatch!(
+            kind,
+            grid_forward(py, &self.grid, table, p.slice(), mode, acts)
+        )
     }
 
     /// ∂L/∂table [entries, F] (dtype of `d_out`) from `d_out` [M, L·F]: the scatter-add
@@ -1163,10 +1173,108 @@ fn mlp_forward(
     weights: &Bound<'_, PyAny>,
     biases: Option<&Bound<'_, PyAny>>,
 ) -> PyResult<(Py<PyAny>, Py<PyAny>)> {
-    match float_kind(x, "x")? {
-        Fk::F32 => mlp_forward_impl::<f32>(py, x, weights, biases, "float32"),
-        Fk::F64 => mlp_forward_impl::<f64>(py, x, weights, biases, "float64"),
+    dispatch!(
+        float_kind(x, "x")?,
+        mlp_forward_impl(py, x, weights, biases)
+    )
+}
+
+/// The `hidden` list a forward returned, each array checked against `axes` + its layer's width.
+fn hidden_from_py<'py, R: Real + Element>(
+    hidden: &Bound<'py, PyAny>,
+    net: &Net<R>,
+    dims: &mut Dims,
+    axes: &[A],
+    t: &str,
+) -> PyResult<Vec<In<'py, R>>> {
+    let hs: Vec<Bound<'py, PyAny>> = hidden
+        .try_iter()
+        .map_err(|_| type_error("hidden: expected the list the forward returned"))?
+        .collect::<PyResult<_>>()?;
+    let nl = net.mlp.layers.len();
+    if hs.len() != nl - 1 {
+        return Err(value_error(format!(
+            "hidden: {} arrays, the MLP has {} hidden layers",
+            hs.len(),
+            nl - 1
+        )));
     }
+    let mut his = Vec::new();
+    for (k, h) in hs.iter().enumerate() {
+        let what = format!("hidden[{k}]");
+        let hi = input::<R>(h, &what, t)?;
+        let mut pattern = axes.to_vec();
+        pattern.push(A::K(net.mlp.layers[k].out_dim));
+        dims.check(&what, &hi.shape, &pattern)?;
+        his.push(hi);
+    }
+    Ok(his)
+}
+
+/// `Mlp::backward` over rows `x` with activations `hidden` and output gradient `dy`, per chunk
+/// of rows (`bounds`): a fresh parameter-gradient buffer per chunk, the chunks added in order
+/// (the model's pixel chunks, SPEC §5); `dx` written row by row. Returns the parameter gradient.
+fn chunked_backward<R: Real>(
+    net: &Net<R>,
+    x: &[R],
+    hidden: &[&[R]],
+    dy: &[R],
+    bounds: &[usize],
+    dx: &mut [R],
+) -> Vec<R> {
+    let (din, dout) = (net.mlp.in_dim(), net.mlp.out_dim());
+    let mut dp = vec![R::ZERO; net.mlp.n_params];
+    for w in bounds.windows(2) {
+        let (a, b) = (w[0], w[1]);
+        let acts = MlpActs {
+            hidden: hidden
+                .iter()
+                .zip(&net.mlp.layers)
+                .map(|(h, l)| h[a * l.out_dim..b * l.out_dim].to_vec())
+                .collect(),
+            out: Vec::new(),
+        };
+        let mut part = vec![R::ZERO; net.mlp.n_params];
+        net.mlp.backward(
+            &net.params,
+            &x[a * din..b * din],
+            b - a,
+            &acts,
+            dy[a * dout..b * dout].to_vec(),
+            &mut part,
+            Some(&mut dx[a * din..b * din]),
+        );
+        for (t, p) in dp.iter_mut().zip(&part) {
+            *t += *p;
+        }
+    }
+    dp
+}
+
+/// An MLP's parameter gradient as Python lists: weights [out, in] and biases [out] (None
+/// without biases).
+fn grads_to_py<R: Real + Element>(
+    py: Python<'_>,
+    net: &Net<R>,
+    dp: &[R],
+) -> PyResult<(Py<PyAny>, Py<PyAny>)> {
+    let mut dws = Vec::new();
+    let mut dbs = Vec::new();
+    for l in &net.mlp.layers {
+        dws.push((
+            dp[l.w_off..l.w_off + l.in_dim * l.out_dim].to_vec(),
+            vec![l.out_dim, l.in_dim],
+        ));
+        if let Some(b) = l.b_off {
+            dbs.push((dp[b..b + l.out_dim].to_vec(), vec![l.out_dim]));
+        }
+    }
+    let dbs = if net.mlp.layers[0].b_off.is_some() {
+        list_of(py, dbs)?.into_any().unbind()
+    } else {
+        py.None()
+    };
+    Ok((list_of(py, dws)?.into_any().unbind(), dbs))
 }
 
 type BwdOut = (Py<PyAny>, Py<PyAny>, Py<PyAny>);
@@ -1187,88 +1295,20 @@ fn mlp_backward_impl<R: Real + Element>(
     dims.check("x", &xi.shape, &[A::N("rows"), A::N("in")])?;
     let net = net_from_py::<R>(xi.shape[1], weights, biases, tname)?;
     let rows = xi.shape[0];
-    let hs: Vec<Bound<'_, PyAny>> = hidden
-        .try_iter()
-        .map_err(|_| type_error("hidden: expected the list mlp_forward returned"))?
-        .collect::<PyResult<_>>()?;
-    let nl = net.mlp.layers.len();
-    if hs.len() != nl - 1 {
-        return Err(value_error(format!(
-            "hidden: {} arrays, the MLP has {} hidden layers",
-            hs.len(),
-            nl - 1
-        )));
-    }
-    let mut his = Vec::new();
-    for (k, h) in hs.iter().enumerate() {
-        let what = format!("hidden[{k}]");
-        let hi = input::<R>(h, &what, tname)?;
-        dims.check(
-            &what,
-            &hi.shape,
-            &[A::N("rows"), A::K(net.mlp.layers[k].out_dim)],
-        )?;
-        his.push(hi);
-    }
+    let his = hidden_from_py(hidden, &net, &mut dims, &[A::N("rows")], tname)?;
     let d = input::<R>(d_out, "d_out", tname)?;
     dims.check("d_out", &d.shape, &[A::N("rows"), A::K(net.mlp.out_dim())])?;
     let bounds = chunk_bounds(chunks, rows)?;
-    let xs = xi.slice();
+    let (xs, ds) = (xi.slice(), d.slice());
     let hsl: Vec<&[R]> = his.iter().map(|h| h.slice()).collect();
-    let ds = d.slice();
-    let (din, dout) = (net.mlp.in_dim(), net.mlp.out_dim());
+    let din = net.mlp.in_dim();
     let (dp, dx) = compute(py, || {
-        let mut dp = vec![R::ZERO; net.mlp.n_params];
         let mut dx = vec![R::ZERO; rows * din];
-        // Per chunk of rows, a fresh gradient buffer, combined in chunk order (as the model's
-        // pixel chunks, SPEC §5).
-        for w in bounds.windows(2) {
-            let (a, b) = (w[0], w[1]);
-            let acts = MlpActs {
-                hidden: hsl
-                    .iter()
-                    .zip(&net.mlp.layers)
-                    .map(|(h, l)| h[a * l.out_dim..b * l.out_dim].to_vec())
-                    .collect(),
-                out: Vec::new(),
-            };
-            let mut part = vec![R::ZERO; net.mlp.n_params];
-            net.mlp.backward(
-                &net.params,
-                &xs[a * din..b * din],
-                b - a,
-                &acts,
-                ds[a * dout..b * dout].to_vec(),
-                &mut part,
-                Some(&mut dx[a * din..b * din]),
-            );
-            for (t, p) in dp.iter_mut().zip(&part) {
-                *t += *p;
-            }
-        }
+        let dp = chunked_backward(&net, xs, &hsl, ds, &bounds, &mut dx);
         Ok((dp, dx))
     })?;
-    let mut dws = Vec::new();
-    let mut dbs = Vec::new();
-    for l in &net.mlp.layers {
-        dws.push((
-            dp[l.w_off..l.w_off + l.in_dim * l.out_dim].to_vec(),
-            vec![l.out_dim, l.in_dim],
-        ));
-        if let Some(b) = l.b_off {
-            dbs.push((dp[b..b + l.out_dim].to_vec(), vec![l.out_dim]));
-        }
-    }
-    let dbs = if net.mlp.layers[0].b_off.is_some() {
-        list_of(py, dbs)?.into_any().unbind()
-    } else {
-        py.None()
-    };
-    Ok((
-        out(py, dx, &[rows, din])?.unbind(),
-        list_of(py, dws)?.into_any().unbind(),
-        dbs,
-    ))
+    let (dws, dbs) = grads_to_py(py, &net, &dp)?;
+    Ok((out(py, dx, &[rows, din])?.unbind(), dws, dbs))
 }
 
 /// `(d_x, d_weights, d_biases)` of a ReLU MLP (`Mlp::backward`): `hidden` from
@@ -1341,10 +1381,7 @@ fn linear_forward(
         })?;
         Ok(out(py, v, &[rows, o])?.unbind())
     }
-    match float_kind(x, "x")? {
-        Fk::F32 => go::<f32>(py, x, weight, bias, "float32"),
-        Fk::F64 => go::<f64>(py, x, weight, bias, "float64"),
-    }
+    dispatch!(float_kind(x, "x")?, go(py, x, weight, bias))
 }
 
 /// `(d_x, d_weight, d_bias)` of one linear layer (`mlp::linear_backward`): d_bias None unless
@@ -1416,28 +1453,62 @@ fn linear_backward(
             },
         ))
     }
-    match float_kind(x, "x")? {
-        Fk::F32 => go::<f32>(py, x, weight, d_y, bias, chunks, "float32"),
-        Fk::F64 => go::<f64>(py, x, weight, d_y, bias, chunks, "float64"),
+    dispatch!(float_kind(x, "x")?, go(py, x, weight, d_y, bias, chunks))
+}
+
+/// A new array `f(x)` of `x`'s shape (an elementwise op of the model; `out` starts at zero).
+fn map1<R: Real + Element>(
+    py: Python<'_>,
+    x: &Bound<'_, PyAny>,
+    what: &str,
+    t: &str,
+    f: impl FnOnce(&[R], &mut [R]) + Send,
+) -> PyResult<Py<PyAny>> {
+    let xi = input::<R>(x, what, t)?;
+    let xs = xi.slice();
+    let v = compute(py, move || {
+        let mut o = vec![R::ZERO; xs.len()];
+        f(xs, &mut o);
+        Ok(o)
+    })?;
+    Ok(out(py, v, &xi.shape)?.unbind())
+}
+
+/// A new array `f(a, b)` for two arrays of one shape (`out` starts at zero).
+fn map2<R: Real + Element>(
+    py: Python<'_>,
+    (a, an): (&Bound<'_, PyAny>, &str),
+    (b, bn): (&Bound<'_, PyAny>, &str),
+    t: &str,
+    f: impl FnOnce(&[R], &[R], &mut [R]) + Send,
+) -> PyResult<Py<PyAny>> {
+    let ai = input::<R>(a, an, t)?;
+    let bi = input::<R>(b, bn, t)?;
+    if ai.shape != bi.shape {
+        return Err(value_error(format!(
+            "{bn}: shape {:?}, {an} has {:?}",
+            bi.shape, ai.shape
+        )));
     }
+    let (as_, bs) = (ai.slice(), bi.slice());
+    let v = compute(py, move || {
+        let mut o = vec![R::ZERO; as_.len()];
+        f(as_, bs, &mut o);
+        Ok(o)
+    })?;
+    Ok(out(py, v, &ai.shape)?.unbind())
 }
 
 /// ReLU `max(0, y)` (NaN and −0 pass through), a new array (`mlp::relu_forward`).
 #[pyfunction]
 fn relu_forward(py: Python<'_>, y: &Bound<'_, PyAny>) -> PyResult<Py<PyAny>> {
     fn go<R: Real + Element>(py: Python<'_>, y: &Bound<'_, PyAny>, t: &str) -> PyResult<Py<PyAny>> {
-        let yi = input::<R>(y, "y", t)?;
-        let mut v = yi.slice().to_vec();
-        let v = compute(py, move || {
-            mlp::relu_forward(&mut v);
-            Ok(v)
-        })?;
-        Ok(out(py, v, &yi.shape)?.unbind())
+        map1::<R>(py, y, "y", t, |x, o| {
+            o.copy_from_slice(x);
+            mlp::relu_forward(o)
+        })
     }
-    match float_kind(y, "y")? {
-        Fk::F32 => go::<f32>(py, y, "float32"),
-        Fk::F64 => go::<f64>(py, y, "float64"),
-    }
+    dispatch!(float_kind(y, "y")?, go(py, y))
 }
 
 /// `d_y` where the ReLU output `y` is > 0, else 0 (`mlp::relu_backward`), a new array.
@@ -1453,26 +1524,12 @@ fn relu_backward(
         d: &Bound<'_, PyAny>,
         t: &str,
     ) -> PyResult<Py<PyAny>> {
-        let yi = input::<R>(y, "y", t)?;
-        let di = input::<R>(d, "d_y", t)?;
-        if yi.shape != di.shape {
-            return Err(value_error(format!(
-                "d_y: shape {:?}, y has {:?}",
-                di.shape, yi.shape
-            )));
-        }
-        let ys = yi.slice();
-        let mut v = di.slice().to_vec();
-        let v = compute(py, move || {
-            mlp::relu_backward(ys, &mut v);
-            Ok(v)
-        })?;
-        Ok(out(py, v, &yi.shape)?.unbind())
+        map2::<R>(py, (y, "y"), (d, "d_y"), t, |y, d, o| {
+            o.copy_from_slice(d);
+            mlp::relu_backward(y, o)
+        })
     }
-    match float_kind(y, "y")? {
-        Fk::F32 => go::<f32>(py, y, d_y, "float32"),
-        Fk::F64 => go::<f64>(py, y, d_y, "float64"),
-    }
+    dispatch!(float_kind(y, "y")?, go(py, y, d_y))
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -1482,19 +1539,9 @@ fn relu_backward(
 #[pyfunction]
 fn sigmoid_forward(py: Python<'_>, z: &Bound<'_, PyAny>) -> PyResult<Py<PyAny>> {
     fn go<R: Real + Element>(py: Python<'_>, z: &Bound<'_, PyAny>, t: &str) -> PyResult<Py<PyAny>> {
-        let zi = input::<R>(z, "z", t)?;
-        let zs = zi.slice();
-        let v = compute(py, || {
-            let mut o = vec![R::ZERO; zs.len()];
-            loss::sigmoid_forward(zs, &mut o);
-            Ok(o)
-        })?;
-        Ok(out(py, v, &zi.shape)?.unbind())
+        map1::<R>(py, z, "z", t, |z, o| loss::sigmoid_forward(z, o))
     }
-    match float_kind(z, "z")? {
-        Fk::F32 => go::<f32>(py, z, "float32"),
-        Fk::F64 => go::<f64>(py, z, "float64"),
-    }
+    dispatch!(float_kind(z, "z")?, go(py, z))
 }
 
 /// ∂L/∂z = d_rgb · rgb(1−rgb) from the sigmoid's output (`loss::sigmoid_backward`).
@@ -1510,26 +1557,11 @@ fn sigmoid_backward(
         d: &Bound<'_, PyAny>,
         t: &str,
     ) -> PyResult<Py<PyAny>> {
-        let si = input::<R>(s, "rgb", t)?;
-        let di = input::<R>(d, "d_rgb", t)?;
-        if si.shape != di.shape {
-            return Err(value_error(format!(
-                "d_rgb: shape {:?}, rgb has {:?}",
-                di.shape, si.shape
-            )));
-        }
-        let (ss, ds) = (si.slice(), di.slice());
-        let v = compute(py, || {
-            let mut o = vec![R::ZERO; ss.len()];
-            loss::sigmoid_backward(ss, ds, &mut o);
-            Ok(o)
-        })?;
-        Ok(out(py, v, &si.shape)?.unbind())
+        map2::<R>(py, (s, "rgb"), (d, "d_rgb"), t, |s, d, o| {
+            loss::sigmoid_backward(s, d, o)
+        })
     }
-    match float_kind(rgb, "rgb")? {
-        Fk::F32 => go::<f32>(py, rgb, d_rgb, "float32"),
-        Fk::F64 => go::<f64>(py, rgb, d_rgb, "float64"),
-    }
+    dispatch!(float_kind(rgb, "rgb")?, go(py, rgb, d_rgb))
 }
 
 fn rgb_target<'py, R: Real + Element>(
@@ -1579,10 +1611,7 @@ fn loss_forward(
             Ok(sum / (3 * n) as f64)
         })
     }
-    match float_kind(rgb, "rgb")? {
-        Fk::F32 => go::<f32>(py, rgb, target, k, delta, "float32"),
-        Fk::F64 => go::<f64>(py, rgb, target, k, delta, "float64"),
-    }
+    dispatch!(float_kind(rgb, "rgb")?, go(py, rgb, target, k, delta))
 }
 
 /// ∂L/∂rgb [N, 3] = ρ′(rgb − target) · (1/(3N)) (`loss::loss_backward`).
@@ -1615,10 +1644,7 @@ fn loss_backward(
         })?;
         Ok(out(py, v, &[n, 3])?.unbind())
     }
-    match float_kind(rgb, "rgb")? {
-        Fk::F32 => go::<f32>(py, rgb, target, k, delta, "float32"),
-        Fk::F64 => go::<f64>(py, rgb, target, k, delta, "float64"),
-    }
+    dispatch!(float_kind(rgb, "rgb")?, go(py, rgb, target, k, delta))
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -1713,10 +1739,7 @@ fn pool_forward(
         })?;
         Ok(out(py, o, &[n, c])?.unbind())
     }
-    match float_kind(feat, "feat")? {
-        Fk::F32 => go::<f32>(py, feat, valid, delta, "float32"),
-        Fk::F64 => go::<f64>(py, feat, valid, delta, "float64"),
-    }
+    dispatch!(float_kind(feat, "feat")?, go(py, feat, valid, delta))
 }
 
 /// Eq. 4 backward: ∂L/∂feat [N, S, C] = d_pooled / count at every valid sub-sample, 0 at the
@@ -1748,10 +1771,7 @@ fn pool_backward(
         })?;
         Ok(out(py, o, &[n, s, c])?.unbind())
     }
-    match float_kind(d_pooled, "d_pooled")? {
-        Fk::F32 => go::<f32>(py, d_pooled, valid, "float32"),
-        Fk::F64 => go::<f64>(py, d_pooled, valid, "float64"),
-    }
+    dispatch!(float_kind(d_pooled, "d_pooled")?, go(py, d_pooled, valid))
 }
 
 /// Footprint level weights (SPEC §4.10): `(w, active)`, w [N, L] in `dtype` = w(footprint ·
@@ -1830,10 +1850,7 @@ fn apply_level_weights(
         })?;
         Ok(out(py, v, &xi.shape)?.unbind())
     }
-    match float_kind(x, "x")? {
-        Fk::F32 => go::<f32>(py, w, x, "float32"),
-        Fk::F64 => go::<f64>(py, w, x, "float64"),
-    }
+    dispatch!(float_kind(x, "x")?, go(py, w, x))
 }
 
 /// ξ's input rows `[F_D(x_j), SH(d_n)]` of the valid sub-samples.
@@ -1918,10 +1935,10 @@ fn deform_forward(
             out(py, delta, &[n, ns, lf])?.unbind(),
         ))
     }
-    match float_kind(grid_d, "grid_d")? {
-        Fk::F32 => go::<f32>(py, grid_d, sh, valid, weights, biases, "float32"),
-        Fk::F64 => go::<f64>(py, grid_d, sh, valid, weights, biases, "float64"),
-    }
+    dispatch!(
+        float_kind(grid_d, "grid_d")?,
+        go(py, grid_d, sh, valid, weights, biases)
+    )
 }
 
 type DeformBwd = (Py<PyAny>, Py<PyAny>, Py<PyAny>, Py<PyAny>);
@@ -1961,28 +1978,7 @@ fn deform_backward(
         let (g, s, v, net, mut dims) = deform_inputs::<R>(grid_d, sh_, valid, weights, biases, t)?;
         let (n, ns, c) = (dims.get("N"), dims.get("S"), dims.get("C"));
         let lf = net.mlp.out_dim();
-        let hs: Vec<Bound<'_, PyAny>> = hidden
-            .try_iter()
-            .map_err(|_| type_error("hidden: expected the list deform_forward returned"))?
-            .collect::<PyResult<_>>()?;
-        if hs.len() != net.mlp.layers.len() - 1 {
-            return Err(value_error(format!(
-                "hidden: {} arrays, xi has {} hidden layers",
-                hs.len(),
-                net.mlp.layers.len() - 1
-            )));
-        }
-        let mut his = Vec::new();
-        for (k, h) in hs.iter().enumerate() {
-            let what = format!("hidden[{k}]");
-            let hi = input::<R>(h, &what, t)?;
-            dims.check(
-                &what,
-                &hi.shape,
-                &[A::N("N"), A::N("S"), A::K(net.mlp.layers[k].out_dim)],
-            )?;
-            his.push(hi);
-        }
+        let his = hidden_from_py(hidden, &net, &mut dims, &[A::N("N"), A::N("S")], t)?;
         let dd = input::<R>(d_delta, "d_delta", t)?;
         dims.check("d_delta", &dd.shape, &[A::N("N"), A::N("S"), A::K(lf)])?;
         let dsh0 = match d_sh {
@@ -2006,34 +2002,13 @@ fn deform_backward(
                 .map(|(h, l)| gather(h, &idx, l.out_dim))
                 .collect();
             let dy = gather(dds, &idx, lf);
-            let mut dp = vec![R::ZERO; net.mlp.n_params];
+            let hid: Vec<&[R]> = hid.iter().map(|h| &h[..]).collect();
             let mut d_din = vec![R::ZERO; idx.len() * din];
-            // The model's pixel chunks: a fresh gradient buffer per chunk, chunks in order.
-            for p0 in (0..n).step_by(hfm::PIXEL_CHUNK) {
-                let p1 = (p0 + hfm::PIXEL_CHUNK).min(n);
-                let (a, b) = (start[p0], start[p1]);
-                let acts = MlpActs {
-                    hidden: hid
-                        .iter()
-                        .zip(&net.mlp.layers)
-                        .map(|(h, l)| h[a * l.out_dim..b * l.out_dim].to_vec())
-                        .collect(),
-                    out: Vec::new(),
-                };
-                let mut part = vec![R::ZERO; net.mlp.n_params];
-                net.mlp.backward(
-                    &net.params,
-                    &x[a * din..b * din],
-                    b - a,
-                    &acts,
-                    dy[a * lf..b * lf].to_vec(),
-                    &mut part,
-                    Some(&mut d_din[a * din..b * din]),
-                );
-                for (t, p) in dp.iter_mut().zip(&part) {
-                    *t += *p;
-                }
-            }
+            // The model's pixel chunks of 128 (their rows of valid sub-samples).
+            let mut bounds: Vec<usize> =
+                (0..n).step_by(hfm::PIXEL_CHUNK).map(|p| start[p]).collect();
+            bounds.push(idx.len());
+            let dp = chunked_backward(&net, &x, &hid, &dy, &bounds, &mut d_din);
             let mut d_gd_rows = vec![R::ZERO; idx.len() * c];
             let mut d_shv = match dsh0 {
                 Some(x) => x.to_vec(),
@@ -2053,26 +2028,11 @@ fn deform_backward(
             }
             Ok((dp, scatter(&d_gd_rows, &idx, c, n * ns), d_shv))
         })?;
-        let mut dws = Vec::new();
-        let mut dbs = Vec::new();
-        for l in &net.mlp.layers {
-            dws.push((
-                dp[l.w_off..l.w_off + l.in_dim * l.out_dim].to_vec(),
-                vec![l.out_dim, l.in_dim],
-            ));
-            if let Some(b) = l.b_off {
-                dbs.push((dp[b..b + l.out_dim].to_vec(), vec![l.out_dim]));
-            }
-        }
-        let dbs = if net.mlp.layers[0].b_off.is_some() {
-            list_of(py, dbs)?.into_any().unbind()
-        } else {
-            py.None()
-        };
+        let (dws, dbs) = grads_to_py(py, &net, &dp)?;
         Ok((
             out(py, d_gd, &[n, ns, c])?.unbind(),
             out(py, d_shv, &[n, sh::SH_DIM])?.unbind(),
-            list_of(py, dws)?.into_any().unbind(),
+            dws,
             dbs,
         ))
     }
@@ -2134,10 +2094,7 @@ fn appearance_forward(
         })?;
         Ok(out(py, o, &[n, a])?.unbind())
     }
-    match float_kind(codes, "codes")? {
-        Fk::F32 => go::<f32>(py, codes, view, "float32"),
-        Fk::F64 => go::<f64>(py, codes, view, "float64"),
-    }
+    dispatch!(float_kind(codes, "codes")?, go(py, codes, view))
 }
 
 /// ∂L/∂codes [views, A] from the pixels' code gradients `d_code` [N, A]
@@ -2172,10 +2129,7 @@ fn appearance_backward(
         })?;
         Ok(out(py, o, &[views, a])?.unbind())
     }
-    match float_kind(d_code, "d_code")? {
-        Fk::F32 => go::<f32>(py, d_code, view, views, "float32"),
-        Fk::F64 => go::<f64>(py, d_code, view, views, "float64"),
-    }
+    dispatch!(float_kind(d_code, "d_code")?, go(py, d_code, view, views))
 }
 
 // ---------------------------------------------------------------------------------------------

@@ -204,6 +204,18 @@ fn case_writes_a_backend_case_and_compare_knows_the_sets() {
     let (code, text) = xscale(&["case", "--out", other.to_str().unwrap()], &d);
     assert_eq!(code, Some(2), "{text}");
     assert!(text.contains("\"mine.txt\""), "{text}");
+    // An interrupted case (its marker and some of its files) is made again, not refused.
+    let part = d.join("part");
+    std::fs::create_dir_all(part.join("scene")).unwrap();
+    std::fs::write(part.join(".case-incomplete"), "x").unwrap();
+    std::fs::write(part.join("config.toml"), "x").unwrap();
+    let (code, text) = xscale(
+        &["case", "--out", part.to_str().unwrap(), "--size", "64"],
+        &d,
+    );
+    assert_eq!(code, Some(0), "{text}");
+    assert!(!part.join(".case-incomplete").exists());
+    assert_eq!(files(&part), before);
     std::fs::remove_dir_all(&d).ok();
     std::fs::remove_dir_all(&elsewhere).ok();
 }

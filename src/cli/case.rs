@@ -18,7 +18,7 @@ use crate::io::tensors::TensorFile;
 use crate::model::checkpoint::{dump_with, Checkpoint};
 use crate::model::Batch;
 use crate::rng::{self, Purpose};
-use anyhow::{bail, ensure, Context, Result};
+use anyhow::{bail, Context, Result};
 use clap::Parser;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -94,13 +94,17 @@ fn default_config(preset: &str, steps: u64, seed: u64) -> String {
     )
 }
 
-/// Refuse a folder that holds anything but an earlier case.
+/// Marks a case folder whose command has not finished (removed at the end): an interrupted case
+/// is rewritten by the next run like a finished one.
+const INCOMPLETE: &str = ".case-incomplete";
+
+/// Refuse a folder that holds anything but an earlier (or interrupted) case.
 fn check_out(out: &Path) -> Result<()> {
     let Ok(entries) = std::fs::read_dir(out) else {
         return Ok(());
     };
-    let is_case = out.join("manifest.json").is_file()
-        && std::fs::read_to_string(out.join("manifest.json"))
+    let is_case = out.join(INCOMPLETE).is_file()
+        || std::fs::read_to_string(out.join("manifest.json"))
             .map(|t| t.contains("\"xscale-case-1\""))
             .unwrap_or(false);
     for e in entries.flatten() {
@@ -150,21 +154,45 @@ fn edit_batch(b: &mut Batch, seed: u64, invalid: f64, mean_view: usize, codes: b
     }
 }
 
-/// Run one `xscale` command line in this process.
+/// A command of the case stopped by a signal: its exit code.
+#[derive(Debug)]
+struct Stopped(ExitCode);
+
+impl std::fmt::Display for Stopped {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("stopped")
+    }
+}
+
+impl std::error::Error for Stopped {}
+
+/// Run one `xscale` command line in this process; a command stopped by a signal is [`Stopped`].
 fn xscale(args: &[&std::ffi::OsStr]) -> Result<()> {
     let argv = std::iter::once(std::ffi::OsStr::new("xscale")).chain(args.iter().copied());
     let cli = super::Cli::try_parse_from(argv)
         .map_err(|e| anyhow::anyhow!("internal command line: {e}"))?;
     let code = super::run(cli)?;
-    ensure!(
-        code == ExitCode::SUCCESS,
-        "internal command {:?} did not succeed",
-        args.iter().map(|a| a.to_string_lossy()).collect::<Vec<_>>()
-    );
+    if code != ExitCode::SUCCESS {
+        return Err(Stopped(code).into());
+    }
     Ok(())
 }
 
 pub fn run(a: Args) -> Result<ExitCode> {
+    let out = a.out.clone();
+    match make(a) {
+        Err(e) if e.downcast_ref::<Stopped>().is_some() => {
+            eprintln!(
+                "case: stopped before {} was complete; the same command makes it again",
+                out.display()
+            );
+            Ok(e.downcast_ref::<Stopped>().unwrap().0)
+        }
+        r => r,
+    }
+}
+
+fn make(a: Args) -> Result<ExitCode> {
     let out = &a.out;
     // The folder's parent must exist (a typo costs no work); the folder itself is created.
     if !out.is_dir() {
@@ -172,6 +200,10 @@ pub fn run(a: Args) -> Result<ExitCode> {
     }
     check_out(out)?;
     std::fs::create_dir_all(out).with_context(|| format!("{}: cannot create", out.display()))?;
+    crate::io::atomic::write_bytes(&out.join(INCOMPLETE), "xscale case: not finished\n")?;
+    // The process's one interrupt handler (its message is the first installer's): a signal stops
+    // the command under way at its next safe point, then the case.
+    super::common::on_interrupt("stopping the case (the same command makes it again)");
     let tol_text =
         crate::io::compare::builtin_tolerance_text(&a.tolerances).with_context(|| {
             format!(
@@ -332,6 +364,8 @@ pub fn run(a: Args) -> Result<ExitCode> {
         &out.join("manifest.json"),
         serde_json::to_string_pretty(&manifest)? + "\n",
     )?;
+    std::fs::remove_file(out.join(INCOMPLETE))
+        .with_context(|| format!("{}", out.join(INCOMPLETE).display()))?;
     let required = manifest["tensors"]
         .as_array()
         .map_or(0, |t| t.iter().filter(|e| e["required"] == true).count());

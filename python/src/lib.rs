@@ -1574,6 +1574,11 @@ fn rgb_target<'py, R: Real + Element>(
     dims.check("rgb", &r.shape, &[A::N("N"), A::K(3)])?;
     let tg = input::<f32>(target, "target", "float32")?;
     dims.check("target", &tg.shape, &[A::N("N"), A::K(3)])?;
+    if dims.get("N") == 0 {
+        return Err(value_error(
+            "rgb: no pixels (the loss is a mean over pixels)",
+        ));
+    }
     check_finite_f32("target", tg.slice(), 3)?;
     Ok((r, tg))
 }

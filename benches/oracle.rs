@@ -258,4 +258,17 @@ fn main() {
         }
         println!("{row}");
     }
+    common::emit_json(serde_json::json!({
+        "pixels": pixels, "rounds": rounds, "threads": rayon::current_num_threads(),
+        "kink_pixels": kink_pixels,
+        "modes": modes.iter().map(|m| m.label).collect::<Vec<_>>(),
+        "wall_ms": med.iter().map(|(w, _)| w * 1e3).collect::<Vec<_>>(),
+        "cpu_ms": med.iter().map(|(_, c)| c * 1e3).collect::<Vec<_>>(),
+        "over_f64": med.iter().map(|(w, _)| w / med[1].0).collect::<Vec<_>>(),
+        "families": FAMILIES.iter().enumerate().map(|(f, (label, _))| serde_json::json!({
+            "family": label,
+            "max_abs_over_peak": errors.iter().map(|e| e[f].0).collect::<Vec<_>>(),
+            "max_abs": errors.iter().map(|e| e[f].1).collect::<Vec<_>>(),
+        })).collect::<Vec<_>>(),
+    }));
 }

@@ -18,6 +18,7 @@ pub mod dump;
 pub mod eval;
 pub mod init;
 pub mod mesh_distance;
+pub mod out_dir;
 pub mod render;
 pub mod synth;
 pub mod train;
@@ -151,7 +152,43 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
             .num_threads(n)
             .build_global()?;
     }
-    match cli.command {
+    // A failed command leaves no empty output folder behind (`out_dir.rs`).
+    let (created, no_work) = output_folder(&cli.command);
+    let created = created.map(|d| out_dir::Created::before(&d));
+    let result = dispatch(cli.command);
+    if let Some(c) = created {
+        if !matches!(&result, Ok(code) if *code == ExitCode::SUCCESS) {
+            c.clean_up(no_work);
+        }
+    }
+    result
+}
+
+/// Files a command writes before its first result, removed with its folder when it fails.
+type NoWork = &'static dyn Fn(&std::path::Path) -> Vec<std::path::PathBuf>;
+
+/// The folder a command writes its results into (for a file, the folder that holds it).
+fn output_folder(c: &Command) -> (Option<std::path::PathBuf>, NoWork) {
+    let none: NoWork = &|_| Vec::new();
+    let parent = |p: &std::path::Path| p.parent().map(|d| d.to_path_buf());
+    match c {
+        Command::Train(a) => (Some(a.out.clone()), none),
+        Command::Synth(a) => (Some(a.out.clone()), none),
+        Command::Render(a) => (Some(a.out.clone()), none),
+        Command::Ablate(a) => (Some(a.out.clone()), none),
+        Command::BenchGeometry(a) => (Some(a.out.clone()), none),
+        Command::BenchQuality(a) if !a.replot => (a.out.clone(), &out_dir::bench_quality_no_work),
+        Command::Eval(a) => (a.out.clone(), none),
+        Command::Init(a) => (parent(&a.out), none),
+        Command::Decimate(a) => (parent(&a.out), none),
+        Command::Subdivide(a) => (parent(&a.out), none),
+        Command::AlignMesh(a) => (parent(&a.out), none),
+        _ => (None, none),
+    }
+}
+
+fn dispatch(command: Command) -> anyhow::Result<ExitCode> {
+    match command {
         Command::Synth(a) => synth::run(a),
         Command::Cast(a) => cast::run(a),
         Command::Init(a) => init::run(a),

@@ -33,7 +33,7 @@ use xscale::model::config::PositionMode;
 use xscale::model::kink::DEFAULT_THRESHOLD;
 use xscale::model::Batch;
 
-/// Tensor families (as in docs/oracle.md section 8): (label, name prefixes).
+/// Tensor families (as `fixtures/golden/golden_tool.py` groups the agreement tables): (label, name prefixes).
 const FAMILIES: &[(&str, &[&str])] = &[
     ("fwd.grid_h / fwd.grid_d", &["fwd.grid_h", "fwd.grid_d"]),
     (
@@ -258,4 +258,17 @@ fn main() {
         }
         println!("{row}");
     }
+    common::emit_json(serde_json::json!({
+        "pixels": pixels, "rounds": rounds, "threads": rayon::current_num_threads(),
+        "kink_pixels": kink_pixels,
+        "modes": modes.iter().map(|m| m.label).collect::<Vec<_>>(),
+        "wall_ms": med.iter().map(|(w, _)| w * 1e3).collect::<Vec<_>>(),
+        "cpu_ms": med.iter().map(|(_, c)| c * 1e3).collect::<Vec<_>>(),
+        "over_f64": med.iter().map(|(w, _)| w / med[1].0).collect::<Vec<_>>(),
+        "families": FAMILIES.iter().enumerate().map(|(f, (label, _))| serde_json::json!({
+            "family": label,
+            "max_abs_over_peak": errors.iter().map(|e| e[f].0).collect::<Vec<_>>(),
+            "max_abs": errors.iter().map(|e| e[f].1).collect::<Vec<_>>(),
+        })).collect::<Vec<_>>(),
+    }));
 }

@@ -19,7 +19,7 @@
 //! Run: `cargo bench --bench skips` (`XSCALE_BENCH_STEPS`, `XSCALE_BENCH_ROUNDS`).
 
 mod common;
-use common::{env_count, small_scene as scene};
+use common::{emit_json, env_count, small_scene as scene};
 use std::time::Instant;
 use xscale::model::config::LevelWeight;
 use xscale::model::params::Grads;
@@ -181,4 +181,14 @@ fn main() {
             v.state.cfg.model.grid_h.levels
         );
     }
+    emit_json(serde_json::json!({
+        "rounds": rounds, "steps": steps, "batch": 4096, "threads": 2,
+        "rows": vs.iter().map(|v| serde_json::json!({
+            "configuration": v.name,
+            "ms_per_step": 1e3 * v.best / steps as f64,
+            "vs_default": v.best / base,
+            "sub_samples": v.samples,
+            "levels": v.state.cfg.model.grid_h.levels,
+        })).collect::<Vec<_>>(),
+    }));
 }

@@ -18,7 +18,7 @@
 //! times it uncompiled.
 
 mod common;
-use common::{env, env_count, small_scene};
+use common::{emit_json, env, env_count, small_scene};
 use std::process::Command;
 use std::time::Instant;
 use xscale::model::params::Grads;
@@ -47,6 +47,9 @@ fn main() {
         .output();
     if !probe.is_ok_and(|o| o.status.success()) {
         eprintln!("skipped: python3 with torch, numpy and safetensors is needed (pip install torch numpy safetensors)");
+        emit_json(serde_json::json!({
+            "skipped": "python3 with torch, numpy and safetensors is not installed (pip install torch numpy safetensors)"
+        }));
         return;
     }
     let out = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("target/bench-peer");
@@ -151,4 +154,11 @@ fn main() {
         batch_px as f64 / b * 1e3
     );
     println!("  PyTorch / xscale: {q:.1}x (median of the per-round ratios)");
+    emit_json(serde_json::json!({
+        "batch": batch_px, "threads": threads, "rounds": rounds, "steps": steps,
+        "xscale_ms": a, "torch_ms": b, "ratio": q,
+        "ratio_min": ratios.iter().cloned().fold(f64::INFINITY, f64::min),
+        "ratio_max": ratios.iter().cloned().fold(0.0, f64::max),
+        "compiled": !eager,
+    }));
 }

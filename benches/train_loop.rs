@@ -14,7 +14,7 @@
 //! default `auto`, which takes the sample cache on `small`).
 
 mod common;
-use common::{env_count, small_scene as scene};
+use common::{emit_json, env_count, small_scene as scene};
 use std::time::Instant;
 use xscale::model::params::Grads;
 use xscale::train::config::RunConfig;
@@ -151,4 +151,19 @@ fn main() {
         "2 threads / 1 thread: {:.2}x",
         best[0].total / best[1].total
     );
+    let ms = |x: f64| 1e3 * x / steps as f64;
+    emit_json(serde_json::json!({
+        "batch": batch, "rounds": rounds, "steps": steps,
+        "levels": cfg.model.grid_h.levels,
+        "rows": pools.iter().enumerate().map(|(pi, (threads, _))| {
+            let p = best[pi];
+            serde_json::json!({
+                "threads": threads,
+                "pixels_per_s": (steps as usize * batch) as f64 / p.total,
+                "ms_per_step": ms(p.total), "batch_ms": ms(p.batch), "forward_ms": ms(p.forward),
+                "backward_ms": ms(p.backward), "adam_ms": ms(p.adam), "zero_ms": ms(p.zero),
+            })
+        }).collect::<Vec<_>>(),
+        "two_over_one": best[0].total / best[1].total,
+    }));
 }

@@ -77,8 +77,8 @@ const FILL_CHUNK: usize = 1 << 16;
 
 /// `vec![value; n]` on huge pages, written in parallel pieces: a fresh page is faulted in (and
 /// zeroed by the kernel) on the thread that first writes it, so all threads share that cost
-/// (the 240 MB Adam state of `small`: a 5-step `xscale train` 0.86–0.93× the wall time, medians
-/// of three `farm-bench` calls; the faults of fresh huge pages are slow on virtual machines).
+/// (the Adam state of `small`: a short `xscale train` took less wall time, in alternating A/B
+/// runs; the faults of fresh huge pages are slow on virtual machines; docs/changelog.md).
 pub fn filled<T: Copy + Send + Sync>(n: usize, value: T) -> Vec<T> {
     built(n, |_, piece| {
         for x in piece {

@@ -43,3 +43,15 @@ pub fn small_scene() -> PathBuf {
     }
     dir
 }
+
+/// When `XSCALE_BENCH_JSON` names a file, write `value` (the bench's results, validated before they
+/// were timed) there as JSON: `cargo run --release --example results` reads it into
+/// `docs/results/<section>.json`. Without the variable nothing is written.
+pub fn emit_json(value: serde_json::Value) {
+    if let Ok(path) = std::env::var("XSCALE_BENCH_JSON") {
+        if !path.trim().is_empty() {
+            std::fs::write(&path, serde_json::to_string_pretty(&value).unwrap())
+                .unwrap_or_else(|e| panic!("XSCALE_BENCH_JSON={path}: {e}"));
+        }
+    }
+}

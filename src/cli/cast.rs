@@ -32,13 +32,18 @@ pub enum Bvh {
 
 #[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Normalize {
+    /// Each axis of the bounding box on its own (the default, as the official code; `per-axis`
+    /// is accepted too).
+    #[value(name = "peraxis", alias = "per-axis")]
     PerAxis,
+    /// The largest axis for all three.
     Isotropic,
 }
 
 #[derive(clap::Args, Debug)]
 pub struct Args {
-    /// Scene directory (COLMAP, MVSNet or transforms.json layout, plus a mesh).
+    /// Scene directory (COLMAP, MVSNet, transforms.json or Metashape cameras.xml layout, plus a
+    /// mesh).
     #[arg(long)]
     pub scene: PathBuf,
     /// Multisampling factor γ: γ×γ rays per pixel (1..=4).

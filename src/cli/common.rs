@@ -12,7 +12,8 @@ use std::path::{Path, PathBuf};
 /// fields (`--steps`, `--batch`, `--seed`) on top.
 #[derive(clap::Args, Debug)]
 pub struct RunArgs {
-    /// Preset (SPEC §9) [default: cpu].
+    /// Preset: tiny (CI and tests), cpu (small scenes on a CPU) or paper (the official code's
+    /// grid) [default: cpu].
     #[arg(long, value_parser = ["tiny", "cpu", "paper"])]
     pub preset: Option<String>,
     /// TOML file overriding any field of the preset (`[model]`, `[train]` tables).

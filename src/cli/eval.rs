@@ -32,7 +32,7 @@ pub struct Args {
     #[arg(long, value_parser = super::common::parse_background)]
     pub background: Option<[f32; 3]>,
     /// What renders the views: the trained model, or `ulr` (unstructured lumigraph rendering of
-    /// the training photos on the mesh: a no-learning baseline, `src/render/ulr.rs`; it needs
+    /// the training photos on the mesh: a no-learning baseline: the 4 best photos by angle and footprint blended; it needs
     /// no model: `--scene DIR` alone, or a run for its scene, split and mesh).
     #[arg(long, value_enum, default_value = "model")]
     pub method: Method,

@@ -12,7 +12,8 @@ pub struct Args {
     /// appearance codes).
     #[arg(long)]
     pub scene: PathBuf,
-    /// Preset (docs/spec.md §9) [default: cpu]; must agree with a `preset` the --config file gives.
+    /// Preset: tiny, cpu or paper [default: cpu]; must agree with a `preset` the --config file
+    /// gives.
     #[arg(long, value_parser = ["tiny", "cpu", "paper"])]
     pub preset: Option<String>,
     /// TOML overrides (as `xscale train --config`).

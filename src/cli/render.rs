@@ -38,7 +38,7 @@ pub struct Args {
     #[arg(long, default_value_t = 30, value_parser = super::common::parse_positive)]
     pub frames: usize,
     /// What renders: the trained model, or `ulr` (the no-learning baseline: unstructured lumigraph
-    /// rendering of the training photos on the mesh, `src/render/ulr.rs`; it needs no model:
+    /// rendering of the training photos on the mesh, the 4 best by angle and footprint; it needs no model:
     /// `--scene DIR` alone, or a run for its scene, split, mesh and γ).
     #[arg(long, value_enum, default_value = "model")]
     pub method: Method,

@@ -21,7 +21,8 @@ pub struct Args {
     #[arg(long)]
     pub out: PathBuf,
     /// Write into a folder holding another scene or other files: what synth writes there
-    /// (images/, sparse/, mesh.ply, …, see `SYNTH_FILES`) is removed first; nothing else is.
+    /// (synth.toml, scene.toml, mesh.ply, mesh.obj, truth.ply, images/, images_1/, cams_1/,
+    /// sparse/, transforms.json) is removed first; nothing else is.
     #[arg(long)]
     pub overwrite: bool,
     /// Also write the fine true surface as `truth.ply` (large).

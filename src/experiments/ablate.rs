@@ -21,7 +21,8 @@
 //!   of the training photos on the scene mesh (`render/ulr.rs`), zero training time.
 //!
 //! Every variant but `ulr` trains `steps` steps with the same seed and batch size, then is scored on every
-//! held-out view (SPEC §7: masked = hit pixels only; full = misses painted white in both). The
+//! held-out view (SPEC §7: masked = the pixels whose rays hit the mesh; full = every pixel, the render
+//! against the photo as it is). The
 //! table goes to `OUT/ablation.md`, the numbers to `OUT/ablation.json`. `minutes` (when no step
 //! count is given) sets the step count from a 20-step timing probe of the full model so that
 //! the full model trains for about that long; every variant then uses that same step count.
@@ -933,7 +934,7 @@ pub fn markdown(rep: &AblationReport) -> String {
     let _ = writeln!(s, "# Ablation: {}\n", rep.scene.display());
     let _ = writeln!(
         s,
-        "Preset `{}`, {} steps of {} pixels, seed {}, every variant the same budget; scores are means over all held-out views (SPEC §7: masked = hit pixels only; full image = misses painted white in both). Produced by `xscale ablate`.\n",
+        "Preset `{}`, {} steps of {} pixels, seed {}, every variant the same budget; scores are means over all held-out views (SPEC §7: masked = the pixels whose rays hit the mesh; full = every pixel, the render against the photo as it is, so a silhouette error of the mesh counts). Produced by `xscale ablate`.\n",
         rep.preset, rep.steps, rep.batch_pixels, rep.seed
     );
     let _ = writeln!(

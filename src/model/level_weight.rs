@@ -11,8 +11,12 @@
 //! F_H,w(x_j)[l·F + f] = w(r_l) · F_H(x_j)[l·F + f]
 //! ```
 //! `footprint` is the pixel's (SPEC §1.1, normalised units, the batch's f32 value) and applies to
-//! all its sub-samples. Since `scale_l` grows with l, `w` falls with l: a sub-sample evaluates its
-//! first `active` levels (those with `w > 0`) and the rest are neither gathered nor scattered.
+//! all its sub-samples. Each level's weight comes from its own scale alone (nothing assumes the
+//! scales grow with l). A sub-sample evaluates its first `active` levels, `active` = 1 + the last
+//! level whose f64 weight is > 0 (tested before rounding to the model's float); the rest are
+//! neither gathered nor scattered. With b > 1 the weights fall with l, so those are exactly the
+//! levels of positive weight; a level below `active` with weight 0 (b ≤ 1) is gathered and
+//! multiplied by 0. `w` is evaluated as `1 − ((t·t)·(3 − 2·t))` in f64, unfused.
 //! The weights are data (the footprint is not differentiated), so the backward pass scales the
 //! gradient of each level by the same `w`. ξ's output (Eq. 5) is not weighted.
 

@@ -20,8 +20,8 @@ pub const RENDER_CHUNK: usize = 8192;
 /// rows at a time, so a frame of any size holds at most ~11.5 MB of sub-samples (88 bytes each),
 /// which stay in the last-level cache between the cast and the shading. Results do not depend
 /// on it (every pixel is independent). 2¹⁷ rather than 2²⁰ (2026-11-27, the 1.08-MP render of
-/// docs/performance.md, `farm-bench -n 9` A/B twice): wall 0.92× and 0.95×, CPU 0.94× and
-/// 0.95×, peak 162 instead of 225 MiB, the same PNG bytes; 2¹⁵ was no faster than 2¹⁷.
+/// docs/performance.md, alternating A/B runs of the whole command, twice): faster in wall and
+/// CPU time, a lower peak, the same PNG bytes; 2¹⁵ was no faster than 2¹⁷ (docs/changelog.md).
 pub const RENDER_BAND_SAMPLES: usize = 1 << 17;
 
 /// White: the official protocol's colour for pixels whose rays all miss.

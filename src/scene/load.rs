@@ -414,6 +414,9 @@ fn read_scene_toml(path: &Path) -> Result<SceneToml> {
     toml::from_str(&text).map_err(|e| anyhow!("{}: {e}", path.display()))
 }
 
+/// What the "no cameras found" error says about photos without poses.
+pub const POSES_HINT: &str = "photos without poses get them from COLMAP (`colmap feature_extractor`, `exhaustive_matcher` and `mapper` write a sparse model that --scene can point at; the README's \"Your own data\" has the commands) or from Metashape (align the photos, then export the cameras as cameras.xml beside an images/ folder)";
+
 /// The camera layout: the option, else `scene.toml`'s `format`, else the single one detected.
 fn choose_format(
     dir: &Path,
@@ -451,7 +454,7 @@ fn choose_format(
                 (None, None) => String::new(),
             };
             bail!(
-                "{}: no cameras found (looked for transforms.json, a COLMAP model in sparse/0/, sparse/ or the dir itself, and MVSNet cams_<dsp>/*_cam.txt){hint}",
+                "{}: no cameras found (looked for the four layouts xscale reads: transforms.json (instant-ngp / nerfstudio), a COLMAP model (cameras and images, .txt or .bin) in sparse/0/, sparse/ or the folder itself, MVSNet cams_<dsp>/*_cam.txt, and Metashape's cameras.xml){hint}; {POSES_HINT}",
                 dir.display()
             )
         }

@@ -7,8 +7,9 @@ use glam::DVec3;
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum NormalizeMode {
-    /// Per-axis extent, as the official code.
+    /// Per-axis extent, as the official code. Written `peraxis`; `per-axis` is read too.
     #[default]
+    #[serde(alias = "per-axis")]
     PerAxis,
     /// The largest axis extent for all three axes.
     Isotropic,

@@ -1,0 +1,1408 @@
+//! Regenerates `docs/results.md`, the one page of measured figures the README and the docs link
+//! to. Every figure on it comes from a workload this program runs itself, with the host (CPU
+//! model, cores), the date, the commit and the exact command beside it.
+//!
+//! ```text
+//! cargo run --release --example results                      # every section (long: see --list)
+//! cargo run --release --example results -- --only small,render   # these sections again
+//! cargo run --release --example results -- --render-only     # rewrite the page from the JSON
+//! cargo run --release --example results -- --list            # the sections and what they cost
+//! ```
+//!
+//! Each section writes its rows to `docs/results/<section>.json` (machine-readable: the raw
+//! numbers, the commands, host, date, commit) and the page is rendered from all such files, so a
+//! section is rerun alone without redoing the others, and a section added by another program
+//! (any `docs/results/*.json` with the same fields) appears on the page too. Scratch runs go to
+//! `target/results/`. The workloads call the `xscale` binary built next to this example
+//! (`target/release/xscale`, rebuilt first with `cargo build --release --locked`) and the
+//! project's benches (`cargo bench --bench NAME`, which write their rows where
+//! `XSCALE_BENCH_JSON` says).
+
+use anyhow::{anyhow, bail, Context, Result};
+use serde_json::{json, Value};
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::time::Instant;
+
+/// One section: its file name, title, what it measures, and how to run it.
+struct Spec {
+    name: &'static str,
+    title: &'static str,
+    measures: &'static str,
+    cost: &'static str,
+    run: fn(&Ctx) -> Result<Section>,
+}
+
+const SECTIONS: &[Spec] = &[
+    Spec {
+        name: "tiny",
+        title: "The bundled tiny scene",
+        measures: "The README's first command, as a user runs it: 300 steps of the `tiny` preset on `fixtures/tiny` (8 views of 64×48, 2 held out), the whole command timed (setup, training, final evaluation). A smoke test of the install, not a quality benchmark.",
+        cost: "seconds",
+        run: tiny,
+    },
+    Spec {
+        name: "small",
+        title: "Training `synth --preset small` with the default `cpu` preset",
+        measures: "Quality against training steps on the project's synthetic cross-scale scene (40 views of 200×150, an aerial ring at 120 m and close-up clusters at 4 m; 6 views held out): one run of the default configuration stopped and resumed at each step count (a resumed run is bit-identical to an uninterrupted one), scored on the held-out views after each. Masked = pixels whose rays hit the mesh; full = every pixel; close-ups and aerial views split as `eval.json`'s `near_far`. The last rows are the no-learning ULR baseline on the same views and the training loop's own speed between steps 50 and 250 of the first leg.",
+        cost: "a few minutes",
+        run: small,
+    },
+    Spec {
+        name: "train_loop",
+        title: "Where a training step's time goes (`cargo bench --bench train_loop`)",
+        measures: "The whole training loop at the `cpu` preset on `small` (4,096-pixel batches from the sample cache, γ = 2, the automatic level range), setup excluded: pixels per second and milliseconds per step by phase, with 1 and 2 threads alternated in rounds (best round of each). The 2-thread / 1-thread ratio is measured in the same run.",
+        cost: "a minute or two (plus building the bench)",
+        run: train_loop,
+    },
+    Spec {
+        name: "skips",
+        title: "What each skip and switch saves (`cargo bench --bench skips`)",
+        measures: "Milliseconds per training step of the default `cpu` run on `small` with one thing changed (2 threads, 4,096-pixel batches, best of alternating rounds): level dropping, footprint level weighting, the automatic level range, deformation, multisampling, compaction of invalid sub-samples, and the sample cache against rays cast per batch.",
+        cost: "a few minutes",
+        run: skips,
+    },
+    Spec {
+        name: "torch_peer",
+        title: "Against PyTorch (`cargo bench --bench torch_peer`)",
+        measures: "One training step of the same model, checkpoint and 16,384-pixel batch on 2 threads in xscale and in a PyTorch peer (`reference/bench_torch.py`, compiled with `torch.compile`), timed in alternating rounds after the peer reproduced xscale's loss. Needs `pip install torch numpy safetensors`; without them the section says it was skipped.",
+        cost: "a few minutes when torch is installed",
+        run: torch_peer,
+    },
+    Spec {
+        name: "oracle",
+        title: "The oracle's dump: time against error (`cargo bench --bench oracle`)",
+        measures: "Every precision mode of `xscale dump` on one workload (the golden `cpu-t10` checkpoint on a seeded batch of 4,096 pixels × 4 sub-samples, in memory), timed in alternating rounds (median), with each tensor family's error against the f64 dump: the largest `max abs / peak` of the family (what the tolerance files limit). The f32 dumps pass `tolerances-f32.toml` before they are timed.",
+        cost: "about a minute",
+        run: oracle,
+    },
+    Spec {
+        name: "python",
+        title: "The oracle from Python (`python/bench/bench_ops.py`)",
+        measures: "What calling the oracle from Python costs, on the golden `cpu-t10` checkpoint and a seeded batch of 4,096 pixels × 4 sub-samples (10 % invalid), f32 and f64: every op of a whole step composed from the package's ops (`xscale.step_from_ops`) timed per call, split into the Rust computation and the binding's overhead (argument checks, array conversion, the GIL); their sum against the composed step; and the whole step in one call (`Model.step`) against the `xscale dump` command's round trip (the process, its files, loading the dump back), in alternating rounds (median). Before timing it checks that the composed step equals `Model.step` bit for bit and that the command's dump equals it tensor for tensor. Needs the package (`pip install ./python`) for `python3` or `XSCALE_PYTHON`; without it the section says it was skipped.",
+        cost: "under a minute (the package built)",
+        run: python,
+    },
+    Spec {
+        name: "render",
+        title: "Rendering a 1.08-megapixel frame",
+        measures: "`xscale render --scale 6` of one held-out `small` view (1200×900, γ = 2) from the `small` section's checkpoint: the whole command (mapping the checkpoint, casting, shading, writing the PNG), median of 5 runs, and its peak memory.",
+        cost: "under a minute",
+        run: render,
+    },
+    Spec {
+        name: "bench_quality",
+        title: "Run time against error (`xscale bench-quality`)",
+        measures: "Every configuration of `xscale bench-quality --list` trained for the same wall-clock budget on `small` and scored on the held-out views at the budget and at its halvings (evaluation time not counted). One seed per configuration: differences of a few tenths of a dB are within what two runs of one configuration differ by.",
+        cost: "about 15 minutes",
+        run: bench_quality,
+    },
+    Spec {
+        name: "ablation",
+        title: "Ablations and the vertex-feature baseline (`xscale ablate`)",
+        measures: "The paper's Table 4 and 5 ablations and the Fig. 2b vertex-feature baseline on `small`, every variant with the same step budget and seed, scored on the held-out views, with the claims `xscale ablate` checks on the measured numbers.",
+        cost: "about 10 minutes",
+        run: ablation,
+    },
+    Spec {
+        name: "cross",
+        title: "Cross-scale reach on `synth --preset cross`",
+        measures: "Held-out close-ups and aerial views of `synth --preset cross` (56 views of 200×150: aerial at 120 m, close-ups at 4 m, texture tied to the close-ups' pixels) after the default number of steps of the `cpu` preset, with its automatic level range and footprint level weighting, against the preset's fixed range, against no level weighting, and against the no-learning ULR baseline.",
+        cost: "about 10 minutes",
+        run: cross,
+    },
+];
+
+/// What a section's run gives; the runner adds name, title, host, date, commit and duration.
+#[derive(Default)]
+struct Section {
+    commands: Vec<String>,
+    tables: Vec<Value>,
+    notes: Vec<String>,
+    images: Vec<(String, String)>,
+}
+
+struct Ctx {
+    root: PathBuf,
+    work: PathBuf,
+    bin: PathBuf,
+    docs: PathBuf,
+}
+
+/// A finished child process: exit status, output, wall time, peak resident memory.
+struct Ran {
+    ok: bool,
+    stderr: String,
+    wall_s: f64,
+    peak_mb: Option<f64>,
+}
+
+impl Ctx {
+    /// `xscale ARGS` from the repository root; an error (with its stderr) unless it exits 0.
+    fn xscale(&self, args: &[&str]) -> Result<Ran> {
+        let r = run_measured(Command::new(&self.bin).args(args).current_dir(&self.root))?;
+        if !r.ok {
+            bail!("xscale {}: failed:\n{}", args.join(" "), tail(&r.stderr));
+        }
+        Ok(r)
+    }
+
+    /// `cargo bench --bench NAME`, its rows from `XSCALE_BENCH_JSON`.
+    fn bench(&self, name: &str, env: &[(&str, &str)]) -> Result<Value> {
+        let json = self.work.join(format!("bench-{name}.json"));
+        let _ = std::fs::remove_file(&json);
+        let mut c = Command::new("cargo");
+        c.args(["bench", "--locked", "--bench", name])
+            .current_dir(&self.root)
+            .env("XSCALE_BENCH_JSON", &json);
+        for (k, v) in env {
+            c.env(k, v);
+        }
+        let r = run_measured(&mut c)?;
+        if !r.ok {
+            bail!("cargo bench --bench {name}: failed:\n{}", tail(&r.stderr));
+        }
+        let text = std::fs::read_to_string(&json)
+            .with_context(|| format!("cargo bench --bench {name} wrote no {}", json.display()))?;
+        Ok(serde_json::from_str(&text)?)
+    }
+
+    /// A scratch path under `target/results/`, relative to the repository root when it can be
+    /// (so the commands on the page read as a user would type them).
+    fn w(&self, name: &str) -> String {
+        let p = self.work.join(name);
+        p.strip_prefix(&self.root)
+            .map(|r| r.display().to_string())
+            .unwrap_or_else(|_| p.display().to_string())
+    }
+}
+
+fn tail(s: &str) -> String {
+    let lines: Vec<&str> = s.lines().collect();
+    lines[lines.len().saturating_sub(15)..].join("\n")
+}
+
+/// Spawn, wait, and measure wall time and (Linux) the child's own peak resident set.
+fn run_measured(c: &mut Command) -> Result<Ran> {
+    use std::io::Read;
+    let t0 = Instant::now();
+    let mut child = c
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .with_context(|| format!("cannot start {c:?}"))?;
+    let (mut out, mut err) = (child.stdout.take().unwrap(), child.stderr.take().unwrap());
+    let t_err = std::thread::spawn(move || {
+        let mut s = String::new();
+        let _ = err.read_to_string(&mut s);
+        s
+    });
+    // Drained so a chatty child never blocks on a full pipe; the sections read files.
+    let _ = std::io::copy(&mut out, &mut std::io::sink());
+    let stderr = t_err.join().unwrap_or_default();
+    let (ok, peak_mb) = wait_rusage(&mut child)?;
+    Ok(Ran {
+        ok,
+        stderr,
+        wall_s: t0.elapsed().as_secs_f64(),
+        peak_mb,
+    })
+}
+
+#[cfg(target_os = "linux")]
+fn wait_rusage(child: &mut std::process::Child) -> Result<(bool, Option<f64>)> {
+    let mut status = 0i32;
+    // SAFETY: a zeroed rusage is a valid value of the plain C struct wait4 fills in.
+    let mut ru: libc::rusage = unsafe { std::mem::zeroed() };
+    // SAFETY: the pid is our own unreaped child; status and ru are valid for writes.
+    let pid = unsafe { libc::wait4(child.id() as i32, &mut status, 0, &mut ru) };
+    if pid < 0 {
+        bail!("wait4: {}", std::io::Error::last_os_error());
+    }
+    let ok = libc::WIFEXITED(status) && libc::WEXITSTATUS(status) == 0;
+    // ru_maxrss is in KiB on Linux.
+    Ok((ok, Some(ru.ru_maxrss as f64 / 1024.0)))
+}
+
+#[cfg(not(target_os = "linux"))]
+fn wait_rusage(child: &mut std::process::Child) -> Result<(bool, Option<f64>)> {
+    Ok((child.wait()?.success(), None))
+}
+
+// ---------------------------------------------------------------- tables
+
+/// A table: caption, column names, and rows of raw values; `digits[c]` decimals for column c's
+/// numbers on the page (the JSON keeps them whole).
+fn table(caption: &str, columns: &[&str], digits: &[usize], rows: Vec<Vec<Value>>) -> Value {
+    json!({"caption": caption, "columns": columns, "digits": digits, "rows": rows})
+}
+
+fn read_json(p: &Path) -> Result<Value> {
+    let t = std::fs::read_to_string(p).with_context(|| format!("{}: cannot read", p.display()))?;
+    serde_json::from_str(&t).with_context(|| format!("{}: not JSON", p.display()))
+}
+
+/// Mean masked / full scores and the close-up / aerial split of an `eval.json`.
+fn scores(e: &Value) -> (Value, Value, Value, Value, Value) {
+    let m = &e["mean"];
+    let nf = &e["by_scale"]["near_far"];
+    (
+        m["psnr_masked"].clone(),
+        m["ssim_masked"].clone(),
+        m["psnr"].clone(),
+        nf[1]["mean"]["psnr_masked"].clone(),
+        nf[2]["mean"]["psnr_masked"].clone(),
+    )
+}
+
+/// `metrics.jsonl` lines.
+fn metrics(run: &Path) -> Result<Vec<Value>> {
+    let p = run.join("metrics.jsonl");
+    let t = std::fs::read_to_string(&p).with_context(|| format!("{}", p.display()))?;
+    Ok(t.lines()
+        .filter_map(|l| serde_json::from_str(l).ok())
+        .collect())
+}
+
+/// The training time a run's `metrics.jsonl` records at its last checkpoint line.
+fn trained_s(run: &Path) -> Result<f64> {
+    metrics(run)?
+        .iter()
+        .rev()
+        .find(|m| m["checkpoint"].as_bool() == Some(true))
+        .and_then(|m| m["elapsed_s"].as_f64())
+        .ok_or_else(|| anyhow!("{}: no checkpoint line in metrics.jsonl", run.display()))
+}
+
+fn peak_mb(run: &Path) -> Option<f64> {
+    metrics(run)
+        .ok()?
+        .iter()
+        .rev()
+        .find_map(|m| m["peak_rss_bytes"].as_f64().map(|b| b / (1024.0 * 1024.0)))
+}
+
+/// grid-H levels and the finest resolution of a run's `config.toml`.
+fn levels(run: &Path) -> Result<(i64, Option<f64>)> {
+    let t = std::fs::read_to_string(run.join("config.toml"))?;
+    let v: toml::Value = toml::from_str(&t)?;
+    let g = &v["model"]["grid_h"];
+    Ok((
+        g["levels"].as_integer().unwrap_or(0),
+        g.get("finest_resolution").and_then(|x| x.as_float()),
+    ))
+}
+
+// ---------------------------------------------------------------- sections
+
+fn tiny(c: &Ctx) -> Result<Section> {
+    let out = c.w("tiny");
+    let _ = std::fs::remove_dir_all(c.root.join(&out));
+    let args = [
+        "train",
+        "--scene",
+        "fixtures/tiny",
+        "--out",
+        &out,
+        "--preset",
+        "tiny",
+    ];
+    let r = c.xscale(&args)?;
+    let run = c.root.join(&out);
+    let e = read_json(&run.join("eval.json"))?;
+    let (pm, sm, pf, _, _) = scores(&e);
+    Ok(Section {
+        commands: vec![format!("xscale {}", args.join(" "))],
+        tables: vec![table(
+            "",
+            &[
+                "steps",
+                "whole command (s)",
+                "training (s)",
+                "held-out masked PSNR (dB)",
+                "masked SSIM",
+                "full PSNR (dB)",
+                "peak memory (MB)",
+            ],
+            &[0, 2, 2, 2, 3, 2, 0],
+            vec![vec![
+                e["step"].clone(),
+                json!(r.wall_s),
+                json!(trained_s(&run)?),
+                pm,
+                sm,
+                pf,
+                json!(r.peak_mb),
+            ]],
+        )],
+        ..Section::default()
+    })
+}
+
+const SMALL_STEPS: [u64; 4] = [250, 500, 1000, 2000];
+
+/// `synth --preset small --seed 1` into `target/results/small` (the same bytes every time).
+fn small_scene(c: &Ctx, cmds: &mut Vec<String>) -> Result<(String, f64)> {
+    let dir = c.w("small");
+    let args = ["synth", "--preset", "small", "--seed", "1", "--out", &dir];
+    let r = c.xscale(&args)?;
+    cmds.push(format!("xscale {}", args.join(" ")));
+    Ok((dir, r.wall_s))
+}
+
+fn small(c: &Ctx) -> Result<Section> {
+    let mut s = Section::default();
+    let (scene, synth_s) = small_scene(c, &mut s.commands)?;
+    let out = c.w("small-run");
+    let run = c.root.join(&out);
+    let _ = std::fs::remove_dir_all(&run);
+    let mut rows = Vec::new();
+    for (i, steps) in SMALL_STEPS.iter().enumerate() {
+        let st = steps.to_string();
+        let args: Vec<&str> = if i == 0 {
+            vec![
+                "train", "--scene", &scene, "--out", &out, "--steps", &st, "-q",
+            ]
+        } else {
+            vec!["train", "--out", &out, "--resume", "--steps", &st, "-q"]
+        };
+        c.xscale(&args)?;
+        s.commands.push(format!("xscale {}", args.join(" ")));
+        let e = read_json(&run.join("eval.json"))?;
+        let (pm, sm, pf, near, far) = scores(&e);
+        rows.push(vec![
+            json!(steps),
+            json!(trained_s(&run)?),
+            pm,
+            sm,
+            pf,
+            near,
+            far,
+            json!(peak_mb(&run)),
+        ]);
+    }
+    let (lv, finest) = levels(&run)?;
+    // The loop's own speed between steps 50 and 250 (the first leg; logs every 25 steps).
+    let m = metrics(&run)?;
+    let at = |k: u64| {
+        m.iter()
+            .find(|x| x["step"].as_u64() == Some(k) && x["loss"].is_number())
+            .and_then(|x| x["elapsed_s"].as_f64())
+    };
+    let loop_ms = match (at(50), at(250)) {
+        (Some(a), Some(b)) => Some(1e3 * (b - a) / 200.0),
+        _ => None,
+    };
+    // The no-learning baseline on the same held-out views.
+    let ulr = c.w("small-ulr.json");
+    let args = [
+        "eval", "--scene", &scene, "--method", "ulr", "--json", &ulr, "-q",
+    ];
+    c.xscale(&args)?;
+    s.commands.push(format!("xscale {}", args.join(" ")));
+    let e = read_json(&c.root.join(&ulr))?;
+    let (pm, sm, pf, near, far) = scores(&e);
+    rows.push(vec![
+        json!("ULR (no training)"),
+        json!(0.0),
+        pm,
+        sm,
+        pf,
+        near,
+        far,
+        Value::Null,
+    ]);
+    s.tables.push(table(
+        "",
+        &[
+            "steps",
+            "training (s)",
+            "masked PSNR (dB)",
+            "masked SSIM",
+            "full PSNR (dB)",
+            "close-ups (dB)",
+            "aerial (dB)",
+            "peak memory (MB)",
+        ],
+        &[0, 1, 2, 3, 2, 2, 2, 0],
+        rows,
+    ));
+    s.tables.push(table(
+        "The run",
+        &[
+            "grid-H levels (automatic range)",
+            "finest resolution (cells)",
+            "loop ms per step (steps 50–250)",
+            "loop pixels/s",
+            "synth (s)",
+        ],
+        &[0, 0, 1, 0, 1],
+        vec![vec![
+            json!(lv),
+            json!(finest),
+            json!(loop_ms),
+            json!(loop_ms.map(|ms| 4096.0 / ms * 1e3)),
+            json!(synth_s),
+        ]],
+    ));
+    Ok(s)
+}
+
+/// A bench's `rows`, each as the values of `keys` in that order.
+fn columns(v: &Value, bench: &str, keys: &[&str]) -> Result<Vec<Vec<Value>>> {
+    Ok(v["rows"]
+        .as_array()
+        .ok_or_else(|| anyhow!("{bench}: no rows"))?
+        .iter()
+        .map(|r| keys.iter().map(|k| r[*k].clone()).collect())
+        .collect())
+}
+
+fn train_loop(c: &Ctx) -> Result<Section> {
+    let v = c.bench("train_loop", &[])?;
+    let rows = columns(
+        &v,
+        "train_loop",
+        &[
+            "threads",
+            "pixels_per_s",
+            "ms_per_step",
+            "batch_ms",
+            "forward_ms",
+            "backward_ms",
+            "adam_ms",
+        ],
+    )?;
+    Ok(Section {
+        commands: vec!["cargo bench --bench train_loop".into()],
+        tables: vec![
+            table(
+                &format!(
+                    "batch {} pixels, {} grid-H levels, best of {} rounds of {} steps",
+                    v["batch"], v["levels"], v["rounds"], v["steps"]
+                ),
+                &[
+                    "threads",
+                    "pixels/s",
+                    "ms/step",
+                    "batch (ms)",
+                    "forward (ms)",
+                    "backward (ms)",
+                    "Adam (ms)",
+                ],
+                &[0, 0, 2, 2, 2, 2, 2],
+                rows,
+            ),
+            table(
+                "",
+                &["2 threads against 1 (×)"],
+                &[2],
+                vec![vec![v["two_over_one"].clone()]],
+            ),
+        ],
+        ..Section::default()
+    })
+}
+
+fn skips(c: &Ctx) -> Result<Section> {
+    let v = c.bench("skips", &[])?;
+    let rows = columns(
+        &v,
+        "skips",
+        &[
+            "configuration",
+            "ms_per_step",
+            "vs_default",
+            "sub_samples",
+            "levels",
+        ],
+    )?;
+    Ok(Section {
+        commands: vec!["cargo bench --bench skips".into()],
+        tables: vec![table(
+            &format!(
+                "best of {} rounds of {} steps; each line the default with one change",
+                v["rounds"], v["steps"]
+            ),
+            &[
+                "configuration",
+                "ms/step",
+                "time against the default (×)",
+                "sub-samples per step",
+                "grid-H levels",
+            ],
+            &[0, 2, 2, 0, 0],
+            rows,
+        )],
+        ..Section::default()
+    })
+}
+
+fn torch_peer(c: &Ctx) -> Result<Section> {
+    let v = c.bench("torch_peer", &[])?;
+    let mut s = Section {
+        commands: vec!["cargo bench --bench torch_peer".into()],
+        ..Section::default()
+    };
+    if let Some(why) = v["skipped"].as_str() {
+        s.notes.push(format!("Not measured on this host: {why}."));
+        return Ok(s);
+    }
+    s.tables.push(table(
+        &format!(
+            "{} pixels, {} threads, median of {} alternating rounds of {} steps",
+            v["batch"], v["threads"], v["rounds"], v["steps"]
+        ),
+        &[
+            "xscale (ms/step)",
+            "PyTorch (ms/step)",
+            "PyTorch / xscale (×)",
+            "lowest round (×)",
+            "highest round (×)",
+        ],
+        &[1, 1, 2, 2, 2],
+        vec![vec![
+            v["xscale_ms"].clone(),
+            v["torch_ms"].clone(),
+            v["ratio"].clone(),
+            v["ratio_min"].clone(),
+            v["ratio_max"].clone(),
+        ]],
+    ));
+    Ok(s)
+}
+
+fn oracle(c: &Ctx) -> Result<Section> {
+    let v = c.bench("oracle", &[])?;
+    let modes: Vec<String> = v["modes"]
+        .as_array()
+        .ok_or_else(|| anyhow!("oracle: no modes"))?
+        .iter()
+        .map(|m| m.as_str().unwrap_or("?").to_string())
+        .collect();
+    let mut cols = vec!["".to_string()];
+    cols.extend(modes.iter().cloned());
+    let cols: Vec<&str> = cols.iter().map(String::as_str).collect();
+    let row = |label: &str, key: &str| {
+        let mut r = vec![json!(label)];
+        r.extend(v[key].as_array().cloned().unwrap_or_default());
+        r
+    };
+    let mut err_rows = Vec::new();
+    for f in v["families"].as_array().into_iter().flatten() {
+        let mut r = vec![f["family"].clone()];
+        for e in f["max_abs_over_peak"].as_array().into_iter().flatten() {
+            r.push(json!(match e.as_f64() {
+                Some(0.0) => "0".to_string(),
+                Some(x) => format!("{x:.2e}"),
+                None => "—".to_string(),
+            }));
+        }
+        err_rows.push(r);
+    }
+    let mut digits = vec![0];
+    digits.extend(std::iter::repeat_n(1, modes.len()));
+    let mut d2 = vec![0];
+    d2.extend(std::iter::repeat_n(2, modes.len()));
+    Ok(Section {
+        commands: vec!["cargo bench --bench oracle".into()],
+        tables: vec![
+            table(
+                &format!(
+                    "{} pixels, {} threads, median of {} rounds; {} kink pixels",
+                    v["pixels"], v["threads"], v["rounds"], v["kink_pixels"]
+                ),
+                &cols,
+                &digits,
+                vec![
+                    row("time per dump (ms)", "wall_ms"),
+                    row("CPU time per dump (ms)", "cpu_ms"),
+                ],
+            ),
+            table(
+                "",
+                &cols,
+                &d2,
+                vec![row("time against the f64 dump (×)", "over_f64")],
+            ),
+            table(
+                "Error against the f64 dump (max abs / peak)",
+                &cols,
+                &digits,
+                err_rows,
+            ),
+        ],
+        ..Section::default()
+    })
+}
+
+/// The Python package's call overhead (`python/bench/bench_ops.py --json`).
+fn python(c: &Ctx) -> Result<Section> {
+    let py = std::env::var("XSCALE_PYTHON").unwrap_or_else(|_| "python3".into());
+    let cmd = format!("{py} python/bench/bench_ops.py --rounds 7");
+    let mut s = Section {
+        commands: vec![cmd],
+        ..Section::default()
+    };
+    let probe = Command::new(&py)
+        .args(["-c", "import xscale"])
+        .current_dir(&c.root)
+        .output();
+    if !probe.is_ok_and(|o| o.status.success()) {
+        s.notes.push(format!(
+            "Not measured on this host: `{py}` cannot import the package (`pip install ./python`; \
+             XSCALE_PYTHON names another interpreter)."
+        ));
+        return Ok(s);
+    }
+    let json = c.work.join("python.json");
+    let bin = c.bin.display().to_string();
+    let r = run_measured(
+        Command::new(&py)
+            .args([
+                "python/bench/bench_ops.py",
+                "--rounds",
+                "7",
+                "--xscale",
+                &bin,
+                "--json",
+            ])
+            .arg(&json)
+            .current_dir(&c.root),
+    )?;
+    if !r.ok {
+        bail!("python/bench/bench_ops.py: failed:\n{}", tail(&r.stderr));
+    }
+    let v = read_json(&json)?;
+    let mut rows = Vec::new();
+    for (name, o) in v["ops"].as_object().into_iter().flatten() {
+        let mut row = vec![json!(name), o["f64"]["calls_per_step"].clone()];
+        for p in ["f32", "f64"] {
+            row.push(o[p]["wall_us"].clone());
+            row.push(o[p]["rust_us"].clone());
+            row.push(o[p]["overhead_us"].clone());
+        }
+        rows.push(row);
+    }
+    s.tables.push(table(
+        &format!(
+            "{} pixels ({} valid sub-samples), {} threads, median of {} rounds; Python {}, numpy {}; per call",
+            v["pixels"], v["valid_subsamples"], v["threads"], v["rounds"],
+            v["python"].as_str().unwrap_or("?"), v["numpy"].as_str().unwrap_or("?")
+        ),
+        &[
+            "op",
+            "calls per step",
+            "f32 call (µs)",
+            "f32 Rust (µs)",
+            "f32 overhead (µs)",
+            "f64 call (µs)",
+            "f64 Rust (µs)",
+            "f64 overhead (µs)",
+        ],
+        &[0, 0, 0, 0, 1, 0, 0, 1],
+        rows,
+    ));
+    let st = &v["steps"];
+    let row = |label: &str, key: &str, scale: f64| {
+        vec![
+            json!(label),
+            json!(st["f32"][key].as_f64().map(|x| x * scale)),
+            json!(st["f64"][key].as_f64().map(|x| x * scale)),
+        ]
+    };
+    s.tables.push(table(
+        "The whole step",
+        &["", "f32", "f64"],
+        &[0, 2, 2],
+        vec![
+            row("composed from the ops (ms)", "composed", 1.0),
+            row("of which op calls (ms)", "ops", 1.0),
+            row("of which the ops' overhead (ms)", "overhead", 1.0),
+            row("overhead / composed step (%)", "share", 100.0),
+            row("Model.step, one call (ms)", "step", 1.0),
+            row("xscale dump round trip (ms)", "cli", 1.0),
+            row("round trip / Model.step (×)", "ratio", 1.0),
+        ],
+    ));
+    Ok(s)
+}
+
+fn render(c: &Ctx) -> Result<Section> {
+    let out = c.w("small-run");
+    let run = c.root.join(&out);
+    let mut s = Section::default();
+    if !run.join("checkpoint.safetensors").is_file() {
+        bail!("no {}: run the small section first", run.display());
+    }
+    let e = read_json(&run.join("eval.json"))?;
+    let view = e["views"][0]["view"]
+        .as_str()
+        .ok_or_else(|| anyhow!("{}: no view", run.display()))?
+        .to_string();
+    let dir = c.w("render");
+    let args = [
+        "render", "--run", &out, "--views", &view, "--scale", "6", "--out", &dir, "-q",
+    ];
+    let mut walls = Vec::new();
+    let mut peak: f64 = 0.0;
+    for _ in 0..5 {
+        let r = c.xscale(&args)?;
+        walls.push(r.wall_s);
+        peak = peak.max(r.peak_mb.unwrap_or(0.0));
+    }
+    walls.sort_by(f64::total_cmp);
+    s.commands
+        .push(format!("xscale {}   (5 times)", args.join(" ")));
+    s.tables.push(table(
+        &format!(
+            "view {view} at 6× its size, the model after {} steps",
+            e["step"]
+        ),
+        &[
+            "median (s)",
+            "fastest (s)",
+            "slowest (s)",
+            "peak memory (MB)",
+        ],
+        &[2, 2, 2, 0],
+        vec![vec![
+            json!(walls[2]),
+            json!(walls[0]),
+            json!(walls[4]),
+            json!(peak),
+        ]],
+    ));
+    Ok(s)
+}
+
+const BQ_MINUTES: &str = "0.5";
+
+fn bench_quality(c: &Ctx) -> Result<Section> {
+    let mut s = Section::default();
+    let (scene, _) = small_scene(c, &mut s.commands)?;
+    let out = c.w("bench-quality");
+    let args = [
+        "bench-quality",
+        "--scene",
+        &scene,
+        "--out",
+        &out,
+        "--minutes",
+        BQ_MINUTES,
+        "--overwrite",
+    ];
+    c.xscale(&args)?;
+    s.commands.push(format!("xscale {}", args.join(" ")));
+    let dir = c.root.join(&out);
+    let csv = std::fs::read_to_string(dir.join("bench.csv"))?;
+    let mut lines = csv.lines();
+    let head: Vec<&str> = lines.next().unwrap_or("").split(',').collect();
+    let col = |n: &str| head.iter().position(|h| *h == n);
+    let (ci, wi, si, pi, qi, ni, fi) = (
+        col("config"),
+        col("wall_s"),
+        col("step"),
+        col("psnr_masked"),
+        col("ssim_masked"),
+        col("psnr_near"),
+        col("psnr_far"),
+    );
+    let mut rows: Vec<Vec<String>> = lines
+        .filter(|l| !l.trim().is_empty())
+        .map(|l| l.split(',').map(str::to_string).collect())
+        .collect();
+    let num = |r: &Vec<String>, i: Option<usize>| -> Value {
+        i.and_then(|i| r.get(i))
+            .and_then(|x| x.parse::<f64>().ok())
+            .map_or(Value::Null, |x| json!(x))
+    };
+    let name = |r: &Vec<String>| ci.and_then(|i| r.get(i)).cloned().unwrap_or_default();
+    // Every evaluation, and the last of each configuration (at the full budget).
+    rows.sort_by(|a, b| {
+        name(a).cmp(&name(b)).then(
+            num(a, wi)
+                .as_f64()
+                .unwrap_or(0.0)
+                .total_cmp(&num(b, wi).as_f64().unwrap_or(0.0)),
+        )
+    });
+    let mut last: Vec<Vec<Value>> = Vec::new();
+    let mut all: Vec<Vec<Value>> = Vec::new();
+    for (k, r) in rows.iter().enumerate() {
+        let v = vec![
+            json!(name(r)),
+            num(r, wi),
+            num(r, si),
+            num(r, pi),
+            num(r, qi),
+            num(r, ni),
+            num(r, fi),
+        ];
+        if rows.get(k + 1).is_none_or(|n| name(n) != name(r)) {
+            last.push(v.clone());
+        }
+        all.push(v);
+    }
+    last.sort_by(|a, b| {
+        b[3].as_f64()
+            .unwrap_or(0.0)
+            .total_cmp(&a[3].as_f64().unwrap_or(0.0))
+    });
+    let cols = [
+        "configuration",
+        "training (s)",
+        "steps",
+        "masked PSNR (dB)",
+        "masked SSIM",
+        "close-ups (dB)",
+        "aerial (dB)",
+    ];
+    s.tables.push(table(
+        &format!("At the full budget ({BQ_MINUTES} min), best first"),
+        &cols,
+        &[0, 1, 0, 2, 3, 2, 2],
+        last,
+    ));
+    s.tables.push(table(
+        "Every evaluation (the rows of bench.csv)",
+        &cols,
+        &[0, 1, 0, 2, 3, 2, 2],
+        all,
+    ));
+    std::fs::copy(
+        dir.join("pareto.png"),
+        c.docs.join("results/bench-quality.png"),
+    )?;
+    s.images.push((
+        "results/bench-quality.png".into(),
+        "held-out masked PSNR against training seconds".into(),
+    ));
+    Ok(s)
+}
+
+const ABLATE_STEPS: &str = "1000";
+
+fn ablation(c: &Ctx) -> Result<Section> {
+    let mut s = Section::default();
+    let (scene, _) = small_scene(c, &mut s.commands)?;
+    let out = c.w("ablate");
+    let args = [
+        "ablate",
+        "--scene",
+        &scene,
+        "--out",
+        &out,
+        "--steps",
+        ABLATE_STEPS,
+        "--overwrite",
+    ];
+    c.xscale(&args)?;
+    s.commands.push(format!("xscale {}", args.join(" ")));
+    let a = read_json(&c.root.join(&out).join("ablation.json"))?;
+    let rows = a["results"]
+        .as_array()
+        .ok_or_else(|| anyhow!("ablation.json: no results"))?
+        .iter()
+        .map(|r| {
+            vec![
+                r["name"].clone(),
+                r["featurization"].clone(),
+                r["mesh_faces"].clone(),
+                r["gamma"].clone(),
+                json!(if r["deform"].as_bool() == Some(true) {
+                    "on"
+                } else {
+                    "off"
+                }),
+                r["params"].clone(),
+                r["mean"]["psnr_masked"].clone(),
+                r["mean"]["ssim_masked"].clone(),
+                r["mean"]["psnr"].clone(),
+                r["train_seconds"].clone(),
+            ]
+        })
+        .collect();
+    s.tables.push(table(
+        &format!(
+            "preset `{}`, {} steps of {} pixels, seed {}",
+            a["preset"].as_str().unwrap_or("?"),
+            a["steps"],
+            a["batch_pixels"],
+            a["seed"]
+        ),
+        &[
+            "variant",
+            "featurization",
+            "mesh faces",
+            "γ",
+            "ξ",
+            "parameters",
+            "masked PSNR (dB)",
+            "masked SSIM",
+            "full PSNR (dB)",
+            "training (s)",
+        ],
+        &[0, 0, 0, 0, 0, 0, 2, 3, 2, 1],
+        rows,
+    ));
+    let claims = a["claims"]
+        .as_array()
+        .map(|v| {
+            v.iter()
+                .map(|c| {
+                    vec![
+                        c["claim"].clone(),
+                        json!(match c["holds"].as_bool() {
+                            Some(true) => "holds",
+                            Some(false) => "does not hold",
+                            None => "not run",
+                        }),
+                        c["measured"].clone(),
+                    ]
+                })
+                .collect()
+        })
+        .unwrap_or_default();
+    s.tables.push(table(
+        "The claims `xscale ablate` checks",
+        &["claim", "verdict", "measured"],
+        &[0, 0, 0],
+        claims,
+    ));
+    Ok(s)
+}
+
+fn cross(c: &Ctx) -> Result<Section> {
+    let mut s = Section::default();
+    let scene = c.w("cross");
+    let args = ["synth", "--preset", "cross", "--seed", "1", "--out", &scene];
+    c.xscale(&args)?;
+    s.commands.push(format!("xscale {}", args.join(" ")));
+    let variants: [(&str, &str, Option<&str>); 3] = [
+        (
+            "automatic level range, footprint weighting (the `cpu` default)",
+            "cross-auto",
+            None,
+        ),
+        (
+            "the preset's fixed range (`[train] level_range = \"fixed\"`)",
+            "cross-fixed",
+            Some("[train]\nlevel_range = \"fixed\"\n"),
+        ),
+        (
+            "no level weighting (`[model] level_weight = \"none\"`)",
+            "cross-noweight",
+            Some("[model]\nlevel_weight = \"none\"\n"),
+        ),
+    ];
+    let mut rows = Vec::new();
+    for (what, name, cfg) in variants {
+        let out = c.w(name);
+        let _ = std::fs::remove_dir_all(c.root.join(&out));
+        let mut args = vec!["train", "--scene", &scene, "--out", &out, "-q"];
+        let cfg_path = c.w(&format!("{name}.toml"));
+        if let Some(text) = cfg {
+            std::fs::write(c.root.join(&cfg_path), text)?;
+            args.extend(["--config", &cfg_path]);
+        }
+        c.xscale(&args)?;
+        let mut cmd = format!("xscale {}", args.join(" "));
+        if let Some(text) = cfg {
+            cmd += &format!("   ({cfg_path}: {})", text.trim().replace('\n', " "));
+        }
+        s.commands.push(cmd);
+        let run = c.root.join(&out);
+        let e = read_json(&run.join("eval.json"))?;
+        let (pm, _, _, near, far) = scores(&e);
+        let (lv, finest) = levels(&run)?;
+        rows.push(vec![
+            json!(what),
+            json!(lv),
+            json!(finest),
+            e["step"].clone(),
+            json!(trained_s(&run)?),
+            near,
+            far,
+            pm,
+            json!(peak_mb(&run)),
+        ]);
+    }
+    let ulr = c.w("cross-ulr.json");
+    let args = [
+        "eval", "--scene", &scene, "--method", "ulr", "--json", &ulr, "-q",
+    ];
+    c.xscale(&args)?;
+    s.commands.push(format!("xscale {}", args.join(" ")));
+    let e = read_json(&c.root.join(&ulr))?;
+    let (pm, _, _, near, far) = scores(&e);
+    rows.push(vec![
+        json!("ULR (no training)"),
+        Value::Null,
+        Value::Null,
+        Value::Null,
+        json!(0.0),
+        near,
+        far,
+        pm,
+        Value::Null,
+    ]);
+    s.tables.push(table(
+        "held-out masked PSNR",
+        &[
+            "configuration",
+            "grid-H levels",
+            "finest resolution (cells)",
+            "steps",
+            "training (s)",
+            "close-ups (dB)",
+            "aerial (dB)",
+            "all (dB)",
+            "peak memory (MB)",
+        ],
+        &[0, 0, 0, 0, 0, 2, 2, 2, 0],
+        rows,
+    ));
+    Ok(s)
+}
+
+// ---------------------------------------------------------------- host, date, commit
+
+fn host() -> Value {
+    let cpu = std::fs::read_to_string("/proc/cpuinfo")
+        .ok()
+        .and_then(|t| {
+            t.lines()
+                .find(|l| l.starts_with("model name"))
+                .and_then(|l| l.split(':').nth(1))
+                .map(|s| s.trim().to_string())
+        })
+        .unwrap_or_else(|| "unknown CPU".into());
+    let cores = std::thread::available_parallelism().map_or(0, |n| n.get());
+    json!({"cpu": cpu, "cores": cores})
+}
+
+fn load() -> Option<f64> {
+    std::fs::read_to_string("/proc/loadavg")
+        .ok()?
+        .split_whitespace()
+        .next()?
+        .parse()
+        .ok()
+}
+
+fn commit(root: &Path) -> String {
+    let git = |args: &[&str]| {
+        Command::new("git")
+            .args(args)
+            .current_dir(root)
+            .output()
+            .ok()
+            .filter(|o| o.status.success())
+            .map(|o| String::from_utf8_lossy(&o.stdout).trim().to_string())
+    };
+    let head = git(&["rev-parse", "--short=10", "HEAD"]).unwrap_or_else(|| "unknown".into());
+    // Changes to the code (not to the generated page) make the commit approximate.
+    let dirty = git(&[
+        "status",
+        "--porcelain",
+        "--",
+        "src",
+        "benches",
+        "examples",
+        "Cargo.toml",
+    ])
+    .is_some_and(|s| !s.is_empty());
+    if dirty {
+        format!("{head} + uncommitted changes")
+    } else {
+        head
+    }
+}
+
+/// UTC date and time of now, `YYYY-MM-DD HH:MM`.
+fn now_utc() -> String {
+    let secs = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_secs()) as i64;
+    let (days, rem) = (secs.div_euclid(86_400), secs.rem_euclid(86_400));
+    // Civil date from days since 1970-01-01 (H. Hinnant's algorithm).
+    let z = days + 719_468;
+    let era = z.div_euclid(146_097);
+    let doe = z - era * 146_097;
+    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
+    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
+    let mp = (5 * doy + 2) / 153;
+    let d = doy - (153 * mp + 2) / 5 + 1;
+    let m = if mp < 10 { mp + 3 } else { mp - 9 };
+    let y = yoe + era * 400 + i64::from(m <= 2);
+    format!(
+        "{y:04}-{m:02}-{d:02} {:02}:{:02} UTC",
+        rem / 3600,
+        rem % 3600 / 60
+    )
+}
+
+// ---------------------------------------------------------------- the page
+
+fn cell(v: &Value, digits: usize) -> String {
+    match v {
+        Value::Null => "—".into(),
+        Value::Number(n) => match (n.as_i64(), n.as_f64()) {
+            (Some(i), _) => i.to_string(),
+            (None, Some(x)) if !x.is_finite() => x.to_string(),
+            (None, Some(x)) => format!("{x:.digits$}"),
+            _ => n.to_string(),
+        },
+        Value::String(s) => s.replace('|', "\\|"),
+        Value::Bool(b) => b.to_string(),
+        other => other.to_string(),
+    }
+}
+
+fn render_section(v: &Value, md: &mut String) {
+    let s = |k: &str| v[k].as_str().unwrap_or("").to_string();
+    md.push_str(&format!("## {}\n\n", s("title")));
+    md.push_str(&format!(
+        "<a id=\"{}\"></a>{}\n\n",
+        s("section"),
+        s("measures")
+    ));
+    md.push_str(&format!(
+        "Host: {}, {} cores; {}; commit {}; took {:.0} s (load average {} before).\n\n",
+        v["host"]["cpu"].as_str().unwrap_or("?"),
+        v["host"]["cores"],
+        s("date"),
+        s("commit"),
+        v["seconds"].as_f64().unwrap_or(0.0),
+        v["load_before"]
+            .as_f64()
+            .map_or("unknown".into(), |l| format!("{l:.1}")),
+    ));
+    md.push_str(&format!(
+        "Regenerate: `cargo run --release --example results -- --only {}`. Commands run:\n\n```\n",
+        s("section")
+    ));
+    for c in v["commands"].as_array().into_iter().flatten() {
+        md.push_str(c.as_str().unwrap_or(""));
+        md.push('\n');
+    }
+    md.push_str("```\n\n");
+    for t in v["tables"].as_array().into_iter().flatten() {
+        let cols: Vec<String> = t["columns"]
+            .as_array()
+            .into_iter()
+            .flatten()
+            .map(|c| c.as_str().unwrap_or("").to_string())
+            .collect();
+        let digits: Vec<usize> = t["digits"]
+            .as_array()
+            .into_iter()
+            .flatten()
+            .map(|d| d.as_u64().unwrap_or(2) as usize)
+            .collect();
+        if let Some(cap) = t["caption"].as_str().filter(|c| !c.is_empty()) {
+            md.push_str(&format!("{cap}:\n\n"));
+        }
+        md.push_str(&format!("| {} |\n", cols.join(" | ")));
+        md.push_str(&format!("|{}\n", "---|".repeat(cols.len())));
+        for r in t["rows"].as_array().into_iter().flatten() {
+            let cells: Vec<String> = r
+                .as_array()
+                .into_iter()
+                .flatten()
+                .enumerate()
+                .map(|(i, x)| cell(x, digits.get(i).copied().unwrap_or(2)))
+                .collect();
+            md.push_str(&format!("| {} |\n", cells.join(" | ")));
+        }
+        md.push('\n');
+    }
+    for n in v["notes"].as_array().into_iter().flatten() {
+        md.push_str(&format!("{}\n\n", n.as_str().unwrap_or("")));
+    }
+    for i in v["images"].as_array().into_iter().flatten() {
+        md.push_str(&format!(
+            "![{}]({})\n\n",
+            i[1].as_str().unwrap_or(""),
+            i[0].as_str().unwrap_or("")
+        ));
+    }
+}
+
+/// `docs/results.md` from every `docs/results/*.json`: the known sections in their order, then
+/// any other in name order.
+fn write_page(docs: &Path) -> Result<()> {
+    let dir = docs.join("results");
+    let mut files: Vec<PathBuf> = std::fs::read_dir(&dir)
+        .with_context(|| format!("{}", dir.display()))?
+        .flatten()
+        .map(|e| e.path())
+        .filter(|p| p.extension().is_some_and(|e| e == "json"))
+        .collect();
+    let rank = |p: &PathBuf| {
+        let stem = p
+            .file_stem()
+            .unwrap_or_default()
+            .to_string_lossy()
+            .to_string();
+        (
+            SECTIONS
+                .iter()
+                .position(|s| s.name == stem)
+                .unwrap_or(SECTIONS.len()),
+            stem,
+        )
+    };
+    files.sort_by_key(rank);
+    let mut md = String::from(
+        "# Results\n\n\
+         <!-- Generated by `cargo run --release --example results` from docs/results/*.json; do not edit: rerun it. -->\n\n\
+         Every measured figure the project quotes, regenerated by the command that measures it: \
+         `cargo run --release --example results` runs every section (`-- --list` says what each \
+         costs), `-- --only NAME` one section, `-- --render-only` rewrites this page from the \
+         stored rows (`docs/results/NAME.json`). Each section gives its host, date, commit and \
+         commands. Timings depend on the host and on what else runs on it (the load average is \
+         given); compare figures within one section, where they were measured side by side.\n\n",
+    );
+    md.push_str("Sections: ");
+    let mut toc = Vec::new();
+    let mut bodies = String::new();
+    for f in &files {
+        let v = read_json(f)?;
+        toc.push(format!(
+            "[{}](#{})",
+            v["title"].as_str().unwrap_or("?").replace('`', ""),
+            v["section"].as_str().unwrap_or("")
+        ));
+        render_section(&v, &mut bodies);
+    }
+    md.push_str(&toc.join(" · "));
+    md.push_str("\n\n");
+    md.push_str(&bodies);
+    let page = docs.join("results.md");
+    std::fs::write(&page, md.trim_end().to_string() + "\n")?;
+    eprintln!("wrote {}", page.display());
+    Ok(())
+}
+
+fn main() -> Result<()> {
+    let argv: Vec<String> = std::env::args().skip(1).collect();
+    let root = PathBuf::from(env!("CARGO_MANIFEST_DIR"));
+    let docs = root.join("docs");
+    if argv
+        .iter()
+        .any(|a| a == "--list" || a == "--help" || a == "-h")
+    {
+        println!("sections (cargo run --release --example results -- --only a,b):");
+        for s in SECTIONS {
+            println!("  {:<14} {} ({})", s.name, s.title.replace('`', ""), s.cost);
+        }
+        return Ok(());
+    }
+    if argv.iter().any(|a| a == "--render-only") {
+        return write_page(&docs);
+    }
+    let only: Option<Vec<String>> = match argv.iter().position(|a| a == "--only") {
+        Some(i) => Some(
+            argv.get(i + 1)
+                .ok_or_else(|| anyhow!("--only needs a list of sections (--list)"))?
+                .split(',')
+                .map(str::to_string)
+                .collect(),
+        ),
+        None => None,
+    };
+    for a in &argv {
+        if a.starts_with("--") && !["--only", "--render-only", "--list"].contains(&a.as_str()) {
+            bail!("{a}: unknown option (--only A,B, --render-only, --list)");
+        }
+    }
+    if let Some(names) = &only {
+        for n in names {
+            if !SECTIONS.iter().any(|s| s.name == n) {
+                bail!(
+                    "--only {n}: no such section (there are: {})",
+                    SECTIONS
+                        .iter()
+                        .map(|s| s.name)
+                        .collect::<Vec<_>>()
+                        .join(", ")
+                );
+            }
+        }
+    }
+    // The binary the sections run, built from this tree.
+    let st = Command::new("cargo")
+        .args(["build", "--release", "--locked", "--bin", "xscale"])
+        .current_dir(&root)
+        .status()?;
+    if !st.success() {
+        bail!("cargo build --release --bin xscale failed");
+    }
+    let exe = std::env::current_exe()?;
+    let bin = exe
+        .parent()
+        .and_then(|p| p.parent())
+        .map(|p| p.join("xscale"))
+        .filter(|p| p.is_file())
+        .unwrap_or_else(|| root.join("target/release/xscale"));
+    let work = root.join("target/results");
+    std::fs::create_dir_all(&work)?;
+    std::fs::create_dir_all(docs.join("results"))?;
+    let ctx = Ctx {
+        root: root.clone(),
+        work,
+        bin,
+        docs: docs.clone(),
+    };
+    let mut failed = Vec::new();
+    for spec in SECTIONS {
+        if only
+            .as_ref()
+            .is_some_and(|o| !o.iter().any(|n| n == spec.name))
+        {
+            continue;
+        }
+        eprintln!("== {} ({})", spec.name, spec.cost);
+        let (date, load_before, t0) = (now_utc(), load(), Instant::now());
+        match (spec.run)(&ctx) {
+            Ok(s) => {
+                let v = json!({
+                    "section": spec.name,
+                    "title": spec.title,
+                    "measures": spec.measures,
+                    "host": host(),
+                    "date": date,
+                    "commit": commit(&root),
+                    "seconds": t0.elapsed().as_secs_f64(),
+                    "load_before": load_before,
+                    "commands": s.commands,
+                    "tables": s.tables,
+                    "notes": s.notes,
+                    "images": s.images.iter().map(|(p, c)| json!([p, c])).collect::<Vec<_>>(),
+                });
+                let path = docs.join(format!("results/{}.json", spec.name));
+                std::fs::write(&path, serde_json::to_string_pretty(&v)? + "\n")?;
+                eprintln!(
+                    "   {} in {:.0} s",
+                    path.display(),
+                    t0.elapsed().as_secs_f64()
+                );
+            }
+            Err(e) => {
+                eprintln!("   {}: FAILED: {e:#}", spec.name);
+                failed.push(spec.name);
+            }
+        }
+        // The page after every section, so an interrupted run keeps what it measured.
+        write_page(&docs)?;
+    }
+    if !failed.is_empty() {
+        bail!(
+            "sections that failed (their earlier rows, if any, are kept): {}",
+            failed.join(", ")
+        );
+    }
+    Ok(())
+}

@@ -145,7 +145,7 @@ pub fn distances(
     use crate::scene::distance::{area_samples, SurfaceIndex};
     use rayon::prelude::*;
     let truth = s.truth.to_mesh();
-    let cap = CAP * crate::synth::perturb::diagonal(&truth);
+    let cap = CAP * truth.diagonal();
     let stats = |idx: &SurfaceIndex, pts: &[DVec3]| {
         let d: Vec<f64> = pts
             .par_iter()
@@ -185,7 +185,7 @@ mod tests {
         .unwrap();
         assert_eq!(stats.rays_cut_short, 0);
         let truth = s.truth.to_mesh();
-        let diag = crate::synth::perturb::diagonal(&truth);
+        let diag = truth.diagonal();
         let seen = seen_samples(&s, 20000);
         assert!(seen.len() > 5000, "{}", seen.len());
         let (acc, comp) = distances(&s, &m, &seen, 20000);

@@ -11,7 +11,7 @@ use crate::raycast::consistency::PhotoCheck;
 use crate::raycast::{CacheEvent, Targets, Tracer};
 use crate::scene::Camera;
 use crate::scene::{LoadOptions, LoadReport, MaskSource, Scene};
-use crate::train::config::{LevelRange, RunConfig};
+use crate::train::config::{LevelRange, RunConfig, TableSize};
 use crate::train::memory;
 use crate::train::sampler::{SampleMode, Samples};
 use anyhow::{bail, Context, Result};
@@ -69,6 +69,9 @@ impl Prepared {
         log: &mut dyn FnMut(String),
     ) -> Result<(RunConfig, Checkpoint)> {
         for msg in resolve_levels(&mut cfg, &self.samples) {
+            log(msg);
+        }
+        for msg in resolve_table_sizes(&mut cfg, &self.samples, &self.tracer) {
             log(msg);
         }
         self.check_model(&cfg)?;
@@ -499,6 +502,166 @@ pub fn resolve_levels(cfg: &mut RunConfig, samples: &Samples) -> Vec<String> {
                 out.push(msg);
             }
         }
+    }
+    out
+}
+
+/// `log2_table_size = "auto"`: a hashed level gets about this many entries per surface cell the
+/// training rays reach at that level (`2^round(log2(TABLE_ENTRIES_PER_CELL · cells))`). The load
+/// the `cpu` preset's fixed tables were tuned at: 2^19 entries held the ~1.1 M cells of `synth
+/// small`'s finest levels at 2 cells per entry, and a quarter of that table (2^17) or 4× (2^21)
+/// scored the same within a run-to-run difference (`docs/results.md`, bench-quality): a
+/// surface's training samples tolerate collisions (the other levels and the shader resolve them).
+pub const TABLE_ENTRIES_PER_CELL: f64 = 0.5;
+/// The smallest `T_l` of `log2_table_size = "auto"` (also that of a level no ray reaches).
+pub const TABLE_FLOOR_LOG2: u32 = 12;
+/// The largest `T_l` of `log2_table_size = "auto"` (above the fixed tables' 2^19: a cross-scale
+/// scene's fine levels scored better with larger tables, `docs/cross-scale.md`).
+pub const TABLE_CEILING_LOG2: u32 = 21;
+/// The training pixels `log2_table_size = "auto"` counts cells of, at most (every
+/// `⌈kept / this⌉`-th kept pixel, all its sub-samples).
+pub const TABLE_SAMPLE_PIXELS: usize = 1 << 16;
+
+/// Distinct grid-H cells (level by level) the training rays reach: the sub-samples of every
+/// `stride`-th kept pixel (`stride = ⌈kept / TABLE_SAMPLE_PIXELS⌉`), at each level the footprint
+/// weighting gives a weight > 0 (every level without it). Cell of a point at level l:
+/// `⌊fma(scale_l, x_n, 0.5)⌋` per axis (f64), as the grid locates it. With `stride > 1` the count
+/// of the subset, `d_s` of `n_s` points, is extrapolated to `d_s · (1 + (stride − 1) · d_s / n_s)`
+/// (all cells found when points share cells, `stride ×` when each point has a cell of its own).
+/// Pure and deterministic: the same pixels in the same order whatever the thread count.
+pub fn reached_cells(
+    grid: &GridConfig,
+    weighted: bool,
+    samples: &Samples,
+    tracer: &Tracer,
+) -> Vec<f64> {
+    let scales = tcnn_scales(grid);
+    let nl = scales.len();
+    let kept = samples.len();
+    if kept == 0 {
+        return vec![0.0; nl];
+    }
+    let stride = kept.div_ceil(TABLE_SAMPLE_PIXELS);
+    let pixels: Vec<usize> = (0..kept).step_by(stride).collect();
+    let mut cells: Vec<Vec<u64>> = vec![Vec::new(); nl];
+    let mut points = vec![0u64; nl];
+    for chunk in pixels.chunks(8192) {
+        let b = samples.batch(tracer, chunk);
+        let s = b.samples_per_pixel();
+        for (l, &sc) in scales.iter().enumerate() {
+            let sc = sc as f64;
+            let keys = &mut cells[l];
+            for px in 0..b.n_pixels() {
+                if weighted
+                    && !b.footprint.is_empty()
+                    && crate::model::level_weight::weight(b.footprint[px] as f64 * sc) <= 0.0
+                {
+                    continue;
+                }
+                for j in px * s..(px + 1) * s {
+                    if b.valid[j] == 0 {
+                        continue;
+                    }
+                    let x = b.positions[j];
+                    let c = x.map(|v| sc.mul_add(v, 0.5).floor() as i64 as u64);
+                    keys.push(cell_key(c));
+                    points[l] += 1;
+                }
+            }
+            keys.sort_unstable();
+            keys.dedup();
+        }
+    }
+    cells
+        .iter()
+        .zip(&points)
+        .map(|(k, &n)| {
+            let d = k.len() as f64;
+            if n == 0 {
+                0.0
+            } else {
+                d * (1.0 + (stride as f64 - 1.0) * d / n as f64)
+            }
+        })
+        .collect()
+}
+
+/// A 64-bit hash of a cell (a collision of two keys only lowers an estimate by one).
+fn cell_key(c: [u64; 3]) -> u64 {
+    let mut h = 0x9E37_79B9_7F4A_7C15u64;
+    for v in c {
+        h = (h ^ v).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        h ^= h >> 29;
+    }
+    h.wrapping_mul(0x94D0_49BB_1331_11EB) ^ (h >> 32)
+}
+
+/// `T_l` of `log2_table_size = "auto"` for a level reaching `cells` surface cells:
+/// `round(log2(TABLE_ENTRIES_PER_CELL · cells))` (f64, halves away from zero) within
+/// [`TABLE_FLOOR_LOG2`], [`TABLE_CEILING_LOG2`].
+pub fn auto_log2_size(cells: f64) -> u32 {
+    let want = (TABLE_ENTRIES_PER_CELL * cells).max(1.0).log2().round();
+    (want as u32).clamp(TABLE_FLOOR_LOG2, TABLE_CEILING_LOG2)
+}
+
+/// Resolve grid H's table sizes of a new run (SPEC §8), in place; returns the messages saying
+/// what was chosen. `train.table_size = "auto"` (the `cpu` preset, `[model.grid_h]
+/// log2_table_size = "auto"`): level l holds at most `2^T_l` entries, `T_l` =
+/// [`auto_log2_size`] of the cells [`reached_cells`] counts (a level whose `res^3` fits stays
+/// dense, as with a fixed size); `log2_table_size` becomes the largest `T_l`. Grid D (ξ) too,
+/// every level counted at every hit (ξ is not footprint-weighted). `fixed` keeps the configured
+/// size(s). Run after [`resolve_levels`] (the sizes are per resolved level).
+pub fn resolve_table_sizes(cfg: &mut RunConfig, samples: &Samples, tracer: &Tracer) -> Vec<String> {
+    let mut out = Vec::new();
+    if !cfg.model.featurization.is_hash() {
+        return out;
+    }
+    let auto = cfg.train.table_size == TableSize::Auto;
+    let weighted = !cfg.model.level_weight.is_none();
+    let deform = cfg.model.deform.enabled;
+    // Grid H (levels weighted by footprint), then grid D (ξ reads every level at every hit).
+    let grids: Vec<(&str, &mut GridConfig, bool)> = if deform {
+        vec![
+            ("H", &mut cfg.model.grid_h, weighted),
+            ("D", &mut cfg.model.deform.grid, false),
+        ]
+    } else {
+        vec![("H", &mut cfg.model.grid_h, weighted)]
+    };
+    for (name, g, weighted) in grids {
+        let cells = auto.then(|| {
+            let cells = reached_cells(g, weighted, samples, tracer);
+            let t: Vec<u32> = cells.iter().map(|&c| auto_log2_size(c)).collect();
+            g.log2_table_size = t.iter().copied().max().unwrap_or(TABLE_FLOOR_LOG2);
+            g.log2_table_sizes = Some(t);
+            cells
+        });
+        let Ok(grid) = crate::model::hashgrid::HashGrid::try_new(g) else {
+            continue; // the model's construction reports it
+        };
+        let per_level: Vec<String> = (0..g.levels as usize)
+            .map(|l| {
+                let n = grid.level_entries(l);
+                let kind = if grid.dense[l] { "dense" } else { "hashed" };
+                match &cells {
+                    Some(c) => format!("{l}: {:.0} cells → {n} {kind}", c[l]),
+                    None => format!("{l}: {n} {kind}"),
+                }
+            })
+            .collect();
+        let mode = if cells.is_some() {
+            format!(
+                "auto: ~{TABLE_ENTRIES_PER_CELL} entries per surface cell the training rays reach, 2^{TABLE_FLOOR_LOG2}..2^{TABLE_CEILING_LOG2}"
+            )
+        } else {
+            format!("fixed: at most 2^{} entries per level", g.log2_table_size)
+        };
+        out.push(format!(
+            "grid {name} tables ({mode}): {} entries, {} parameters (levels {})",
+            grid.n_entries(),
+            grid.n_params(),
+            per_level.join(", ")
+        ));
     }
     out
 }

@@ -134,19 +134,30 @@ fn auto_sizes_follow_the_cells_and_are_the_same_streamed_or_cached_on_any_thread
     let t = h.log2_table_sizes.as_ref().unwrap();
     assert_eq!(t.len(), h.levels as usize);
     assert_eq!(d.log2_table_sizes.as_ref().unwrap().len(), d.levels as usize);
-    for (l, (&c, &tl)) in cells.iter().zip(t).enumerate() {
-        assert_eq!(tl, auto_log2_size(c), "level {l}");
-    }
-    assert_eq!(h.log2_table_size, *t.iter().max().unwrap());
-    // Coarse levels reach few cells, finer ones more (the fixture's 18k pixels).
-    assert!(cells[0] > 0.0 && cells[0] < cells[5], "{cells:?}");
-    // The whole model is far smaller than with 2^19 on every level.
+    // Levels dense with the preset's 2^19 stay dense; the others follow the rule.
     let fixed = HashGrid::new(&GridConfig {
         log2_table_sizes: None,
         log2_table_size: 19,
         ..h.clone()
     });
-    assert!(HashGrid::new(h).n_params() * 4 < fixed.n_params());
+    let auto = HashGrid::new(h);
+    let mut hashed = 0;
+    for (l, (&c, &tl)) in cells.iter().zip(t).enumerate() {
+        if fixed.dense[l] {
+            assert_eq!(tl, 19, "level {l}");
+            assert!(auto.dense[l], "level {l}");
+            assert_eq!(auto.level_entries(l), fixed.level_entries(l));
+        } else {
+            assert_eq!(tl, auto_log2_size(c), "level {l}");
+            hashed += 1;
+        }
+    }
+    assert!(hashed > 5, "{hashed} hashed levels");
+    assert_eq!(h.log2_table_size, *t.iter().max().unwrap());
+    // Coarse levels reach few cells, finer ones more (the fixture's 18k pixels).
+    assert!(cells[0] > 0.0 && cells[0] < cells[5], "{cells:?}");
+    // The whole model is far smaller than with 2^19 on every level.
+    assert!(auto.n_params() * 3 < fixed.n_params());
 }
 
 #[test]

@@ -46,6 +46,12 @@ pub enum TableSize {
     Auto,
 }
 
+impl TableSize {
+    pub fn is_fixed(&self) -> bool {
+        *self == TableSize::Fixed
+    }
+}
+
 /// Everything about a training run that is not the model.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -81,8 +87,11 @@ pub struct TrainConfig {
     /// How grid H's table sizes are chosen at the start of a run (SPEC §8, `train/setup.rs`
     /// `resolve_table_sizes`): set in a config file as `[model.grid_h] log2_table_size = "auto"`
     /// (the `cpu` preset) or an integer (`fixed`). The sizes chosen are saved as grid H's
-    /// `log2_table_sizes`. Absent from older configs (= fixed, as they were trained).
-    #[serde(default)]
+    /// `log2_table_sizes`. Absent when `fixed` (so the `paper` and `tiny` presets' configs and
+    /// checkpoints are byte for byte those of the builds before it) and from older configs (=
+    /// fixed, as they were trained). A config without it laid over the `cpu` preset as a
+    /// `--config` stays fixed: its integer `log2_table_size` says so.
+    #[serde(default, skip_serializing_if = "TableSize::is_fixed")]
     pub table_size: TableSize,
     pub adam: AdamConfig,
     /// Mesh file to use instead of the scene's own (e.g. a decimated one, `xscale decimate`);

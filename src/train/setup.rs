@@ -607,8 +607,9 @@ pub fn auto_log2_size(cells: f64) -> u32 {
 /// Resolve grid H's table sizes of a new run (SPEC §8), in place; returns the messages saying
 /// what was chosen. `train.table_size = "auto"` (the `cpu` preset, `[model.grid_h]
 /// log2_table_size = "auto"`): level l holds at most `2^T_l` entries, `T_l` =
-/// [`auto_log2_size`] of the cells [`reached_cells`] counts (a level whose `res^3` fits stays
-/// dense, as with a fixed size); `log2_table_size` becomes the largest `T_l`. Grid D (ξ) too,
+/// [`auto_log2_size`] of the cells [`reached_cells`] counts, except that a level dense at the
+/// configured `log2_table_size` stays dense (`T_l = T`: hashing the `cpu` preset's coarse dense
+/// levels into small tables cost 0.3–0.6 dB on `small`); `log2_table_size` becomes the largest `T_l`. Grid D (ξ) too,
 /// every level counted at every hit (ξ is not footprint-weighted). `fixed` keeps the configured
 /// size(s). Run after [`resolve_levels`] (the sizes are per resolved level).
 pub fn resolve_table_sizes(cfg: &mut RunConfig, samples: &Samples, tracer: &Tracer) -> Vec<String> {
@@ -629,9 +630,21 @@ pub fn resolve_table_sizes(cfg: &mut RunConfig, samples: &Samples, tracer: &Trac
         vec![("H", &mut cfg.model.grid_h, weighted)]
     };
     for (name, g, weighted) in grids {
+        let mut counted = 0.0;
         let cells = auto.then(|| {
+            let t0 = std::time::Instant::now();
             let cells = reached_cells(g, weighted, samples, tracer);
-            let t: Vec<u32> = cells.iter().map(|&c| auto_log2_size(c)).collect();
+            counted = t0.elapsed().as_secs_f64();
+            // A level dense at the configured size stays dense (and as it was).
+            let fixed = crate::model::hashgrid::HashGrid::try_new(g).ok();
+            let t: Vec<u32> = cells
+                .iter()
+                .enumerate()
+                .map(|(l, &c)| match &fixed {
+                    Some(f) if f.dense[l] => g.log2_table_size,
+                    _ => auto_log2_size(c),
+                })
+                .collect();
             g.log2_table_size = t.iter().copied().max().unwrap_or(TABLE_FLOOR_LOG2);
             g.log2_table_sizes = Some(t);
             cells
@@ -651,8 +664,10 @@ pub fn resolve_table_sizes(cfg: &mut RunConfig, samples: &Samples, tracer: &Trac
             .collect();
         let mode = if cells.is_some() {
             format!(
-                "auto: ~{TABLE_ENTRIES_PER_CELL} entries per surface cell the training rays reach, 2^{TABLE_FLOOR_LOG2}..2^{TABLE_CEILING_LOG2}"
+                "auto: ~{TABLE_ENTRIES_PER_CELL} entries per surface cell the training rays reach, 2^{TABLE_FLOOR_LOG2}..2^{TABLE_CEILING_LOG2}, dense levels kept; cells counted in {counted:.1} s"
             )
+        } else if let Some(t) = &g.log2_table_sizes {
+            format!("fixed: log2 sizes {t:?}")
         } else {
             format!("fixed: at most 2^{} entries per level", g.log2_table_size)
         };

@@ -51,7 +51,10 @@ fn auto_is_the_cpu_default_and_an_integer_fixes_it() {
     )
     .unwrap();
     assert_eq!(c.train.table_size, TableSize::Auto);
-    assert_eq!(c.model.grid_h.log2_table_size, 22, "the preset's value stays");
+    assert_eq!(
+        c.model.grid_h.log2_table_size, 22,
+        "the preset's value stays"
+    );
     let e = config("typo", "[model.grid_h]\nlog2_table_size = \"atuo\"\n").unwrap_err();
     let m = format!("{e:#}");
     assert!(m.contains("expected \"auto\" or an integer"), "{m}");
@@ -60,7 +63,10 @@ fn auto_is_the_cpu_default_and_an_integer_fixes_it() {
         "[model.grid_h]\nlog2_table_size = \"auto\"\nlog2_table_sizes = [12, 12]\n",
     )
     .unwrap_err();
-    assert!(format!("{e:#}").contains("remove log2_table_sizes"), "{e:#}");
+    assert!(
+        format!("{e:#}").contains("remove log2_table_sizes"),
+        "{e:#}"
+    );
 }
 
 #[test]
@@ -133,7 +139,10 @@ fn auto_sizes_follow_the_cells_and_are_the_same_streamed_or_cached_on_any_thread
     let (cells, h, d) = &seen[0];
     let t = h.log2_table_sizes.as_ref().unwrap();
     assert_eq!(t.len(), h.levels as usize);
-    assert_eq!(d.log2_table_sizes.as_ref().unwrap().len(), d.levels as usize);
+    assert_eq!(
+        d.log2_table_sizes.as_ref().unwrap().len(),
+        d.levels as usize
+    );
     // Levels dense with the preset's 2^19 stay dense; the others follow the rule.
     let fixed = HashGrid::new(&GridConfig {
         log2_table_sizes: None,
@@ -157,7 +166,12 @@ fn auto_sizes_follow_the_cells_and_are_the_same_streamed_or_cached_on_any_thread
     // Coarse levels reach few cells, finer ones more (the fixture's 18k pixels).
     assert!(cells[0] > 0.0 && cells[0] < cells[5], "{cells:?}");
     // The whole model is far smaller than with 2^19 on every level.
-    assert!(auto.n_params() * 2 < fixed.n_params(), "{} {}", auto.n_params(), fixed.n_params());
+    assert!(
+        auto.n_params() * 2 < fixed.n_params(),
+        "{} {}",
+        auto.n_params(),
+        fixed.n_params()
+    );
 }
 
 #[test]

@@ -229,7 +229,6 @@ impl RunConfig {
         merge(&mut v, over);
         described(v, origin, text)
     }
-
 }
 
 /// `[model.grid_h] log2_table_size = "auto"` becomes `[train] table_size = "auto"` (the

@@ -263,7 +263,10 @@ fn table_size_key(over: &mut toml::Value, origin: &str) -> Result<()> {
         .entry("train")
         .or_insert_with(|| toml::Value::Table(Default::default()));
     if let Some(t) = train.as_table_mut() {
-        t.insert("table_size".into(), toml::Value::String(mode.into()));
+        // An explicit `[train] table_size` (a stored `RUN/config.toml`) is kept with an integer.
+        if mode == "auto" || !t.contains_key("table_size") {
+            t.insert("table_size".into(), toml::Value::String(mode.into()));
+        }
     }
     Ok(())
 }

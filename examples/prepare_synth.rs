@@ -97,7 +97,7 @@ fn main() -> anyhow::Result<()> {
     drop(f);
     // Accuracy (mesh → truth) and completeness (the truth that two cameras see → mesh).
     let truth = s.truth.to_mesh();
-    let diag = xscale::synth::perturb::diagonal(&truth);
+    let diag = truth.diagonal();
     let seen = synthetic::seen_samples(&s, 50_000);
     println!(
         "scene diagonal {diag:.3}; {} seen samples of the truth",

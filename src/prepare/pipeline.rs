@@ -310,6 +310,12 @@ fn photo_named<'a>(photos: &'a [PathBuf], n: &str) -> Option<&'a PathBuf> {
     })
 }
 
+/// `p` made absolute (against the working folder), as a JSON string.
+fn absolute_text(p: &Path) -> serde_json::Value {
+    let a = std::path::absolute(p).unwrap_or_else(|_| p.to_path_buf());
+    serde_json::Value::String(a.to_string_lossy().to_string())
+}
+
 /// The views of `dir/transforms.json` whose frames have a photo (a trimmed public capture lists
 /// more than it ships), read from a copy in `work` that names the photos.
 fn transforms_with_photos(
@@ -343,7 +349,15 @@ fn transforms_with_photos(
         };
         match photo_named(photos, &fp) {
             Some(p) => {
-                f["file_path"] = serde_json::Value::String(p.to_string_lossy().to_string());
+                // The copy stands in another folder: its paths are absolute.
+                f["file_path"] = absolute_text(p);
+                let mask = f
+                    .get("mask_path")
+                    .and_then(|v| v.as_str())
+                    .map(|m| absolute_text(&dir.join(m.strip_prefix("./").unwrap_or(m))));
+                if let Some(m) = mask {
+                    f["mask_path"] = m;
+                }
                 true
             }
             None => {
@@ -694,10 +708,21 @@ fn photo_dir(o: &Options) -> Result<PathBuf> {
             }
             i
         }
-        (None, None, Some(s)) => match colmap::find_layout(s) {
-            Some(l) => l.images,
-            None => s.join("..").join("..").join("images"),
-        },
+        (None, None, Some(s)) => {
+            // The layout's images/, else those of the COLMAP workspace the model stands in
+            // (WS/sparse/0 or WS/sparse beside WS/images).
+            let layout = colmap::find_layout(s).map(|l| l.images);
+            let beside = [
+                s.join("..").join("images"),
+                s.join("..").join("..").join("images"),
+            ];
+            let first = layout.clone().unwrap_or_else(|| beside[1].clone());
+            layout
+                .into_iter()
+                .chain(beside)
+                .find(|d| d.is_dir())
+                .unwrap_or(first)
+        }
         (None, None, None) => {
             bail!("give the photos (--photos DIR), or a COLMAP model to mesh (--sparse DIR)")
         }

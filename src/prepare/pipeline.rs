@@ -250,12 +250,7 @@ fn load_poses(dir: &Path, photos: &[PathBuf], work: &Path) -> Result<(Vec<View>,
         notes.push(format!(
             "{} of the known views have no photo and are left out: {}",
             missing.len(),
-            missing
-                .iter()
-                .take(8)
-                .cloned()
-                .collect::<Vec<_>>()
-                .join(", ")
+            first_names(&missing)
         ));
     }
     let unposed = photos.len() - kept.len();
@@ -273,6 +268,15 @@ fn load_poses(dir: &Path, photos: &[PathBuf], work: &Path) -> Result<(Vec<View>,
         );
     }
     Ok((kept, notes))
+}
+
+/// The first eight of `names`, then "…" if there are more.
+fn first_names(names: &[String]) -> String {
+    let mut s = names[..names.len().min(8)].join(", ");
+    if names.len() > 8 {
+        s += ", …";
+    }
+    s
 }
 
 /// The one camera layout of a `--poses` folder (none or several is an error).
@@ -368,16 +372,10 @@ fn transforms_with_photos(
     });
     if !missing.is_empty() {
         notes.push(format!(
-            "{}: {} of {total} frames have no photo in the photo folder and are left out: {}{}",
+            "{}: {} of {total} frames have no photo in the photo folder and are left out: {}",
             file.display(),
             missing.len(),
-            missing
-                .iter()
-                .take(8)
-                .cloned()
-                .collect::<Vec<_>>()
-                .join(", "),
-            if missing.len() > 8 { ", …" } else { "" }
+            first_names(&missing)
         ));
     }
     let copy = work.join("poses-transforms.json");

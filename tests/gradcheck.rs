@@ -1547,11 +1547,7 @@ impl PhotoCheck {
     }
 
     /// The check with the neighbour camera's lens `distortion`.
-    fn with_lens(
-        m: PhotoMeasure,
-        seed: u64,
-        distortion: xscale::scene::Distortion,
-    ) -> PhotoCheck {
+    fn with_lens(m: PhotoMeasure, seed: u64, distortion: xscale::scene::Distortion) -> PhotoCheck {
         use xscale::scene::Camera;
         let (mesh, norm, cfg) = refine_scene();
         let geom = RefineGeom::new(&mesh, &norm);
@@ -1866,7 +1862,10 @@ fn check_lenses() -> Vec<xscale::scene::Distortion> {
             p2: -0.0012,
             skew: 0.0008,
         },
-        D::Radial { k1: 0.09, k2: -0.02 },
+        D::Radial {
+            k1: 0.09,
+            k2: -0.02,
+        },
         D::Fisheye {
             k: [0.03, -0.011, 0.002, -0.0003],
         },
@@ -1926,7 +1925,11 @@ fn photo_gradient_without_the_lens_jacobian_fails_the_check() {
         &mut ok,
         "real",
     );
-    assert!(ok.fails.is_empty(), "{:?}", &ok.fails[..ok.fails.len().min(5)]);
+    assert!(
+        ok.fails.is_empty(),
+        "{:?}",
+        &ok.fails[..ok.fails.len().min(5)]
+    );
     let mut bad = Report::default();
     c.check(
         &c.to_params(&c.pieces(&theta, PhotoBroken::PinholeJacobian)),

@@ -268,7 +268,9 @@ fn photo_refinement_through_a_distorted_lens_is_thread_independent() {
     for threads in [1, 2] {
         let run = tmp(&format!("opencv-run{threads}"));
         let (r, log) = logged(&tmp(&format!("opencv-log{threads}")), || {
-            in_pool(threads, || train(&scene, &run, c.clone(), &opts(false, None)))
+            in_pool(threads, || {
+                train(&scene, &run, c.clone(), &opts(false, None))
+            })
         });
         r.unwrap();
         finals.push(std::fs::read(run.join("checkpoint.safetensors")).unwrap());

@@ -122,7 +122,10 @@ impl Div for Dual2 {
         let q = self.v / o.v;
         Dual2 {
             v: q,
-            d: [(self.d[0] - q * o.d[0]) / o.v, (self.d[1] - q * o.d[1]) / o.v],
+            d: [
+                (self.d[0] - q * o.d[0]) / o.v,
+                (self.d[1] - q * o.d[1]) / o.v,
+            ],
         }
     }
 }

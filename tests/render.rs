@@ -6,7 +6,7 @@
 use std::path::Path;
 use xscale::model::{Hfm, ModelConfig};
 use xscale::raycast::Tracer;
-use xscale::render::{render_camera, render_camera_in_bands, Rendered, WHITE};
+use xscale::render::{render_camera, render_camera_in_bands, Appearance, Rendered, WHITE};
 use xscale::scene::{LoadOptions, Scene};
 
 #[path = "common/pool.rs"]
@@ -34,28 +34,97 @@ fn bands_do_not_show_in_the_frame() {
     let cam = scene.views[scene.test[0]].camera.scaled(2.5);
     let g = cfg.gamma;
     let per_row = (cam.width * g * g) as usize;
-    let whole =
-        render_camera_in_bands(&model, &params, &tracer, &cam, g, -1, WHITE, usize::MAX).unwrap();
+    let whole = render_camera_in_bands(
+        &model,
+        &params,
+        &tracer,
+        &cam,
+        g,
+        &Appearance::Row(-1),
+        WHITE,
+        usize::MAX,
+    )
+    .unwrap();
     assert_eq!(whole.image.width, 160);
     assert!(whole.hit.iter().filter(|&&h| h).count() > 1000);
     let reference = bits(&whole);
     // One row per band; 7 rows (120 = 17·7 + 1: a short last band); the default.
     for samples in [1, 7 * per_row, 7 * per_row + 3] {
-        let r =
-            render_camera_in_bands(&model, &params, &tracer, &cam, g, -1, WHITE, samples).unwrap();
+        let r = render_camera_in_bands(
+            &model,
+            &params,
+            &tracer,
+            &cam,
+            g,
+            &Appearance::Row(-1),
+            WHITE,
+            samples,
+        )
+        .unwrap();
         assert!(
             bits(&r) == reference,
             "bands of {samples} sub-samples change the frame"
         );
     }
     let dflt = in_pool(1, || {
-        render_camera(&model, &params, &tracer, &cam, g, -1, WHITE).unwrap()
+        render_camera(
+            &model,
+            &params,
+            &tracer,
+            &cam,
+            g,
+            &Appearance::Row(-1),
+            WHITE,
+        )
+        .unwrap()
     });
     assert!(bits(&dflt) == reference);
     let two = in_pool(2, || {
-        render_camera_in_bands(&model, &params, &tracer, &cam, g, -1, WHITE, per_row).unwrap()
+        render_camera_in_bands(
+            &model,
+            &params,
+            &tracer,
+            &cam,
+            g,
+            &Appearance::Row(-1),
+            WHITE,
+            per_row,
+        )
+        .unwrap()
     });
     assert!(bits(&two) == reference, "thread count changes the frame");
+}
+
+/// A view rendered with a code of its own (`Appearance::Code`, what a held-out view gets from
+/// its neighbours) is the same bits as with the row holding that code, and with the mean code
+/// the same as row −1; a different code changes the frame.
+#[test]
+fn a_code_of_its_own_renders_as_the_row_that_holds_it() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/tiny");
+    let scene = Scene::load(&root, &LoadOptions::default()).unwrap();
+    let tracer = Tracer::new(&scene.mesh, &scene.normalization).unwrap();
+    let mut cfg = ModelConfig::tiny();
+    cfg.appearance_views = 3;
+    let model = Hfm::new(&cfg).unwrap();
+    let mut params = model.init_params(7);
+    let codes = model.layout.view_mut(&mut params, "appearance.codes");
+    for (k, c) in codes.iter_mut().enumerate() {
+        *c = 0.5 * (k as f32 - 2.5);
+    }
+    let cam = scene.views[scene.test[0]].camera.clone();
+    let g = cfg.gamma;
+    let render = |look: &Appearance| {
+        bits(&render_camera(&model, &params, &tracer, &cam, g, look, WHITE).unwrap())
+    };
+    let a = cfg.appearance_dim as usize;
+    let row1 = model.codes(&params)[a..2 * a].to_vec();
+    assert!(render(&Appearance::Code(row1)) == render(&Appearance::Row(1)));
+    let all = model.codes(&params);
+    let mean: Vec<f32> = (0..a)
+        .map(|i| (all[i] + all[a + i] + all[2 * a + i]) / 3.0)
+        .collect();
+    assert!(render(&Appearance::Code(mean)) == render(&Appearance::Row(-1)));
+    assert!(render(&Appearance::Row(0)) != render(&Appearance::Row(-1)));
 }
 
 #[test]

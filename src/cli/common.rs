@@ -284,6 +284,24 @@ pub struct SceneForModel {
     pub rows: Vec<i32>,
 }
 
+impl SceneForModel {
+    /// The appearance `camera` is rendered in: `row` (the view's own, ≥ 0) or, for a view
+    /// without one, the code `rule` gives (`render::appearance`), from the training cameras.
+    pub fn appearance(
+        &self,
+        model: &crate::model::hfm::Hfm,
+        params: &[f32],
+        rule: crate::render::appearance::NewViewCode,
+        row: i32,
+        camera: &crate::scene::Camera,
+    ) -> crate::render::Appearance {
+        let train: Vec<&crate::scene::Camera> = (self.scene.train().iter())
+            .map(|&j| &self.scene.views[j].camera)
+            .collect();
+        crate::render::appearance::appearance_for(model, params, rule, row, camera, &train)
+    }
+}
+
 /// A `--mesh` path made absolute: as given if it exists, else relative to the scene dir (as
 /// `LoadOptions::mesh` resolves it), so a run config keeps pointing at the same file.
 pub fn absolute_mesh_path(mesh: &Path, scene: &Path) -> PathBuf {
@@ -409,6 +427,13 @@ fn load_warning(dir: &Path, opts: &LoadOptions) -> Result<Scene> {
     let (scene, report) = Scene::load_report(dir, opts)?;
     for w in &report.warnings {
         eprintln!("warning: {w}");
+    }
+    if report.left_out > 0 {
+        eprintln!(
+            "note: {} views of {} have no photo on disk and are left out (skip_missing = true in its scene.toml)",
+            report.left_out,
+            dir.display()
+        );
     }
     Ok(scene)
 }

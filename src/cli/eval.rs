@@ -35,6 +35,12 @@ pub struct Args {
     /// no model: `--scene DIR` alone, or a run for its scene, split and mesh).
     #[arg(long, value_enum, default_value = "model")]
     pub method: Method,
+    /// The appearance code of a view that has none of its own (a held-out view, a new camera):
+    /// `neighbours` blends the codes of the training views nearest in pose (their exposure and
+    /// white balance), `mean` takes the mean of all codes (spec §4.6). Only the camera is used,
+    /// never the view's photo.
+    #[arg(long, value_enum, default_value = "neighbours")]
+    pub appearance: crate::render::appearance::NewViewCode,
     /// No progress lines (one per view scored, on stderr); the table, notes and errors remain.
     #[arg(long, short)]
     pub quiet: bool,
@@ -87,6 +93,13 @@ pub fn run(a: Args) -> Result<ExitCode> {
         let e = match a.method {
             Method::Model => {
                 let ck = ck.as_ref().expect("a model is loaded for --method model");
+                let look = s.appearance(
+                    &ck.model,
+                    &ck.params,
+                    a.appearance,
+                    s.rows[i],
+                    &s.scene.views[i].camera,
+                );
                 evaluate_view(
                     &ck.model,
                     &ck.params,
@@ -94,7 +107,7 @@ pub fn run(a: Args) -> Result<ExitCode> {
                     &s.scene,
                     i,
                     ck.model.cfg.gamma,
-                    s.rows[i],
+                    &look,
                     background,
                 )?
             }

@@ -17,7 +17,7 @@
 use crate::eval::metrics::{flip_map, masked_mean, psnr_masked, ssim, ssim_masked};
 use crate::model::hfm::Hfm;
 use crate::raycast::Tracer;
-use crate::render::{comparison, render_camera, Rendered};
+use crate::render::{comparison, render_camera, Appearance, Rendered};
 use crate::scene::image::write_png8;
 use crate::scene::{Image, Scene};
 use anyhow::{Context, Result};
@@ -47,11 +47,11 @@ pub struct ViewScore {
     pub footprint: Option<f64>,
 }
 
-/// A scored view: the scores, the photo with misses painted in the background colour (for the
-/// side-by-side) and the per-pixel ꟻLIP error of the full image.
+/// A scored view: the scores, the photo as it is (for the side-by-side) and the per-pixel ꟻLIP
+/// error of the full image.
 pub struct Scored {
     pub score: ViewScore,
-    pub painted: Image,
+    pub photo: Image,
     pub flip_map: Vec<f32>,
 }
 
@@ -104,7 +104,7 @@ pub fn score_view(
     };
     Scored {
         score,
-        painted,
+        photo: gt.clone(),
         flip_map: fmap,
     }
 }
@@ -294,7 +294,7 @@ pub struct Evaluated {
     pub scored: Scored,
 }
 
-/// Render scene view `i` with the model (appearance row `row`, −1 = mean code) at γ = `gamma`,
+/// Render scene view `i` with the model in `appearance` (`render::appearance`) at γ = `gamma`,
 /// misses in `background`, and score it against its photo inside its mask (module docs).
 #[allow(clippy::too_many_arguments)]
 pub fn evaluate_view(
@@ -304,11 +304,19 @@ pub fn evaluate_view(
     scene: &Scene,
     i: usize,
     gamma: u32,
-    row: i32,
+    appearance: &Appearance,
     background: [f32; 3],
 ) -> Result<Evaluated> {
     let view = &scene.views[i];
-    let rendered = render_camera(model, params, tracer, &view.camera, gamma, row, background)?;
+    let rendered = render_camera(
+        model,
+        params,
+        tracer,
+        &view.camera,
+        gamma,
+        appearance,
+        background,
+    )?;
     score_rendered(scene, i, rendered, background)
 }
 
@@ -377,8 +385,9 @@ pub fn write_view_png(dir: &Path, name: &str, img: &Image) -> Result<PathBuf> {
     Ok(path)
 }
 
-/// Write an evaluated view's render into `render_dir` and its side-by-side (render | photo |
-/// error | ꟻLIP) into `compare_dir`, each under the view's own name.
+/// Write an evaluated view's render into `render_dir` and its side-by-side (render | photo as it
+/// is | error | ꟻLIP, the mesh's misses outlined: `render::comparison`) into `compare_dir`, each
+/// under the view's own name.
 pub fn write_evaluated(
     e: &Evaluated,
     name: &str,
@@ -389,7 +398,12 @@ pub fn write_evaluated(
         write_view_png(d, name, &e.rendered.image)?;
     }
     if let Some(d) = compare_dir {
-        let cmp = comparison(&e.rendered.image, &e.scored.painted, &e.scored.flip_map);
+        let cmp = comparison(
+            &e.rendered.image,
+            &e.scored.photo,
+            &e.rendered.hit,
+            &e.scored.flip_map,
+        );
         write_view_png(d, name, &cmp)?;
     }
     Ok(())

@@ -64,6 +64,27 @@ impl Prepared {
             .position(|&v| v == scene_view)
             .map_or(-1, |r| r as i32)
     }
+
+    /// The appearance a scene view is rendered in: its row, or for a held-out view the codes
+    /// of its nearest training views blended (`render::appearance`, the default rule).
+    pub fn appearance(
+        &self,
+        model: &crate::model::hfm::Hfm,
+        params: &[f32],
+        scene_view: usize,
+    ) -> crate::render::Appearance {
+        let train: Vec<&crate::scene::Camera> = (self.train_views.iter())
+            .map(|&j| &self.scene.views[j].camera)
+            .collect();
+        crate::render::appearance::appearance_for(
+            model,
+            params,
+            Default::default(),
+            self.appearance_row(scene_view),
+            &self.scene.views[scene_view].camera,
+            &train,
+        )
+    }
 }
 
 /// Load `dir`, cast the training views with γ = `gamma`; with `with_images`, targets come from

@@ -376,6 +376,7 @@ pub fn evaluate_until(
         if stop() {
             return Ok(None);
         }
+        let look = prepared.appearance(&state.ckpt.model, &state.ckpt.params, i);
         let e = evaluate_view(
             &state.ckpt.model,
             &state.ckpt.params,
@@ -383,7 +384,7 @@ pub fn evaluate_until(
             &prepared.scene,
             i,
             state.cfg.model.gamma,
-            prepared.appearance_row(i),
+            &look,
             prepared.scene.background,
         )?;
         if let Some(dir) = out {

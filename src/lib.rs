@@ -12,6 +12,7 @@
 //! | Adam, batches, training loop, checkpoints | [`train`] |
 //! | rendering any camera, camera paths, error images | [`render`] |
 //! | PSNR / SSIM, the held-out protocol | [`eval`] |
+//! | photos → a scene: COLMAP's CPU pipeline, a Delaunay graph-cut mesh of its points | [`prepare`] |
 //! | safetensors checkpoints, batches, dumps, `compare` | [`io`] |
 //! | counter-based random numbers (SPEC §5) | [`rng`] |
 //! | command-line front end | [`cli`] |
@@ -45,6 +46,7 @@ pub mod eval;
 pub mod io;
 pub mod memhint;
 pub mod model;
+pub mod prepare;
 pub mod raycast;
 pub mod render;
 pub mod rng;

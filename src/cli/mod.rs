@@ -18,6 +18,7 @@ pub mod eval;
 pub mod init;
 pub mod mesh_distance;
 pub mod out_dir;
+pub mod prepare;
 pub mod render;
 pub mod synth;
 pub mod train;
@@ -38,6 +39,8 @@ pub struct Cli {
 
 #[derive(Subcommand, Debug)]
 pub enum Command {
+    /// Photos to a scene: COLMAP's CPU pipeline, then a mesh of its points (Delaunay graph cut).
+    Prepare(prepare::Args),
     /// Generate a cross-scale synthetic scene with independent ground truth.
     Synth(synth::Args),
     /// Load a scene, cast its rays once and report what the sample cache holds.
@@ -127,6 +130,7 @@ fn output_folder(c: &Command) -> (Option<std::path::PathBuf>, NoWork) {
 
 fn dispatch(command: Command) -> anyhow::Result<ExitCode> {
     match command {
+        Command::Prepare(a) => prepare::run(a),
         Command::Synth(a) => synth::run(a),
         Command::Cast(a) => cast::run(a),
         Command::Init(a) => init::run(a),

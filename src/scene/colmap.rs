@@ -32,7 +32,7 @@ const SUPPORTED: &str = "SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV,
 
 /// COLMAP's camera model names by id (`src/colmap/sensor/models.h`), and their parameter
 /// counts.
-const MODELS: [(&str, usize); 18] = [
+pub(crate) const MODELS: [(&str, usize); 18] = [
     ("SIMPLE_PINHOLE", 3),
     ("PINHOLE", 4),
     ("SIMPLE_RADIAL", 4),
@@ -131,7 +131,7 @@ fn intrinsics(where_: &str, model: usize, w: u64, h: u64, p: &[f64]) -> Result<I
 /// COLMAP model id and parameters representing a camera exactly (SIMPLE_RADIAL/RADIAL need
 /// fx == fy; otherwise the equivalent OPENCV with zero extra terms is used). A distortion no
 /// COLMAP model has (Metashape's r⁸ term or skew) is an error naming the view.
-fn model_of(view: &View) -> Result<(usize, Vec<f64>)> {
+pub(crate) fn model_of(view: &View) -> Result<(usize, Vec<f64>)> {
     let cam = &view.camera;
     let same_f = cam.fx == cam.fy;
     let k4 = [cam.fx, cam.fy, cam.cx, cam.cy];

@@ -33,7 +33,7 @@ use xscale::model::config::PositionMode;
 use xscale::model::kink::DEFAULT_THRESHOLD;
 use xscale::model::Batch;
 
-/// Tensor families (as in docs/oracle.md section 8): (label, name prefixes).
+/// Tensor families (as `fixtures/golden/golden_tool.py` groups the agreement tables): (label, name prefixes).
 const FAMILIES: &[(&str, &[&str])] = &[
     ("fwd.grid_h / fwd.grid_d", &["fwd.grid_h", "fwd.grid_d"]),
     (

@@ -77,6 +77,13 @@ const SECTIONS: &[Spec] = &[
         run: oracle,
     },
     Spec {
+        name: "python",
+        title: "The oracle from Python (`python/bench/bench_ops.py`)",
+        measures: "What calling the oracle from Python costs, on the golden `cpu-t10` checkpoint and a seeded batch of 4,096 pixels × 4 sub-samples (10 % invalid), f32 and f64: every op of a whole step composed from the package's ops (`xscale.step_from_ops`) timed per call, split into the Rust computation and the binding's overhead (argument checks, array conversion, the GIL); their sum against the composed step; and the whole step in one call (`Model.step`) against the `xscale dump` command's round trip (the process, its files, loading the dump back), in alternating rounds (median). Before timing it checks that the composed step equals `Model.step` bit for bit and that the command's dump equals it tensor for tensor. Needs the package (`pip install ./python`) for `python3` or `XSCALE_PYTHON`; without it the section says it was skipped.",
+        cost: "under a minute (the package built)",
+        run: python,
+    },
+    Spec {
         name: "render",
         title: "Rendering a 1.08-megapixel frame",
         measures: "`xscale render --scale 6` of one held-out `small` view (1200×900, γ = 2) from the `small` section's checkpoint: the whole command (mapping the checkpoint, casting, shading, writing the PNG), median of 5 runs, and its peak memory.",
@@ -634,6 +641,98 @@ fn oracle(c: &Ctx) -> Result<Section> {
         ],
         ..Section::default()
     })
+}
+
+/// The Python package's call overhead (`python/bench/bench_ops.py --json`).
+fn python(c: &Ctx) -> Result<Section> {
+    let py = std::env::var("XSCALE_PYTHON").unwrap_or_else(|_| "python3".into());
+    let cmd = format!("{py} python/bench/bench_ops.py --rounds 7");
+    let mut s = Section {
+        commands: vec![cmd],
+        ..Section::default()
+    };
+    let probe = Command::new(&py)
+        .args(["-c", "import xscale"])
+        .current_dir(&c.root)
+        .output();
+    if !probe.is_ok_and(|o| o.status.success()) {
+        s.notes.push(format!(
+            "Not measured on this host: `{py}` cannot import the package (`pip install ./python`; \
+             XSCALE_PYTHON names another interpreter)."
+        ));
+        return Ok(s);
+    }
+    let json = c.work.join("python.json");
+    let bin = c.bin.display().to_string();
+    let r = run_measured(
+        Command::new(&py)
+            .args([
+                "python/bench/bench_ops.py",
+                "--rounds",
+                "7",
+                "--xscale",
+                &bin,
+                "--json",
+            ])
+            .arg(&json)
+            .current_dir(&c.root),
+    )?;
+    if !r.ok {
+        bail!("python/bench/bench_ops.py: failed:\n{}", tail(&r.stderr));
+    }
+    let v = read_json(&json)?;
+    let mut rows = Vec::new();
+    for (name, o) in v["ops"].as_object().into_iter().flatten() {
+        let mut row = vec![json!(name), o["f64"]["calls_per_step"].clone()];
+        for p in ["f32", "f64"] {
+            row.push(o[p]["wall_us"].clone());
+            row.push(o[p]["rust_us"].clone());
+            row.push(o[p]["overhead_us"].clone());
+        }
+        rows.push(row);
+    }
+    s.tables.push(table(
+        &format!(
+            "{} pixels ({} valid sub-samples), {} threads, median of {} rounds; Python {}, numpy {}; per call",
+            v["pixels"], v["valid_subsamples"], v["threads"], v["rounds"],
+            v["python"].as_str().unwrap_or("?"), v["numpy"].as_str().unwrap_or("?")
+        ),
+        &[
+            "op",
+            "calls per step",
+            "f32 call (µs)",
+            "f32 Rust (µs)",
+            "f32 overhead (µs)",
+            "f64 call (µs)",
+            "f64 Rust (µs)",
+            "f64 overhead (µs)",
+        ],
+        &[0, 0, 0, 0, 1, 0, 0, 1],
+        rows,
+    ));
+    let st = &v["steps"];
+    let row = |label: &str, key: &str, scale: f64| {
+        vec![
+            json!(label),
+            json!(st["f32"][key].as_f64().map(|x| x * scale)),
+            json!(st["f64"][key].as_f64().map(|x| x * scale)),
+        ]
+    };
+    s.tables.push(table(
+        "The whole step",
+        &["", "f32", "f64"],
+        &[0, 2, 2],
+        vec![
+            row("composed from the ops (ms)", "composed", 1.0),
+            row("of which op calls (ms)", "ops", 1.0),
+            row("of which the ops' overhead (ms)", "overhead", 1.0),
+            row("overhead / composed step (%)", "share", 100.0),
+            row("Model.step, one call (ms)", "step", 1.0),
+            row("xscale dump round trip (ms)", "cli", 1.0),
+            row("round trip / Model.step (×)", "ratio", 1.0),
+        ],
+    ));
+    Ok(s)
 }
 
 fn render(c: &Ctx) -> Result<Section> {

@@ -489,6 +489,12 @@ def grid_fma_f32(x: np.ndarray, levels: list[Level], table: np.ndarray, interpol
     return out
 
 
+def smoothstep(t: torch.Tensor) -> torch.Tensor:
+    """w(t) = t*t*(3-2t); autograd differentiates it (dw/dt = 6t(1-t)). A module-level function so
+    that a test can swap in a deliberately wrong derivative and see the op checks catch it."""
+    return t * t * (3 - 2 * t)
+
+
 def grid_forward(x_t: torch.Tensor, x_np: np.ndarray, levels: list[Level], table: torch.Tensor,
                  interpolation: str, positions: str, dtype: str) -> torch.Tensor:
     """Differentiable grid forward. x_t: [M,3] float64 (autograd), x_np: the same values in NumPy, table:
@@ -505,7 +511,7 @@ def grid_forward(x_t: torch.Tensor, x_np: np.ndarray, levels: list[Level], table
         else:
             dx = float(lvl.scale) * (x_t - x_t.detach())  # float64, value exactly 0
             t = torch.from_numpy(t_np) + dx.to(tdt)
-        w = t * t * (3 - 2 * t) if interpolation == "smoothstep" else t
+        w = smoothstep(t) if interpolation == "smoothstep" else t
         for k in range(8):
             weight = None
             cc = c.copy()

@@ -34,6 +34,8 @@ pub enum Purpose {
     /// Patches and neighbour views of the refinement's photo-consistency term; `a` = step,
     /// `b` = 2·slot (pixel) or 2·slot + 1 (neighbour).
     RefinePhoto = 7,
+    /// `xscale case`'s batch edit; `a` = 0 (sub-sample invalidated), `b` = sub-sample index.
+    Case = 8,
     /// Anything a test needs.
     Test = 99,
 }

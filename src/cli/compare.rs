@@ -14,10 +14,12 @@ pub struct Args {
     pub a: PathBuf,
     /// Second file (e.g. the backend's dump).
     pub b: PathBuf,
-    /// Tolerance rules (TOML: `[[rule]] pattern = "fwd.*"`, `max_abs`, `max_rel`, `max_ulp`,
-    /// `max_rel_peak`, `reason`, `required`, `ignore`; `[default]`; `strict`).
+    /// Tolerance rules: a built-in set (`f32`, `f64`, `fp16`, `grid-exact`, `exact`; docs/oracle.md
+    /// §7) or a TOML file (`[[rule]] pattern = "fwd.*"`, `max_abs`, `max_rel`, `max_ulp`,
+    /// `max_rel_peak`, `reason`, `required`, `ignore`; `[default]`; `strict`). A file named like a
+    /// set is given as `./f32`.
     #[arg(long)]
-    pub tolerances: Option<PathBuf>,
+    pub tolerances: Option<String>,
     /// Also write the report as JSON to this file.
     #[arg(long)]
     pub json: Option<PathBuf>,
@@ -51,7 +53,7 @@ pub struct Args {
 
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let mut tol = match &args.tolerances {
-        Some(p) => Tolerances::read(p)?,
+        Some(spec) => Tolerances::resolve(spec)?,
         None => Tolerances::default(),
     };
     let limits_given = args.max_abs.is_some()

@@ -9,6 +9,7 @@ pub mod align_mesh;
 pub mod batch;
 pub mod bench_geometry;
 pub mod bench_quality;
+pub mod case;
 pub mod cast;
 pub mod common;
 pub mod compare;
@@ -51,6 +52,9 @@ pub enum Command {
     Batch(batch::Args),
     /// Write every intermediate, the loss and every gradient for a checkpoint and a batch.
     Dump(dump::Args),
+    /// Write a backend test case: checkpoint, batch, f64 oracle dump, tolerances and a manifest of
+    /// every tensor a backend must produce.
+    Case(case::Args),
     /// Compare two safetensors files tensor by tensor.
     Compare(compare::Args),
     /// Train on a scene.
@@ -74,6 +78,64 @@ pub enum Command {
     /// How much an imperfect mesh costs: proxies of a synthetic scene's true surface, trained with
     /// ξ (and mesh refinement) on and off; writes geometry.md/.csv and plots
     BenchGeometry(bench_geometry::Args),
+}
+
+/// The `xscale` program: parse `args` (the program name first), run the command, print an error
+/// as `error: …` on stderr. Exit codes (docs/runs.md): 0 done, 1 a check failed, 2 an error at
+/// run time (bad input, I/O, a refused run folder, divergence), 64 a usage error (unknown flag,
+/// bad value: sysexits' EX_USAGE), 130 stopped by a signal with a checkpoint written, 3 stopped
+/// by a signal with nothing saved. (`src/main.rs`, and `python -m xscale` in the Python package.)
+pub fn main_with<I, T>(args: I) -> ExitCode
+where
+    I: IntoIterator<Item = T>,
+    T: Into<std::ffi::OsString> + Clone,
+{
+    let cli = match Cli::try_parse_from(args) {
+        Ok(c) => c,
+        Err(e) => {
+            let _ = e.print();
+            // --help and --version are not errors.
+            return ExitCode::from(if e.use_stderr() { 64 } else { 0 });
+        }
+    };
+    match run(cli) {
+        Ok(code) => code,
+        Err(e) => {
+            // Not `eprintln!`, which panics when stderr is a closed pipe.
+            use std::io::Write;
+            let mut err = std::io::stderr();
+            let _ = writeln!(err, "error: {e:#}");
+            if hit_file_size_limit(&e) {
+                let _ = writeln!(
+                    err,
+                    "hint: the process has a file-size limit (`ulimit -f` shows it); raise it or write \
+                     to a folder without one"
+                );
+            }
+            ExitCode::from(2)
+        }
+    }
+}
+
+/// The number an [`ExitCode`] stands for (0–255; `ExitCode` itself does not say).
+pub fn exit_code_value(code: ExitCode) -> u8 {
+    (0..=u8::MAX)
+        .find(|&k| ExitCode::from(k) == code)
+        .unwrap_or(1)
+}
+
+/// EFBIG anywhere in the error: as an `io::Error` in the chain, or in the text where a writer
+/// (the PNG encoder, safetensors) kept only the message, which ends in "(os error 27)" on Linux.
+fn hit_file_size_limit(e: &anyhow::Error) -> bool {
+    let kind = e.chain().any(|c| {
+        c.downcast_ref::<std::io::Error>()
+            .is_some_and(|io| io.kind() == std::io::ErrorKind::FileTooLarge)
+    });
+    #[cfg(unix)]
+    let text = format!("{e:#}").contains(&format!("(os error {})", libc::EFBIG));
+    #[cfg(not(unix))]
+    let text = false;
+    kind || text
 }
 
 /// Run a parsed command line. `Ok(code)` is the process exit code; errors exit with 2.
@@ -136,6 +198,7 @@ fn dispatch(command: Command) -> anyhow::Result<ExitCode> {
         Command::Init(a) => init::run(a),
         Command::Batch(a) => batch::run(a),
         Command::Dump(a) => dump::run(a),
+        Command::Case(a) => case::run(a),
         Command::Compare(a) => compare::run(a),
         Command::Train(a) => train::run(a),
         Command::Render(a) => render::run(a),

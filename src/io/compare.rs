@@ -255,6 +255,72 @@ impl Tolerances {
         Self::from_toml(&text, &path.display().to_string())
     }
 
+    /// A built-in tolerance set by name ([`BUILTIN_TOLERANCES`]), `None` for another name.
+    pub fn builtin(name: &str) -> Option<Tolerances> {
+        builtin_tolerance_text(name).map(|text| {
+            Self::from_toml(text, &format!("built-in tolerance set {name:?}"))
+                .expect("the built-in tolerance sets parse (tested)")
+        })
+    }
+
+    /// `--tolerances SPEC`: a built-in set's name (`f32`, `f64`, `fp16`, `grid-exact`, `exact`),
+    /// else the path of a TOML file. A file literally named like a set is given as `./f32`.
+    pub fn resolve(spec: &str) -> Result<Tolerances> {
+        if let Some(t) = Self::builtin(spec) {
+            return Ok(t);
+        }
+        let path = Path::new(spec);
+        if !path.exists() && !spec.contains(['/', '\\']) && !spec.ends_with(".toml") {
+            bail!(
+                "--tolerances {spec:?}: no such file, and not a built-in set (built-in: {})",
+                builtin_tolerance_names().join(", ")
+            );
+        }
+        Self::read(path)
+    }
+}
+
+/// The tolerance sets every build carries (`xscale compare --tolerances f32`, the Python
+/// package's `tolerances="f32"`): name and TOML text. The files are `fixtures/golden/
+/// tolerances-<name>.toml`, where each rule's reason says why its limits are what they are
+/// (docs/oracle.md §7).
+pub const BUILTIN_TOLERANCES: &[(&str, &str)] = &[
+    (
+        "f32",
+        include_str!("../../fixtures/golden/tolerances-f32.toml"),
+    ),
+    (
+        "f64",
+        include_str!("../../fixtures/golden/tolerances-f64.toml"),
+    ),
+    (
+        "fp16",
+        include_str!("../../fixtures/golden/tolerances-fp16.toml"),
+    ),
+    (
+        "grid-exact",
+        include_str!("../../fixtures/golden/tolerances-grid-exact.toml"),
+    ),
+    (
+        "exact",
+        include_str!("../../fixtures/golden/tolerances-exact.toml"),
+    ),
+];
+
+/// The TOML text of a built-in tolerance set.
+pub fn builtin_tolerance_text(name: &str) -> Option<&'static str> {
+    BUILTIN_TOLERANCES
+        .iter()
+        .find(|(n, _)| *n == name)
+        .map(|(_, t)| *t)
+}
+
+/// The names of the built-in tolerance sets, in [`BUILTIN_TOLERANCES`] order.
+pub fn builtin_tolerance_names() -> Vec<&'static str> {
+    BUILTIN_TOLERANCES.iter().map(|(n, _)| *n).collect()
+}
+
+impl Tolerances {
     /// The rule for a tensor: the first matching rule, else the default.
     pub fn rule_for(&self, name: &str) -> Option<&Rule> {
         self.rules

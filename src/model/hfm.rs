@@ -490,25 +490,13 @@ impl Hfm {
         &params[self.r_codes.clone()]
     }
 
-    /// `[A]` mean of all appearance rows (row order sum, then divide).
+    /// `[A]` mean of all appearance rows ([`appearance_mean`]).
     fn code_mean<R: Real>(&self, params: &[R]) -> Vec<R> {
-        let a = self.appearance_dim();
-        let views = self.appearance_views();
-        let mut m = vec![R::ZERO; a];
-        if a == 0 || views == 0 {
-            return m;
-        }
-        let codes = &params[self.r_codes.clone()];
-        for row in codes.chunks_exact(a) {
-            for (mi, &v) in m.iter_mut().zip(row) {
-                *mi += v;
-            }
-        }
-        let inv = R::from_f64(views as f64);
-        for v in m.iter_mut() {
-            *v = *v / inv;
-        }
-        m
+        appearance_mean(
+            &params[self.r_codes.clone()],
+            self.appearance_dim(),
+            self.appearance_views(),
+        )
     }
 
     /// Chunk `c` (pixels `c·PIXEL_CHUNK ..`) of a forward pass into `f`, reusing its buffers.
@@ -731,29 +719,14 @@ impl Hfm {
         let a = self.appearance_dim();
         if a > 0 {
             let views = self.appearance_views();
-            let mut mean_acc = vec![R::ZERO; a];
-            let mut any_mean = false;
-            let d_codes = &mut grads.params[self.r_codes.clone()];
-            for (ch, c) in fwd.chunks.iter().zip(&cg) {
-                for (i, dc) in ch.pixels.clone().zip(c.d_code.chunks_exact(a)) {
-                    let vw = batch.view[i];
-                    if vw >= 0 {
-                        add_into(&mut d_codes[vw as usize * a..(vw as usize + 1) * a], dc);
-                    } else {
-                        any_mean = true;
-                        add_into(&mut mean_acc, dc);
-                    }
-                }
-            }
-            if any_mean && views > 0 {
-                let inv = R::from_f64(views as f64);
-                for m in mean_acc.iter_mut() {
-                    *m = *m / inv;
-                }
-                for row in d_codes.chunks_exact_mut(a) {
-                    add_into(row, &mean_acc);
-                }
-            }
+            let d_code: Vec<R> = cg.iter().flat_map(|c| c.d_code.iter().copied()).collect();
+            appearance_backward(
+                &batch.view,
+                &d_code,
+                a,
+                views,
+                &mut grads.params[self.r_codes.clone()],
+            );
         }
         // Grid tables: one scatter over all valid sub-samples in batch order (H and D write
         // disjoint buffers, so they run concurrently).
@@ -975,6 +948,59 @@ fn coarse_levels<'a, R: Real>(
         row[kept * f..].fill(R::ZERO);
     }
     std::borrow::Cow::Owned(v)
+}
+
+/// `[A]` mean of the appearance rows `codes [views, A]` (the code of `view = −1`, SPEC §4.6): the
+/// rows summed in row order from +0, then divided by `views`; zeros when `a` or `views` is 0.
+pub fn appearance_mean<R: Real>(codes: &[R], a: usize, views: usize) -> Vec<R> {
+    let mut m = vec![R::ZERO; a];
+    if a == 0 || views == 0 {
+        return m;
+    }
+    for row in codes.chunks_exact(a) {
+        for (mi, &v) in m.iter_mut().zip(row) {
+            *mi += v;
+        }
+    }
+    let inv = R::from_f64(views as f64);
+    for v in m.iter_mut() {
+        *v = *v / inv;
+    }
+    m
+}
+
+/// Accumulate `d_codes [views, A] += ∂L/∂codes` from the pixels' code gradients `d_code [N, A]`
+/// (SPEC §4.6): pixels with a row (`view[n] ≥ 0`) added to it in pixel order; then the sum of the
+/// `view = −1` pixels' gradients (pixel order, from +0) divided by `views` added to every row.
+pub fn appearance_backward<R: Real>(
+    view: &[i32],
+    d_code: &[R],
+    a: usize,
+    views: usize,
+    d_codes: &mut [R],
+) {
+    if a == 0 {
+        return;
+    }
+    let mut mean_acc = vec![R::ZERO; a];
+    let mut any_mean = false;
+    for (&vw, dc) in view.iter().zip(d_code.chunks_exact(a)) {
+        if vw >= 0 {
+            add_into(&mut d_codes[vw as usize * a..(vw as usize + 1) * a], dc);
+        } else {
+            any_mean = true;
+            add_into(&mut mean_acc, dc);
+        }
+    }
+    if any_mean && views > 0 {
+        let inv = R::from_f64(views as f64);
+        for m in mean_acc.iter_mut() {
+            *m = *m / inv;
+        }
+        for row in d_codes.chunks_exact_mut(a) {
+            add_into(row, &mean_acc);
+        }
+    }
 }
 
 /// Eq. 4 forward: `out[n, lf] = (Σ_{j ∈ start[n]..start[n+1]} (feat[j] + delta[j])) / count_n`,

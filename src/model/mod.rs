@@ -10,6 +10,7 @@ pub mod hfm;
 pub mod kink;
 pub mod level_weight;
 pub mod loss;
+pub mod manifest;
 pub mod mlp;
 pub mod params;
 pub mod photo;

@@ -424,7 +424,7 @@ pub fn few_hits_warning(hits: u64, pixels: u64, agreed: Option<&Path>) -> Option
 
 /// Epochs over the training views' kept pixels that `budget = "auto"` trains (measured on `synth`
 /// `small` and `cross`, docs/results.md "Training budget").
-pub const BUDGET_EPOCHS: f64 = 8.0;
+pub const BUDGET_EPOCHS: f64 = 12.0;
 
 /// Fewest steps `budget = "auto"` chooses (a scene of a few views still trains its MLP and
 /// appearance codes to convergence: the `tiny` scene's 15,000 pixels are 4 batches).

@@ -83,6 +83,8 @@ def test_the_readme_backend_check_runs_as_written(case_dir, tmp_path, monkeypatc
     assert len(code.strip().splitlines()) <= 10
     # docs/oracle.md opens with the same lines.
     assert snippet(REPO / "docs" / "oracle.md", "# xscale as a correctness oracle") == code
+    # ... and so does the repository's README, on its first screen.
+    assert snippet(REPO / "README.md", "# xscale") == code
     (tmp_path / "case").symlink_to(case_dir)
     monkeypatch.chdir(tmp_path)
 

@@ -151,7 +151,7 @@ fn configurations_refinement_cannot_run_are_errors() {
         .replace("features = 1.0\n", "")
         .replace("photo = 0.0\n", "")
         .replace("optimizer = \"adam\"\n", "");
-    assert!(!text.contains("features ="), "{text}");
+    assert!(!text.contains("photo ="), "{text}");
     assert_eq!(RunConfig::from_stored_toml(&text, "old").unwrap(), old);
     assert_eq!(
         RunConfig::from_toml_str(&c.to_toml(), "cpu", "again").unwrap(),

@@ -47,7 +47,14 @@ fn the_cpu_budget_follows_the_pixels_is_stored_and_resumed() {
     let fx = fixture();
     let (scene, out) = (fx.to_str().unwrap(), run.to_str().unwrap());
     let (code, err) = xscale(&[
-        "train", "--scene", scene, "--out", out, "--stop-at", "2", "--no-eval",
+        "train",
+        "--scene",
+        scene,
+        "--out",
+        out,
+        "--stop-at",
+        "2",
+        "--no-eval",
     ]);
     assert_eq!(code, 0, "{err}");
     assert!(
@@ -57,15 +64,31 @@ fn the_cpu_budget_follows_the_pixels_is_stored_and_resumed() {
     let c = stored(&run);
     assert_eq!((c.train.budget, c.train.steps), (StepBudget::Auto, want));
     // The resume continues to the stored count.
-    let (code, err) = xscale(&["train", "--out", out, "--resume", "--stop-at", "4", "--no-eval"]);
+    let (code, err) = xscale(&[
+        "train",
+        "--out",
+        out,
+        "--resume",
+        "--stop-at",
+        "4",
+        "--no-eval",
+    ]);
     assert_eq!(code, 0, "{err}");
     assert!(err.contains(&format!("at step 2 of {want}")), "{err}");
 
     // --steps fixes it.
     let fixed = tmp("fixed");
     let (code, err) = xscale(&[
-        "train", "--scene", scene, "--out", fixed.to_str().unwrap(), "--steps", "7",
-        "--stop-at", "1", "--no-eval",
+        "train",
+        "--scene",
+        scene,
+        "--out",
+        fixed.to_str().unwrap(),
+        "--steps",
+        "7",
+        "--stop-at",
+        "1",
+        "--no-eval",
     ]);
     assert_eq!(code, 0, "{err}");
     assert!(err.contains("training budget (fixed): 7 steps"), "{err}");
@@ -98,7 +121,10 @@ fn a_config_file_steps_fix_the_budget_unless_it_asks_for_auto() {
     assert_eq!(c.train.budget, StepBudget::Auto, "other keys leave it auto");
     // Other presets keep their fixed counts; a config stored before the budget existed is fixed.
     for p in ["tiny", "paper"] {
-        assert_eq!(RunConfig::preset(p).unwrap().train.budget, StepBudget::Fixed);
+        assert_eq!(
+            RunConfig::preset(p).unwrap().train.budget,
+            StepBudget::Fixed
+        );
     }
     let old = RunConfig::preset("cpu")
         .unwrap()

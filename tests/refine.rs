@@ -133,13 +133,18 @@ fn configurations_refinement_cannot_run_are_errors() {
             .refine;
         let photo = RunConfig::resolve(
             preset,
-            Some(&std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("configs/refine-photo.toml")),
+            Some(
+                &std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("configs/refine-photo.toml"),
+            ),
         )
         .unwrap()
         .model
         .refine;
         assert_eq!(on, photo, "{preset}");
-        assert!(on.photo == 1.0 && on.features == 0.0 && on.anchored, "{on:?}");
+        assert!(
+            on.photo == 1.0 && on.features == 0.0 && on.anchored,
+            "{on:?}"
+        );
     }
     // A table written before that (which left out `features`, `photo` and `optimizer` at the
     // learned-features values) reads back as what it trained with.

@@ -225,7 +225,8 @@ impl RunConfig {
         // for `features`, `photo` and `optimizer` (`model/refine.rs`).
         if let Some(m) = v.get_mut("model").and_then(|m| m.as_table_mut()) {
             if !m.contains_key("refine") {
-                let r = toml::Value::try_from(&base.model.refine).context("serialising the preset")?;
+                let r =
+                    toml::Value::try_from(&base.model.refine).context("serialising the preset")?;
                 m.insert("refine".to_string(), r);
             }
         }

@@ -597,7 +597,10 @@ mod tests {
         assert_eq!(budget_steps(100_000_000, 4096), BUDGET_MAX_STEPS);
         let (a, b) = (budget_steps(2_000_000, 4096), budget_steps(4_000_000, 4096));
         assert!(a > BUDGET_MIN_STEPS && b < BUDGET_MAX_STEPS, "{a} {b}");
-        assert!(b >= 2 * a - 100 && b <= 2 * a, "twice the pixels, twice the steps: {a} {b}");
+        assert!(
+            b >= 2 * a - 100 && b <= 2 * a,
+            "twice the pixels, twice the steps: {a} {b}"
+        );
         assert_eq!(a % 100, 0);
         let want = (BUDGET_EPOCHS * 2_000_000.0 / 4096.0).ceil() as u64;
         assert!(a >= want && a < want + 100, "{a} {want}");

@@ -111,6 +111,13 @@ const SECTIONS: &[Spec] = &[
         cost: "about 10 minutes",
         run: cross,
     },
+    Spec {
+        name: "prepare",
+        title: "From photos to a scene: `xscale prepare`",
+        measures: "The mesher of `xscale prepare` against a true surface: `examples/prepare_synth.rs` on the `small` synthetic scene (400 points found per camera, exact or with noise of 0.1 % of the diagonal and 2 % wrong matches), its Delaunay graph cut at three `--max-side` settings and COLMAP's `poisson_mesher` on the same points (normals fitted to 12 neighbours, turned towards the cameras); accuracy = RMS distance of area samples of the mesh to the truth, completeness = RMS distance of samples of the truth that two cameras see to the mesh, both capped at 10 % of the diagonal and given as a share of it. Then a real capture from a folder of photos to a trained model, stage by stage (`prepare.json`'s seconds per stage), with its points, reprojection error through xscale's cameras, the share of pixels whose ray meets the mesh, and the trained model's held-out scores: the committed skull photos (`fixtures/prepare_skull`, 10 photos of 709×473, with the poses of its COLMAP model: COLMAP's mapper finds no good initial pair in these 10 small photos), and any capture named by `XSCALE_PREPARE_PHOTOS` (with `XSCALE_PREPARE_POSES` for known poses, `XSCALE_PREPARE_DOWNSAMPLE`, `XSCALE_PREPARE_STEPS`). Needs COLMAP on the PATH for Poisson and for the photos; without it those rows say they were skipped.",
+        cost: "about 15 minutes (Poisson about 2 minutes per point set)",
+        run: prepare,
+    },
 ];
 
 /// What a section's run gives; the runner adds name, title, host, date, commit and duration.
@@ -1067,6 +1074,290 @@ fn cross(c: &Ctx) -> Result<Section> {
 }
 
 // ---------------------------------------------------------------- host, date, commit
+
+/// Whether `name` is an executable file on the PATH.
+fn on_path(name: &str) -> bool {
+    std::env::var_os("PATH")
+        .is_some_and(|p| std::env::split_paths(&p).any(|d| d.join(name).is_file()))
+}
+
+/// Steps of the `cpu` preset the `prepare` section trains each capture for.
+const PREPARE_STEPS: u64 = 500;
+
+fn prepare(c: &Ctx) -> Result<Section> {
+    let mut s = Section::default();
+    let colmap = on_path("colmap");
+    // (a) The mesher against a true surface.
+    let r = run_measured(
+        Command::new("cargo")
+            .args([
+                "build",
+                "--release",
+                "--locked",
+                "--example",
+                "prepare_synth",
+            ])
+            .current_dir(&c.root),
+    )?;
+    if !r.ok {
+        bail!(
+            "cargo build --example prepare_synth: failed:\n{}",
+            tail(&r.stderr)
+        );
+    }
+    let synth_bin = c.root.join("target/release/examples/prepare_synth");
+    let synth = |dir: &str,
+                 noise: &str,
+                 outliers: &str,
+                 side: &str,
+                 cmds: &mut Vec<String>|
+     -> Result<Value> {
+        let args = [dir, "small", "400", noise, outliers, "1", "1", side];
+        let r = run_measured(Command::new(&synth_bin).args(args).current_dir(&c.root))?;
+        if !r.ok {
+            bail!(
+                "prepare_synth {}: failed:\n{}",
+                args.join(" "),
+                tail(&r.stderr)
+            );
+        }
+        cmds.push(format!(
+            "cargo run --release --example prepare_synth -- {}",
+            args.join(" ")
+        ));
+        read_json(&c.root.join(dir).join("distances.json"))
+    };
+    let mut rows = Vec::new();
+    let mut diag = 0.0;
+    for (label, key, noise, outliers) in [
+        ("exact", "exact", "0", "0"),
+        ("noise 0.1 % + 2 % wrong matches", "noisy", "0.001", "0.02"),
+    ] {
+        for side in ["25", "8", "5"] {
+            let dir = c.w(&format!("prepare-synth/{key}-{side}"));
+            let _ = std::fs::remove_dir_all(c.root.join(&dir));
+            let v = synth(&dir, noise, outliers, side, &mut s.commands)?;
+            diag = v["diagonal"].as_f64().unwrap_or(f64::NAN);
+            let m = &v["meshes"][0];
+            let pct = |k: &str| json!(100.0 * m[k].as_f64().unwrap_or(f64::NAN) / diag);
+            let name = if side == "8" {
+                format!("xscale, --max-side {side} (default)")
+            } else {
+                format!("xscale, --max-side {side}")
+            };
+            rows.push(vec![
+                json!(label),
+                v["points"].clone(),
+                json!(name),
+                m["triangles"].clone(),
+                pct("accuracy_rms"),
+                pct("completeness_rms"),
+                v["mesher_s"].clone(),
+            ]);
+            if side != "25" {
+                continue;
+            }
+            // COLMAP's Poisson mesher on the same points (they do not depend on --max-side).
+            if !colmap {
+                rows.push(vec![
+                    json!(label),
+                    v["points"].clone(),
+                    json!("COLMAP poisson_mesher: skipped (no `colmap` on the PATH)"),
+                    Value::Null,
+                    Value::Null,
+                    Value::Null,
+                    Value::Null,
+                ]);
+                continue;
+            }
+            let ply = format!("{dir}/points.ply");
+            let out = format!("{dir}/meshed-poisson.ply");
+            let args = [
+                "poisson_mesher",
+                "--input_path",
+                &ply,
+                "--output_path",
+                &out,
+            ];
+            let r = run_measured(Command::new("colmap").args(args).current_dir(&c.root))?;
+            s.commands.push(format!("colmap {}", args.join(" ")));
+            if !r.ok {
+                rows.push(vec![
+                    json!(label),
+                    v["points"].clone(),
+                    json!("COLMAP poisson_mesher: failed"),
+                    Value::Null,
+                    Value::Null,
+                    Value::Null,
+                    Value::Null,
+                ]);
+                s.notes.push(format!(
+                    "`colmap poisson_mesher` failed on the {key} points:\n\n```\n{}\n```",
+                    tail(&r.stderr)
+                ));
+                continue;
+            }
+            // Measured by the example when OUT/meshed-poisson.ply exists (the rest is the same run).
+            let v = synth(&dir, noise, outliers, side, &mut s.commands)?;
+            let m = &v["meshes"][1];
+            let pct = |k: &str| json!(100.0 * m[k].as_f64().unwrap_or(f64::NAN) / diag);
+            rows.push(vec![
+                json!(label),
+                v["points"].clone(),
+                json!("COLMAP poisson_mesher (defaults)"),
+                m["triangles"].clone(),
+                pct("accuracy_rms"),
+                pct("completeness_rms"),
+                json!(r.wall_s),
+            ]);
+        }
+    }
+    s.tables.push(table(
+        &format!("The `small` scene (40 cameras; diagonal {diag:.1} m): RMS distances as a share of the diagonal"),
+        &["points", "point count", "mesher", "triangles", "accuracy RMS (%)", "completeness RMS (%)", "meshing (s)"],
+        &[0, 0, 0, 0, 3, 3, 1],
+        rows,
+    ));
+    s.notes.push(
+        "COLMAP's `delaunay_mesher` (what xscale's mesher reimplements) is not compared: the COLMAP \
+         Debian ships (3.8 here) is built without CGAL (\"Delaunay meshing requires CGAL\")."
+            .into(),
+    );
+    // (b) Real captures, photos to a trained model.
+    let mut captures: Vec<(String, String, Option<String>, String, u64)> = Vec::new();
+    captures.push((
+        "skull (fixtures/prepare_skull, 10 photos)".into(),
+        "fixtures/prepare_skull/images".into(),
+        Some("fixtures/prepare_skull".into()),
+        "1".into(),
+        PREPARE_STEPS,
+    ));
+    if let Ok(p) = std::env::var("XSCALE_PREPARE_PHOTOS") {
+        let steps = std::env::var("XSCALE_PREPARE_STEPS")
+            .ok()
+            .and_then(|x| x.parse().ok())
+            .unwrap_or(2000);
+        captures.push((
+            format!("`{p}`"),
+            p,
+            std::env::var("XSCALE_PREPARE_POSES").ok(),
+            std::env::var("XSCALE_PREPARE_DOWNSAMPLE").unwrap_or_else(|_| "1".into()),
+            steps,
+        ));
+    }
+    let mut stages = Vec::new();
+    let mut summary = Vec::new();
+    for (k, (label, photos, poses, down, steps)) in captures.iter().enumerate() {
+        if !colmap {
+            s.notes.push(format!("{label}: not measured on this host: `xscale prepare` from photos needs `colmap` on the PATH."));
+            continue;
+        }
+        let out = c.w(&format!("prepare-{k}"));
+        let _ = std::fs::remove_dir_all(c.root.join(&out));
+        let mut args = vec!["prepare", "--photos", photos.as_str()];
+        if let Some(p) = poses {
+            args.extend(["--poses", p.as_str()]);
+        }
+        args.extend(["--downsample", down.as_str(), "--out", &out]);
+        let load0 = load();
+        s.commands.push(format!("xscale {}", args.join(" ")));
+        let r = match c.xscale(&args) {
+            Ok(r) => r,
+            Err(e) => {
+                // A capture COLMAP cannot reconstruct is a result too: said, not hidden.
+                s.notes.push(format!(
+                    "{label}: `xscale prepare` failed:\n\n```\n{e:#}\n```"
+                ));
+                continue;
+            }
+        };
+        let rep = read_json(&c.root.join(&out).join("prepare.json"))?;
+        for st in rep["seconds"].as_array().into_iter().flatten() {
+            stages.push(vec![json!(label), st[0].clone(), st[1].clone()]);
+        }
+        stages.push(vec![
+            json!(label),
+            json!(format!(
+                "prepare in all (load average {} at the start)",
+                load0.map_or("?".into(), |l| format!("{l:.1}"))
+            )),
+            json!(r.wall_s),
+        ]);
+        let run = c.w(&format!("prepare-{k}-run"));
+        let _ = std::fs::remove_dir_all(c.root.join(&run));
+        let st = steps.to_string();
+        let targs = [
+            "train", "--scene", &out, "--out", &run, "--steps", &st, "-q",
+        ];
+        let load0 = load();
+        let r = c.xscale(&targs)?;
+        s.commands.push(format!("xscale {}", targs.join(" ")));
+        stages.push(vec![json!(label), json!(format!("train, `cpu` preset, {steps} steps, with the final evaluation (load average {} at the start)", load0.map_or("?".into(), |l| format!("{l:.1}")))), json!(r.wall_s)]);
+        let e = read_json(&c.root.join(&run).join("eval.json"))?;
+        let (pm, sm, pf, _, _) = scores(&e);
+        let hits: Vec<f64> = rep["per_view"]
+            .as_array()
+            .into_iter()
+            .flatten()
+            .filter_map(|v| v["hit"].as_f64())
+            .collect();
+        let min_hit = hits.iter().copied().fold(f64::INFINITY, f64::min);
+        summary.push(vec![
+            json!(label),
+            rep["photos"].clone(),
+            rep["views"].clone(),
+            rep["points"].clone(),
+            rep["reprojection"]["mean"].clone(),
+            rep["reprojection"]["rms"].clone(),
+            rep["colmap_mean_error"].clone(),
+            rep["mesh_triangles"].clone(),
+            json!(100.0 * rep["mean_hit"].as_f64().unwrap_or(f64::NAN)),
+            json!(if hits.is_empty() {
+                f64::NAN
+            } else {
+                100.0 * min_hit
+            }),
+            json!(steps),
+            e["views"]
+                .as_array()
+                .map_or(Value::Null, |v| json!(v.len())),
+            pm,
+            sm,
+            pf,
+        ]);
+    }
+    if !stages.is_empty() {
+        s.tables.push(table(
+            "Seconds per stage (`prepare.json`), then training",
+            &["capture", "stage", "seconds"],
+            &[0, 0, 1],
+            stages,
+        ));
+        s.tables.push(table(
+            "What came out: the report and the trained model's held-out scores",
+            &[
+                "capture",
+                "photos",
+                "views posed",
+                "points",
+                "reprojection mean (px)",
+                "reprojection RMS (px)",
+                "COLMAP's mean error (px)",
+                "mesh triangles",
+                "pixels hit, mean (%)",
+                "pixels hit, lowest view (%)",
+                "steps",
+                "held-out views",
+                "masked PSNR (dB)",
+                "masked SSIM",
+                "full PSNR (dB)",
+            ],
+            &[0, 0, 0, 0, 3, 3, 3, 0, 1, 1, 0, 0, 2, 3, 2],
+            summary,
+        ));
+    }
+    Ok(s)
+}
 
 fn host() -> Value {
     let cpu = std::fs::read_to_string("/proc/cpuinfo")

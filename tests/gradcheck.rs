@@ -1025,7 +1025,7 @@ fn refine_scene() -> (Mesh, Normalization, RefineConfig) {
         per_vertex: true,
         laplacian: 0.3,
         bilaplacian: 0.7,
-        ..RefineConfig::default()
+        ..RefineConfig::learned()
     };
     (m, norm, cfg)
 }

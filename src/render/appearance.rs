@@ -32,7 +32,7 @@ pub const K: usize = 4;
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
 #[serde(rename_all = "lowercase")]
 pub enum NewViewCode {
-    /// The mean of all rows (the official code's mean exposure code; SPEC §4.6's `code(−1)`).
+    /// The mean of all rows (the official code's mean exposure code; docs/spec.md §4.6's `code(−1)`).
     Mean,
     /// The codes of the nearest training cameras, blended (module docs).
     #[default]

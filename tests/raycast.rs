@@ -965,9 +965,17 @@ fn neighbour_table(
     (wrong_meshes(&scene.mesh).into_iter())
         .map(|(what, mesh)| {
             let r = photo_check(&mesh, &scene.normalization, &cams, &photos, None);
+            let mut nb: Vec<(String, f64)> = (r.neighbours[1..].iter())
+                .filter_map(|(n, c)| Some((n.clone(), (*c)?)))
+                .collect();
+            nb.sort_by(|a, b| b.1.total_cmp(&a.1));
             eprintln!(
-                "{what:>20}: correlation {:.3}, neighbours {:?}, beaten {:?}, {:.2} s",
-                r.correlation, r.neighbours, r.beaten(), r.neighbour_seconds
+                "{what:>20}: correlation {:.3}, as given {:.3?}, best {:.3?}, beaten {:?}, {:.2} s",
+                r.correlation,
+                r.neighbours[0].1,
+                &nb[..nb.len().min(3)],
+                r.beaten().is_some(),
+                r.neighbour_seconds
             );
             (what, r.beaten().is_some(), r)
         })
@@ -989,7 +997,9 @@ fn photo_check_neighbours_catch_a_wrong_mesh() {
         assert!(r.neighbours.len() > 1, "{what}: {r:?}");
         match what {
             "correct" => assert!(!beaten, "{what}: {r:?}"),
-            "turned 90° about x" | "moved up 5%" => assert!(beaten, "{what}: {r:?}"),
+            "turned 90° about x" | "moved up 5%" | "moved sideways 3%" => {
+                assert!(beaten, "{what}: {r:?}")
+            }
             _ => {}
         }
     }

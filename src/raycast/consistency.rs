@@ -118,7 +118,7 @@ pub const NB_TURN: f64 = 5.0;
 pub const NB_SCALE: f64 = 1.1;
 /// A neighbour whose correlation beats the given mesh's by more than this is warned of: the
 /// given mesh is not the local maximum of photo-consistency a mesh in place is.
-pub const NB_MARGIN: f64 = 0.05;
+pub const NB_MARGIN: f64 = 0.03;
 
 /// One sample as one view sees it.
 #[derive(Clone, Copy)]

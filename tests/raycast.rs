@@ -943,8 +943,14 @@ fn wrong_meshes(mesh: &Mesh) -> Vec<(&'static str, Mesh)> {
                 mid + DMat3::from_rotation_x(std::f64::consts::FRAC_PI_2) * (v - mid)
             }),
         ),
-        ("moved up 5%", mesh_moved(mesh, |v| v + DVec3::Z * 0.05 * diag)),
-        ("moved sideways 3%", mesh_moved(mesh, |v| v + DVec3::X * 0.03 * diag)),
+        (
+            "moved up 5%",
+            mesh_moved(mesh, |v| v + DVec3::Z * 0.05 * diag),
+        ),
+        (
+            "moved sideways 3%",
+            mesh_moved(mesh, |v| v + DVec3::X * 0.03 * diag),
+        ),
         ("scaled 1.1×", mesh_moved(mesh, |v| mid + 1.1 * (v - mid))),
     ]
 }
@@ -953,7 +959,11 @@ fn wrong_meshes(mesh: &Mesh) -> Vec<(&'static str, Mesh)> {
 /// mesh, (name, correlation, whether a neighbour beats it, the result).
 fn neighbour_table(
     dir: &std::path::Path,
-) -> Vec<(&'static str, bool, xscale::raycast::consistency::Consistency)> {
+) -> Vec<(
+    &'static str,
+    bool,
+    xscale::raycast::consistency::Consistency,
+)> {
     use xscale::scene::{LoadOptions, Scene};
     let scene = Scene::load(dir, &LoadOptions::default()).unwrap();
     let train = scene.train();
@@ -1015,5 +1025,7 @@ fn photo_check_neighbours_table() {
     for (what, beaten, _) in &rows {
         eprintln!("| {what} | {} |", if *beaten { "warns" } else { "silent" });
     }
-    assert!(rows.iter().all(|(what, beaten, _)| *beaten == (*what != "correct")));
+    assert!(rows
+        .iter()
+        .all(|(what, beaten, _)| *beaten == (*what != "correct")));
 }

@@ -34,6 +34,17 @@
 //! and a note says so ([`CLOSE_UP_GAP`]; on `cross`, a smooth displacement of 1 % of the diagonal
 //! or a shift of 0.5 % is noted, 0.3 % is not: 0.87 against 0.97).
 //!
+//! **Neighbours.** A mesh in place is a local maximum of photo-consistency; one correlation alone
+//! misses a mesh a little off, or a real scene that correlates poorly anyway. So [`PhotoCheck::plan`]
+//! also plans the mesh as given and 20 neighbours of it ([`neighbours`]: shifts by ±[`NB_SHIFT`]
+//! of the seen region's size along x, y, z; turns by ±[`NB_TURN`]° and a quarter each way about x,
+//! y, z; scales ×/÷ [`NB_SCALE`]; about the centroid of the area samples two or more views see, not
+//! the mesh's bounding box, which background inflates), each with [`NB_SAMPLES`] samples over at
+//! most [`NB_VIEWS`] views. Moving the mesh by T is moving every camera by T⁻¹
+//! ([`Neighbour::camera`]), so the one BVH and the same samples serve all. A neighbour that
+//! correlates more than [`NB_MARGIN`] above the mesh as given is named in a warning
+//! ([`Consistency::beaten`]).
+//!
 //! Measured (`raycast::photo_check_*`, the lines `xscale cast` prints, and a scratch probe that
 //! turns each training view in turn about its axis): in place 0.93 (the `tiny` fixture), 0.98
 //! (`synth --preset small`), 0.97 (`cross`), no view named; the mesh turned a quarter about a
@@ -626,7 +637,10 @@ fn neighbours(given: &PhotoCheck) -> Vec<Neighbour> {
         return Vec::new();
     }
     let centre = pts.iter().sum::<DVec3>() / pts.len() as f64;
-    let rms = (pts.iter().map(|p| (*p - centre).length_squared()).sum::<f64>()
+    let rms = (pts
+        .iter()
+        .map(|p| (*p - centre).length_squared())
+        .sum::<f64>()
         / pts.len() as f64)
         .sqrt();
     let size = 2.0 * rms;
@@ -644,7 +658,10 @@ fn neighbours(given: &PhotoCheck) -> Vec<Neighbour> {
         for sign in [1.0, -1.0] {
             let pm = if sign > 0.0 { '+' } else { '-' };
             out.push(nb(
-                format!("moved {pm}{a} by {:.0}% of the seen region", 100.0 * NB_SHIFT),
+                format!(
+                    "moved {pm}{a} by {:.0}% of the seen region",
+                    100.0 * NB_SHIFT
+                ),
                 1.0,
                 id,
                 sign * NB_SHIFT * size * v,

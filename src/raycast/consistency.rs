@@ -333,7 +333,7 @@ impl Consistency {
         }];
         if let Some((name, best, given)) = self.beaten() {
             out.push(format!(
-                "warning: the mesh {name} agrees better with the photos than the mesh as given (correlation {best:.2} against {given:.2}, {} neighbours scored in {:.2} s): the mesh is probably turned, moved or scaled against the cameras (another tool's frame or unit, a wrong alignment: docs/spec.md §3.9); training will run but learn less",
+                "warning: the mesh {name} agrees better with the photos than the mesh as given (correlation {best:.2} against {given:.2}, {} neighbours scored in {:.2} s): the mesh is probably turned, moved or scaled against the cameras (another tool's frame or unit, a wrong alignment), or off the photographed surface by about that much (a crude mesh: docs/spec.md §3.9); training will run but learn less",
                 self.neighbours.len() - 1,
                 self.neighbour_seconds
             ));

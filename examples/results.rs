@@ -125,6 +125,13 @@ const SECTIONS: &[Spec] = &[
         cost: "about 15 minutes (Poisson about 2 minutes per point set)",
         run: prepare,
     },
+    Spec {
+        name: "budget",
+        title: "Training budget: the step count the cpu preset chooses",
+        measures: "The `cpu` preset's training budget (`[train] budget = \"auto\"`: about 12 epochs over the kept training pixels, 1,000 to 6,000 steps, with the preset's learning-rate decays stretched to the chosen count) on `synth --preset small` and `cross` (seed 1), against fixed 2,000 steps (`--steps 2000`: the preset's schedule as written) and, on `cross`, a run 3× the rule's steps with the schedule stretched the same way. Held-out masked PSNR and SSIM, close-ups and aerial views apart; wall time of each `train` command (casting and the final evaluation included), one run after another on the same host.",
+        cost: "about 20 minutes",
+        run: budget,
+    },
 ];
 
 /// What a section's run gives; the runner adds name, title, host, date, commit and duration.
@@ -917,6 +924,94 @@ fn real(c: &Ctx) -> Result<Section> {
         rows,
     ));
     s.notes.push(wins.join("; ") + ".");
+    Ok(s)
+}
+
+/// The `cpu` preset's decays (halvings at 1000, then every 250 up to 1750, of its 2,000 written
+/// steps) stretched to `steps` as `budget = "auto"` does (`LrSchedule::stretched`), as a config.
+fn stretched_config(steps: u64) -> String {
+    let at = |k: u64| (k * steps + 1000) / 2000;
+    let mut t = format!("[train]\nsteps = {steps}\n");
+    for g in ["shader", "deform", "grid_h", "grid_d"] {
+        t += &format!(
+            "[train.adam.{g}.schedule]\ndecay_start = {}\ndecay_interval = {}\ndecay_base = 0.5\ndecay_end = {}\n",
+            at(1000),
+            at(250),
+            at(1750)
+        );
+    }
+    t
+}
+
+fn budget(c: &Ctx) -> Result<Section> {
+    let mut s = Section::default();
+    let mut rows = Vec::new();
+    for preset in ["small", "cross"] {
+        let scene = c.w(&format!("budget-{preset}"));
+        let _ = std::fs::remove_dir_all(c.root.join(&scene));
+        let args = ["synth", "--preset", preset, "--seed", "1", "--out", &scene];
+        c.xscale(&args)?;
+        s.commands.push(format!("xscale {}", args.join(" ")));
+        let mut train =
+            |cmds: &mut Vec<String>, what: &str, extra: &[&str], tag: &str| -> Result<u64> {
+                let out = c.w(&format!("budget-{preset}-{tag}"));
+                let _ = std::fs::remove_dir_all(c.root.join(&out));
+                let mut args = vec!["train", "--scene", &scene, "--out", &out, "-q"];
+                args.extend_from_slice(extra);
+                let r = c.xscale(&args)?;
+                cmds.push(format!("xscale {}", args.join(" ")));
+                let e = read_json(&c.root.join(&out).join("eval.json"))?;
+                let steps = e["step"].as_u64().unwrap_or(0);
+                let (psnr_m, ssim_m, _, near, far) = scores(&e);
+                rows.push(vec![
+                    json!(preset),
+                    json!(what),
+                    json!(steps),
+                    json!(r.wall_s),
+                    psnr_m,
+                    ssim_m,
+                    near,
+                    far,
+                ]);
+                Ok(steps)
+            };
+        let chosen = train(&mut s.commands, "the rule (the default)", &[], "rule")?;
+        train(
+            &mut s.commands,
+            "fixed 2,000 steps",
+            &["--steps", "2000"],
+            "2000",
+        )?;
+        if preset == "cross" {
+            let cfg = c.w("budget-cross-3x.toml");
+            std::fs::write(c.root.join(&cfg), stretched_config(3 * chosen))?;
+            s.commands.push(format!(
+                "({cfg}: [train] steps = 3 × the rule's, the four decaying groups' schedules stretched to it)"
+            ));
+            train(
+                &mut s.commands,
+                "3× the rule's steps",
+                &["--config", &cfg],
+                "3x",
+            )?;
+        }
+    }
+    s.tables.push(table(
+        "held-out views (seed 1), means over views",
+        &[
+            "scene",
+            "run",
+            "steps",
+            "wall (s)",
+            "masked PSNR (dB)",
+            "masked SSIM",
+            "close-ups (dB)",
+            "aerial (dB)",
+        ],
+        &[0, 0, 0, 0, 2, 4, 2, 2],
+        rows,
+    ));
+    s.notes.push("Close-ups and aerial views: the held-out views below and above the near/far split of `eval.json` (`by_scale.near_far`); on `small` the split is by footprint too.".into());
     Ok(s)
 }
 

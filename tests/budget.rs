@@ -4,29 +4,17 @@
 //! fix it; a run's own `config.toml` given back chooses it again.
 
 use std::path::{Path, PathBuf};
-use std::process::Command;
 use xscale::train::config::{RunConfig, StepBudget};
 use xscale::train::setup::{budget_steps, prepare, BUDGET_MIN_STEPS};
 
-fn fixture() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("fixtures/tiny")
-}
+#[path = "common/cli.rs"]
+mod cli;
+use cli::{fixture, xscale};
 
 fn tmp(name: &str) -> PathBuf {
     let d = std::env::temp_dir().join(format!("xscale-test-budget-{}-{name}", std::process::id()));
     let _ = std::fs::remove_dir_all(&d);
     d
-}
-
-fn xscale(args: &[&str]) -> (i32, String) {
-    let out = Command::new(env!("CARGO_BIN_EXE_xscale"))
-        .args(args)
-        .output()
-        .unwrap();
-    (
-        out.status.code().unwrap_or(-1),
-        String::from_utf8_lossy(&out.stderr).into_owned(),
-    )
 }
 
 fn stored(run: &Path) -> RunConfig {

@@ -530,25 +530,16 @@ mod tests {
 
     #[test]
     fn undistort_inverts_distort() {
-        let models = [
-            Distortion::SimpleRadial { k: -0.12 },
-            Distortion::Radial {
-                k1: 0.08,
-                k2: -0.02,
-            },
-            Distortion::OpenCv {
-                k1: -0.2,
-                k2: 0.05,
-                p1: 0.001,
-                p2: -0.002,
-            },
-            Distortion::Brown {
-                k: [-0.15, 0.04, -0.01, 0.002],
-                p1: 0.0008,
-                p2: -0.0011,
-                skew: 0.0004,
-            },
-        ];
+        // The four models this round trip has always checked, with `every_model`'s coefficients.
+        let models = every_model().into_iter().filter(|m| {
+            matches!(
+                m,
+                Distortion::SimpleRadial { .. }
+                    | Distortion::Radial { .. }
+                    | Distortion::OpenCv { .. }
+                    | Distortion::Brown { .. }
+            )
+        });
         for m in models {
             for i in 0..21 {
                 for j in 0..21 {

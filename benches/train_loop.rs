@@ -154,7 +154,7 @@ fn main() {
     let ms = |x: f64| 1e3 * x / steps as f64;
     emit_json(serde_json::json!({
         "batch": batch, "rounds": rounds, "steps": steps,
-        "levels": cfg.model.grid_h.levels,
+        "levels": state.cfg.model.grid_h.levels,
         "rows": pools.iter().enumerate().map(|(pi, (threads, _))| {
             let p = best[pi];
             serde_json::json!({

@@ -2,7 +2,9 @@
 //! (docs/prepare.md): writes OUT/truth.ply (the true surface), OUT/mesh.ply (the Delaunay graph
 //! cut of the sparse points) and OUT/points.ply (the points with normals fitted to their 12
 //! nearest neighbours and turned towards their cameras: what COLMAP's `poisson_mesher` reads).
-//! Then `xscale mesh-distance --mesh OUT/mesh.ply --truth OUT/truth.ply`.
+//! Then `xscale mesh-distance --mesh OUT/mesh.ply --truth OUT/truth.ply`. The distances of
+//! OUT/mesh.ply and, when present, OUT/meshed-poisson.ply (COLMAP's `poisson_mesher` on
+//! OUT/points.ply) to the true surface are printed and written to OUT/distances.json.
 //!
 //! cargo run --release --example prepare_synth -- OUT [PRESET small] [POINTS_PER_VIEW 400]
 //!     [NOISE 0.001] [OUTLIERS 0.02] [SEED 1] [QUALITY 1] [MAX_SIDE 25]
@@ -43,7 +45,8 @@ fn main() -> anyhow::Result<()> {
     xscale::scene::mesh::write_ply(&out.join("truth.ply"), &s.truth.to_mesh())?;
     let t = std::time::Instant::now();
     let (m, stats) = mesher::mesh(&pts.tracks, &pts.cameras, &opts, &|_, _, _| {}, &|| false)?;
-    eprintln!("mesher: {:.2} s, {stats:?}", t.elapsed().as_secs_f64());
+    let mesher_s = t.elapsed().as_secs_f64();
+    eprintln!("mesher: {mesher_s:.2} s, {stats:?}");
     xscale::scene::mesh::write_ply(&out.join("mesh.ply"), &m)?;
     // Normals: the smallest principal axis of the 12 nearest points, towards the cameras.
     let xyz: Vec<DVec3> = pts.tracks.iter().map(|t| t.xyz).collect();
@@ -103,6 +106,7 @@ fn main() -> anyhow::Result<()> {
         "scene diagonal {diag:.3}; {} seen samples of the truth",
         seen.len()
     );
+    let mut rows = Vec::new();
     for name in ["mesh.ply", "meshed-poisson.ply"] {
         let p = out.join(name);
         if !p.is_file() {
@@ -114,6 +118,22 @@ fn main() -> anyhow::Result<()> {
             "{name}: {} triangles; (distances capped at 10 % of the diagonal) accuracy mean {:.4} RMS {:.4} ({:.3} % of the diagonal); completeness mean {:.4} RMS {:.4} ({:.3} %)",
             mesh.triangles.len(), acc.0, acc.1, 100.0 * acc.1 / diag, comp.0, comp.1, 100.0 * comp.1 / diag
         );
+        rows.push(serde_json::json!({
+            "mesh": name, "triangles": mesh.triangles.len(),
+            "accuracy_mean": acc.0, "accuracy_rms": acc.1,
+            "completeness_mean": comp.0, "completeness_rms": comp.1,
+        }));
     }
+    let json = serde_json::json!({
+        "points": pts.tracks.len(), "cameras": pts.cameras.len(),
+        "lines_of_sight": pts.tracks.iter().map(|t| t.cameras.len()).sum::<usize>(),
+        "noise": noise, "outliers": outliers, "max_side": opts.max_side_factor,
+        "quality": opts.quality, "diagonal": diag, "seen_samples": seen.len(),
+        "mesher_s": mesher_s, "meshes": rows,
+    });
+    std::fs::write(
+        out.join("distances.json"),
+        serde_json::to_string_pretty(&json)?,
+    )?;
     Ok(())
 }

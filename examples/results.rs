@@ -91,10 +91,17 @@ const SECTIONS: &[Spec] = &[
         run: render,
     },
     Spec {
+        name: "real",
+        title: "Real photographs: the default against reprojection (ULR)",
+        measures: "The default `cpu` preset trained on real captures and scored on their held-out views (every 7th) against the no-learning ULR baseline on the same pixels: masked PSNR, SSIM and ꟻLIP (lower is better), and the full-image PSNR (every pixel, the mesh's misses counted). The committed capture is `fixtures/prepare_skull` (10 photos of a skull, 709×473, CC BY 4.0; its COLMAP model meshed by `xscale prepare --sparse`, black background); scene folders listed in `XSCALE_REAL_SCENES` (colon-separated; their photos are not in the repository) are run the same way — on this page instant-ngp's `fox` (50 phone photos halved to 540×960, NVIDIA's non-commercial licence), prepared with `xscale prepare --photos fox/images --poses fox --downsample 2 --out fox_scene` (docs/prepare.md). The row `mean code` scores the same model with every held-out view given the mean appearance code (`eval --appearance mean`) instead of its pose neighbours' codes (the default, spec §4.6).",
+        cost: "about 5 minutes, plus 10 per scene of XSCALE_REAL_SCENES",
+        run: real,
+    },
+    Spec {
         name: "bench_quality",
         title: "Run time against error (`xscale bench-quality`)",
-        measures: "Every configuration of `xscale bench-quality --list` trained for the same wall-clock budget on `small` and scored on the held-out views at the budget and at its halvings (evaluation time not counted). One seed per configuration: differences of a few tenths of a dB are within what two runs of one configuration differ by.",
-        cost: "about 15 minutes",
+        measures: "Every configuration of `xscale bench-quality --list` trained for the same wall-clock budget on `small` and scored on the held-out views at the budget and at its halvings (evaluation time not counted); then the default, two of its variants and ULR on a real capture (the skull of section `real`). One seed per configuration: differences of a few tenths of a dB are within what two runs of one configuration differ by.",
+        cost: "about 20 minutes",
         run: bench_quality,
     },
     Spec {
@@ -110,6 +117,20 @@ const SECTIONS: &[Spec] = &[
         measures: "Held-out close-ups and aerial views of `synth --preset cross` (56 views of 200×150: aerial at 120 m, close-ups at 4 m, texture tied to the close-ups' pixels) after the default number of steps of the `cpu` preset, with its automatic level range and footprint level weighting, against the preset's fixed range, against no level weighting, and against the no-learning ULR baseline.",
         cost: "about 10 minutes",
         run: cross,
+    },
+    Spec {
+        name: "prepare",
+        title: "From photos to a scene: `xscale prepare`",
+        measures: "The mesher of `xscale prepare` against a true surface: `examples/prepare_synth.rs` on the `small` synthetic scene (400 points found per camera, exact or with noise of 0.1 % of the diagonal and 2 % wrong matches), its Delaunay graph cut at three `--max-side` settings and COLMAP's `poisson_mesher` on the same points (normals fitted to 12 neighbours, turned towards the cameras); accuracy = RMS distance of area samples of the mesh to the truth, completeness = RMS distance of samples of the truth that two cameras see to the mesh, both capped at 10 % of the diagonal and given as a share of it. Then a real capture from a folder of photos to a trained model, stage by stage (`prepare.json`'s seconds per stage), with its points, reprojection error through xscale's cameras, the share of pixels whose ray meets the mesh, and the trained model's held-out scores: the committed skull photos (`fixtures/prepare_skull`, 10 photos of 709×473, with the poses of its COLMAP model: COLMAP's mapper finds no good initial pair in these 10 small photos), and any capture named by `XSCALE_PREPARE_PHOTOS` (with `XSCALE_PREPARE_POSES` for known poses, `XSCALE_PREPARE_DOWNSAMPLE`, `XSCALE_PREPARE_STEPS`). Needs COLMAP on the PATH for Poisson and for the photos; without it those rows say they were skipped.",
+        cost: "about 15 minutes (Poisson about 2 minutes per point set)",
+        run: prepare,
+    },
+    Spec {
+        name: "budget",
+        title: "Training budget: the step count the cpu preset chooses",
+        measures: "The `cpu` preset's training budget (`[train] budget = \"auto\"`: about 12 epochs over the kept training pixels, 1,000 to 6,000 steps, with the preset's learning-rate decays stretched to the chosen count) on `synth --preset small` and `cross` (seed 1), against fixed 2,000 steps (`--steps 2000`: the preset's schedule as written) and, on `cross`, a run 3× the rule's steps with the schedule stretched the same way. Held-out masked PSNR and SSIM, close-ups and aerial views apart; wall time of each `train` command (casting and the final evaluation included), one run after another on the same host.",
+        cost: "about 20 minutes",
+        run: budget,
     },
 ];
 
@@ -776,7 +797,229 @@ fn render(c: &Ctx) -> Result<Section> {
     Ok(s)
 }
 
+/// The skull of `fixtures/prepare_skull` meshed into `target/results/skull` (the same bytes every
+/// time), with a black background (its photos' backdrop), and the commands.
+fn skull_scene(c: &Ctx, cmds: &mut Vec<String>) -> Result<String> {
+    let dir = c.w("skull");
+    let _ = std::fs::remove_dir_all(c.root.join(&dir));
+    let args = [
+        "prepare",
+        "--sparse",
+        "fixtures/prepare_skull",
+        "--out",
+        &dir,
+    ];
+    c.xscale(&args)?;
+    cmds.push(format!("xscale {}", args.join(" ")));
+    let toml = "background = [0, 0, 0]\n";
+    std::fs::write(c.root.join(&dir).join("scene.toml"), toml)?;
+    cmds.push(format!("({dir}/scene.toml: {})", toml.trim()));
+    Ok(dir)
+}
+
+fn real(c: &Ctx) -> Result<Section> {
+    let mut s = Section::default();
+    let mut scenes = vec![("skull".to_string(), skull_scene(c, &mut s.commands)?)];
+    if let Ok(list) = std::env::var("XSCALE_REAL_SCENES") {
+        for d in list.split(':').filter(|d| !d.is_empty()) {
+            let p = Path::new(d);
+            let name = p
+                .file_name()
+                .map_or("scene".into(), |n| n.to_string_lossy().into_owned());
+            scenes.push((name, d.to_string()));
+        }
+    }
+    let mut rows = Vec::new();
+    let mut wins = Vec::new();
+    for (name, scene) in &scenes {
+        let out = c.w(&format!("real-{name}"));
+        let _ = std::fs::remove_dir_all(c.root.join(&out));
+        let args = ["train", "--scene", scene, "--out", &out, "-q"];
+        c.xscale(&args)?;
+        s.commands.push(format!("xscale {}", args.join(" ")));
+        let run = c.root.join(&out);
+        let trained = read_json(&run.join("eval.json"))?;
+        let mean_json = c.w(&format!("real-{name}-mean.json"));
+        let args = [
+            "eval",
+            "--run",
+            &out,
+            "--appearance",
+            "mean",
+            "--json",
+            &mean_json,
+            "-q",
+        ];
+        c.xscale(&args)?;
+        s.commands.push(format!("xscale {}", args.join(" ")));
+        let ulr_json = c.w(&format!("real-{name}-ulr.json"));
+        let args = [
+            "eval", "--scene", scene, "--method", "ulr", "--json", &ulr_json, "-q",
+        ];
+        c.xscale(&args)?;
+        s.commands.push(format!("xscale {}", args.join(" ")));
+        let ulr = read_json(&c.root.join(&ulr_json))?;
+        let views = trained["views"].as_array().map_or(0, |v| v.len());
+        let row = |what: &str, e: &Value, secs: Value| {
+            let m = &e["mean"];
+            vec![
+                json!(name),
+                json!(what),
+                json!(views),
+                secs,
+                m["psnr_masked"].clone(),
+                m["ssim_masked"].clone(),
+                m["flip_masked"].clone(),
+                m["psnr"].clone(),
+            ]
+        };
+        rows.push(row(
+            "xscale, the default (cpu preset)",
+            &trained,
+            json!(trained_s(&run)?),
+        ));
+        rows.push(row(
+            "the same model, held-out views with the mean code",
+            &read_json(&c.root.join(&mean_json))?,
+            json!(trained_s(&run)?),
+        ));
+        rows.push(row("ULR (no training)", &ulr, json!(0.0)));
+        let (a, b) = (&trained["mean"], &ulr["mean"]);
+        let ahead = |k: &str, lower: bool| {
+            let (x, y) = (
+                a[k].as_f64().unwrap_or(f64::NAN),
+                b[k].as_f64().unwrap_or(f64::NAN),
+            );
+            if lower {
+                x < y
+            } else {
+                x > y
+            }
+        };
+        let n = [
+            ahead("psnr_masked", false),
+            ahead("ssim_masked", false),
+            ahead("flip_masked", true),
+        ]
+        .iter()
+        .filter(|&&w| w)
+        .count();
+        wins.push(format!(
+            "{name}: the default is ahead of ULR on {n} of the 3 masked scores"
+        ));
+    }
+    s.tables.push(table(
+        "held-out views, means over views",
+        &[
+            "scene",
+            "method",
+            "held-out views",
+            "training (s)",
+            "masked PSNR (dB)",
+            "masked SSIM",
+            "masked ꟻLIP",
+            "full PSNR (dB)",
+        ],
+        &[0, 0, 0, 1, 2, 3, 3, 2],
+        rows,
+    ));
+    s.notes.push(wins.join("; ") + ".");
+    Ok(s)
+}
+
+/// The `cpu` preset's decays (halvings at 1000, then every 250 up to 1750, of its 2,000 written
+/// steps) stretched to `steps` as `budget = "auto"` does (`LrSchedule::stretched`), as a config.
+fn stretched_config(steps: u64) -> String {
+    let at = |k: u64| (k * steps + 1000) / 2000;
+    let mut t = format!("[train]\nsteps = {steps}\n");
+    for g in ["shader", "deform", "grid_h", "grid_d"] {
+        t += &format!(
+            "[train.adam.{g}.schedule]\ndecay_start = {}\ndecay_interval = {}\ndecay_base = 0.5\ndecay_end = {}\n",
+            at(1000),
+            at(250),
+            at(1750)
+        );
+    }
+    t
+}
+
+fn budget(c: &Ctx) -> Result<Section> {
+    let mut s = Section::default();
+    let mut rows = Vec::new();
+    for preset in ["small", "cross"] {
+        let scene = c.w(&format!("budget-{preset}"));
+        let _ = std::fs::remove_dir_all(c.root.join(&scene));
+        let args = ["synth", "--preset", preset, "--seed", "1", "--out", &scene];
+        c.xscale(&args)?;
+        s.commands.push(format!("xscale {}", args.join(" ")));
+        let mut train =
+            |cmds: &mut Vec<String>, what: &str, extra: &[&str], tag: &str| -> Result<u64> {
+                let out = c.w(&format!("budget-{preset}-{tag}"));
+                let _ = std::fs::remove_dir_all(c.root.join(&out));
+                let mut args = vec!["train", "--scene", &scene, "--out", &out, "-q"];
+                args.extend_from_slice(extra);
+                let r = c.xscale(&args)?;
+                cmds.push(format!("xscale {}", args.join(" ")));
+                let e = read_json(&c.root.join(&out).join("eval.json"))?;
+                let steps = e["step"].as_u64().unwrap_or(0);
+                let (psnr_m, ssim_m, _, near, far) = scores(&e);
+                rows.push(vec![
+                    json!(preset),
+                    json!(what),
+                    json!(steps),
+                    json!(r.wall_s),
+                    psnr_m,
+                    ssim_m,
+                    near,
+                    far,
+                ]);
+                Ok(steps)
+            };
+        let chosen = train(&mut s.commands, "the rule (the default)", &[], "rule")?;
+        train(
+            &mut s.commands,
+            "fixed 2,000 steps",
+            &["--steps", "2000"],
+            "2000",
+        )?;
+        if preset == "cross" {
+            let cfg = c.w("budget-cross-3x.toml");
+            std::fs::write(c.root.join(&cfg), stretched_config(3 * chosen))?;
+            s.commands.push(format!(
+                "({cfg}: [train] steps = 3 × the rule's, the four decaying groups' schedules stretched to it)"
+            ));
+            train(
+                &mut s.commands,
+                "3× the rule's steps",
+                &["--config", &cfg],
+                "3x",
+            )?;
+        }
+    }
+    s.tables.push(table(
+        "held-out views (seed 1), means over views",
+        &[
+            "scene",
+            "run",
+            "steps",
+            "wall (s)",
+            "masked PSNR (dB)",
+            "masked SSIM",
+            "close-ups (dB)",
+            "aerial (dB)",
+        ],
+        &[0, 0, 0, 0, 2, 4, 2, 2],
+        rows,
+    ));
+    s.notes.push("Close-ups and aerial views: the held-out views below and above the near/far split of `eval.json` (`by_scale.near_far`); on `small` the split is by footprint too.".into());
+    Ok(s)
+}
+
 const BQ_MINUTES: &str = "0.5";
+
+/// The configurations `bench-quality` runs on the real capture (the default, the fastest step
+/// and the largest batch of the `small` table, and the no-learning baseline).
+const BQ_REAL_CONFIGS: &str = "cpu,cpu-gamma1,cpu-batch16k,ulr";
 
 fn bench_quality(c: &Ctx) -> Result<Section> {
     let mut s = Section::default();
@@ -794,7 +1037,73 @@ fn bench_quality(c: &Ctx) -> Result<Section> {
     ];
     c.xscale(&args)?;
     s.commands.push(format!("xscale {}", args.join(" ")));
-    let dir = c.root.join(&out);
+    let (last, all) = bench_rows(&c.root.join(&out))?;
+    let cols = [
+        "configuration",
+        "training (s)",
+        "steps",
+        "masked PSNR (dB)",
+        "masked SSIM",
+        "close-ups (dB)",
+        "aerial (dB)",
+    ];
+    s.tables.push(table(
+        &format!("At the full budget ({BQ_MINUTES} min), best first"),
+        &cols,
+        &[0, 1, 0, 2, 3, 2, 2],
+        last,
+    ));
+    s.tables.push(table(
+        "Every evaluation (the rows of bench.csv)",
+        &cols,
+        &[0, 1, 0, 2, 3, 2, 2],
+        all,
+    ));
+    std::fs::copy(
+        c.root.join(&out).join("pareto.png"),
+        c.docs.join("results/bench-quality.png"),
+    )?;
+    s.images.push((
+        "results/bench-quality.png".into(),
+        "held-out masked PSNR against training seconds".into(),
+    ));
+    // A real capture: the skull of fixtures/prepare_skull (section real).
+    let skull = skull_scene(c, &mut s.commands)?;
+    let out = c.w("bench-quality-skull");
+    let args = [
+        "bench-quality",
+        "--scene",
+        &skull,
+        "--out",
+        &out,
+        "--minutes",
+        BQ_MINUTES,
+        "--configs",
+        BQ_REAL_CONFIGS,
+        "--overwrite",
+    ];
+    c.xscale(&args)?;
+    s.commands.push(format!("xscale {}", args.join(" ")));
+    let (last, _) = bench_rows(&c.root.join(&out))?;
+    // One scale: near/far are absent on this capture; drop the two columns.
+    let last = last.into_iter().map(|r| r[..5].to_vec()).collect();
+    s.tables.push(table(
+        &format!(
+            "On a real capture, the skull of `fixtures/prepare_skull` (2 held-out views), at the full budget ({BQ_MINUTES} min), best first"
+        ),
+        &cols[..5],
+        &[0, 1, 0, 2, 3],
+        last,
+    ));
+    Ok(s)
+}
+
+/// The rows of a `bench-quality` folder's `bench.csv`: the last evaluation of each configuration
+/// (at the full budget), best masked PSNR first, and every evaluation, each as configuration,
+/// wall seconds, step, masked PSNR, masked SSIM, close-ups and aerial PSNR.
+type BenchRows = (Vec<Vec<Value>>, Vec<Vec<Value>>);
+
+fn bench_rows(dir: &Path) -> Result<BenchRows> {
     let csv = std::fs::read_to_string(dir.join("bench.csv"))?;
     let mut lines = csv.lines();
     let head: Vec<&str> = lines.next().unwrap_or("").split(',').collect();
@@ -849,36 +1158,7 @@ fn bench_quality(c: &Ctx) -> Result<Section> {
             .unwrap_or(0.0)
             .total_cmp(&a[3].as_f64().unwrap_or(0.0))
     });
-    let cols = [
-        "configuration",
-        "training (s)",
-        "steps",
-        "masked PSNR (dB)",
-        "masked SSIM",
-        "close-ups (dB)",
-        "aerial (dB)",
-    ];
-    s.tables.push(table(
-        &format!("At the full budget ({BQ_MINUTES} min), best first"),
-        &cols,
-        &[0, 1, 0, 2, 3, 2, 2],
-        last,
-    ));
-    s.tables.push(table(
-        "Every evaluation (the rows of bench.csv)",
-        &cols,
-        &[0, 1, 0, 2, 3, 2, 2],
-        all,
-    ));
-    std::fs::copy(
-        dir.join("pareto.png"),
-        c.docs.join("results/bench-quality.png"),
-    )?;
-    s.images.push((
-        "results/bench-quality.png".into(),
-        "held-out masked PSNR against training seconds".into(),
-    ));
-    Ok(s)
+    Ok((last, all))
 }
 
 const ABLATE_STEPS: &str = "1000";
@@ -1067,6 +1347,290 @@ fn cross(c: &Ctx) -> Result<Section> {
 }
 
 // ---------------------------------------------------------------- host, date, commit
+
+/// Whether `name` is an executable file on the PATH.
+fn on_path(name: &str) -> bool {
+    std::env::var_os("PATH")
+        .is_some_and(|p| std::env::split_paths(&p).any(|d| d.join(name).is_file()))
+}
+
+/// Steps of the `cpu` preset the `prepare` section trains each capture for.
+const PREPARE_STEPS: u64 = 500;
+
+fn prepare(c: &Ctx) -> Result<Section> {
+    let mut s = Section::default();
+    let colmap = on_path("colmap");
+    // (a) The mesher against a true surface.
+    let r = run_measured(
+        Command::new("cargo")
+            .args([
+                "build",
+                "--release",
+                "--locked",
+                "--example",
+                "prepare_synth",
+            ])
+            .current_dir(&c.root),
+    )?;
+    if !r.ok {
+        bail!(
+            "cargo build --example prepare_synth: failed:\n{}",
+            tail(&r.stderr)
+        );
+    }
+    let synth_bin = c.root.join("target/release/examples/prepare_synth");
+    let synth = |dir: &str,
+                 noise: &str,
+                 outliers: &str,
+                 side: &str,
+                 cmds: &mut Vec<String>|
+     -> Result<Value> {
+        let args = [dir, "small", "400", noise, outliers, "1", "1", side];
+        let r = run_measured(Command::new(&synth_bin).args(args).current_dir(&c.root))?;
+        if !r.ok {
+            bail!(
+                "prepare_synth {}: failed:\n{}",
+                args.join(" "),
+                tail(&r.stderr)
+            );
+        }
+        cmds.push(format!(
+            "cargo run --release --example prepare_synth -- {}",
+            args.join(" ")
+        ));
+        read_json(&c.root.join(dir).join("distances.json"))
+    };
+    let mut rows = Vec::new();
+    let mut diag = 0.0;
+    for (label, key, noise, outliers) in [
+        ("exact", "exact", "0", "0"),
+        ("noise 0.1 % + 2 % wrong matches", "noisy", "0.001", "0.02"),
+    ] {
+        for side in ["25", "8", "5"] {
+            let dir = c.w(&format!("prepare-synth/{key}-{side}"));
+            let _ = std::fs::remove_dir_all(c.root.join(&dir));
+            let v = synth(&dir, noise, outliers, side, &mut s.commands)?;
+            diag = v["diagonal"].as_f64().unwrap_or(f64::NAN);
+            let m = &v["meshes"][0];
+            let pct = |k: &str| json!(100.0 * m[k].as_f64().unwrap_or(f64::NAN) / diag);
+            let name = if side == "8" {
+                format!("xscale, --max-side {side} (default)")
+            } else {
+                format!("xscale, --max-side {side}")
+            };
+            rows.push(vec![
+                json!(label),
+                v["points"].clone(),
+                json!(name),
+                m["triangles"].clone(),
+                pct("accuracy_rms"),
+                pct("completeness_rms"),
+                v["mesher_s"].clone(),
+            ]);
+            if side != "25" {
+                continue;
+            }
+            // COLMAP's Poisson mesher on the same points (they do not depend on --max-side).
+            if !colmap {
+                rows.push(vec![
+                    json!(label),
+                    v["points"].clone(),
+                    json!("COLMAP poisson_mesher: skipped (no `colmap` on the PATH)"),
+                    Value::Null,
+                    Value::Null,
+                    Value::Null,
+                    Value::Null,
+                ]);
+                continue;
+            }
+            let ply = format!("{dir}/points.ply");
+            let out = format!("{dir}/meshed-poisson.ply");
+            let args = [
+                "poisson_mesher",
+                "--input_path",
+                &ply,
+                "--output_path",
+                &out,
+            ];
+            let r = run_measured(Command::new("colmap").args(args).current_dir(&c.root))?;
+            s.commands.push(format!("colmap {}", args.join(" ")));
+            if !r.ok {
+                rows.push(vec![
+                    json!(label),
+                    v["points"].clone(),
+                    json!("COLMAP poisson_mesher: failed"),
+                    Value::Null,
+                    Value::Null,
+                    Value::Null,
+                    Value::Null,
+                ]);
+                s.notes.push(format!(
+                    "`colmap poisson_mesher` failed on the {key} points:\n\n```\n{}\n```",
+                    tail(&r.stderr)
+                ));
+                continue;
+            }
+            // Measured by the example when OUT/meshed-poisson.ply exists (the rest is the same run).
+            let v = synth(&dir, noise, outliers, side, &mut s.commands)?;
+            let m = &v["meshes"][1];
+            let pct = |k: &str| json!(100.0 * m[k].as_f64().unwrap_or(f64::NAN) / diag);
+            rows.push(vec![
+                json!(label),
+                v["points"].clone(),
+                json!("COLMAP poisson_mesher (defaults)"),
+                m["triangles"].clone(),
+                pct("accuracy_rms"),
+                pct("completeness_rms"),
+                json!(r.wall_s),
+            ]);
+        }
+    }
+    s.tables.push(table(
+        &format!("The `small` scene (40 cameras; diagonal {diag:.1} m): RMS distances as a share of the diagonal"),
+        &["points", "point count", "mesher", "triangles", "accuracy RMS (%)", "completeness RMS (%)", "meshing (s)"],
+        &[0, 0, 0, 0, 3, 3, 1],
+        rows,
+    ));
+    s.notes.push(
+        "COLMAP's `delaunay_mesher` (what xscale's mesher reimplements) is not compared: the COLMAP \
+         Debian ships (3.8 here) is built without CGAL (\"Delaunay meshing requires CGAL\")."
+            .into(),
+    );
+    // (b) Real captures, photos to a trained model.
+    let mut captures: Vec<(String, String, Option<String>, String, u64)> = Vec::new();
+    captures.push((
+        "skull (fixtures/prepare_skull, 10 photos)".into(),
+        "fixtures/prepare_skull/images".into(),
+        Some("fixtures/prepare_skull".into()),
+        "1".into(),
+        PREPARE_STEPS,
+    ));
+    if let Ok(p) = std::env::var("XSCALE_PREPARE_PHOTOS") {
+        let steps = std::env::var("XSCALE_PREPARE_STEPS")
+            .ok()
+            .and_then(|x| x.parse().ok())
+            .unwrap_or(2000);
+        captures.push((
+            format!("`{p}`"),
+            p,
+            std::env::var("XSCALE_PREPARE_POSES").ok(),
+            std::env::var("XSCALE_PREPARE_DOWNSAMPLE").unwrap_or_else(|_| "1".into()),
+            steps,
+        ));
+    }
+    let mut stages = Vec::new();
+    let mut summary = Vec::new();
+    for (k, (label, photos, poses, down, steps)) in captures.iter().enumerate() {
+        if !colmap {
+            s.notes.push(format!("{label}: not measured on this host: `xscale prepare` from photos needs `colmap` on the PATH."));
+            continue;
+        }
+        let out = c.w(&format!("prepare-{k}"));
+        let _ = std::fs::remove_dir_all(c.root.join(&out));
+        let mut args = vec!["prepare", "--photos", photos.as_str()];
+        if let Some(p) = poses {
+            args.extend(["--poses", p.as_str()]);
+        }
+        args.extend(["--downsample", down.as_str(), "--out", &out]);
+        let load0 = load();
+        s.commands.push(format!("xscale {}", args.join(" ")));
+        let r = match c.xscale(&args) {
+            Ok(r) => r,
+            Err(e) => {
+                // A capture COLMAP cannot reconstruct is a result too: said, not hidden.
+                s.notes.push(format!(
+                    "{label}: `xscale prepare` failed:\n\n```\n{e:#}\n```"
+                ));
+                continue;
+            }
+        };
+        let rep = read_json(&c.root.join(&out).join("prepare.json"))?;
+        for st in rep["seconds"].as_array().into_iter().flatten() {
+            stages.push(vec![json!(label), st[0].clone(), st[1].clone()]);
+        }
+        stages.push(vec![
+            json!(label),
+            json!(format!(
+                "prepare in all (load average {} at the start)",
+                load0.map_or("?".into(), |l| format!("{l:.1}"))
+            )),
+            json!(r.wall_s),
+        ]);
+        let run = c.w(&format!("prepare-{k}-run"));
+        let _ = std::fs::remove_dir_all(c.root.join(&run));
+        let st = steps.to_string();
+        let targs = [
+            "train", "--scene", &out, "--out", &run, "--steps", &st, "-q",
+        ];
+        let load0 = load();
+        let r = c.xscale(&targs)?;
+        s.commands.push(format!("xscale {}", targs.join(" ")));
+        stages.push(vec![json!(label), json!(format!("train, `cpu` preset, {steps} steps, with the final evaluation (load average {} at the start)", load0.map_or("?".into(), |l| format!("{l:.1}")))), json!(r.wall_s)]);
+        let e = read_json(&c.root.join(&run).join("eval.json"))?;
+        let (pm, sm, pf, _, _) = scores(&e);
+        let hits: Vec<f64> = rep["per_view"]
+            .as_array()
+            .into_iter()
+            .flatten()
+            .filter_map(|v| v["hit"].as_f64())
+            .collect();
+        let min_hit = hits.iter().copied().fold(f64::INFINITY, f64::min);
+        summary.push(vec![
+            json!(label),
+            rep["photos"].clone(),
+            rep["views"].clone(),
+            rep["points"].clone(),
+            rep["reprojection"]["mean"].clone(),
+            rep["reprojection"]["rms"].clone(),
+            rep["colmap_mean_error"].clone(),
+            rep["mesh_triangles"].clone(),
+            json!(100.0 * rep["mean_hit"].as_f64().unwrap_or(f64::NAN)),
+            json!(if hits.is_empty() {
+                f64::NAN
+            } else {
+                100.0 * min_hit
+            }),
+            json!(steps),
+            e["views"]
+                .as_array()
+                .map_or(Value::Null, |v| json!(v.len())),
+            pm,
+            sm,
+            pf,
+        ]);
+    }
+    if !stages.is_empty() {
+        s.tables.push(table(
+            "Seconds per stage (`prepare.json`), then training",
+            &["capture", "stage", "seconds"],
+            &[0, 0, 1],
+            stages,
+        ));
+        s.tables.push(table(
+            "What came out: the report and the trained model's held-out scores",
+            &[
+                "capture",
+                "photos",
+                "views posed",
+                "points",
+                "reprojection mean (px)",
+                "reprojection RMS (px)",
+                "COLMAP's mean error (px)",
+                "mesh triangles",
+                "pixels hit, mean (%)",
+                "pixels hit, lowest view (%)",
+                "steps",
+                "held-out views",
+                "masked PSNR (dB)",
+                "masked SSIM",
+                "full PSNR (dB)",
+            ],
+            &[0, 0, 0, 0, 3, 3, 3, 0, 1, 1, 0, 0, 2, 3, 2],
+            summary,
+        ));
+    }
+    Ok(s)
+}
 
 fn host() -> Value {
     let cpu = std::fs::read_to_string("/proc/cpuinfo")

@@ -9,12 +9,16 @@
 //! | BVH, γ² rays per pixel, sample cache | [`raycast`] |
 //! | synthetic cross-scale scenes with independent ground truth | [`synth`] |
 //! | hash grids, SH, MLPs, deformation ξ, pooling, shader, loss (forward + backward) | [`model`] |
-//! | Adam, batches, training loop, checkpoints | [`train`] |
+//! | run configuration, batches, Adam, the training state and its step | [`train`] |
+//! | mesh refinement (beyond the paper): the offset field, its gradients, the photo term | [`refine`] |
+//! | a run: the training loop, run folder, checkpoints, exact resume, progress | [`run`] |
+//! | experiments over many runs: ablations, run time against error, geometry sensitivity | [`experiments`] |
 //! | rendering any camera, camera paths, error images | [`render`] |
 //! | PSNR / SSIM, the held-out protocol | [`eval`] |
 //! | photos → a scene: COLMAP's CPU pipeline, a Delaunay graph-cut mesh of its points | [`prepare`] |
 //! | safetensors checkpoints, batches, dumps, `compare` | [`io`] |
 //! | counter-based random numbers (SPEC §5) | [`rng`] |
+//! | the machine's memory: what is available, refusing what cannot fit; huge-page hints | [`sysmem`], [`memhint`] |
 //! | command-line front end | [`cli`] |
 
 // No library function longer than clippy.toml's threshold (120 lines of code) but the

@@ -152,7 +152,9 @@ fn eval_json_full_psnr_is_the_render_against_the_photo() {
             "{name}: eval.json {got} vs PNG {psnr}"
         );
         // ꟻLIP in eval.json and as the side-by-side's fourth panel: render | photo | error |
-        // ꟻLIP map of the written render against the untouched photo (to the PNGs' 8 bits).
+        // ꟻLIP map of the written render against the untouched photo (to the PNGs' 8 bits). The
+        // side-by-side shows what the full scores score: the photo as it is, the errors over
+        // every pixel, and the region the mesh misses outlined (cyan) on every panel.
         let flip = v["flip"].as_f64().unwrap();
         assert!(flip > 0.0 && flip < 1.0, "{v}");
         let side = load_rgb(&run.join("eval").join(name)).unwrap();
@@ -164,14 +166,45 @@ fn eval_json_full_psnr_is_the_render_against_the_photo() {
             "{name}: ꟻLIP {flip} in eval.json"
         );
         let want = xscale::render::flip_image(&fmap, w as u32, hh as u32);
+        let heat = xscale::render::heat_map(&render, &gt);
+        // Misses are the render's white (background) pixels.
+        let hit: Vec<bool> = (render.data.chunks_exact(3))
+            .map(|p| p != [1.0, 1.0, 1.0])
+            .collect();
+        let outline = xscale::render::miss_outline(&hit, w as u32, hh as u32, 2);
+        let (mut outlined, mut miss_error) = (0, 0.0f32);
         for y in 0..hh {
             for x in 0..w {
-                for c in 0..3 {
-                    let a = side.data[(y * 4 * w + 3 * w + x) * 3 + c];
-                    let b = want.data[(y * w + x) * 3 + c];
-                    assert!((a - b).abs() <= 1.0 / 255.0 + 1e-6, "{name} ({x},{y})");
+                let p = y * w + x;
+                // The heat map scales the error by 12 (0.25 saturates the 3-colour ramp): the
+                // render PNG's 8-bit rounding moves it by up to 12/255.
+                for (panel, img, tol) in [(1, &gt, 1.0), (2, &heat, 12.5), (3, &want, 1.0)] {
+                    for c in 0..3 {
+                        let a = side.data[(y * 4 * w + panel * w + x) * 3 + c];
+                        let b = if outline[p] {
+                            xscale::render::MISS_OUTLINE[c]
+                        } else {
+                            img.data[p * 3 + c]
+                        };
+                        assert!(
+                            (a - b).abs() <= tol / 255.0 + 1e-6,
+                            "{name} ({x},{y}) panel {panel}: {a} vs {b}"
+                        );
+                    }
+                }
+                outlined += outline[p] as usize;
+                if !hit[p] && !outline[p] {
+                    miss_error += side.data[(y * 4 * w + 2 * w + x) * 3];
                 }
             }
+        }
+        if hit.contains(&false) {
+            assert!(outlined > 0, "{name}: the misses are not outlined");
+            // The photo is not white where the mesh misses: the heat map shows that error.
+            assert!(
+                miss_error > 0.0,
+                "{name}: no error shown where the mesh misses"
+            );
         }
         if v["hit_fraction"].as_f64().unwrap() < 0.99 {
             some_hole = true;

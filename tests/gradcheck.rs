@@ -1026,7 +1026,7 @@ fn refine_scene() -> (Mesh, Normalization, RefineConfig) {
         per_vertex: true,
         laplacian: 0.3,
         bilaplacian: 0.7,
-        ..RefineConfig::default()
+        ..RefineConfig::learned()
     };
     (m, norm, cfg)
 }
@@ -1544,7 +1544,12 @@ struct PhotoCheck {
 
 impl PhotoCheck {
     fn new(m: PhotoMeasure, seed: u64) -> PhotoCheck {
-        use xscale::scene::{Camera, Distortion};
+        PhotoCheck::with_lens(m, seed, xscale::scene::Distortion::None)
+    }
+
+    /// The check with the neighbour camera's lens `distortion`.
+    fn with_lens(m: PhotoMeasure, seed: u64, distortion: xscale::scene::Distortion) -> PhotoCheck {
+        use xscale::scene::Camera;
         let (mesh, norm, cfg) = refine_scene();
         let geom = RefineGeom::new(&mesh, &norm);
         let (grids, r) = refine_params(&cfg, geom.n_vertices(), seed);
@@ -1563,11 +1568,11 @@ impl PhotoCheck {
             fy: 31.0,
             cx: 31.5,
             cy: 24.5,
-            distortion: Distortion::None,
+            distortion,
             rotation: rot,
             translation: tr,
         };
-        let cam = PhotoCamera::new(&cam, norm.center, "check").unwrap();
+        let cam = PhotoCamera::new(&cam, norm.center);
         let img = photo_image(w, h, seed);
         let origin = eye_i - norm.center;
         let mut patches = Vec::new();
@@ -1660,6 +1665,13 @@ impl PhotoCheck {
                 let (t, beta, n) = intersect(self.origin, p.d, v, self.cfg.min_cos).unwrap();
                 let x = self.origin + p.d * t;
                 let (pi, mut dpi) = self.cam.project(x).unwrap();
+                if broken == PhotoBroken::PinholeJacobian {
+                    let pinhole = PhotoCamera {
+                        distortion: xscale::scene::Distortion::None,
+                        ..self.cam.clone()
+                    };
+                    dpi = pinhole.project(x).unwrap().1;
+                }
                 if broken == PhotoBroken::NoPerspective {
                     dpi = [
                         self.cam.rot.row(0)
@@ -1756,6 +1768,8 @@ enum PhotoBroken {
     NoPerspective,
     SwappedImageGradient,
     AlongNormal,
+    /// The distorted projection with the pinhole projection's derivative.
+    PinholeJacobian,
 }
 
 /// ∂E/∂(offset field) of the photo-consistency energy (zncc on 3×3 patches; huber on single
@@ -1786,12 +1800,9 @@ fn photo_consistency_gradients_match_fd() {
     rep.finish("photo consistency", 300);
 }
 
-/// The photo check can fail: the projection's derivative without its perspective term, the image
-/// gradient's x and y swapped, and the hit moved along the triangle's normal instead of its ray
-/// each disagree with the finite differences, while the real gradient passes.
-#[test]
-fn broken_photo_consistency_gradients_fail_the_check() {
-    let c = PhotoCheck::new(PhotoMeasure::Zncc, 790);
+/// The real photo-consistency gradient of `c` passes the check (the control of the tests that
+/// break it); returns the offsets θ it was checked at and the number of checks made.
+fn real_photo_gradient_passes(c: &PhotoCheck) -> (Vec<f64>, usize) {
     let theta = RefineCheck::theta_of(&c.cfg, &c.geom, &c.grids, &c.r);
     let mut ok = Report::default();
     c.check(
@@ -1804,6 +1815,16 @@ fn broken_photo_consistency_gradients_fail_the_check() {
         "the real gradient fails: {:?}",
         &ok.fails[..ok.fails.len().min(5)]
     );
+    (theta, ok.checked)
+}
+
+/// The photo check can fail: the projection's derivative without its perspective term, the image
+/// gradient's x and y swapped, and the hit moved along the triangle's normal instead of its ray
+/// each disagree with the finite differences, while the real gradient passes.
+#[test]
+fn broken_photo_consistency_gradients_fail_the_check() {
+    let c = PhotoCheck::new(PhotoMeasure::Zncc, 790);
+    let (theta, real_checked) = real_photo_gradient_passes(&c);
     for b in [
         PhotoBroken::NoPerspective,
         PhotoBroken::SwappedImageGradient,
@@ -1821,7 +1842,101 @@ fn broken_photo_consistency_gradients_fail_the_check() {
             "{b:?}: {} of {} photo checks fail; the real gradient: 0 of {}",
             bad.fails.len(),
             bad.checked,
-            ok.checked
+            real_checked
         );
     }
+}
+
+/// The lenses of the distorted photo checks: the models xscale loads (SPEC §3.3), with
+/// coefficients of real phone, drone and fisheye lenses' size (the neighbour's normalised
+/// coordinates reach |x| ≈ 1 in the check, where these bend the image by several pixels).
+fn check_lenses() -> Vec<xscale::scene::Distortion> {
+    use xscale::scene::Distortion as D;
+    vec![
+        D::OpenCv {
+            k1: -0.21,
+            k2: 0.07,
+            p1: 0.0031,
+            p2: -0.0024,
+        },
+        D::FullOpenCv {
+            k: [-0.18, 0.05, -0.01, 0.02, -0.004, 0.001],
+            p1: -0.002,
+            p2: 0.0015,
+        },
+        D::Brown {
+            k: [-0.12, 0.03, -0.004, 0.0005],
+            p1: 0.001,
+            p2: -0.0012,
+            skew: 0.0008,
+        },
+        D::Radial {
+            k1: 0.09,
+            k2: -0.02,
+        },
+        D::Fisheye {
+            k: [0.03, -0.011, 0.002, -0.0003],
+        },
+        D::ThinPrismFisheye {
+            k: [0.02, -0.01, 0.001, 0.0],
+            p1: 0.001,
+            p2: -0.0007,
+            sx1: 0.0009,
+            sy1: -0.0005,
+        },
+        D::RadTanThinPrismFisheye {
+            k: [0.02, -0.006, 0.001, 0.0, 0.0, 0.0],
+            p: [0.0008, -0.0006],
+            s: [0.0004, -0.0002, 0.0003, 0.0001],
+        },
+        D::Fov { omega: 0.9 },
+        D::Division { k: -0.08 },
+    ]
+}
+
+/// ∂E/∂(offset field) of the photo-consistency energy through a lens-distorted neighbour view
+/// (every model xscale loads): the projection's derivative chained through the distortion's
+/// exact Jacobian, against central differences of the energy recomputed from scratch.
+#[test]
+fn photo_consistency_gradients_through_lens_distortion_match_fd() {
+    let mut rep = Report::default();
+    for (li, lens) in check_lenses().into_iter().enumerate() {
+        let m = if li % 2 == 0 {
+            PhotoMeasure::Zncc
+        } else {
+            PhotoMeasure::Huber
+        };
+        let c = PhotoCheck::with_lens(m, 740 + li as u64, lens);
+        let d = c.analytic();
+        let theta = RefineCheck::theta_of(&c.cfg, &c.geom, &c.grids, &c.r);
+        let p = c.pieces(&theta, PhotoBroken::None);
+        for (x, y) in d.iter().zip(&p) {
+            assert!((x - y).abs() <= 1e-12 * (1.0 + x.abs()), "{x} vs {y}");
+        }
+        let an = c.to_params(&d);
+        assert!(an.1.iter().filter(|&&g| g != 0.0).count() >= 10);
+        c.check(&an, &mut rep, &format!("{lens:?}"));
+    }
+    rep.finish("photo consistency through lenses", 300);
+}
+
+/// The lens check can fail: the distorted projection with the pinhole derivative (the
+/// distortion's Jacobian left out) disagrees with the finite differences.
+#[test]
+fn photo_gradient_without_the_lens_jacobian_fails_the_check() {
+    let lens = check_lenses()[0];
+    let c = PhotoCheck::with_lens(PhotoMeasure::Zncc, 795, lens);
+    let (theta, _) = real_photo_gradient_passes(&c);
+    let mut bad = Report::default();
+    c.check(
+        &c.to_params(&c.pieces(&theta, PhotoBroken::PinholeJacobian)),
+        &mut bad,
+        "pinhole jacobian",
+    );
+    assert!(
+        bad.fails.len() * 3 >= bad.checked,
+        "only {} of {} checks failed",
+        bad.fails.len(),
+        bad.checked
+    );
 }

@@ -652,6 +652,7 @@ fn transformed_scene(scene_dir: &Path, s: f64, t: DVec3, out: &Path) {
 fn heldout_psnr(scene: &Path, run: &Path, preset: &str, steps: u64) -> f64 {
     let mut c = RunConfig::preset(preset).unwrap();
     c.train.steps = steps;
+    c.train.budget = xscale::train::config::StepBudget::Fixed;
     if preset == "tiny" {
         c.train.batch_pixels = 512;
     }

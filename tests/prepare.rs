@@ -292,3 +292,90 @@ fn clear_errors() {
     );
     let _ = std::fs::remove_dir_all(&busy);
 }
+
+/// A model given as COLMAP's `WS/sparse/0` (as docs/prepare.md shows it) finds its photos in
+/// `WS/images`; known poses in a transforms.json named by a relative path (with relative
+/// `mask_path`s) load, though prepare reads them from a copy in another folder.
+#[test]
+fn model_folder_and_relative_poses() {
+    let out = tmp("model-folder");
+    let model = fixture().join("sparse").join("0");
+    let o = xscale(&[
+        "prepare",
+        "--sparse",
+        model.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", text(&o));
+    assert_eq!(report(&out)["views"], 10);
+    let _ = std::fs::remove_dir_all(&out);
+
+    // A transforms.json scene (the tiny synthetic one) with a mask per frame, named relatively.
+    let work = tmp("relative-poses");
+    let scene = work.join("scene");
+    let o = xscale(&["synth", "--out", scene.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", text(&o));
+    let poses = work.join("poses");
+    std::fs::create_dir_all(poses.join("masks")).unwrap();
+    let mut t: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(scene.join("transforms.json")).unwrap())
+            .unwrap();
+    for f in t["frames"].as_array_mut().unwrap() {
+        let name = Path::new(f["file_path"].as_str().unwrap())
+            .file_name()
+            .unwrap()
+            .to_string_lossy()
+            .to_string();
+        std::fs::copy(
+            scene.join("images").join(&name),
+            poses.join("masks").join(&name),
+        )
+        .unwrap();
+        f["mask_path"] = format!("./masks/{name}").into();
+    }
+    std::fs::write(poses.join("transforms.json"), t.to_string()).unwrap();
+    // A dry run reads the copy from the temporary folder; a run from OUT/.prepare (the stand-in
+    // COLMAP then fails at the triangulator, which it does not stand in for).
+    let colmap = fake_colmap(&work);
+    for dry in [true, false] {
+        let mut args = vec![
+            "prepare",
+            "--photos",
+            "scene/images",
+            "--poses",
+            "poses",
+            "--out",
+            "out",
+            "--matcher",
+            "exhaustive",
+            "--colmap",
+            colmap.to_str().unwrap(),
+        ];
+        if dry {
+            args.push("--dry-run");
+        }
+        let o = Command::new(env!("CARGO_BIN_EXE_xscale"))
+            .args(&args)
+            .current_dir(&work)
+            .stdin(Stdio::null())
+            .output()
+            .unwrap();
+        let t = text(&o);
+        assert!(
+            t.contains("point_triangulator") && !t.contains("not found"),
+            "dry run {dry}: {t}"
+        );
+        if dry {
+            assert!(o.status.success(), "{t}");
+        } else {
+            assert!(
+                t.contains("[4/5] sparse: colmap point_triangulator")
+                    && t.contains("unexpected point_triangulator"),
+                "{t}"
+            );
+            assert!(work.join("out/.prepare/poses-transforms.json").is_file());
+        }
+    }
+    let _ = std::fs::remove_dir_all(&work);
+}

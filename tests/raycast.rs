@@ -928,3 +928,104 @@ fn setup_names_a_held_out_view_whose_pose_is_wrong() {
         "{said:?}"
     );
 }
+
+/// The meshes of the neighbour check's table (`raycast/consistency.rs`): the scene's mesh, turned
+/// a quarter about x, moved up (z) by 5 % of its diagonal, sideways (x) by 3 %, and scaled 1.1×,
+/// each about its bounding box's centre.
+fn wrong_meshes(mesh: &Mesh) -> Vec<(&'static str, Mesh)> {
+    let (lo, hi) = mesh.bbox();
+    let (mid, diag) = (0.5 * (lo + hi), (hi - lo).length());
+    vec![
+        ("correct", mesh.clone()),
+        (
+            "turned 90° about x",
+            mesh_moved(mesh, |v| {
+                mid + DMat3::from_rotation_x(std::f64::consts::FRAC_PI_2) * (v - mid)
+            }),
+        ),
+        (
+            "moved up 5%",
+            mesh_moved(mesh, |v| v + DVec3::Z * 0.05 * diag),
+        ),
+        (
+            "moved sideways 3%",
+            mesh_moved(mesh, |v| v + DVec3::X * 0.03 * diag),
+        ),
+        ("scaled 1.1×", mesh_moved(mesh, |v| mid + 1.1 * (v - mid))),
+    ]
+}
+
+/// The neighbour check's verdicts on the meshes of [`wrong_meshes`] for the scene `dir`: per
+/// mesh, (name, correlation, whether a neighbour beats it, the result).
+fn neighbour_table(
+    dir: &std::path::Path,
+) -> Vec<(
+    &'static str,
+    bool,
+    xscale::raycast::consistency::Consistency,
+)> {
+    use xscale::scene::{LoadOptions, Scene};
+    let scene = Scene::load(dir, &LoadOptions::default()).unwrap();
+    let train = scene.train();
+    let cams: Vec<&Camera> = train.iter().map(|&i| &scene.views[i].camera).collect();
+    let photos: Vec<Image> = train
+        .iter()
+        .map(|&i| scene.load_image(i).unwrap())
+        .collect();
+    (wrong_meshes(&scene.mesh).into_iter())
+        .map(|(what, mesh)| {
+            let r = photo_check(&mesh, &scene.normalization, &cams, &photos, None);
+            let mut nb: Vec<(String, f64)> = (r.neighbours[1..].iter())
+                .filter_map(|(n, c)| Some((n.clone(), (*c)?)))
+                .collect();
+            nb.sort_by(|a, b| b.1.total_cmp(&a.1));
+            eprintln!(
+                "{what:>20}: correlation {:.3}, as given {:.3?}, best {:.3?}, beaten {:?}, {:.2} s",
+                r.correlation,
+                r.neighbours[0].1,
+                &nb[..nb.len().min(3)],
+                r.beaten().is_some(),
+                r.neighbour_seconds
+            );
+            (what, r.beaten().is_some(), r)
+        })
+        .collect()
+}
+
+/// The neighbour check on the `tiny` fixture: the mesh in place is a local maximum of
+/// photo-consistency (no neighbour beats it), the mesh turned a quarter about x or moved up by
+/// 5 % of its diagonal is not (a neighbour beats it, and the warning names it).
+#[test]
+fn photo_check_neighbours_catch_a_wrong_mesh() {
+    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/tiny");
+    for (what, beaten, r) in neighbour_table(&dir) {
+        let warned = r
+            .messages(&|k| k.to_string())
+            .iter()
+            .any(|m| m.starts_with("warning: the mesh ") && m.contains("agrees better"));
+        assert_eq!(warned, beaten, "{what}: {r:?}");
+        assert!(r.neighbours.len() > 1, "{what}: {r:?}");
+        match what {
+            "correct" => assert!(!beaten, "{what}: {r:?}"),
+            "turned 90° about x" | "moved up 5%" | "moved sideways 3%" => {
+                assert!(beaten, "{what}: {r:?}")
+            }
+            _ => {}
+        }
+    }
+}
+
+/// The neighbour check's table on the scene of `XSCALE_MESHCHECK_SCENE` (a synthetic scene or a
+/// real COLMAP one): the correct mesh silent, each wrong one warned of.
+#[test]
+#[ignore]
+fn photo_check_neighbours_table() {
+    let dir = std::env::var("XSCALE_MESHCHECK_SCENE").expect("XSCALE_MESHCHECK_SCENE");
+    let rows = neighbour_table(std::path::Path::new(&dir));
+    for (what, beaten, _) in &rows {
+        eprintln!("| {what} | {} |", if *beaten { "warns" } else { "silent" });
+    }
+    assert!(rows
+        .iter()
+        .all(|(what, beaten, _)| *beaten == (*what != "correct")));
+}

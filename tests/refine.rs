@@ -124,6 +124,40 @@ fn configurations_refinement_cannot_run_are_errors() {
     )
     .unwrap();
     assert!(c.model.refine.enabled && c.model.refine.lr == 3e-5);
+    // `enabled = true` alone is the section's defaults, the photo-consistency refinement
+    // (configs/refine-photo.toml spells them out), under every preset.
+    for preset in ["tiny", "cpu", "paper"] {
+        let on = RunConfig::from_toml_str("[model.refine]\nenabled = true\n", preset, "on")
+            .unwrap()
+            .model
+            .refine;
+        let photo = RunConfig::resolve(
+            preset,
+            Some(
+                &std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("configs/refine-photo.toml"),
+            ),
+        )
+        .unwrap()
+        .model
+        .refine;
+        assert_eq!(on, photo, "{preset}");
+        assert!(
+            on.photo == 1.0 && on.features == 0.0 && on.anchored,
+            "{on:?}"
+        );
+    }
+    // A table written before that (which left out `features`, `photo` and `optimizer` at the
+    // learned-features values) reads back as what it trained with.
+    let mut old = RunConfig::preset("cpu").unwrap();
+    old.model.refine = xscale::model::refine::RefineConfig::learned();
+    old.model.refine.enabled = true;
+    let text = old
+        .to_toml()
+        .replace("features = 1.0\n", "")
+        .replace("photo = 0.0\n", "")
+        .replace("optimizer = \"adam\"\n", "");
+    assert!(!text.contains("photo ="), "{text}");
+    assert_eq!(RunConfig::from_stored_toml(&text, "old").unwrap(), old);
     assert_eq!(
         RunConfig::from_toml_str(&c.to_toml(), "cpu", "again").unwrap(),
         c

@@ -6,7 +6,7 @@
 use std::path::Path;
 use xscale::model::{Hfm, ModelConfig};
 use xscale::raycast::Tracer;
-use xscale::render::{ModelRenderer, Rendered, WHITE};
+use xscale::render::{Appearance, ModelRenderer, Rendered, WHITE};
 use xscale::scene::{LoadOptions, Scene};
 
 #[path = "common/pool.rs"]
@@ -41,22 +41,66 @@ fn bands_do_not_show_in_the_frame() {
         gamma: g,
         background: WHITE,
     };
-    let whole = r.render_in_bands(&cam, -1, usize::MAX).unwrap();
+    let whole = r
+        .render_in_bands(&cam, &Appearance::Row(-1), usize::MAX)
+        .unwrap();
     assert_eq!(whole.image.width, 160);
     assert!(whole.hit.iter().filter(|&&h| h).count() > 1000);
     let reference = bits(&whole);
     // One row per band; 7 rows (120 = 17·7 + 1: a short last band); the default.
     for samples in [1, 7 * per_row, 7 * per_row + 3] {
-        let frame = r.render_in_bands(&cam, -1, samples).unwrap();
+        let frame = r
+            .render_in_bands(&cam, &Appearance::Row(-1), samples)
+            .unwrap();
         assert!(
             bits(&frame) == reference,
             "bands of {samples} sub-samples change the frame"
         );
     }
-    let dflt = in_pool(1, || r.render(&cam, -1).unwrap());
+    let dflt = in_pool(1, || r.render(&cam, &Appearance::Row(-1)).unwrap());
     assert!(bits(&dflt) == reference);
-    let two = in_pool(2, || r.render_in_bands(&cam, -1, per_row).unwrap());
+    let two = in_pool(2, || {
+        r.render_in_bands(&cam, &Appearance::Row(-1), per_row)
+            .unwrap()
+    });
     assert!(bits(&two) == reference, "thread count changes the frame");
+}
+
+/// A view rendered with a code of its own (`Appearance::Code`, what a held-out view gets from
+/// its neighbours) is the same bits as with the row holding that code, and with the mean code
+/// the same as row −1; a different code changes the frame.
+#[test]
+fn a_code_of_its_own_renders_as_the_row_that_holds_it() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/tiny");
+    let scene = Scene::load(&root, &LoadOptions::default()).unwrap();
+    let tracer = Tracer::new(&scene.mesh, &scene.normalization).unwrap();
+    let mut cfg = ModelConfig::tiny();
+    cfg.appearance_views = 3;
+    let model = Hfm::new(&cfg).unwrap();
+    let mut params = model.init_params(7);
+    let codes = model.layout.view_mut(&mut params, "appearance.codes");
+    for (k, c) in codes.iter_mut().enumerate() {
+        *c = 0.5 * (k as f32 - 2.5);
+    }
+    let cam = scene.views[scene.test[0]].camera.clone();
+    let g = cfg.gamma;
+    let r = ModelRenderer {
+        model: &model,
+        params: &params,
+        tracer: &tracer,
+        gamma: g,
+        background: WHITE,
+    };
+    let render = |look: &Appearance| bits(&r.render(&cam, look).unwrap());
+    let a = cfg.appearance_dim as usize;
+    let row1 = model.codes(&params)[a..2 * a].to_vec();
+    assert!(render(&Appearance::Code(row1)) == render(&Appearance::Row(1)));
+    let all = model.codes(&params);
+    let mean: Vec<f32> = (0..a)
+        .map(|i| (all[i] + all[a + i] + all[2 * a + i]) / 3.0)
+        .collect();
+    assert!(render(&Appearance::Code(mean)) == render(&Appearance::Row(-1)));
+    assert!(render(&Appearance::Row(0)) != render(&Appearance::Row(-1)));
 }
 
 #[test]

@@ -13,26 +13,14 @@ mod metrics;
 #[path = "common/signal.rs"]
 mod signal;
 
-fn fixture() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/tiny")
-}
+#[path = "common/cli.rs"]
+mod cli;
+use cli::{fixture, xscale};
 
 fn tmp(name: &str) -> PathBuf {
     let d = std::env::temp_dir().join(format!("xscale-test-runs-{}-{name}", std::process::id()));
     let _ = std::fs::remove_dir_all(&d);
     d
-}
-
-/// (exit code, stderr)
-fn xscale(args: &[&str]) -> (i32, String) {
-    let out = Command::new(env!("CARGO_BIN_EXE_xscale"))
-        .args(args)
-        .output()
-        .unwrap();
-    (
-        out.status.code().unwrap_or(-1),
-        String::from_utf8_lossy(&out.stderr).into_owned(),
-    )
 }
 
 fn train(run: &Path, extra: &[&str]) -> (i32, String) {

@@ -1228,6 +1228,62 @@ fn scene_load_errors() {
     );
 }
 
+/// A scene whose camera file lists photos that are not on disk (a trimmed copy of a public
+/// dataset): refused by default, naming every missing view and the `scene.toml` key that leaves
+/// them out; with `skip_missing = true` the views that remain load, with a note naming those
+/// left out — in the transforms layout and in the others alike.
+#[test]
+fn views_without_a_photo_are_named_and_left_out_on_request() {
+    for format in ["transforms", "colmap"] {
+        let d = tiny_copy(&format!("missing_photos_{format}"));
+        fs::remove_file(d.join("images/0003.png")).unwrap();
+        fs::remove_file(d.join("images/0005.png")).unwrap();
+        fs::write(d.join("scene.toml"), format!("format = \"{format}\"\n")).unwrap();
+        let e = err(Scene::load(&d, &LoadOptions::default()));
+        assert_contains(
+            &e,
+            &[
+                "2 of 8 views have no photo",
+                "0003.png",
+                "0005.png",
+                "skip_missing = true",
+                "scene.toml",
+            ],
+        );
+        fs::write(
+            d.join("scene.toml"),
+            format!("format = \"{format}\"\nskip_missing = true\n"),
+        )
+        .unwrap();
+        let (scene, report) = Scene::load_report(&d, &LoadOptions::default()).unwrap();
+        let names: Vec<&str> = scene.views.iter().map(|v| v.name.as_str()).collect();
+        assert_eq!(scene.views.len(), 6, "{format}: {names:?}");
+        assert!(
+            !names
+                .iter()
+                .any(|n| n.contains("0003") || n.contains("0005")),
+            "{format}: {names:?}"
+        );
+        assert_eq!(report.left_out, 2);
+        let note = report
+            .notes
+            .iter()
+            .find(|n| n.contains("left out"))
+            .unwrap();
+        assert_contains(note, &["2 of 8 views", "0003.png", "0005.png"]);
+        // The split is taken over the views that remain (every 7th of 6: the first).
+        assert_eq!(scene.test, vec![0]);
+        // Every view gone: an error even with the key.
+        for i in 0..8 {
+            let _ = fs::remove_file(d.join(format!("images/{i:04}.png")));
+        }
+        assert_contains(
+            &err(Scene::load(&d, &LoadOptions::default())),
+            &["none of the 8 views has a photo"],
+        );
+    }
+}
+
 /// "Choose one explicitly" errors say how: the camera format by `format = …` in scene.toml
 /// (`scene_load_errors`), the mesh by `--mesh` (they said "pass one explicitly", and `train`'s
 /// user could not tell how).

@@ -112,6 +112,7 @@ fn synth_scene(
     crate::synth::generate(
         preset,
         seed,
+        crate::synth::Lens::Pinhole,
         dir,
         true,
         &mut super::synth::progress_until(stop, say),

@@ -21,6 +21,7 @@ use crate::rng::{self, Purpose};
 use anyhow::{bail, Context, Result};
 use clap::Parser;
 use std::collections::BTreeMap;
+use std::ffi::{OsStr, OsString};
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
@@ -167,8 +168,8 @@ impl std::fmt::Display for Stopped {
 impl std::error::Error for Stopped {}
 
 /// Run one `xscale` command line in this process; a command stopped by a signal is [`Stopped`].
-fn xscale(args: &[&std::ffi::OsStr]) -> Result<()> {
-    let argv = std::iter::once(std::ffi::OsStr::new("xscale")).chain(args.iter().copied());
+fn xscale(args: &[&OsStr]) -> Result<()> {
+    let argv = std::iter::once(OsStr::new("xscale")).chain(args.iter().copied());
     let cli = super::Cli::try_parse_from(argv)
         .map_err(|e| anyhow::anyhow!("internal command line: {e}"))?;
     let code = super::run(cli)?;
@@ -194,6 +195,48 @@ pub fn run(a: Args) -> Result<ExitCode> {
 
 fn make(a: Args) -> Result<ExitCode> {
     let out = &a.out;
+    open_case(out)?;
+    let tol_text =
+        crate::io::compare::builtin_tolerance_text(&a.tolerances).with_context(|| {
+            format!(
+                "--tolerances {:?}: not a built-in set ({})",
+                a.tolerances,
+                crate::io::compare::builtin_tolerance_names().join(", ")
+            )
+        })?;
+    let scene = case_scene(&a)?;
+    let config = case_config(&a)?;
+    let cmd = Commands {
+        scene: scene.as_os_str().to_owned(),
+        config: config.as_os_str().to_owned(),
+        preset: preset_args(&a)?,
+    };
+
+    // The checkpoint: `--steps` training steps, Adam state left out.
+    let tmp = out.join(".case-train");
+    if tmp.exists() {
+        std::fs::remove_dir_all(&tmp).with_context(|| format!("{}", tmp.display()))?;
+    }
+    let ckpt = case_checkpoint(&a, &cmd, &tmp)?;
+    ckpt.save(out.join("checkpoint.safetensors"))?;
+    let batch = case_batch(&a, &cmd, &tmp, &ckpt)?;
+    std::fs::remove_dir_all(&tmp).with_context(|| format!("{}", tmp.display()))?;
+
+    // The oracle: the f64 dump with its kink account.
+    eprintln!("case: the f64 oracle dump");
+    let dump = dump_with::<f64>(&ckpt, &batch, Some(crate::model::kink::DEFAULT_THRESHOLD))?;
+    dump.write_atomic(out.join("oracle.safetensors"))?;
+    crate::io::atomic::write_bytes(&out.join("tolerances.toml"), tol_text)?;
+
+    let manifest = write_manifest(&a, &ckpt, &batch, &dump)?;
+    std::fs::remove_file(out.join(INCOMPLETE))
+        .with_context(|| format!("{}", out.join(INCOMPLETE).display()))?;
+    report(&a, &batch, &dump, &manifest)?;
+    Ok(ExitCode::SUCCESS)
+}
+
+/// Make (or take back) the case folder, marked unfinished until the end.
+fn open_case(out: &Path) -> Result<()> {
     // The folder's parent must exist (a typo costs no work); the folder itself is created.
     if !out.is_dir() {
         crate::io::atomic::writable_folder(out)?;
@@ -204,37 +247,32 @@ fn make(a: Args) -> Result<ExitCode> {
     // The process's one interrupt handler (its message is the first installer's): a signal stops
     // the command under way at its next safe point, then the case.
     super::common::on_interrupt("stopping the case (the same command makes it again)");
-    let tol_text =
-        crate::io::compare::builtin_tolerance_text(&a.tolerances).with_context(|| {
-            format!(
-                "--tolerances {:?}: not a built-in set ({})",
-                a.tolerances,
-                crate::io::compare::builtin_tolerance_names().join(", ")
-            )
-        })?;
-    let os = |p: &Path| p.as_os_str().to_owned();
+    Ok(())
+}
 
-    // The scene.
-    let scene = match &a.scene {
-        Some(s) => s.clone(),
-        None => {
-            let dir = out.join("scene");
-            eprintln!("case: the bundled tiny scene -> {}", dir.display());
-            let d = os(&dir);
-            xscale(&[
-                "synth".as_ref(),
-                "--preset".as_ref(),
-                "tiny".as_ref(),
-                "--seed".as_ref(),
-                "1".as_ref(),
-                "--out".as_ref(),
-                &d,
-            ])?;
-            dir
-        }
-    };
-    // The run config.
-    let config = out.join("config.toml");
+/// The scene: `--scene`, or the bundled tiny scene written to CASE/scene.
+fn case_scene(a: &Args) -> Result<PathBuf> {
+    if let Some(s) = &a.scene {
+        return Ok(s.clone());
+    }
+    let dir = a.out.join("scene");
+    eprintln!("case: the bundled tiny scene -> {}", dir.display());
+    let d = dir.as_os_str().to_owned();
+    xscale(&[
+        "synth".as_ref(),
+        "--preset".as_ref(),
+        "tiny".as_ref(),
+        "--seed".as_ref(),
+        "1".as_ref(),
+        "--out".as_ref(),
+        &d,
+    ])?;
+    Ok(dir)
+}
+
+/// CASE/config.toml: a copy of `--config`, or the backend-safe default.
+fn case_config(a: &Args) -> Result<PathBuf> {
+    let config = a.out.join("config.toml");
     match &a.config {
         Some(c) => {
             let text = crate::io::text::read(c)?;
@@ -245,89 +283,100 @@ fn make(a: Args) -> Result<ExitCode> {
             crate::io::atomic::write_bytes(&config, default_config(preset, a.steps, a.seed))?;
         }
     }
-    // With --config: --preset if given, else the file's `preset`, else tiny (not the commands'
-    // default cpu: a case is the oracle's tiny model unless asked otherwise).
-    let preset: Vec<std::ffi::OsString> = match (&a.config, &a.preset) {
+    Ok(config)
+}
+
+/// The `--preset` the case's commands are given. With --config: --preset if given, else the
+/// file's `preset`, else tiny (not the commands' default cpu: a case is the oracle's tiny model
+/// unless asked otherwise).
+fn preset_args(a: &Args) -> Result<Vec<OsString>> {
+    Ok(match (&a.config, &a.preset) {
         (None, _) => vec![],
         (Some(_), Some(p)) => vec!["--preset".into(), p.into()],
         (Some(c), None) => match super::common::config_file_preset(c)? {
             Some(_) => vec![],
             None => vec!["--preset".into(), "tiny".into()],
         },
-    };
-    let preset: Vec<&std::ffi::OsStr> = preset.iter().map(|s| s.as_os_str()).collect();
-    let (scene_os, config_os) = (os(&scene), os(&config));
-    let steps = a.steps.to_string();
-    let seed = a.seed.to_string();
-    let size = a.size.to_string();
+    })
+}
 
-    // The checkpoint: `--steps` training steps, Adam state left out.
-    let tmp = out.join(".case-train");
-    if tmp.exists() {
-        std::fs::remove_dir_all(&tmp).with_context(|| format!("{}", tmp.display()))?;
-    }
-    let ckpt = if a.steps > 0 {
-        eprintln!("case: training {} steps", a.steps);
-        let tmp_os = os(&tmp);
-        let mut args: Vec<&std::ffi::OsStr> = vec![
-            "train".as_ref(),
+/// What every command of the case is given: the scene, the config and the preset.
+struct Commands {
+    scene: OsString,
+    config: OsString,
+    preset: Vec<OsString>,
+}
+
+impl Commands {
+    /// Run `xscale NAME --scene S --config C REST… [--preset P]`.
+    fn run(&self, name: &str, rest: &[&OsStr]) -> Result<()> {
+        let mut args: Vec<&OsStr> = vec![
+            name.as_ref(),
             "--scene".as_ref(),
-            &scene_os,
+            &self.scene,
             "--config".as_ref(),
-            &config_os,
-            "--steps".as_ref(),
-            steps.as_ref(),
-            "--seed".as_ref(),
-            seed.as_ref(),
-            "--no-eval".as_ref(),
-            "--quiet".as_ref(),
-            "--out".as_ref(),
-            &tmp_os,
+            &self.config,
         ];
-        args.extend(&preset);
-        xscale(&args)?;
-        Checkpoint::load(tmp.join("checkpoint.safetensors"))?
+        args.extend(rest);
+        args.extend(self.preset.iter().map(|s| s.as_os_str()));
+        xscale(&args)
+    }
+}
+
+/// The model after `--steps` training steps (a fresh initialisation for 0), made in `tmp`.
+fn case_checkpoint(a: &Args, cmd: &Commands, tmp: &Path) -> Result<Checkpoint> {
+    let seed = a.seed.to_string();
+    if a.steps > 0 {
+        eprintln!("case: training {} steps", a.steps);
+        let steps = a.steps.to_string();
+        cmd.run(
+            "train",
+            &[
+                "--steps".as_ref(),
+                steps.as_ref(),
+                "--seed".as_ref(),
+                seed.as_ref(),
+                "--no-eval".as_ref(),
+                "--quiet".as_ref(),
+                "--out".as_ref(),
+                tmp.as_os_str(),
+            ],
+        )?;
+        Checkpoint::load(tmp.join("checkpoint.safetensors"))
     } else {
         let f = tmp.join("init.safetensors");
-        std::fs::create_dir_all(&tmp)?;
-        let f_os = os(&f);
-        let mut args: Vec<&std::ffi::OsStr> = vec![
-            "init".as_ref(),
-            "--scene".as_ref(),
-            &scene_os,
-            "--config".as_ref(),
-            &config_os,
+        std::fs::create_dir_all(tmp)?;
+        cmd.run(
+            "init",
+            &[
+                "--seed".as_ref(),
+                seed.as_ref(),
+                "--out".as_ref(),
+                f.as_os_str(),
+            ],
+        )?;
+        Checkpoint::load(&f)
+    }
+}
+
+/// The batch: step 1000 of the seed (one training never drew), edited ([`edit_batch`]), written
+/// to CASE/batch.safetensors.
+fn case_batch(a: &Args, cmd: &Commands, tmp: &Path, ckpt: &Checkpoint) -> Result<Batch> {
+    let raw = tmp.join("batch.safetensors");
+    let (size, seed) = (a.size.to_string(), a.seed.to_string());
+    cmd.run(
+        "batch",
+        &[
+            "--size".as_ref(),
+            size.as_ref(),
             "--seed".as_ref(),
             seed.as_ref(),
+            "--step".as_ref(),
+            "1000".as_ref(),
             "--out".as_ref(),
-            &f_os,
-        ];
-        args.extend(&preset);
-        xscale(&args)?;
-        Checkpoint::load(&f)?
-    };
-    ckpt.save(out.join("checkpoint.safetensors"))?;
-
-    // The batch: step 1000 of the seed (one training never drew), edited.
-    let raw = tmp.join("batch.safetensors");
-    let raw_os = os(&raw);
-    let mut args: Vec<&std::ffi::OsStr> = vec![
-        "batch".as_ref(),
-        "--scene".as_ref(),
-        &scene_os,
-        "--config".as_ref(),
-        &config_os,
-        "--size".as_ref(),
-        size.as_ref(),
-        "--seed".as_ref(),
-        seed.as_ref(),
-        "--step".as_ref(),
-        "1000".as_ref(),
-        "--out".as_ref(),
-        &raw_os,
-    ];
-    args.extend(&preset);
-    xscale(&args)?;
+            raw.as_os_str(),
+        ],
+    )?;
     let mut batch = Batch::load(&raw)?;
     let mean_view = a.mean_view.unwrap_or(a.size / 16).min(batch.n_pixels());
     edit_batch(
@@ -340,15 +389,17 @@ fn make(a: Args) -> Result<ExitCode> {
     ckpt.model.check_batch(&batch)?;
     let mut bf = TensorFile::new();
     crate::model::checkpoint::batch_to_tensors(&mut bf, &batch)?;
-    bf.write_atomic(out.join("batch.safetensors"))?;
-    std::fs::remove_dir_all(&tmp).with_context(|| format!("{}", tmp.display()))?;
+    bf.write_atomic(a.out.join("batch.safetensors"))?;
+    Ok(batch)
+}
 
-    // The oracle: the f64 dump with its kink account.
-    eprintln!("case: the f64 oracle dump");
-    let dump = dump_with::<f64>(&ckpt, &batch, Some(crate::model::kink::DEFAULT_THRESHOLD))?;
-    dump.write_atomic(out.join("oracle.safetensors"))?;
-    crate::io::atomic::write_bytes(&out.join("tolerances.toml"), tol_text)?;
-
+/// CASE/manifest.json: every tensor a backend writes, and the case's files.
+fn write_manifest(
+    a: &Args,
+    ckpt: &Checkpoint,
+    batch: &Batch,
+    dump: &TensorFile,
+) -> Result<serde_json::Value> {
     let mut files = BTreeMap::new();
     files.insert("config", "config.toml".to_string());
     files.insert("checkpoint", "checkpoint.safetensors".to_string());
@@ -359,13 +410,17 @@ fn make(a: Args) -> Result<ExitCode> {
     if a.scene.is_none() {
         files.insert("scene", "scene".to_string());
     }
-    let manifest = crate::model::manifest::manifest_json(&ckpt, &batch, &dump, &files)?;
+    let manifest = crate::model::manifest::manifest_json(ckpt, batch, dump, &files)?;
     crate::io::atomic::write_bytes(
-        &out.join("manifest.json"),
+        &a.out.join("manifest.json"),
         serde_json::to_string_pretty(&manifest)? + "\n",
     )?;
-    std::fs::remove_file(out.join(INCOMPLETE))
-        .with_context(|| format!("{}", out.join(INCOMPLETE).display()))?;
+    Ok(manifest)
+}
+
+/// What the case holds, and what a backend does with it.
+fn report(a: &Args, batch: &Batch, dump: &TensorFile, manifest: &serde_json::Value) -> Result<()> {
+    let out = &a.out;
     let required = manifest["tensors"]
         .as_array()
         .map_or(0, |t| t.iter().filter(|e| e["required"] == true).count());
@@ -394,5 +449,5 @@ fn make(a: Args) -> Result<ExitCode> {
          xscale compare {0}/oracle.safetensors mine.safetensors --tolerances {0}/tolerances.toml",
         out.display()
     );
-    Ok(ExitCode::SUCCESS)
+    Ok(())
 }

@@ -19,7 +19,8 @@ pub struct RunArgs {
     /// TOML file overriding any field of the preset (`[model]`, `[train]` tables).
     #[arg(long)]
     pub config: Option<PathBuf>,
-    /// Number of steps (overrides the config).
+    /// Number of steps (overrides the config and the `cpu` preset's automatic budget, which
+    /// chooses them from the scene's training pixels).
     #[arg(long)]
     pub steps: Option<u64>,
     /// Pixels per batch (overrides the config; at least 1).
@@ -36,6 +37,7 @@ impl RunArgs {
         let mut cfg = resolve_config(self.preset.as_deref(), self.config.as_deref())?;
         if let Some(s) = self.steps {
             cfg.train.steps = s;
+            cfg.train.budget = crate::train::config::StepBudget::Fixed;
         }
         if let Some(b) = self.batch {
             cfg.train.batch_pixels = b;

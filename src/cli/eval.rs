@@ -36,6 +36,12 @@ pub struct Args {
     /// no model: `--scene DIR` alone, or a run for its scene, split and mesh).
     #[arg(long, value_enum, default_value = "model")]
     pub method: Method,
+    /// The appearance code of a view that has none of its own (a held-out view, a new camera):
+    /// `neighbours` blends the codes of the training views nearest in pose (their exposure and
+    /// white balance), `mean` takes the mean of all codes (spec §4.6). Only the camera is used,
+    /// never the view's photo.
+    #[arg(long, value_enum, default_value = "neighbours")]
+    pub appearance: crate::render::appearance::NewViewCode,
     /// No progress lines (one per view scored, on stderr); the table, notes and errors remain.
     #[arg(long, short)]
     pub quiet: bool,
@@ -95,7 +101,14 @@ pub fn run(a: Args) -> Result<ExitCode> {
                     gamma: ck.model.cfg.gamma,
                     background,
                 };
-                evaluate_view(&renderer, &s.scene, i, s.rows[i])?
+                let look = s.appearance(
+                    &ck.model,
+                    &ck.params,
+                    a.appearance,
+                    s.rows[i],
+                    &s.scene.views[i].camera,
+                );
+                evaluate_view(&renderer, &s.scene, i, &look)?
             }
             Method::Ulr => {
                 let camera = &s.scene.views[i].camera;

@@ -42,6 +42,12 @@ pub struct Args {
     /// `--scene DIR` alone, or a run for its scene, split, mesh and γ).
     #[arg(long, value_enum, default_value = "model")]
     pub method: Method,
+    /// The appearance code of a view that has none of its own (a held-out view, a new camera):
+    /// `neighbours` blends the codes of the training views nearest in pose (their exposure and
+    /// white balance), `mean` takes the mean of all codes (spec §4.6). Only the camera is used,
+    /// never the view's photo.
+    #[arg(long, value_enum, default_value = "neighbours")]
+    pub appearance: crate::render::appearance::NewViewCode,
     /// Image format: 8-bit PNG, or 32-bit float EXR (the same values, not quantised).
     #[arg(long, value_enum, default_value = "png")]
     pub format: Format,
@@ -213,7 +219,8 @@ pub fn run(a: Args) -> Result<ExitCode> {
                     gamma,
                     background,
                 };
-                renderer.render(cam, *row)?
+                let look = s.appearance(&ck.model, &ck.params, a.appearance, *row, cam);
+                renderer.render(cam, &look)?
             }
             Method::Ulr => render_ulr(&s.tracer, &sources, cam, gamma, background)?,
         };

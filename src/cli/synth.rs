@@ -28,6 +28,10 @@ pub struct Args {
     /// Also write the fine true surface as `truth.ply` (large).
     #[arg(long)]
     pub write_truth: bool,
+    /// The cameras' lens: `pinhole`, or `opencv` (the same views rendered through a phone-like
+    /// barrel distortion and written as COLMAP OPENCV cameras).
+    #[arg(long, value_enum, default_value = "pinhole")]
+    pub lens: synth::Lens,
 }
 
 /// Every file and folder `xscale synth` writes into its output folder.
@@ -66,11 +70,19 @@ fn check_out(args: &Args) -> anyhow::Result<()> {
         Some(t) => {
             let preset = t.get("preset").and_then(|p| p.as_str()).unwrap_or("?");
             let seed = t.get("seed").map_or("?".to_string(), |s| s.to_string());
-            if preset == args.preset.name() && seed == args.seed.to_string() {
+            let lens = t
+                .get("params")
+                .and_then(|p| p.get("lens"))
+                .and_then(|l| l.as_str())
+                .unwrap_or("pinhole");
+            if preset == args.preset.name()
+                && seed == args.seed.to_string()
+                && lens == args.lens.name()
+            {
                 return Ok(()); // the same scene, written again
             }
             format!(
-                "holds the synthetic scene of --preset {preset} --seed {seed} ({}; runs trained on it would no longer match it)",
+                "holds the synthetic scene of --preset {preset} --seed {seed} --lens {lens} ({}; runs trained on it would no longer match it)",
                 record.display()
             )
         }
@@ -142,6 +154,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let generated = synth::generate(
         args.preset,
         args.seed,
+        args.lens,
         &args.out,
         args.write_truth,
         &mut progress_until(stop, &mut |m| eprintln!("{m}")),

@@ -15,7 +15,7 @@
 //! With masks, `mask_miss` is the fraction of mask pixels the mesh misses (silhouette coverage).
 
 use crate::eval::metrics::{flip_map, masked_mean, psnr_masked, ssim, ssim_masked};
-use crate::render::{comparison, ModelRenderer, Rendered};
+use crate::render::{comparison, Appearance, ModelRenderer, Rendered};
 use crate::scene::image::write_png8;
 use crate::scene::{Image, Scene};
 use anyhow::{Context, Result};
@@ -45,11 +45,11 @@ pub struct ViewScore {
     pub footprint: Option<f64>,
 }
 
-/// A scored view: the scores, the photo with misses painted in the background colour (for the
-/// side-by-side) and the per-pixel ꟻLIP error of the full image.
+/// A scored view: the scores, the photo as it is (for the side-by-side) and the per-pixel ꟻLIP
+/// error of the full image.
 pub struct Scored {
     pub score: ViewScore,
-    pub painted: Image,
+    pub photo: Image,
     pub flip_map: Vec<f32>,
 }
 
@@ -102,7 +102,7 @@ pub fn score_view(
     };
     Scored {
         score,
-        painted,
+        photo: gt.clone(),
         flip_map: fmap,
     }
 }
@@ -292,15 +292,16 @@ pub struct Evaluated {
     pub scored: Scored,
 }
 
-/// Render scene view `i` with `renderer` (appearance row `row`, −1 = mean code) and score it
-/// against its photo inside its mask (module docs).
+/// Render scene view `i` with `renderer` in `appearance` (`render::appearance`: a row, −1 for
+/// the mean code, or a code of its own) and score it against its photo inside its mask
+/// (module docs).
 pub fn evaluate_view(
     renderer: &ModelRenderer,
     scene: &Scene,
     i: usize,
-    row: i32,
+    appearance: &Appearance,
 ) -> Result<Evaluated> {
-    let rendered = renderer.render(&scene.views[i].camera, row)?;
+    let rendered = renderer.render(&scene.views[i].camera, appearance)?;
     score_rendered(scene, i, rendered, renderer.background)
 }
 
@@ -369,8 +370,9 @@ pub fn write_view_png(dir: &Path, name: &str, img: &Image) -> Result<PathBuf> {
     Ok(path)
 }
 
-/// Write an evaluated view's render into `render_dir` and its side-by-side (render | photo |
-/// error | ꟻLIP) into `compare_dir`, each under the view's own name.
+/// Write an evaluated view's render into `render_dir` and its side-by-side (render | photo as it
+/// is | error | ꟻLIP, the mesh's misses outlined: `render::comparison`) into `compare_dir`, each
+/// under the view's own name.
 pub fn write_evaluated(
     e: &Evaluated,
     name: &str,
@@ -381,7 +383,12 @@ pub fn write_evaluated(
         write_view_png(d, name, &e.rendered.image)?;
     }
     if let Some(d) = compare_dir {
-        let cmp = comparison(&e.rendered.image, &e.scored.painted, &e.scored.flip_map);
+        let cmp = comparison(
+            &e.rendered.image,
+            &e.scored.photo,
+            &e.rendered.hit,
+            &e.scored.flip_map,
+        );
         write_view_png(d, name, &cmp)?;
     }
     Ok(())

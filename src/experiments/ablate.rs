@@ -583,6 +583,7 @@ fn probe_steps(scene: &Path, probe_dir: &Path, base: &RunConfig, minutes: f64) -
     ensure!(minutes > 0.0, "--minutes must be positive");
     let mut cfg = base.clone();
     cfg.train.steps = 20;
+    cfg.train.budget = crate::train::config::StepBudget::Fixed;
     cfg.train.eval_every = 0;
     cfg.train.checkpoint_every = 0;
     let s = train(

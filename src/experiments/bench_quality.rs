@@ -221,6 +221,7 @@ fn bench_one(
         );
     }
     cfg.train.steps = u64::MAX / 4;
+    cfg.train.budget = crate::train::config::StepBudget::Fixed;
     let mut state = TrainState::init(cfg, &prepared, &mut |_| {})?;
     let mut grads = Grads::new(&state.ckpt.model.layout);
     grads.inputs = false;

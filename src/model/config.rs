@@ -170,7 +170,8 @@ pub struct ModelConfig {
     #[serde(default)]
     pub level_weight: LevelWeight,
     /// Joint refinement of the mesh through the hit point (`[model.refine]`, beyond the paper;
-    /// `model/refine.rs`). Absent from configs that keep the default (off).
+    /// `model/refine.rs`; its defaults are the photo-consistency refinement). Absent from configs
+    /// that keep the default (off).
     #[serde(default, skip_serializing_if = "RefineConfig::is_default")]
     pub refine: RefineConfig,
 }

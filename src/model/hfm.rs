@@ -404,7 +404,28 @@ impl Hfm {
     /// The colours only (`[N, 3]` σ(logits), the same bits as [`Hfm::forward`]'s `rgb`), for
     /// rendering: no activations are kept, and each worker thread reuses one chunk's buffers.
     pub fn infer<R: Real>(&self, params: &[R], batch: &Batch) -> Result<Vec<R>> {
-        let pre = self.prologue(params, batch)?;
+        self.infer_coded(params, batch, None)
+    }
+
+    /// [`Hfm::infer`] with `code` (`[A]`) in place of the mean code for the pixels of view −1
+    /// (`None`: the mean, as `infer`). Rendering a view that has no row of its own with a code
+    /// blended from its neighbours' (`render::appearance`).
+    pub fn infer_coded<R: Real>(
+        &self,
+        params: &[R],
+        batch: &Batch,
+        code: Option<&[R]>,
+    ) -> Result<Vec<R>> {
+        let mut pre = self.prologue(params, batch)?;
+        if let Some(c) = code {
+            ensure!(
+                c.len() == self.appearance_dim(),
+                "appearance code of {} values, the model's codes have {}",
+                c.len(),
+                self.appearance_dim()
+            );
+            pre.code_mean = c.to_vec();
+        }
         let mut rgb = vec![R::ZERO; batch.n_pixels() * 3];
         rgb.par_chunks_mut(PIXEL_CHUNK * 3)
             .enumerate()
@@ -462,6 +483,11 @@ impl Hfm {
             triangles,
             bary,
         })
+    }
+
+    /// `[views, A]` the appearance codes within `params` (empty when A = 0).
+    pub fn codes<'a, R: Real>(&self, params: &'a [R]) -> &'a [R] {
+        &params[self.r_codes.clone()]
     }
 
     /// `[A]` mean of all appearance rows ([`appearance_mean`]).

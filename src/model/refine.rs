@@ -82,11 +82,14 @@ pub struct RefineConfig {
     pub prior: f64,
     /// Weight of the loss's gradient through the hit point (the learned features' signal);
     /// 0 = the mesh is moved by the photo-consistency term (and smoothness, prior) only.
-    #[serde(skip_serializing_if = "is_one_f64")]
+    /// Always written; absent (a table written before issue #39) = 1, the value such a build
+    /// left out.
+    #[serde(default = "one_f64")]
     pub features: f64,
     /// Weight of the multi-view photo-consistency energy of the training photos (0 = off;
-    /// `refine/photo.rs`, `refine/photo_term.rs`).
-    #[serde(skip_serializing_if = "is_zero_f64")]
+    /// `refine/photo.rs`, `refine/photo_term.rs`). Always written; absent (a table written
+    /// before issue #39) = 0.
+    #[serde(default)]
     pub photo: f64,
     /// Reference patches drawn per training step.
     #[serde(skip_serializing_if = "is_default_photo_pixels")]
@@ -113,7 +116,8 @@ pub struct RefineConfig {
     pub photo_scale: f64,
     /// How the offset field steps at an update: `adam` (tiny-cuda-nn rules) or `gauss-newton`
     /// (the summed gradient over the photo term's summed curvature: `refine/refiner.rs`).
-    #[serde(skip_serializing_if = "is_default_optimizer")]
+    /// Always written; absent (a table written before issue #39) = `adam`.
+    #[serde(default)]
     pub optimizer: RefineOptimizer,
     /// Levenberg damping of the Gauss–Newton step, relative to the mean curvature of the level's
     /// nodes that have one.
@@ -154,9 +158,6 @@ pub enum RefineOptimizer {
 
 const DAMPING: f64 = 0.1;
 
-fn is_default_optimizer(v: &RefineOptimizer) -> bool {
-    *v == RefineOptimizer::default()
-}
 fn is_default_damping(v: &f64) -> bool {
     *v == DAMPING
 }
@@ -168,8 +169,8 @@ const PHOTO_NEIGHBOURS: u32 = 4;
 const PHOTO_ANGLE: [f64; 2] = [5.0, 45.0];
 const PHOTO_SCALE: f64 = 2.0;
 
-fn is_one_f64(v: &f64) -> bool {
-    *v == 1.0
+fn one_f64() -> f64 {
+    1.0
 }
 fn is_default_photo_pixels(v: &u32) -> bool {
     *v == PHOTO_PIXELS
@@ -204,7 +205,33 @@ fn is_two(v: &u32) -> bool {
 }
 
 impl Default for RefineConfig {
+    /// The best measured setting (docs/geometry.md §4): the mesh moved by the multi-view
+    /// photo-consistency of the training photos (Gauss–Newton steps on zncc of 5×5 patches,
+    /// image levels 2 → 0, the offset field's grids switched on coarse to fine over the first
+    /// 60 % of the run), the features anchored to the training mesh and left out of the mesh's
+    /// gradient. `[model.refine] enabled = true` alone turns it on. The refinement through the
+    /// learned features' gradient (docs/geometry.md §3) is [`RefineConfig::learned`].
     fn default() -> Self {
+        RefineConfig {
+            anchored: true,
+            features: 0.0,
+            photo: 1.0,
+            optimizer: RefineOptimizer::GaussNewton,
+            lr: 1.0,
+            start: 0.0,
+            stop: 0.6,
+            coarse_to_fine: 0.6,
+            ..RefineConfig::learned()
+        }
+    }
+}
+
+impl RefineConfig {
+    /// The defaults before the photo-consistency term became the default (issue #39): the mesh
+    /// moved by Adam on the loss's gradient through the hit point of the learned features
+    /// (docs/geometry.md §3). A stored `[model.refine]` table that lacks `features`, `photo` or
+    /// `optimizer` was written by such a build, which left them out at these values.
+    pub fn learned() -> Self {
         RefineConfig {
             enabled: false,
             start: 0.3,

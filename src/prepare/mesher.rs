@@ -113,33 +113,11 @@ pub fn mesh(
         points: tracks.len(),
         ..Stats::default()
     };
-    if let Some(k) = cameras.iter().position(|c| !c.is_finite()) {
-        bail!("camera {k} has a non-finite centre {}", cameras[k]);
-    }
-    // Points seen often enough, each with its cameras.
-    let used: Vec<&Track> = tracks
-        .iter()
-        .filter(|t| t.cameras.len() >= opts.min_track.max(1))
-        .collect();
-    for t in &used {
-        if let Some(&c) = t.cameras.iter().find(|&&c| c as usize >= cameras.len()) {
-            bail!(
-                "a point is seen by camera {c}, but there are only {} cameras",
-                cameras.len()
-            );
-        }
-    }
+    let used = used_tracks(tracks, cameras, opts)?;
     stats.points_used = used.len();
-    if used.len() < 4 {
-        bail!(
-            "{} of {} points are seen by at least {} cameras: too few to mesh (4 at least)",
-            used.len(),
-            tracks.len(),
-            opts.min_track
-        );
-    }
     let xyz: Vec<DVec3> = used.iter().map(|t| t.xyz).collect();
 
+    // 1. The tetrahedralisation.
     let t0 = Instant::now();
     let n = xyz.len();
     let tet = Tetrahedralization::with_progress(&xyz, cameras, &mut |k| {
@@ -153,8 +131,78 @@ pub fn mesh(
         bail!("interrupted");
     }
 
-    // Lines of sight.
+    // 2. Lines of sight.
     let t1 = Instant::now();
+    let votes = cast_votes(&tet, &used, cameras, progress, stop, &mut stats)?;
+    stats.seconds[1] = t1.elapsed().as_secs_f64();
+
+    // 3–4. The graph, one node per cell, and its minimum cut.
+    let t2 = Instant::now();
+    let outside = graph_cut(&tet, &votes, opts.quality, &mut stats);
+    stats.seconds[2] = t2.elapsed().as_secs_f64();
+
+    // 5. The surface.
+    let t3 = Instant::now();
+    let tris = surface(&tet, &outside, opts, &mut stats);
+    let mesh = used_vertices(&xyz, &tris);
+    stats.seconds[3] = t3.elapsed().as_secs_f64();
+    Ok((mesh, stats))
+}
+
+/// The points seen by at least [`Options::min_track`] cameras (4 at least are needed); an
+/// error for a non-finite camera or a track naming a camera that is not there.
+fn used_tracks<'a>(
+    tracks: &'a [Track],
+    cameras: &[DVec3],
+    opts: &Options,
+) -> Result<Vec<&'a Track>> {
+    if let Some(k) = cameras.iter().position(|c| !c.is_finite()) {
+        bail!("camera {k} has a non-finite centre {}", cameras[k]);
+    }
+    let used: Vec<&Track> = tracks
+        .iter()
+        .filter(|t| t.cameras.len() >= opts.min_track.max(1))
+        .collect();
+    for t in &used {
+        if let Some(&c) = t.cameras.iter().find(|&&c| c as usize >= cameras.len()) {
+            bail!(
+                "a point is seen by camera {c}, but there are only {} cameras",
+                cameras.len()
+            );
+        }
+    }
+    if used.len() < 4 {
+        bail!(
+            "{} of {} points are seen by at least {} cameras: too few to mesh (4 at least)",
+            used.len(),
+            tracks.len(),
+            opts.min_track
+        );
+    }
+    Ok(used)
+}
+
+/// The lines of sight's votes (step 2 of the module's account), as counts.
+struct Votes {
+    /// `into[cell * 4 + face]`: lines of sight entering `cell` through its face `face`
+    /// (the cell on the point's side).
+    into: Vec<u32>,
+    /// Per cell: lines of sight whose camera it holds (votes for outside).
+    source: Vec<u32>,
+    /// Per cell: lines of sight whose point it is just behind (votes for inside).
+    sink: Vec<u32>,
+}
+
+/// Walk every line of sight (in parallel, [`RAY_CHUNK`] per work item) and count its votes;
+/// fills `stats.rays`, `crossings` and `rays_cut_short`.
+fn cast_votes(
+    tet: &Tetrahedralization,
+    used: &[&Track],
+    cameras: &[DVec3],
+    progress: &(dyn Fn(&str, usize, usize) + Sync),
+    stop: &(dyn Fn() -> bool + Sync),
+    stats: &mut Stats,
+) -> Result<Votes> {
     let rays: Vec<(u32, u32)> = used
         .iter()
         .enumerate()
@@ -165,9 +213,8 @@ pub fn mesh(
         .collect();
     stats.rays = rays.len();
     let cells = tet.cells.len();
-    let votes_in: Vec<AtomicU32> = (0..cells * 4).map(|_| AtomicU32::new(0)).collect();
-    let source: Vec<AtomicU32> = (0..cells).map(|_| AtomicU32::new(0)).collect();
-    let sink: Vec<AtomicU32> = (0..cells).map(|_| AtomicU32::new(0)).collect();
+    let counts = |n: usize| -> Vec<AtomicU32> { (0..n).map(|_| AtomicU32::new(0)).collect() };
+    let (votes_in, source, sink) = (counts(cells * 4), counts(cells), counts(cells));
     let done = AtomicU32::new(0);
     let interrupted = std::sync::atomic::AtomicBool::new(false);
     let (crossings, short): (Vec<u64>, Vec<usize>) = rays
@@ -179,15 +226,10 @@ pub fn mesh(
                 return (0, 0);
             }
             for &(v, c) in chunk {
-                let sight = line_of_sight(
-                    &tet,
-                    v,
-                    cameras[c as usize],
-                    &mut star,
-                    &mut |into, face| {
+                let sight =
+                    line_of_sight(tet, v, cameras[c as usize], &mut star, &mut |into, face| {
                         votes_in[into as usize * 4 + face].fetch_add(1, Relaxed);
-                    },
-                );
+                    });
                 crossed += sight.crossed;
                 short += sight.cut_short as usize;
                 source[sight.camera_cell as usize].fetch_add(1, Relaxed);
@@ -208,22 +250,32 @@ pub fn mesh(
     }
     stats.crossings = crossings.iter().sum();
     stats.rays_cut_short = short.iter().sum();
-    stats.seconds[1] = t1.elapsed().as_secs_f64();
+    let plain = |v: Vec<AtomicU32>| v.into_iter().map(AtomicU32::into_inner).collect();
+    Ok(Votes {
+        into: plain(votes_in),
+        source: plain(source),
+        sink: plain(sink),
+    })
+}
 
-    // The graph: one node per cell.
-    let t2 = Instant::now();
-    let quality: Vec<f64> = if opts.quality > 0.0 {
-        face_quality(&tet)
+/// The graph of the cells (votes plus `quality` times the surface-quality term on every face)
+/// and its minimum cut: per cell, whether it is outside (source side). Fills `stats.cut` and
+/// `inside_cells`.
+fn graph_cut(
+    tet: &Tetrahedralization,
+    votes: &Votes,
+    quality_weight: f64,
+    stats: &mut Stats,
+) -> Vec<bool> {
+    let cells = tet.cells.len();
+    let quality: Vec<f64> = if quality_weight > 0.0 {
+        face_quality(tet)
     } else {
         Vec::new()
     };
     let mut g = Graph::new(cells);
     for t in 0..cells {
-        g.add_terminal(
-            t,
-            source[t].load(Relaxed) as f64,
-            sink[t].load(Relaxed) as f64,
-        );
+        g.add_terminal(t, votes.source[t] as f64, votes.sink[t] as f64);
         for i in 0..4 {
             let nb = tet.neighbors[t][i];
             if nb == NONE || (nb as usize) < t {
@@ -236,23 +288,31 @@ pub fn mesh(
             let q = if quality.is_empty() {
                 0.0
             } else {
-                opts.quality * quality[t * 4 + i]
+                quality_weight * quality[t * 4 + i]
             };
-            // votes_in[nb, back]: lines of sight going t → nb (t on the camera side).
-            let t_to_nb = votes_in[nb as usize * 4 + back].load(Relaxed) as f64 + q;
-            let nb_to_t = votes_in[t * 4 + i].load(Relaxed) as f64 + q;
+            // into[nb, back]: lines of sight going t → nb (t on the camera side).
+            let t_to_nb = votes.into[nb as usize * 4 + back] as f64 + q;
+            let nb_to_t = votes.into[t * 4 + i] as f64 + q;
             g.add_edge(t, nb as usize, t_to_nb, nb_to_t);
         }
     }
     stats.cut = g.max_flow();
     let outside: Vec<bool> = (0..cells).map(|t| g.source_side(t)).collect();
     stats.inside_cells = outside.iter().filter(|o| !**o).count();
-    stats.seconds[2] = t2.elapsed().as_secs_f64();
+    outside
+}
 
-    // The surface.
-    let t3 = Instant::now();
+/// The faces between an inside and an outside cell (none touching the far vertices), without
+/// the long ones and the small pieces. Fills `stats.dropped_long`, `dropped_small` and
+/// `triangles`.
+fn surface(
+    tet: &Tetrahedralization,
+    outside: &[bool],
+    opts: &Options,
+    stats: &mut Stats,
+) -> Vec<[u32; 3]> {
     let mut tris: Vec<[u32; 3]> = Vec::new();
-    for t in 0..cells {
+    for t in 0..tet.cells.len() {
         if outside[t] {
             continue;
         }
@@ -278,10 +338,14 @@ pub fn mesh(
     }
     stats.dropped_small = before - tris.len();
     stats.triangles = tris.len();
-    // Keep the vertices the triangles use, in point order.
-    let mut index = vec![u32::MAX; n];
+    tris
+}
+
+/// The mesh of `tris` (indices into `xyz`), keeping the vertices they use, in point order.
+fn used_vertices(xyz: &[DVec3], tris: &[[u32; 3]]) -> Mesh {
+    let mut index = vec![u32::MAX; xyz.len()];
     let mut vertices = Vec::new();
-    for tri in &tris {
+    for tri in tris {
         for &v in tri {
             if index[v as usize] == u32::MAX {
                 index[v as usize] = 0;
@@ -295,14 +359,10 @@ pub fn mesh(
         }
     }
     let triangles = tris.iter().map(|t| t.map(|v| index[v as usize])).collect();
-    stats.seconds[3] = t3.elapsed().as_secs_f64();
-    Ok((
-        Mesh {
-            vertices,
-            triangles,
-        },
-        stats,
-    ))
+    Mesh {
+        vertices,
+        triangles,
+    }
 }
 
 /// What walking one line of sight found.

@@ -197,94 +197,10 @@ fn file_name(p: &Path) -> String {
 /// Known poses from a scene folder, matched to the photos by file name (or stem): the views
 /// kept (named as their photos, cameras as the photos are), and notes on what was left out.
 fn load_poses(dir: &Path, photos: &[PathBuf], work: &Path) -> Result<(Vec<View>, Vec<String>)> {
-    let formats = scene::detect_formats(dir);
-    let format = match formats.as_slice() {
-        [f] => *f,
-        [] => bail!(
-            "{}: no cameras found for --poses (transforms.json, a COLMAP model, MVSNet cams_<dsp>/, Metashape cameras.xml)",
-            dir.display()
-        ),
-        many => bail!(
-            "{}: several camera layouts ({}): give --poses a folder with one",
-            dir.display(),
-            many.iter().map(|f| f.name()).collect::<Vec<_>>().join(", ")
-        ),
-    };
-    let by_name = |n: &str| -> Option<&PathBuf> {
-        let base = Path::new(n)
-            .file_name()
-            .map(|s| s.to_string_lossy().to_string())
-            .unwrap_or_default();
-        let stem = Path::new(&base)
-            .file_stem()
-            .map(|s| s.to_string_lossy().to_string());
-        photos.iter().find(|p| file_name(p) == base).or_else(|| {
-            let matches: Vec<&PathBuf> = photos
-                .iter()
-                .filter(|p| p.file_stem().map(|s| s.to_string_lossy().to_string()) == stem)
-                .collect();
-            (matches.len() == 1).then(|| matches[0])
-        })
-    };
+    let format = one_format(dir)?;
     let mut notes = Vec::new();
     let views = match format {
-        CameraFormat::Transforms => {
-            // Only the frames with a photo: a trimmed public capture lists more than it ships.
-            let file = dir.join("transforms.json");
-            if !file.is_file() {
-                bail!(
-                    "{}: --poses reads transforms.json (not the NeRF-synthetic split files)",
-                    dir.display()
-                );
-            }
-            let mut root: serde_json::Value = serde_json::from_str(&crate::io::text::read(&file)?)
-                .map_err(|e| anyhow!("{}: {e}", file.display()))?;
-            let frames = root
-                .get_mut("frames")
-                .and_then(|f| f.as_array_mut())
-                .ok_or_else(|| anyhow!("{}: no 'frames' array", file.display()))?;
-            let total = frames.len();
-            let mut missing = Vec::new();
-            frames.retain_mut(|f| {
-                let Some(fp) = f
-                    .get("file_path")
-                    .and_then(|v| v.as_str())
-                    .map(str::to_string)
-                else {
-                    return true; // the loader names it
-                };
-                match by_name(&fp) {
-                    Some(p) => {
-                        f["file_path"] = serde_json::Value::String(p.to_string_lossy().to_string());
-                        true
-                    }
-                    None => {
-                        missing.push(fp);
-                        false
-                    }
-                }
-            });
-            if !missing.is_empty() {
-                notes.push(format!(
-                    "{}: {} of {total} frames have no photo in the photo folder and are left out: {}{}",
-                    file.display(),
-                    missing.len(),
-                    missing.iter().take(8).cloned().collect::<Vec<_>>().join(", "),
-                    if missing.len() > 8 { ", …" } else { "" }
-                ));
-            }
-            let copy = work.join("poses-transforms.json");
-            crate::io::atomic::write_bytes(&copy, serde_json::to_string_pretty(&root)?)?;
-            scene::transforms::load_full(&copy, scene::transforms::AppliedTransform::Undo)
-                .map_err(|e| {
-                    anyhow!(
-                        "{} (read from the frames of {} that have photos): {e:#}",
-                        copy.display(),
-                        file.display()
-                    )
-                })?
-                .views
-        }
+        CameraFormat::Transforms => transforms_with_photos(dir, photos, work, &mut notes)?,
         CameraFormat::Colmap => {
             let l = colmap::find_layout(dir)
                 .ok_or_else(|| anyhow!("{}: no COLMAP model", dir.display()))?;
@@ -308,7 +224,7 @@ fn load_poses(dir: &Path, photos: &[PathBuf], work: &Path) -> Result<(Vec<View>,
     let mut kept = Vec::new();
     let mut missing = Vec::new();
     for v in views {
-        match by_name(&v.name) {
+        match photo_named(photos, &v.name) {
             Some(p) => {
                 let (w, h) = scene::image::dimensions(p)?;
                 if (w, h) != (v.camera.width, v.camera.height) {
@@ -334,12 +250,7 @@ fn load_poses(dir: &Path, photos: &[PathBuf], work: &Path) -> Result<(Vec<View>,
         notes.push(format!(
             "{} of the known views have no photo and are left out: {}",
             missing.len(),
-            missing
-                .iter()
-                .take(8)
-                .cloned()
-                .collect::<Vec<_>>()
-                .join(", ")
+            first_names(&missing)
         ));
     }
     let unposed = photos.len() - kept.len();
@@ -357,6 +268,129 @@ fn load_poses(dir: &Path, photos: &[PathBuf], work: &Path) -> Result<(Vec<View>,
         );
     }
     Ok((kept, notes))
+}
+
+/// The first eight of `names`, then "…" if there are more.
+fn first_names(names: &[String]) -> String {
+    let mut s = names[..names.len().min(8)].join(", ");
+    if names.len() > 8 {
+        s += ", …";
+    }
+    s
+}
+
+/// The one camera layout of a `--poses` folder (none or several is an error).
+fn one_format(dir: &Path) -> Result<CameraFormat> {
+    let formats = scene::detect_formats(dir);
+    match formats.as_slice() {
+        [f] => Ok(*f),
+        [] => bail!(
+            "{}: no cameras found for --poses (transforms.json, a COLMAP model, MVSNet cams_<dsp>/, Metashape cameras.xml)",
+            dir.display()
+        ),
+        many => bail!(
+            "{}: several camera layouts ({}): give --poses a folder with one",
+            dir.display(),
+            many.iter().map(|f| f.name()).collect::<Vec<_>>().join(", ")
+        ),
+    }
+}
+
+/// The photo a view named `n` shows: the one with its file name, else the only one with its stem.
+fn photo_named<'a>(photos: &'a [PathBuf], n: &str) -> Option<&'a PathBuf> {
+    let base = Path::new(n)
+        .file_name()
+        .map(|s| s.to_string_lossy().to_string())
+        .unwrap_or_default();
+    let stem = Path::new(&base)
+        .file_stem()
+        .map(|s| s.to_string_lossy().to_string());
+    photos.iter().find(|p| file_name(p) == base).or_else(|| {
+        let matches: Vec<&PathBuf> = photos
+            .iter()
+            .filter(|p| p.file_stem().map(|s| s.to_string_lossy().to_string()) == stem)
+            .collect();
+        (matches.len() == 1).then(|| matches[0])
+    })
+}
+
+/// `p` made absolute (against the working folder), as a JSON string.
+fn absolute_text(p: &Path) -> serde_json::Value {
+    let a = std::path::absolute(p).unwrap_or_else(|_| p.to_path_buf());
+    serde_json::Value::String(a.to_string_lossy().to_string())
+}
+
+/// The views of `dir/transforms.json` whose frames have a photo (a trimmed public capture lists
+/// more than it ships), read from a copy in `work` that names the photos.
+fn transforms_with_photos(
+    dir: &Path,
+    photos: &[PathBuf],
+    work: &Path,
+    notes: &mut Vec<String>,
+) -> Result<Vec<View>> {
+    let file = dir.join("transforms.json");
+    if !file.is_file() {
+        bail!(
+            "{}: --poses reads transforms.json (not the NeRF-synthetic split files)",
+            dir.display()
+        );
+    }
+    let mut root: serde_json::Value = serde_json::from_str(&crate::io::text::read(&file)?)
+        .map_err(|e| anyhow!("{}: {e}", file.display()))?;
+    let frames = root
+        .get_mut("frames")
+        .and_then(|f| f.as_array_mut())
+        .ok_or_else(|| anyhow!("{}: no 'frames' array", file.display()))?;
+    let total = frames.len();
+    let mut missing = Vec::new();
+    frames.retain_mut(|f| {
+        let Some(fp) = f
+            .get("file_path")
+            .and_then(|v| v.as_str())
+            .map(str::to_string)
+        else {
+            return true; // the loader names it
+        };
+        match photo_named(photos, &fp) {
+            Some(p) => {
+                // The copy stands in another folder: its paths are absolute.
+                f["file_path"] = absolute_text(p);
+                let mask = f
+                    .get("mask_path")
+                    .and_then(|v| v.as_str())
+                    .map(|m| absolute_text(&dir.join(m.strip_prefix("./").unwrap_or(m))));
+                if let Some(m) = mask {
+                    f["mask_path"] = m;
+                }
+                true
+            }
+            None => {
+                missing.push(fp);
+                false
+            }
+        }
+    });
+    if !missing.is_empty() {
+        notes.push(format!(
+            "{}: {} of {total} frames have no photo in the photo folder and are left out: {}",
+            file.display(),
+            missing.len(),
+            first_names(&missing)
+        ));
+    }
+    let copy = work.join("poses-transforms.json");
+    crate::io::atomic::write_bytes(&copy, serde_json::to_string_pretty(&root)?)?;
+    Ok(
+        scene::transforms::load_full(&copy, scene::transforms::AppliedTransform::Undo)
+            .map_err(|e| {
+                anyhow!(
+                    "{} (read from the frames of {} that have photos): {e:#}",
+                    copy.display(),
+                    file.display()
+                )
+            })?
+            .views,
+    )
 }
 
 /// Pairs of views to match: each view with its `k` nearest by the angle between optical axes
@@ -541,88 +575,12 @@ pub fn run(o: &Options, stop: &AtomicBool) -> Result<Option<Report>> {
         bail!("--sparse meshes an existing model as it is: it takes no --poses, --downsample or --undistort");
     }
     // Inputs.
-    let photo_dir = match (&o.photos, &o.poses, &o.sparse) {
-        (Some(p), _, _) => p.clone(),
-        (None, Some(p), _) => {
-            let i = p.join("images");
-            if !i.is_dir() {
-                bail!(
-                    "--poses {} has no images/ folder: name the photos with --photos DIR",
-                    p.display()
-                );
-            }
-            i
-        }
-        (None, None, Some(s)) => {
-            let l = colmap::find_layout(s);
-            match l {
-                Some(l) => l.images,
-                None => s.join("..").join("..").join("images"),
-            }
-        }
-        (None, None, None) => {
-            bail!("give the photos (--photos DIR), or a COLMAP model to mesh (--sparse DIR)")
-        }
-    };
+    let photo_dir = photo_dir(o)?;
     let photos = list_photos(&photo_dir)?;
-    let inputs = Inputs {
-        photos: photos
-            .iter()
-            .map(|p| (file_name(p), p.metadata().map(|m| m.len()).unwrap_or(0)))
-            .collect(),
-        poses: o.poses.as_ref().map(|p| p.display().to_string()),
-        sparse: o.sparse.as_ref().map(|p| p.display().to_string()),
-        downsample: o.downsample,
-        matcher: o.matcher,
-        max_features: o.max_features,
-        undistort: o.undistort,
-    };
-    // The output folder: new, ours (resumed or finished), or refused.
-    let state_path = work.join("state.json");
-    let mut state = if state_path.is_file() {
-        serde_json::from_str::<State>(&crate::io::text::read(&state_path)?).map_err(|e| {
-            anyhow!(
-                "{}: {e} (remove {} to start over)",
-                state_path.display(),
-                work.display()
-            )
-        })?
-    } else {
-        State::default()
-    };
-    if o.force && !o.dry_run {
-        for m in MADE {
-            let p = out.join(m);
-            if p.is_dir() {
-                std::fs::remove_dir_all(&p)
-                    .with_context(|| format!("{}: cannot remove", p.display()))?;
-            } else if p.exists() {
-                std::fs::remove_file(&p)
-                    .with_context(|| format!("{}: cannot remove", p.display()))?;
-            }
-        }
-        if work.exists() {
-            std::fs::remove_dir_all(&work)
-                .with_context(|| format!("{}: cannot remove", work.display()))?;
-        }
-        state = State::default();
-    } else if out.is_dir() && !work.is_dir() && std::fs::read_dir(out)?.next().is_some() {
-        bail!(
-            "{}: the folder exists and was not made by `xscale prepare`: give a new or empty --out folder",
-            out.display()
-        );
-    } else if let Some(prev) = &state.inputs {
-        if *prev != inputs {
-            bail!(
-                "{}: prepared from other photos or settings than these ({}); add --force to start over there, or give another --out",
-                out.display(),
-                describe_change(prev, &inputs)
-            );
-        }
-    }
+    let inputs = inputs_of(o, &photos);
     let mut ctx = Ctx {
         work: work.clone(),
-        state,
+        state: open_out(o, &work, &inputs)?,
         stop,
         notes: Vec::new(),
     };
@@ -634,27 +592,7 @@ pub fn run(o: &Options, stop: &AtomicBool) -> Result<Option<Report>> {
         std::fs::create_dir_all(&work)
             .with_context(|| format!("{}: cannot create", work.display()))?;
     }
-    let views: Option<Vec<View>> = match &o.poses {
-        Some(p) => {
-            let scratch = if writes {
-                work.clone()
-            } else {
-                std::env::temp_dir()
-            };
-            let (mut v, notes) = load_poses(p, &photos, &scratch)?;
-            for n in notes {
-                say(format!("note: {n}"));
-                ctx.notes.push(n);
-            }
-            if o.downsample > 1 {
-                for x in v.iter_mut() {
-                    x.camera = x.camera.downsampled(o.downsample);
-                }
-            }
-            Some(v)
-        }
-        None => None,
-    };
+    let views = known_views(o, &photos, writes, &mut ctx.notes)?;
     let used: Vec<PathBuf> = match &views {
         Some(v) => v.iter().map(|x| x.image_path.clone()).collect(),
         None => photos.clone(),
@@ -664,33 +602,19 @@ pub fn run(o: &Options, stop: &AtomicBool) -> Result<Option<Report>> {
     } else {
         Vec::new()
     };
+    let plan = Plan {
+        photos: photos.len(),
+        used,
+        views,
+        steps,
+        images: out.join("images"),
+    };
     if o.dry_run || (colmap_exe.is_none() && o.sparse.is_none()) {
         let exe = colmap_exe
             .as_ref()
             .map(|c| c.exe.display().to_string())
             .unwrap_or_else(|| "colmap".into());
-        println!(
-            "# photos: {} from {} into {}",
-            used.len(),
-            photo_dir.display(),
-            out.join("images").display()
-        );
-        for (stage, s) in &steps {
-            if *stage == "matches" && s.command == "matches_importer" {
-                println!("# pairs.txt: each view with its {PAIR_NEIGHBOURS} nearest known poses");
-            }
-            if *stage == "sparse" && views.is_some() {
-                println!(
-                    "# {}: the known poses as a COLMAP model",
-                    work.join("known").display()
-                );
-            }
-            println!("{}", s.shell(&exe));
-        }
-        println!(
-            "# then: the Delaunay graph-cut mesh of the points → {}",
-            out.join("mesh.ply").display()
-        );
+        print_plan(o, &plan, &photo_dir, &work, &exe);
         if colmap_exe.is_none() && !o.dry_run {
             bail!("{INSTALL_HINT}\nThe commands above are what would have run.");
         }
@@ -719,157 +643,417 @@ pub fn run(o: &Options, stop: &AtomicBool) -> Result<Option<Report>> {
         }
         return Ok(None);
     }
-    let n_stages = if o.sparse.is_some() {
-        2
-    } else {
-        4 + o.undistort as usize + 1
+    let mut header = Headers {
+        k: 0,
+        n: if o.sparse.is_some() {
+            2
+        } else {
+            4 + o.undistort as usize + 1
+        },
     };
-    let mut k = 0;
-    let mut header = |name: &str, what: String| {
-        k += 1;
-        say(format!("[{k}/{n_stages}] {name}: {what}"));
-    };
+    stage_photos(o, &mut ctx, &plan, &mut header)?;
+    if o.sparse.is_some() {
+        ctx.finish("sparse", 0.0)?;
+    }
+    if o.sparse.is_none() {
+        let colmap_exe = colmap_exe.unwrap_or(Colmap {
+            exe: "colmap".into(),
+        });
+        colmap_stages(o, &mut ctx, &plan, &colmap_exe, &mut header)?;
+    }
+    stage_mesh(o, &mut ctx, &plan, &mut header, mesher_key).map(Some)
+}
 
-    // Stage: photos (or the given model).
-    let images = out.join("images");
-    if !ctx.done("photos") {
-        header(
-            "photos",
-            format!(
-                "{} photos → {}{}",
-                used.len(),
-                images.display(),
-                if o.downsample > 1 {
-                    format!(" (downsampled {}×)", o.downsample)
-                } else {
-                    String::new()
-                }
-            ),
-        );
-        let t = Instant::now();
-        std::fs::create_dir_all(&images)
-            .with_context(|| format!("{}: cannot create", images.display()))?;
-        for (i, p) in used.iter().enumerate() {
-            ctx.check_stop()?;
-            copy_photo(p, &images.join(file_name(p)), o.downsample)?;
-            if i % 10 == 9 {
-                say(format!("  {}/{}", i + 1, used.len()));
+/// What a run works on once its inputs are read.
+struct Plan {
+    /// Photos in the photo folder.
+    photos: usize,
+    /// The photos used (those with a known pose, when poses are given).
+    used: Vec<PathBuf>,
+    /// Known poses (`--poses`).
+    views: Option<Vec<View>>,
+    /// The COLMAP commands, by stage ([`colmap_steps`]; none with `--sparse`).
+    steps: Vec<(&'static str, Step)>,
+    /// `OUT/images`.
+    images: PathBuf,
+}
+
+/// Numbered stage headers: `[k/n] name: what`.
+struct Headers {
+    k: usize,
+    n: usize,
+}
+
+impl Headers {
+    fn say(&mut self, name: &str, what: String) {
+        self.k += 1;
+        say(format!("[{}/{}] {name}: {what}", self.k, self.n));
+    }
+}
+
+/// The photo folder: `--photos`, else the `images/` of `--poses`, else the images of the
+/// `--sparse` model's layout.
+fn photo_dir(o: &Options) -> Result<PathBuf> {
+    Ok(match (&o.photos, &o.poses, &o.sparse) {
+        (Some(p), _, _) => p.clone(),
+        (None, Some(p), _) => {
+            let i = p.join("images");
+            if !i.is_dir() {
+                bail!(
+                    "--poses {} has no images/ folder: name the photos with --photos DIR",
+                    p.display()
+                );
             }
+            i
         }
-        if let Some(s) = &o.sparse {
-            let l = colmap::find_layout(s);
-            let model = l.map(|l| l.model).unwrap_or_else(|| s.clone());
-            let dst = out.join("sparse").join("0");
-            std::fs::create_dir_all(&dst)?;
-            for f in ["cameras", "images", "points3D"] {
-                for ext in ["txt", "bin"] {
-                    let src = model.join(format!("{f}.{ext}"));
-                    if src.is_file() {
-                        std::fs::copy(&src, dst.join(format!("{f}.{ext}")))?;
-                    }
-                }
-            }
+        (None, None, Some(s)) => {
+            // The layout's images/, else those of the COLMAP workspace the model stands in
+            // (WS/sparse/0 or WS/sparse beside WS/images).
+            let layout = colmap::find_layout(s).map(|l| l.images);
+            let beside = [
+                s.join("..").join("images"),
+                s.join("..").join("..").join("images"),
+            ];
+            let first = layout.clone().unwrap_or_else(|| beside[1].clone());
+            layout
+                .into_iter()
+                .chain(beside)
+                .find(|d| d.is_dir())
+                .unwrap_or(first)
         }
-        ctx.finish("photos", t.elapsed().as_secs_f64())?;
+        (None, None, None) => {
+            bail!("give the photos (--photos DIR), or a COLMAP model to mesh (--sparse DIR)")
+        }
+    })
+}
+
+fn inputs_of(o: &Options, photos: &[PathBuf]) -> Inputs {
+    Inputs {
+        photos: photos
+            .iter()
+            .map(|p| (file_name(p), p.metadata().map(|m| m.len()).unwrap_or(0)))
+            .collect(),
+        poses: o.poses.as_ref().map(|p| p.display().to_string()),
+        sparse: o.sparse.as_ref().map(|p| p.display().to_string()),
+        downsample: o.downsample,
+        matcher: o.matcher,
+        max_features: o.max_features,
+        undistort: o.undistort,
+    }
+}
+
+/// The output folder's state: new, ours (resumed or finished), emptied by `--force`, or refused
+/// (another folder, or one made from other inputs).
+fn open_out(o: &Options, work: &Path, inputs: &Inputs) -> Result<State> {
+    let out = &o.out;
+    let state_path = work.join("state.json");
+    let state = if state_path.is_file() {
+        serde_json::from_str::<State>(&crate::io::text::read(&state_path)?).map_err(|e| {
+            anyhow!(
+                "{}: {e} (remove {} to start over)",
+                state_path.display(),
+                work.display()
+            )
+        })?
     } else {
-        header("photos", "done before".into());
+        State::default()
+    };
+    if o.force && !o.dry_run {
+        for m in MADE {
+            let p = out.join(m);
+            if p.is_dir() {
+                std::fs::remove_dir_all(&p)
+                    .with_context(|| format!("{}: cannot remove", p.display()))?;
+            } else if p.exists() {
+                std::fs::remove_file(&p)
+                    .with_context(|| format!("{}: cannot remove", p.display()))?;
+            }
+        }
+        if work.exists() {
+            std::fs::remove_dir_all(work)
+                .with_context(|| format!("{}: cannot remove", work.display()))?;
+        }
+        return Ok(State::default());
+    }
+    if out.is_dir() && !work.is_dir() && std::fs::read_dir(out)?.next().is_some() {
+        bail!(
+            "{}: the folder exists and was not made by `xscale prepare`: give a new or empty --out folder",
+            out.display()
+        );
+    }
+    if let Some(prev) = &state.inputs {
+        if prev != inputs {
+            bail!(
+                "{}: prepared from other photos or settings than these ({}); add --force to start over there, or give another --out",
+                out.display(),
+                describe_change(prev, inputs)
+            );
+        }
+    }
+    Ok(state)
+}
+
+/// The known poses of `--poses` (cameras downsampled as the photos will be), their notes said
+/// and kept; `None` without `--poses`.
+fn known_views(
+    o: &Options,
+    photos: &[PathBuf],
+    writes: bool,
+    notes: &mut Vec<String>,
+) -> Result<Option<Vec<View>>> {
+    let Some(p) = &o.poses else {
+        return Ok(None);
+    };
+    let scratch = if writes {
+        o.out.join(".prepare")
+    } else {
+        std::env::temp_dir()
+    };
+    let (mut v, found) = load_poses(p, photos, &scratch)?;
+    for n in found {
+        say(format!("note: {n}"));
+        notes.push(n);
+    }
+    if o.downsample > 1 {
+        for x in v.iter_mut() {
+            x.camera = x.camera.downsampled(o.downsample);
+        }
+    }
+    Ok(Some(v))
+}
+
+/// What a run would do, as shell commands (a dry run, or COLMAP missing).
+fn print_plan(o: &Options, plan: &Plan, photo_dir: &Path, work: &Path, exe: &str) {
+    println!(
+        "# photos: {} from {} into {}",
+        plan.used.len(),
+        photo_dir.display(),
+        plan.images.display()
+    );
+    for (stage, s) in &plan.steps {
+        if *stage == "matches" && s.command == "matches_importer" {
+            println!("# pairs.txt: each view with its {PAIR_NEIGHBOURS} nearest known poses");
+        }
+        if *stage == "sparse" && plan.views.is_some() {
+            println!(
+                "# {}: the known poses as a COLMAP model",
+                work.join("known").display()
+            );
+        }
+        println!("{}", s.shell(exe));
+    }
+    println!(
+        "# then: the Delaunay graph-cut mesh of the points → {}",
+        o.out.join("mesh.ply").display()
+    );
+}
+
+/// Stage: the photos copied (or downsampled) to `OUT/images`, and a `--sparse` model to
+/// `OUT/sparse/0`.
+fn stage_photos(o: &Options, ctx: &mut Ctx, plan: &Plan, header: &mut Headers) -> Result<()> {
+    let (images, used) = (&plan.images, &plan.used);
+    if ctx.done("photos") {
+        header.say("photos", "done before".into());
+        return Ok(());
+    }
+    header.say(
+        "photos",
+        format!(
+            "{} photos → {}{}",
+            used.len(),
+            images.display(),
+            if o.downsample > 1 {
+                format!(" (downsampled {}×)", o.downsample)
+            } else {
+                String::new()
+            }
+        ),
+    );
+    let t = Instant::now();
+    std::fs::create_dir_all(images)
+        .with_context(|| format!("{}: cannot create", images.display()))?;
+    for (i, p) in used.iter().enumerate() {
+        ctx.check_stop()?;
+        copy_photo(p, &images.join(file_name(p)), o.downsample)?;
+        if i % 10 == 9 {
+            say(format!("  {}/{}", i + 1, used.len()));
+        }
     }
     if let Some(s) = &o.sparse {
-        ctx.finish("sparse", 0.0)?;
-        let _ = s;
-    }
-    // COLMAP stages.
-    let colmap_exe = colmap_exe.unwrap_or(Colmap {
-        exe: "colmap".into(),
-    });
-    if o.sparse.is_none() {
-        if ctx.state.done.len() == 1 {
-            if let Some(v) = colmap_exe.version() {
-                say(format!("  using {v} ({})", colmap_exe.exe.display()));
+        let l = colmap::find_layout(s);
+        let model = l.map(|l| l.model).unwrap_or_else(|| s.clone());
+        let dst = o.out.join("sparse").join("0");
+        std::fs::create_dir_all(&dst)?;
+        for f in ["cameras", "images", "points3D"] {
+            for ext in ["txt", "bin"] {
+                let src = model.join(format!("{f}.{ext}"));
+                if src.is_file() {
+                    std::fs::copy(&src, dst.join(format!("{f}.{ext}")))?;
+                }
             }
         }
-        let logs = work.join("logs");
-        std::fs::create_dir_all(&logs)?;
-        for (stage, step) in &steps {
-            if ctx.done(stage) {
-                header(stage, "done before".into());
-                continue;
-            }
-            header(stage, format!("colmap {}", step.command));
-            let t = Instant::now();
-            match *stage {
-                "matches" if step.command == "matches_importer" => {
-                    let v = views.as_deref().unwrap();
-                    let pairs = pose_pairs(v, PAIR_NEIGHBOURS);
-                    let text: String = pairs
-                        .iter()
-                        .map(|&(a, b)| format!("{} {}\n", v[a].name, v[b].name))
-                        .collect();
-                    crate::io::atomic::write_bytes(&work.join("pairs.txt"), text)?;
-                    say(format!(
-                        "  {} pairs of nearby views (of {} in all)",
-                        pairs.len(),
-                        v.len() * (v.len() - 1) / 2
-                    ));
-                }
-                "sparse" => {
-                    let new = work.join("sparse-new");
-                    if new.exists() {
-                        std::fs::remove_dir_all(&new)?;
-                    }
-                    std::fs::create_dir_all(&new)?;
-                    if let Some(v) = &views {
-                        colmap::write_text(&work.join("known"), v)?;
-                    }
-                }
-                "undistort" => {
-                    let new = work.join("dense-new");
-                    if new.exists() {
-                        std::fs::remove_dir_all(&new)?;
-                    }
-                }
-                _ => {}
-            }
-            let log = logs.join(format!("{stage}.log"));
-            colmap_exe.run(step, &log, stop, &mut |p| say(format!("  {p}")))?;
-            match *stage {
-                "sparse" => {
-                    let new = work.join("sparse-new");
-                    // The mapper writes one model per connected part (0, 1, …): the largest.
-                    let model = if views.is_some() {
-                        new.clone()
-                    } else {
-                        largest_model(&new, &images, used.len(), &mut ctx.notes)?
-                    };
-                    let dst = out.join("sparse").join("0");
-                    if dst.exists() {
-                        std::fs::remove_dir_all(&dst)?;
-                    }
-                    std::fs::create_dir_all(out.join("sparse"))?;
-                    std::fs::rename(&model, &dst).with_context(|| {
-                        format!("{}: cannot move to {}", model.display(), dst.display())
-                    })?;
-                }
-                "undistort" => {
-                    let dst = out.join("dense");
-                    if dst.exists() {
-                        std::fs::remove_dir_all(&dst)?;
-                    }
-                    std::fs::rename(work.join("dense-new"), &dst)?;
-                }
-                _ => {}
-            }
-            let secs = t.elapsed().as_secs_f64();
-            say(format!("  {stage}: {secs:.1} s"));
-            ctx.finish(stage, secs)?;
-        }
     }
+    ctx.finish("photos", t.elapsed().as_secs_f64())
+}
 
-    // Stage: mesh and report.
-    header("mesh", "Delaunay graph cut of the sparse points".into());
+/// The COLMAP stages not done yet, each run into `OUT/.prepare` and moved to its final name
+/// when done.
+fn colmap_stages(
+    o: &Options,
+    ctx: &mut Ctx,
+    plan: &Plan,
+    colmap_exe: &Colmap,
+    header: &mut Headers,
+) -> Result<()> {
+    let work = ctx.work.clone();
+    if ctx.state.done.len() == 1 {
+        if let Some(v) = colmap_exe.version() {
+            say(format!("  using {v} ({})", colmap_exe.exe.display()));
+        }
+    }
+    let logs = work.join("logs");
+    std::fs::create_dir_all(&logs)?;
+    for (stage, step) in &plan.steps {
+        if ctx.done(stage) {
+            header.say(stage, "done before".into());
+            continue;
+        }
+        header.say(stage, format!("colmap {}", step.command));
+        let t = Instant::now();
+        before_colmap(stage, step, &work, plan.views.as_deref())?;
+        let log = logs.join(format!("{stage}.log"));
+        colmap_exe.run(step, &log, ctx.stop, &mut |p| say(format!("  {p}")))?;
+        match *stage {
+            "sparse" => {
+                let new = work.join("sparse-new");
+                // The mapper writes one model per connected part (0, 1, …): the largest.
+                let model = if plan.views.is_some() {
+                    new.clone()
+                } else {
+                    largest_model(&new, &plan.images, plan.used.len(), &mut ctx.notes)?
+                };
+                let dst = o.out.join("sparse").join("0");
+                if dst.exists() {
+                    std::fs::remove_dir_all(&dst)?;
+                }
+                std::fs::create_dir_all(o.out.join("sparse"))?;
+                std::fs::rename(&model, &dst).with_context(|| {
+                    format!("{}: cannot move to {}", model.display(), dst.display())
+                })?;
+            }
+            "undistort" => {
+                let dst = o.out.join("dense");
+                if dst.exists() {
+                    std::fs::remove_dir_all(&dst)?;
+                }
+                std::fs::rename(work.join("dense-new"), &dst)?;
+            }
+            _ => {}
+        }
+        let secs = t.elapsed().as_secs_f64();
+        say(format!("  {stage}: {secs:.1} s"));
+        ctx.finish(stage, secs)?;
+    }
+    Ok(())
+}
+
+/// What a COLMAP stage needs in `work` before it runs: the pairs of nearby views, an empty
+/// output folder, the known poses as a COLMAP model.
+fn before_colmap(stage: &str, step: &Step, work: &Path, views: Option<&[View]>) -> Result<()> {
+    match stage {
+        "matches" if step.command == "matches_importer" => {
+            let v = views.unwrap();
+            let pairs = pose_pairs(v, PAIR_NEIGHBOURS);
+            let text: String = pairs
+                .iter()
+                .map(|&(a, b)| format!("{} {}\n", v[a].name, v[b].name))
+                .collect();
+            crate::io::atomic::write_bytes(&work.join("pairs.txt"), text)?;
+            say(format!(
+                "  {} pairs of nearby views (of {} in all)",
+                pairs.len(),
+                v.len() * (v.len() - 1) / 2
+            ));
+        }
+        "sparse" => {
+            let new = work.join("sparse-new");
+            if new.exists() {
+                std::fs::remove_dir_all(&new)?;
+            }
+            std::fs::create_dir_all(&new)?;
+            if let Some(v) = views {
+                colmap::write_text(&work.join("known"), v)?;
+            }
+        }
+        "undistort" => {
+            let new = work.join("dense-new");
+            if new.exists() {
+                std::fs::remove_dir_all(&new)?;
+            }
+        }
+        _ => {}
+    }
+    Ok(())
+}
+
+/// Stage: the mesh of the sparse points and the report, written to `OUT/prepare.json`, the mesh
+/// last (under its final name it makes the folder a scene); the state records `mesher_key`, the
+/// mesher settings.
+fn stage_mesh(
+    o: &Options,
+    ctx: &mut Ctx,
+    plan: &Plan,
+    header: &mut Headers,
+    mesher_key: String,
+) -> Result<Report> {
+    let out = &o.out;
+    header.say("mesh", "Delaunay graph cut of the sparse points".into());
     let t = Instant::now();
-    let model_dir = out.join("sparse").join("0");
-    let model = Model::read(&model_dir, &images)?;
+    let model = Model::read(&out.join("sparse").join("0"), &plan.images)?;
+    let (mesh, mstats) = mesh_model(&model, &o.mesher, ctx.stop)?;
+    if mesh.triangles.is_empty() {
+        bail!("the graph cut found no surface (every cell on one side): too few points or views");
+    }
+    let tmp_mesh = ctx.work.join("mesh.ply");
+    scene::mesh::write_ply(&tmp_mesh, &mesh)?;
+    ctx.check_stop()?;
+    let per_view = hit_fractions(&model, &mesh)?;
+    let secs = t.elapsed().as_secs_f64();
+    ctx.state.seconds.retain(|(s, _)| s != "mesh");
+    ctx.state.seconds.push(("mesh".into(), secs));
+    let reprojection = model.reprojection();
+    let report = Report {
+        photos: plan.photos,
+        views: model.views.len(),
+        points: model.points.len(),
+        reprojection,
+        colmap_mean_error: model.points.iter().map(|p| p.error).sum::<f64>()
+            / model.points.len().max(1) as f64,
+        mesh_vertices: mesh.vertices.len(),
+        mesh_triangles: mesh.triangles.len(),
+        mesher: mstats,
+        mean_hit: per_view.iter().map(|v| v.hit).sum::<f64>() / per_view.len().max(1) as f64,
+        per_view,
+        seconds: ctx.state.seconds.clone(),
+        notes: ctx.notes.clone(),
+    };
+    let json = serde_json::to_string_pretty(&report)?;
+    crate::io::atomic::write_bytes(&out.join("prepare.json"), &json)?;
+    std::fs::rename(&tmp_mesh, out.join("mesh.ply"))
+        .with_context(|| format!("{}: cannot move", tmp_mesh.display()))?;
+    ctx.state.mesher = Some(mesher_key);
+    ctx.finish("mesh", secs)?;
+    println!("{}", summary_of_json(&json));
+    println!("scene ready: xscale train --scene {}", out.display());
+    Ok(report)
+}
+
+/// The mesher run on a sparse model's points and cameras, its progress said every 2 s.
+fn mesh_model(
+    model: &Model,
+    opts: &mesher::Options,
+    stop: &AtomicBool,
+) -> Result<(scene::Mesh, mesher::Stats)> {
     let cams: Vec<glam::DVec3> = model.views.iter().map(|v| v.camera.center()).collect();
     let tracks: Vec<Track> = model
         .points
@@ -893,7 +1077,7 @@ pub fn run(o: &Options, stop: &AtomicBool) -> Result<Option<Report>> {
         }
     };
     let stop_fn = || stop.load(std::sync::atomic::Ordering::SeqCst);
-    let (mesh, mstats) = mesher::mesh(&tracks, &cams, &o.mesher, &progress, &stop_fn)?;
+    let (mesh, mstats) = mesher::mesh(&tracks, &cams, opts, &progress, &stop_fn)?;
     say(format!(
         "  {} points ({} used), {} cells, {} lines of sight; {} triangles ({} long ones dropped)",
         mstats.points,
@@ -903,42 +1087,7 @@ pub fn run(o: &Options, stop: &AtomicBool) -> Result<Option<Report>> {
         mstats.triangles,
         mstats.dropped_long
     ));
-    if mesh.triangles.is_empty() {
-        bail!("the graph cut found no surface (every cell on one side): too few points or views");
-    }
-    let tmp_mesh = work.join("mesh.ply");
-    scene::mesh::write_ply(&tmp_mesh, &mesh)?;
-    ctx.check_stop()?;
-    let per_view = hit_fractions(&model, &mesh)?;
-    let secs = t.elapsed().as_secs_f64();
-    ctx.state.seconds.retain(|(s, _)| s != "mesh");
-    ctx.state.seconds.push(("mesh".into(), secs));
-    let reprojection = model.reprojection();
-    let report = Report {
-        photos: photos.len(),
-        views: model.views.len(),
-        points: model.points.len(),
-        reprojection,
-        colmap_mean_error: model.points.iter().map(|p| p.error).sum::<f64>()
-            / model.points.len().max(1) as f64,
-        mesh_vertices: mesh.vertices.len(),
-        mesh_triangles: mesh.triangles.len(),
-        mesher: mstats,
-        mean_hit: per_view.iter().map(|v| v.hit).sum::<f64>() / per_view.len().max(1) as f64,
-        per_view,
-        seconds: ctx.state.seconds.clone(),
-        notes: ctx.notes.clone(),
-    };
-    let json = serde_json::to_string_pretty(&report)?;
-    crate::io::atomic::write_bytes(&out.join("prepare.json"), &json)?;
-    // Last: the mesh under its final name makes the folder a scene.
-    std::fs::rename(&tmp_mesh, out.join("mesh.ply"))
-        .with_context(|| format!("{}: cannot move", tmp_mesh.display()))?;
-    ctx.state.mesher = Some(mesher_key);
-    ctx.finish("mesh", secs)?;
-    println!("{}", summary_of_json(&json));
-    println!("scene ready: xscale train --scene {}", out.display());
-    Ok(Some(report))
+    Ok((mesh, mstats))
 }
 
 /// The mapper's largest model in `dir` (subfolders 0, 1, …), noting when there are several.

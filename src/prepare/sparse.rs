@@ -225,74 +225,18 @@ fn read_points_text(path: &Path) -> Result<Vec<RawPoint>> {
     Ok(out)
 }
 
-/// Little-endian reads with errors naming the file.
-struct Bytes<'a> {
-    data: &'a [u8],
-    pos: usize,
-    path: &'a Path,
-}
-
-impl Bytes<'_> {
-    fn take(&mut self, n: usize, what: &str) -> Result<&[u8]> {
-        if self.pos.checked_add(n).is_none_or(|e| e > self.data.len()) {
-            bail!(
-                "{}: truncated: file ends at byte {} while reading {what}",
-                self.path.display(),
-                self.data.len()
-            );
-        }
-        let s = &self.data[self.pos..self.pos + n];
-        self.pos += n;
-        Ok(s)
-    }
-    fn u64(&mut self, what: &str) -> Result<u64> {
-        Ok(u64::from_le_bytes(self.take(8, what)?.try_into().unwrap()))
-    }
-    fn u32(&mut self, what: &str) -> Result<u32> {
-        Ok(u32::from_le_bytes(self.take(4, what)?.try_into().unwrap()))
-    }
-    fn f64(&mut self, what: &str) -> Result<f64> {
-        Ok(f64::from_le_bytes(self.take(8, what)?.try_into().unwrap()))
-    }
-    /// A count of records of at least `size` bytes each: more than the file holds is an error
-    /// before anything is allocated.
-    fn count(&mut self, size: usize, what: &str) -> Result<usize> {
-        let n = self.u64(what)?;
-        if n.checked_mul(size as u64)
-            .is_none_or(|b| b > (self.data.len() - self.pos) as u64)
-        {
-            bail!(
-                "{}: {what}: {n} records do not fit in the file",
-                self.path.display()
-            );
-        }
-        Ok(n as usize)
-    }
-}
-
 /// `images.bin`: count, then per image id (u32), pose (7 f64), camera id (u32), a NUL-ended
 /// name, a keypoint count and per keypoint x, y (f64) and a point id (u64).
 fn read_images_binary(path: &Path) -> Result<Vec<RawImage>> {
     let data = std::fs::read(path).with_context(|| format!("{}: cannot read", path.display()))?;
-    let mut r = Bytes {
-        data: &data,
-        pos: 0,
-        path,
-    };
+    let mut r = colmap::Reader::new(&data, path);
     let n = r.count(4 + 56 + 4 + 1 + 8, "the image count")?;
     let mut out = Vec::with_capacity(n);
     for k in 0..n {
         let what = format!("image {k} of {n}");
         let id = r.u32(&what)?;
         r.take(56 + 4, &what)?;
-        let rest = &r.data[r.pos..];
-        let end = rest
-            .iter()
-            .position(|&c| c == 0)
-            .ok_or_else(|| anyhow!("{}: {what}: the name has no end", path.display()))?;
-        let name = String::from_utf8(rest[..end].to_vec())
-            .map_err(|_| anyhow!("{}: {what}: name is not UTF-8", path.display()))?;
-        r.pos += end + 1;
+        let name = r.cstr(&what)?;
         let m = r.count(24, &format!("{what}: the keypoint count"))?;
         let mut kp = Vec::with_capacity(m);
         for _ in 0..m {
@@ -310,11 +254,7 @@ fn read_images_binary(path: &Path) -> Result<Vec<RawImage>> {
 /// track length (u64) and (image id, keypoint index) u32 pairs.
 fn read_points_binary(path: &Path) -> Result<Vec<RawPoint>> {
     let data = std::fs::read(path).with_context(|| format!("{}: cannot read", path.display()))?;
-    let mut r = Bytes {
-        data: &data,
-        pos: 0,
-        path,
-    };
+    let mut r = colmap::Reader::new(&data, path);
     let n = r.count(8 + 24 + 3 + 8 + 8, "the point count")?;
     let mut out = Vec::with_capacity(n);
     for k in 0..n {
@@ -334,12 +274,101 @@ fn read_points_binary(path: &Path) -> Result<Vec<RawPoint>> {
         }
         out.push((origin, xyz, error, track));
     }
-    if r.pos != data.len() {
+    if r.remaining() != 0 {
         bail!(
             "{}: {} bytes after the {n} declared points",
             path.display(),
-            data.len() - r.pos
+            r.remaining()
         );
     }
     Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn point_record(id: u64, xyz: [f64; 3], track: &[(u32, u32)]) -> Vec<u8> {
+        let mut b = id.to_le_bytes().to_vec();
+        for c in xyz {
+            b.extend(c.to_le_bytes());
+        }
+        b.extend([1u8, 2, 3]);
+        b.extend(0.5f64.to_le_bytes());
+        b.extend((track.len() as u64).to_le_bytes());
+        for &(i, k) in track {
+            b.extend(i.to_le_bytes());
+            b.extend(k.to_le_bytes());
+        }
+        b
+    }
+
+    fn image_record(id: u32, name: &[u8], keypoints: usize) -> Vec<u8> {
+        let mut b = id.to_le_bytes().to_vec();
+        b.extend([0u8; 56 + 4]);
+        b.extend(name);
+        b.push(0);
+        b.extend((keypoints as u64).to_le_bytes());
+        for k in 0..keypoints {
+            b.extend((k as f64).to_le_bytes());
+            b.extend((2.0 * k as f64).to_le_bytes());
+            b.extend(u64::MAX.to_le_bytes());
+        }
+        b
+    }
+
+    fn file(tag: &str, count: u64, records: &[u8]) -> std::path::PathBuf {
+        let p = std::env::temp_dir().join(format!("xscale-sparse-{tag}-{}", std::process::id()));
+        let mut b = count.to_le_bytes().to_vec();
+        b.extend(records);
+        std::fs::write(&p, b).unwrap();
+        p
+    }
+
+    fn err<T>(r: Result<T>) -> String {
+        match r {
+            Ok(_) => panic!("bad input was read"),
+            Err(e) => format!("{e:#}"),
+        }
+    }
+
+    /// Well-formed records read back; every kind of damage is an error naming the file and
+    /// what was being read, never a panic or an allocation of the declared size.
+    #[test]
+    fn binary_models_read_and_bad_ones_are_named() {
+        let good = point_record(7, [1.0, 2.0, 3.0], &[(1, 0), (2, 5)]);
+        let p = file("points-ok", 1, &good);
+        let pts = read_points_binary(&p).unwrap();
+        assert_eq!(pts.len(), 1);
+        assert_eq!(pts[0].1, DVec3::new(1.0, 2.0, 3.0));
+        assert_eq!(pts[0].3, vec![(1, 0), (2, 5)]);
+        let p = file("points-short", 1, &good[..good.len() - 3]);
+        let e = err(read_points_binary(&p));
+        assert!(
+            (e.contains("truncated") || e.contains("do not fit")) && e.contains("point 0 of 1"),
+            "{e}"
+        );
+        let p = file("points-count", u64::MAX / 2, &good);
+        let e = err(read_points_binary(&p));
+        assert!(e.contains("do not fit in the file"), "{e}");
+        let mut extra = good.clone();
+        extra.extend([0u8; 5]);
+        let p = file("points-extra", 1, &extra);
+        assert!(err(read_points_binary(&p)).contains("5 bytes after the 1 declared points"));
+        let p = file("points-nan", 1, &point_record(3, [f64::NAN, 0.0, 0.0], &[]));
+        assert!(err(read_points_binary(&p)).contains("non-finite point"));
+
+        let good = image_record(4, b"a.jpg", 2);
+        let p = file("images-ok", 1, &good);
+        let imgs = read_images_binary(&p).unwrap();
+        assert_eq!((imgs[0].0, imgs[0].1.as_str()), (4, "a.jpg"));
+        assert_eq!(imgs[0].2, vec![[0.0, 0.0], [1.0, 2.0]]);
+        let p = file("images-name", 1, &image_record(4, b"\xff\xfe", 0));
+        assert!(err(read_images_binary(&p)).contains("not UTF-8"));
+        let p = file("images-short", 1, &good[..good.len() - 1]);
+        assert!(err(read_images_binary(&p)).contains("do not fit in the file"));
+        let p = file("images-count", 3, &good);
+        let e = err(read_images_binary(&p));
+        assert!(e.contains("do not fit") || e.contains("truncated"), "{e}");
+    }
 }

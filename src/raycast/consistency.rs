@@ -34,6 +34,17 @@
 //! and a note says so ([`CLOSE_UP_GAP`]; on `cross`, a smooth displacement of 1 % of the diagonal
 //! or a shift of 0.5 % is noted, 0.3 % is not: 0.87 against 0.97).
 //!
+//! **Neighbours.** A mesh in place is a local maximum of photo-consistency; one correlation alone
+//! misses a mesh a little off, or a real scene that correlates poorly anyway. So [`PhotoCheck::plan`]
+//! also plans the mesh as given and 20 neighbours of it ([`neighbours`]: shifts by ±[`NB_SHIFT`]
+//! of the seen region's size along x, y, z; turns by ±[`NB_TURN`]° and a quarter each way about x,
+//! y, z; scales ×/÷ [`NB_SCALE`]; about the centroid of the area samples two or more views see, not
+//! the mesh's bounding box, which background inflates), each with [`NB_SAMPLES`] samples over at
+//! most [`NB_VIEWS`] views. Moving the mesh by T is moving every camera by T⁻¹
+//! ([`Neighbour::camera`]), so the one BVH and the same samples serve all. A neighbour that
+//! correlates more than [`NB_MARGIN`] above the mesh as given is named in a warning
+//! ([`Consistency::beaten`]).
+//!
 //! Measured (`raycast::photo_check_*`, the lines `xscale cast` prints, and a scratch probe that
 //! turns each training view in turn about its axis): in place 0.93 (the `tiny` fixture), 0.98
 //! (`synth --preset small`), 0.97 (`cross`), no view named; the mesh turned a quarter about a
@@ -105,6 +116,21 @@ pub const LATTICE_BELOW: usize = 4 * MIN_SHARED;
 /// a square window no longer covers the patch another view sees.
 pub const MIN_COS: f64 = 0.5;
 
+/// Area samples of the neighbour check's plans (the given mesh's and each neighbour's).
+pub const NB_SAMPLES: usize = 1000;
+/// Views the neighbour check's plans take at most (an even stride).
+pub const NB_VIEWS: usize = 16;
+/// The neighbours' shifts along x, y and z, as a fraction of the seen region's size (twice the
+/// RMS distance of the seen samples from their centroid).
+pub const NB_SHIFT: f64 = 0.04;
+/// The neighbours' small turns about x, y and z (through the seen samples' centroid), degrees.
+pub const NB_TURN: f64 = 5.0;
+/// The neighbours' scale changes about that centroid: × NB_SCALE and ÷ NB_SCALE.
+pub const NB_SCALE: f64 = 1.1;
+/// A neighbour whose correlation beats the given mesh's by more than this is warned of: the
+/// given mesh is not the local maximum of photo-consistency a mesh in place is.
+pub const NB_MARGIN: f64 = 0.03;
+
 /// One sample as one view sees it.
 #[derive(Clone, Copy)]
 struct Seen {
@@ -131,9 +157,56 @@ pub struct PhotoCheck {
     lum: Vec<Option<Vec<[f32; SCALES]>>>,
     /// Area samples (numbered first; the lattices' hits follow).
     area: usize,
+    /// Their positions.
+    area_points: Vec<DVec3>,
     /// Per slot: whether the view cast its lattice. The lattices' hits count only in pairs with
     /// such a view.
     cast: Vec<bool>,
+    /// The neighbour check: the given mesh and its neighbours, each planned with [`NB_SAMPLES`]
+    /// samples over at most [`NB_VIEWS`] views (empty in a neighbour's own plan).
+    neighbours: Vec<(Neighbour, PhotoCheck)>,
+    /// Seconds the neighbours' plans took.
+    neighbour_seconds: f64,
+}
+
+/// A neighbour of the given mesh: that mesh moved by a similarity (module docs, "neighbours").
+#[derive(Clone, Debug, PartialEq)]
+pub struct Neighbour {
+    /// What it is, as the warning names it ("moved +x by 4% of the seen region", …); "as given"
+    /// for the identity.
+    pub name: String,
+    /// Scale s, rotation R about `centre`, then a shift: p ↦ centre + s R (p − centre) + shift.
+    pub scale: f64,
+    pub rotation: glam::DMat3,
+    pub centre: DVec3,
+    pub shift: DVec3,
+}
+
+impl Neighbour {
+    /// The identity: the mesh as given.
+    fn given() -> Neighbour {
+        Neighbour {
+            name: "as given".into(),
+            scale: 1.0,
+            rotation: glam::DMat3::IDENTITY,
+            centre: DVec3::ZERO,
+            shift: DVec3::ZERO,
+        }
+    }
+
+    /// The camera that sees the mesh as it is what `cam` sees of the mesh moved by this
+    /// transform T: moving the mesh by T is moving the camera by T⁻¹. With T(p) = sRp + t,
+    /// R_c (sRp + t) + t_c = s (R_c R p + (R_c t + t_c) / s), and a projection does not see the
+    /// common factor s > 0.
+    fn camera(&self, cam: &Camera) -> Camera {
+        let r = self.rotation;
+        let t = self.centre - self.scale * (r * self.centre) + self.shift;
+        Camera {
+            rotation: cam.rotation * r,
+            translation: (cam.rotation * t + cam.translation) / self.scale,
+            ..cam.clone()
+        }
+    }
 }
 
 /// The window scales at which views a and b compare a sample they see as `a` and `b`: the finer
@@ -197,12 +270,30 @@ pub struct Consistency {
     /// The close-ups (the caller's indices) whose own pairs in `close_ups` correlate least, with
     /// their mean: at most three, lowest first. Where they look the mesh is off the most.
     pub worst_close_ups: Vec<(usize, f64)>,
+    /// The neighbour check: the given mesh ("as given", first) and each neighbour, with its
+    /// shared-weighted mean correlation at [`NB_SAMPLES`] samples over [`NB_VIEWS`] views
+    /// (`None` without a pair).
+    pub neighbours: Vec<(String, Option<f64>)>,
+    /// Seconds the neighbours' plans took.
+    pub neighbour_seconds: f64,
 }
 
 impl Consistency {
     /// Whether the photos disagree where the mesh is (`false` without a pair to judge by).
     pub fn disagrees(&self) -> bool {
         self.pairs > 0 && self.correlation < MIN_CORRELATION
+    }
+
+    /// The neighbour (name, correlation) that beats the mesh as given by more than
+    /// [`NB_MARGIN`], the best one, with the given mesh's correlation: the mesh is not where
+    /// the photos agree most.
+    pub fn beaten(&self) -> Option<(String, f64, f64)> {
+        let (_, given) = self.neighbours.first()?;
+        let given = (*given)?;
+        let best = (self.neighbours[1..].iter())
+            .filter_map(|(n, c)| Some((n, (*c)?)))
+            .max_by(|a, b| a.1.total_cmp(&b.1))?;
+        (best.1 > given + NB_MARGIN).then(|| (best.0.clone(), best.1, given))
     }
 
     /// Whether the close-ups agree [`CLOSE_UP_GAP`] less than the other views, which agree at
@@ -240,6 +331,19 @@ impl Consistency {
         } else {
             format!("photo check: {what}")
         }];
+        if let Some((name, best, given)) = self.beaten() {
+            out.push(format!(
+                "warning: the mesh {name} agrees better with the photos than the mesh as given (correlation {best:.2} against {given:.2}, {} neighbours scored in {:.2} s): the mesh is probably turned, moved or scaled against the cameras (another tool's frame or unit, a wrong alignment), or off the photographed surface by about that much (a crude mesh: docs/spec.md §3.9); training will run but learn less",
+                self.neighbours.len() - 1,
+                self.neighbour_seconds
+            ));
+        } else if self.neighbours.len() > 1 {
+            out.push(format!(
+                "photo check: no neighbour of the mesh (moved, turned or scaled a little) agrees better with the photos ({} scored in {:.2} s)",
+                self.neighbours.len() - 1,
+                self.neighbour_seconds
+            ));
+        }
         out.extend(self.outliers.iter().map(|&(k, c)| {
             format!(
                 "warning: view {}: its photo disagrees with the others where the mesh is (correlation {c:.2} against {:.2} among the other views): its pose is probably wrong (a bad registration): fix it, or leave the view out (test_views in scene.toml holds a training view out)",
@@ -264,13 +368,38 @@ impl Consistency {
 
 impl PhotoCheck {
     /// Plan the check for `cameras` (the views to check, in the caller's order; `train` gives its
-    /// training views, then the held-out ones).
+    /// training views, then the held-out ones), with the neighbour check.
     pub fn plan(mesh: &Mesh, tracer: &Tracer, cameras: &[&Camera]) -> PhotoCheck {
+        let mut check = PhotoCheck::plan_with(mesh, tracer, cameras, SAMPLES, MAX_VIEWS);
+        let t0 = std::time::Instant::now();
+        let given = PhotoCheck::plan_with(mesh, tracer, cameras, NB_SAMPLES, NB_VIEWS);
+        let nbs = neighbours(&given);
+        check.neighbours = (nbs.into_iter().map(|nb| {
+            let cams: Vec<Camera> = cameras.iter().map(|c| nb.camera(c)).collect();
+            let refs: Vec<&Camera> = cams.iter().collect();
+            let c = PhotoCheck::plan_with(mesh, tracer, &refs, NB_SAMPLES, NB_VIEWS);
+            (nb, c)
+        }))
+        .collect();
+        check.neighbours.insert(0, (Neighbour::given(), given));
+        check.neighbour_seconds = t0.elapsed().as_secs_f64();
+        check
+    }
+
+    /// The plan of [`PhotoCheck::plan`] with `samples` area samples over at most `max_views`
+    /// views, without neighbours.
+    fn plan_with(
+        mesh: &Mesh,
+        tracer: &Tracer,
+        cameras: &[&Camera],
+        samples: usize,
+        max_views: usize,
+    ) -> PhotoCheck {
         let (lo, hi) = mesh.bbox();
         let tol = VISIBLE * (hi - lo).length();
         let n = cameras.len();
-        let planned: Vec<usize> = (0..n.min(MAX_VIEWS))
-            .map(|k| k * n / n.min(MAX_VIEWS))
+        let planned: Vec<usize> = (0..n.min(max_views))
+            .map(|k| k * n / n.min(max_views))
             .collect();
         // Per planned view: the points of `pts` (numbered from `first`) it sees, in order.
         let see = |pts: &[DVec3], first: usize| -> Vec<Vec<Seen>> {
@@ -312,7 +441,7 @@ impl PhotoCheck {
                 })
                 .collect()
         };
-        let area = area_samples(mesh, SAMPLES);
+        let area = area_samples(mesh, samples);
         let mut seen = see(&area, 0);
         // The lattices of the views that see few area samples (close-ups).
         let cast: Vec<bool> = seen.iter().map(|s| s.len() < LATTICE_BELOW).collect();
@@ -350,18 +479,24 @@ impl PhotoCheck {
             seen,
             area: area.len(),
             cast,
+            neighbours: Vec::new(),
+            neighbour_seconds: 0.0,
+            area_points: area,
         }
     }
 
     /// Whether view `k` is planned (its photo is worth reading).
     pub fn wants(&self, k: usize) -> bool {
-        self.planned.binary_search(&k).is_ok()
+        self.planned.binary_search(&k).is_ok() || self.neighbours.iter().any(|(_, c)| c.wants(k))
     }
 
     /// Read the luminances of the samples view `k` sees from its photo (`img`: the camera's size):
     /// the mean of R, G, B over a square window around each sample's projection, 3 pixels wide
     /// times each scale the sample needs (pixels whose centres fall inside, clipped to the image).
     pub fn add_view(&mut self, k: usize, img: &Image) {
+        for (_, c) in &mut self.neighbours {
+            c.add_view(k, img);
+        }
         let Ok(s) = self.planned.binary_search(&k) else {
             return;
         };
@@ -428,7 +563,15 @@ impl PhotoCheck {
             .collect();
         worst_close_ups.sort_by(|x, y| x.1.total_cmp(&y.1));
         worst_close_ups.truncate(3);
+        let neighbours = (self.neighbours.iter())
+            .map(|(nb, c)| {
+                let (w, m) = weighted_mean(&c.pair_correlations(), &|_, _| true);
+                (nb.name.clone(), (w > 0).then_some(m))
+            })
+            .collect();
         Consistency {
+            neighbours,
+            neighbour_seconds: self.neighbour_seconds,
             pairs: corr.len(),
             shared,
             correlation,
@@ -472,6 +615,76 @@ impl PhotoCheck {
         }
         corr
     }
+}
+
+/// The neighbours of the mesh `given` planned ([module docs](self)): shifts by ± [`NB_SHIFT`]
+/// of the seen region's size along x, y, z, turns by ± [`NB_TURN`]° and a quarter turn each way
+/// about x, y, z through the seen samples' centroid, and scales × and ÷ [`NB_SCALE`] about it.
+/// The seen samples are the area samples two or more planned views see (the background a view
+/// sees alone does not count). None without two such samples.
+fn neighbours(given: &PhotoCheck) -> Vec<Neighbour> {
+    let mut count = vec![0u32; given.area];
+    for seen in &given.seen {
+        for p in seen.iter().filter(|p| (p.sample as usize) < given.area) {
+            count[p.sample as usize] += 1;
+        }
+    }
+    let pts: Vec<DVec3> = (given.area_points.iter().zip(&count))
+        .filter(|(_, &c)| c >= 2)
+        .map(|(&p, _)| p)
+        .collect();
+    if pts.len() < 2 {
+        return Vec::new();
+    }
+    let centre = pts.iter().sum::<DVec3>() / pts.len() as f64;
+    let rms = (pts
+        .iter()
+        .map(|p| (*p - centre).length_squared())
+        .sum::<f64>()
+        / pts.len() as f64)
+        .sqrt();
+    let size = 2.0 * rms;
+    let nb = |name: String, scale: f64, rotation: glam::DMat3, shift: DVec3| Neighbour {
+        name,
+        scale,
+        rotation,
+        centre,
+        shift,
+    };
+    let id = glam::DMat3::IDENTITY;
+    let axes = [("x", DVec3::X), ("y", DVec3::Y), ("z", DVec3::Z)];
+    let mut out = Vec::new();
+    for (a, v) in axes {
+        for sign in [1.0, -1.0] {
+            let pm = if sign > 0.0 { '+' } else { '-' };
+            out.push(nb(
+                format!(
+                    "moved {pm}{a} by {:.0}% of the seen region",
+                    100.0 * NB_SHIFT
+                ),
+                1.0,
+                id,
+                sign * NB_SHIFT * size * v,
+            ));
+        }
+    }
+    for (a, v) in axes {
+        for (deg, what) in [(NB_TURN, "turned"), (90.0, "turned a quarter")] {
+            for sign in [1.0, -1.0] {
+                let pm = if sign > 0.0 { '+' } else { '-' };
+                let r = glam::DMat3::from_axis_angle(v, sign * deg.to_radians());
+                let name = match deg == 90.0 {
+                    true => format!("{what} ({pm}90°) about {a}"),
+                    false => format!("{what} {pm}{deg:.0}° about {a}"),
+                };
+                out.push(nb(name, 1.0, r, DVec3::ZERO));
+            }
+        }
+    }
+    for s in [NB_SCALE, 1.0 / NB_SCALE] {
+        out.push(nb(format!("scaled {s:.2}×"), s, id, DVec3::ZERO));
+    }
+    out
 }
 
 /// A correlated pair of views: (slot a, slot b, samples shared, correlation).

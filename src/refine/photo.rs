@@ -10,8 +10,10 @@
 //! the triangle that ray hit (from the BVH of the last rebuild: data) and the reference colour
 //! `a_q` = the level-l photo of view i at q (data). The ray meets the triangle's *current* plane
 //! at `x_q = o_i + t_q·d_q` (Möller–Trumbore, `hit::intersect`, as the hit point of the
-//! feature gradient), which is projected into the neighbour view j at the same level (pinhole:
-//! `c = R_j (x_q − o_j)`, `π = (f_x c_x/c_z + c_x', f_y c_y/c_z + c_y')`) and sampled there
+//! feature gradient), which is projected into the neighbour view j at the same level
+//! (`c = R_j (x_q − o_j)`, `π = (f_x x_d + c_x', f_y y_d + c_y')` with `(x_d, y_d) =
+//! D_j(c_x/c_z, c_y/c_z)`, D_j the view's lens distortion — the identity for a pinhole — as
+//! `Camera::project`) and sampled there
 //! bilinearly between pixel centres: `b_q = I_j(π(x_q))`. The patch's energy is `w · ρ(a, b)`,
 //! with `w` = `photo / photo_pixels` and ρ one of
 //!
@@ -25,7 +27,8 @@
 //! `∂ρ/∂b` (zncc: `a'/D − ncc · b'/(b'·b' + ε)`, D the denominator — already zero-mean per
 //! channel, so the mean subtraction adds nothing), times the bilinear image gradient
 //! `(∂I/∂π_x, ∂I/∂π_y)` of the cell the sample lies in, times `∂π/∂x`
-//! (`(f_x/c_z)(R_j,0 − (c_x/c_z) R_j,2)` and likewise for y) gives `g_q = ∂E/∂x_q` (local units);
+//! (pinhole: `(f_x/c_z)(R_j,0 − (c_x/c_z) R_j,2)` and likewise for y; through a distortion the
+//! two rows of the pinhole derivative are mixed by D_j's exact 2×2 Jacobian, `PhotoCamera::project`) gives `g_q = ∂E/∂x_q` (local units);
 //! then the hit-point chain of the feature gradient (SPEC §4.11):
 //!
 //! ```text
@@ -46,7 +49,6 @@ use crate::model::refine::PhotoMeasure;
 use crate::refine::field::RefineGeom;
 use crate::refine::hit::{intersect, plane_hit_chain};
 use crate::scene::{Camera, Distortion, Image};
-use anyhow::{bail, Result};
 use glam::{DMat3, DVec3};
 
 /// Noise floor of the zncc's variances (colour units): `ε = 3K·σ₀²`.
@@ -54,8 +56,8 @@ pub const ZNCC_SIGMA0: f64 = 0.01;
 /// Huber threshold of the `huber` measure (colour units).
 pub const HUBER_DELTA: f64 = 0.02;
 
-/// A pinhole camera at one image level, in the refinement's local frame (world − normalisation
-/// centre).
+/// A camera at one image level, in the refinement's local frame (world − normalisation
+/// centre), with its lens distortion (any model the scene loaders read; SPEC §3.3).
 #[derive(Clone, Debug, PartialEq)]
 pub struct PhotoCamera {
     /// Camera centre, local frame.
@@ -68,19 +70,14 @@ pub struct PhotoCamera {
     pub cy: f64,
     pub width: u32,
     pub height: u32,
+    /// Applied to normalised coordinates, so the same at every level.
+    pub distortion: Distortion,
 }
 
 impl PhotoCamera {
-    /// The camera of a view at level 0; `center` is the normalisation centre. Only pinhole
-    /// cameras: the derivative of a lens distortion is not implemented.
-    pub fn new(cam: &Camera, center: DVec3, name: &str) -> Result<PhotoCamera> {
-        if cam.distortion != Distortion::None {
-            bail!(
-                "model.refine.photo: view {name} has a lens distortion ({:?}); the photo-consistency term supports pinhole cameras only (undistort the photos first, or set photo = 0)",
-                cam.distortion
-            );
-        }
-        Ok(PhotoCamera {
+    /// The camera of a view at level 0; `center` is the normalisation centre.
+    pub fn new(cam: &Camera, center: DVec3) -> PhotoCamera {
+        PhotoCamera {
             origin: cam.center() - center,
             rot: cam.rotation,
             fx: cam.fx,
@@ -89,7 +86,8 @@ impl PhotoCamera {
             cy: cam.cy,
             width: cam.width,
             height: cam.height,
-        })
+            distortion: cam.distortion,
+        }
     }
 
     /// The same camera for the photo box-downsampled by `2^l` (`Camera::downsampled`: sizes
@@ -108,15 +106,20 @@ impl PhotoCamera {
     }
 
     /// Unit local-frame direction of the ray through continuous image point (x, y) (pixel (u, v)
-    /// covers [u, u+1) × [v, v+1)).
+    /// covers [u, u+1) × [v, v+1)), undistorted (`Distortion::undistort_dir`, as
+    /// `Camera::dir_world`).
     #[inline]
     pub fn ray(&self, x: f64, y: f64) -> DVec3 {
-        let c = DVec3::new((x - self.cx) / self.fx, (y - self.cy) / self.fy, 1.0);
+        let c = self
+            .distortion
+            .undistort_dir((x - self.cx) / self.fx, (y - self.cy) / self.fy);
         (self.rot.transpose() * c).normalize()
     }
 
     /// Continuous image coordinates of local point `p` and their gradients with respect to `p`,
-    /// or `None` behind (or nearly in the plane of) the camera.
+    /// or `None` behind (or nearly in the plane of) the camera. Through a lens distortion `D`
+    /// the pinhole gradients `∂(x_n, y_n)/∂p` are chained through D's exact Jacobian
+    /// (`Distortion::distort_jacobian`): `∂π_x/∂p = f_x (J₀₀ ∂x_n/∂p + J₀₁ ∂y_n/∂p)`, likewise y.
     #[inline]
     pub fn project(&self, p: DVec3) -> Option<([f64; 2], [DVec3; 2])> {
         let c = self.rot * (p - self.origin);
@@ -126,9 +129,16 @@ impl PhotoCamera {
         let iz = 1.0 / c.z;
         let (xn, yn) = (c.x * iz, c.y * iz);
         let (r0, r1, r2) = (self.rot.row(0), self.rot.row(1), self.rot.row(2));
-        let gx = (r0 - r2 * xn) * (self.fx * iz);
-        let gy = (r1 - r2 * yn) * (self.fy * iz);
-        Some(([self.fx * xn + self.cx, self.fy * yn + self.cy], [gx, gy]))
+        if self.distortion == Distortion::None {
+            let gx = (r0 - r2 * xn) * (self.fx * iz);
+            let gy = (r1 - r2 * yn) * (self.fy * iz);
+            return Some(([self.fx * xn + self.cx, self.fy * yn + self.cy], [gx, gy]));
+        }
+        let ((xd, yd), j) = self.distortion.distort_jacobian(xn, yn);
+        let (dxn, dyn_) = ((r0 - r2 * xn) * iz, (r1 - r2 * yn) * iz);
+        let gx = (dxn * j[0][0] + dyn_ * j[0][1]) * self.fx;
+        let gy = (dxn * j[1][0] + dyn_ * j[1][1]) * self.fy;
+        Some(([self.fx * xd + self.cx, self.fy * yd + self.cy], [gx, gy]))
     }
 
     /// Distance-independent size of a pixel: `1/sqrt(fx·fy)` radians.

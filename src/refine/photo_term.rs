@@ -5,7 +5,7 @@
 //! ## Setup (once per run, from the training mesh)
 //! - Every training view keeps f32 copies of its photo box-downsampled by `2^l` for the levels
 //!   `photo_levels[1] ..= photo_levels[0]` (12 bytes per pixel at level 0, a quarter of that per
-//!   level above), and its pinhole camera at each level.
+//!   level above), and its camera (with its lens distortion) at each level.
 //! - Neighbours: a 16 × 12 grid of pixel-centre rays of view i is cast against the *training*
 //!   mesh; a hit x counts for view j ≠ i when it projects inside j, j sees it (the ray from j's
 //!   centre towards x hits x's triangle or reaches at least (1 − [`VISIBILITY_TOLERANCE`]) of the
@@ -191,7 +191,7 @@ impl PhotoTerm {
             let name = names
                 .get(v.view)
                 .map_or_else(|| v.view.to_string(), |n| n.clone());
-            let cam = PhotoCamera::new(&v.camera, center, &name)?;
+            let cam = PhotoCamera::new(&v.camera, center);
             let cams: Vec<PhotoCamera> = (0..=l0).map(|l| cam.level(l)).collect();
             ensure!(
                 cams[l0 as usize].width as usize >= cfg.photo_patch as usize

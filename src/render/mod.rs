@@ -3,7 +3,10 @@
 //! official protocol; the scene's `background`), plus camera paths between two views and the
 //! hit-mask / footprint / side-by-side images.
 
+pub mod appearance;
 pub mod ulr;
+
+pub use appearance::Appearance;
 
 use crate::model::batch::Batch;
 use crate::model::hfm::Hfm;
@@ -57,10 +60,11 @@ pub struct ModelRenderer<'a> {
 }
 
 impl ModelRenderer<'_> {
-    /// Render `camera` with appearance row `view_row` (−1: mean code); pixels whose rays all miss
-    /// get the background. Cast and shaded in bands of rows ([`RENDER_BAND_SAMPLES`]).
-    pub fn render(&self, camera: &Camera, view_row: i32) -> Result<Rendered> {
-        self.render_in_bands(camera, view_row, RENDER_BAND_SAMPLES)
+    /// Render `camera` in `appearance` (a row, −1 for the mean code, or a code of its own:
+    /// `render::appearance`); pixels whose rays all miss get the background. Cast and shaded in
+    /// bands of rows ([`RENDER_BAND_SAMPLES`]).
+    pub fn render(&self, camera: &Camera, appearance: &Appearance) -> Result<Rendered> {
+        self.render_in_bands(camera, appearance, RENDER_BAND_SAMPLES)
     }
 
     /// [`ModelRenderer::render`] with bands of at most `band_samples` sub-samples (at least one
@@ -69,11 +73,12 @@ impl ModelRenderer<'_> {
     pub fn render_in_bands(
         &self,
         camera: &Camera,
-        view_row: i32,
+        appearance: &Appearance,
         band_samples: usize,
     ) -> Result<Rendered> {
         let (model, params, gamma) = (self.model, self.params, self.gamma);
         let s = (gamma * gamma) as usize;
+        let (view_row, code) = appearance.row_and_code();
         render_in_bands(
             self.tracer,
             camera,
@@ -86,7 +91,7 @@ impl ModelRenderer<'_> {
                     .collect();
                 for chunk in hits.chunks(RENDER_CHUNK) {
                     let b = render_batch(model, cast, chunk, s, view_row);
-                    let rgb = model.infer(params, &b)?;
+                    let rgb = model.infer_coded(params, &b, code)?;
                     for (&i, c) in chunk.iter().zip(rgb.chunks_exact(3)) {
                         colours[i * 3..i * 3 + 3].copy_from_slice(c);
                     }
@@ -346,12 +351,48 @@ pub fn flip_image(map: &[f32], w: u32, h: u32) -> Image {
     }
 }
 
-/// The side-by-side of a scored view: render | photo (misses painted) | |error| heat map |
-/// ꟻLIP map.
-pub fn comparison(pred: &Image, painted: &Image, flip: &[f32]) -> Image {
-    let heat = heat_map(pred, painted);
+/// The colour [`comparison`] outlines the pixels the mesh misses in: cyan, off the heat map's
+/// black–red–yellow–white and ꟻLIP's magma.
+pub const MISS_OUTLINE: [f32; 3] = [0.0, 1.0, 1.0];
+
+/// The pixels that outline the region the mesh misses: misses within `width` pixels (in x or
+/// y) of a hit pixel — the miss side of every silhouette the mesh leaves.
+pub fn miss_outline(hit: &[bool], w: u32, h: u32, width: u32) -> Vec<bool> {
+    let (w, h, r) = (w as usize, h as usize, width as i64);
+    let mut out = vec![false; w * h];
+    for y in 0..h {
+        for x in 0..w {
+            if hit[y * w + x] {
+                continue;
+            }
+            out[y * w + x] = (-r..=r).any(|d| {
+                let (xx, yy) = (x as i64 + d, y as i64 + d);
+                (d != 0)
+                    && ((xx >= 0 && (xx as usize) < w && hit[y * w + xx as usize])
+                        || (yy >= 0 && (yy as usize) < h && hit[yy as usize * w + x]))
+            });
+        }
+    }
+    out
+}
+
+/// The side-by-side of a scored view, as the full-image scores see it: render | photo as it is
+/// | |error| heat map | ꟻLIP map, the two error maps over every pixel (a pixel the mesh misses
+/// shows the render's background against the photo), and the region the mesh misses outlined
+/// in [`MISS_OUTLINE`] on all four (the masked scores leave it out).
+pub fn comparison(pred: &Image, photo: &Image, hit: &[bool], flip: &[f32]) -> Image {
+    let heat = heat_map(pred, photo);
     let f = flip_image(flip, pred.width, pred.height);
-    side_by_side(&[pred, painted, &heat, &f])
+    let outline = miss_outline(hit, pred.width, pred.height, 2);
+    let mut panels = [pred.clone(), photo.clone(), heat, f];
+    for p in panels.iter_mut() {
+        for (px, &o) in p.data.chunks_exact_mut(3).zip(&outline) {
+            if o {
+                px.copy_from_slice(&MISS_OUTLINE);
+            }
+        }
+    }
+    side_by_side(&panels.iter().collect::<Vec<_>>())
 }
 
 /// Images of equal height side by side.

@@ -34,6 +34,24 @@ pub struct SceneForModel {
     pub rows: Vec<i32>,
 }
 
+impl SceneForModel {
+    /// The appearance `camera` is rendered in: `row` (the view's own, ≥ 0) or, for a view
+    /// without one, the code `rule` gives (`render::appearance`), from the training cameras.
+    pub fn appearance(
+        &self,
+        model: &crate::model::hfm::Hfm,
+        params: &[f32],
+        rule: crate::render::appearance::NewViewCode,
+        row: i32,
+        camera: &crate::scene::Camera,
+    ) -> crate::render::Appearance {
+        let train: Vec<&crate::scene::Camera> = (self.scene.train().iter())
+            .map(|&j| &self.scene.views[j].camera)
+            .collect();
+        crate::render::appearance::appearance_for(model, params, rule, row, camera, &train)
+    }
+}
+
 /// `mesh`: a mesh file overriding the scene's (default: the run config's `train.mesh`, else the
 /// scene's own). A vertex-featurization model checks that the mesh's triangles are the ones it
 /// was trained on (its table is indexed by them).
@@ -116,6 +134,13 @@ pub fn load_warning(dir: &Path, opts: &LoadOptions) -> Result<Scene> {
     let (scene, report) = Scene::load_report(dir, opts)?;
     for w in &report.warnings {
         eprintln!("warning: {w}");
+    }
+    if report.left_out > 0 {
+        eprintln!(
+            "note: {} views of {} have no photo on disk and are left out (skip_missing = true in its scene.toml)",
+            report.left_out,
+            dir.display()
+        );
     }
     Ok(scene)
 }

@@ -18,12 +18,14 @@
 
 use crate::eval::protocol::{evaluate_view, write_evaluated, ViewScore};
 use crate::model::params::Grads;
+use crate::render::appearance::appearance_for;
 use crate::render::ModelRenderer;
 use crate::run::divergence::Guard;
 use crate::run::report::Reporter;
 use crate::run::run_dir::{
     prepare_run_dir, remove_run, run_checkpoint, RunLock, SceneFingerprint, SETTINGS_FILE,
 };
+use crate::scene::Camera;
 use crate::train::config::{differences_but_steps, RunConfig};
 use crate::train::memory::Job;
 use crate::train::sampler::sample_batch;
@@ -153,12 +155,25 @@ pub fn evaluate_until(
         gamma: state.cfg.model.gamma,
         background: prepared.scene.background,
     };
+    let train: Vec<&Camera> = (prepared.train_views.iter())
+        .map(|&j| &prepared.scene.views[j].camera)
+        .collect();
     let mut scores = Vec::new();
     for &i in &views {
         if stop() {
             return Ok(None);
         }
-        let e = evaluate_view(&renderer, &prepared.scene, i, prepared.appearance_row(i))?;
+        // The view's own row, or for a held-out view its neighbours' codes blended (the default
+        // rule of `render::appearance`).
+        let look = appearance_for(
+            &state.ckpt.model,
+            &state.ckpt.params,
+            Default::default(),
+            prepared.appearance_row(i),
+            &prepared.scene.views[i].camera,
+            &train,
+        );
+        let e = evaluate_view(&renderer, &prepared.scene, i, &look)?;
         if let Some(dir) = out {
             let name = &prepared.scene.views[i].name;
             write_evaluated(&e, name, Some(&dir.join("render")), Some(&dir.join("eval")))?;

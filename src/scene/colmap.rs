@@ -655,14 +655,26 @@ fn read_points_binary(path: &Path) -> Result<Vec<Point>> {
 // Binary
 // ---------------------------------------------------------------------------------------------
 
-struct Reader<'a> {
+/// Little-endian reads of a COLMAP binary file, with errors naming the file (also
+/// `prepare::sparse`'s reader of whole sparse models).
+pub(crate) struct Reader<'a> {
     data: &'a [u8],
     pos: usize,
     path: &'a Path,
 }
 
+impl<'a> Reader<'a> {
+    pub(crate) fn new(data: &'a [u8], path: &'a Path) -> Self {
+        Reader { data, pos: 0, path }
+    }
+    /// Bytes not read yet.
+    pub(crate) fn remaining(&self) -> usize {
+        self.data.len() - self.pos
+    }
+}
+
 impl Reader<'_> {
-    fn take(&mut self, n: usize, what: &str) -> Result<&[u8]> {
+    pub(crate) fn take(&mut self, n: usize, what: &str) -> Result<&[u8]> {
         // `pos + n` can overflow: a count read from the file times its record size may be as
         // large as usize::MAX (cargo-fuzz, `colmap_points_binary`).
         if self
@@ -680,19 +692,19 @@ impl Reader<'_> {
         self.pos += n;
         Ok(s)
     }
-    fn u64(&mut self, what: &str) -> Result<u64> {
+    pub(crate) fn u64(&mut self, what: &str) -> Result<u64> {
         Ok(u64::from_le_bytes(self.take(8, what)?.try_into().unwrap()))
     }
-    fn u32(&mut self, what: &str) -> Result<u32> {
+    pub(crate) fn u32(&mut self, what: &str) -> Result<u32> {
         Ok(u32::from_le_bytes(self.take(4, what)?.try_into().unwrap()))
     }
-    fn i32(&mut self, what: &str) -> Result<i32> {
+    pub(crate) fn i32(&mut self, what: &str) -> Result<i32> {
         Ok(i32::from_le_bytes(self.take(4, what)?.try_into().unwrap()))
     }
-    fn f64(&mut self, what: &str) -> Result<f64> {
+    pub(crate) fn f64(&mut self, what: &str) -> Result<f64> {
         Ok(f64::from_le_bytes(self.take(8, what)?.try_into().unwrap()))
     }
-    fn cstr(&mut self, what: &str) -> Result<String> {
+    pub(crate) fn cstr(&mut self, what: &str) -> Result<String> {
         let rest = &self.data[self.pos..];
         let n = rest.iter().position(|&c| c == 0).ok_or_else(|| {
             anyhow!(
@@ -704,6 +716,20 @@ impl Reader<'_> {
             .map_err(|_| anyhow!("{}: {what}: name is not UTF-8", self.path.display()))?;
         self.pos += n + 1;
         Ok(s)
+    }
+    /// A count of records of at least `size` bytes each: more than the file holds is an error
+    /// before anything is allocated.
+    pub(crate) fn count(&mut self, size: usize, what: &str) -> Result<usize> {
+        let n = self.u64(what)?;
+        if n.checked_mul(size as u64)
+            .is_none_or(|b| b > (self.data.len() - self.pos) as u64)
+        {
+            bail!(
+                "{}: {what}: {n} records do not fit in the file",
+                self.path.display()
+            );
+        }
+        Ok(n as usize)
     }
 }
 

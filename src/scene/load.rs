@@ -100,6 +100,9 @@ struct SceneToml {
     /// `transforms.json`'s `applied_transform`: `"undo"` (default) or `"keep"`
     /// ([`transforms::AppliedTransform`]).
     applied_transform: Option<transforms::AppliedTransform>,
+    /// Leave out the views whose photo is not on disk (a trimmed copy of a public dataset)
+    /// instead of refusing the scene ([`skip_missing_photos`]). Default false.
+    skip_missing: Option<bool>,
 }
 
 /// What [`Scene::load_report`] found.
@@ -115,6 +118,9 @@ pub struct LoadReport {
     /// The mesh against the reconstruction's points (`points.rs`): the points' file and what
     /// was measured; `None` without points (or when they could not be read).
     pub frame_check: Option<(PathBuf, points::Agreement)>,
+    /// Views left out because their photo is not on disk (`skip_missing = true`; the note in
+    /// `notes` names them).
+    pub left_out: usize,
 }
 
 /// How far apart the mesh's size and the cameras' layout may be before the scene is flagged as a
@@ -283,6 +289,8 @@ impl Scene {
         let applied = cfg
             .applied_transform
             .unwrap_or(transforms::AppliedTransform::Undo);
+        // Views whose photo is not on disk (`skip_missing_photos`).
+        let mut missing = Vec::new();
         let (mut views, format_test, given_masks) = match format {
             CameraFormat::Colmap => (load_colmap(dir)?, None, None),
             CameraFormat::MvsNet => (load_mvsnet(dir, opts.mvsnet_dsp)?, None, None),
@@ -299,7 +307,7 @@ impl Scene {
                 (loaded.views, None, None)
             }
             CameraFormat::Transforms => {
-                let (loaded, undone) = load_transforms(dir, applied, &mut notes)?;
+                let (loaded, undone) = load_transforms(dir, applied, &mut notes, &mut missing)?;
                 if let Some(file) = undone {
                     notes.push(format!(
                         "{}: its applied_transform is undone, so the cameras stand in the frame of the reconstruction it was written from (COLMAP's, Metashape's), where that reconstruction's meshes are; for a mesh in the file's own frame set applied_transform = \"keep\" in {}; a mesh from nerfstudio's ns-export stands in neither: `xscale align-mesh` brings it here",
@@ -310,6 +318,18 @@ impl Scene {
                 loaded
             }
         };
+        // The other layouts name a photo whatever is on disk: a view whose file does not exist
+        // is missing as a transforms frame whose photo was not found.
+        if given_masks.is_none() {
+            views.retain(|v| photo_on_disk(v, &mut missing));
+        }
+        skip_missing_photos(
+            &missing,
+            views.len(),
+            cfg.skip_missing.unwrap_or(false),
+            &toml_path,
+            &mut notes,
+        )?;
         check_views(dir, &views)?;
         check_images(&views, opts.load_images_check)?;
         downsample_cameras(&mut views, opts.downsample)?;
@@ -326,28 +346,15 @@ impl Scene {
             .collect();
         // The reconstruction's own points against the mesh (`points.rs`): an auxiliary file, so
         // one that cannot be read skips the check with a note rather than failing the scene.
-        let frame_check = match points::find(dir, format, applied) {
-            Ok(Some(p)) => {
-                let agreement = points::check(&mesh, &p.xyz);
-                warnings.extend(
-                    points::frame_disagreement(&mesh_path, &p.source, &agreement).map(|w| {
-                        if format == CameraFormat::Transforms {
-                            format!("{w}. A mesh from nerfstudio's ns-export stands in its dataparser's frame: bring it back with `xscale align-mesh`")
-                        } else {
-                            w
-                        }
-                    }),
-                );
-                Some((p.source, agreement))
-            }
-            Ok(None) => None,
-            Err(e) => {
-                notes.push(format!(
-                    "the check of the mesh against the reconstruction's points is skipped: {e:#}"
-                ));
-                None
-            }
-        };
+        let frame_check = points_check(
+            dir,
+            format,
+            applied,
+            &mesh,
+            &mesh_path,
+            &mut warnings,
+            &mut notes,
+        );
         let background = cfg.background.unwrap_or([1.0; 3]);
         if background.iter().any(|c| !(0.0..=1.0).contains(c)) {
             bail!(
@@ -376,6 +383,7 @@ impl Scene {
             notes,
             warnings,
             frame_check,
+            left_out: missing.len(),
         };
         Ok((scene, report))
     }
@@ -527,10 +535,12 @@ fn transforms_files(dir: &Path) -> Result<Vec<PathBuf>> {
 /// views are returned as the format's own test split), with the frames' `mask_path` files when
 /// every frame gives one, and the first file whose `applied_transform` was undone; a file that
 /// looks written by instant-ngp's `colmap2nerf.py` is named in `notes`.
+/// Frames whose photo is not on disk are left out and described in `missing`.
 fn load_transforms(
     dir: &Path,
     applied: transforms::AppliedTransform,
     notes: &mut Vec<String>,
+    missing: &mut Vec<String>,
 ) -> Result<(LoadedViews, Option<PathBuf>)> {
     let files = transforms_files(dir)?;
     let nerf_synthetic = !files[0].ends_with("transforms.json");
@@ -566,6 +576,7 @@ fn load_transforms(
         }
         views.extend(loaded.views);
         masks.extend(loaded.masks.into_iter().map(|m| (f, m)));
+        missing.extend(loaded.missing);
     }
     let given = masks.iter().filter(|(_, m)| m.is_some()).count();
     if given == 0 {
@@ -581,6 +592,96 @@ fn load_transforms(
     }
     let files = masks.into_iter().filter_map(|(_, m)| m).collect();
     Ok(((views, test, Some(files)), undone))
+}
+
+/// Views whose photo is not on disk (`missing`, one description each; `kept` views remain):
+/// an error naming them and the way to leave them out, or, with `skip_missing = true` in the
+/// scene's `scene.toml` (`toml_path`), a note naming them. A `scene.toml` key rather than a
+/// command-line flag: every command that reads the scene (train, cast, eval, render) must see the
+/// same views, or the held-out split (every 7th view) would differ between training and scoring.
+/// Whether view `v`'s photo exists; when not, the reason is added to `missing`.
+fn photo_on_disk(v: &View, missing: &mut Vec<String>) -> bool {
+    let on_disk = v.image_path.exists();
+    if !on_disk {
+        missing.push(format!(
+            "{}: image of view '{}' not found",
+            v.image_path.display(),
+            v.name
+        ));
+    }
+    on_disk
+}
+
+/// The reconstruction's own points against the mesh (`points.rs`): an auxiliary file, so one
+/// that cannot be read skips the check with a note rather than failing the scene.
+fn points_check(
+    dir: &Path,
+    format: CameraFormat,
+    applied: transforms::AppliedTransform,
+    mesh: &super::Mesh,
+    mesh_path: &Path,
+    warnings: &mut Vec<String>,
+    notes: &mut Vec<String>,
+) -> Option<(PathBuf, points::Agreement)> {
+    match points::find(dir, format, applied) {
+        Ok(Some(p)) => {
+            let agreement = points::check(mesh, &p.xyz);
+            warnings.extend(
+                points::frame_disagreement(mesh_path, &p.source, &agreement).map(|w| {
+                    if format == CameraFormat::Transforms {
+                        format!("{w}. A mesh from nerfstudio's ns-export stands in its dataparser's frame: bring it back with `xscale align-mesh`")
+                    } else {
+                        w
+                    }
+                }),
+            );
+            Some((p.source, agreement))
+        }
+        Ok(None) => None,
+        Err(e) => {
+            notes.push(format!(
+                "the check of the mesh against the reconstruction's points is skipped: {e:#}"
+            ));
+            None
+        }
+    }
+}
+
+fn skip_missing_photos(
+    missing: &[String],
+    kept: usize,
+    skip: bool,
+    toml_path: &Path,
+    notes: &mut Vec<String>,
+) -> Result<()> {
+    if missing.is_empty() {
+        return Ok(());
+    }
+    const SHOWN: usize = 8;
+    let mut list = missing[..missing.len().min(SHOWN)].join("\n  ");
+    if missing.len() > SHOWN {
+        list += &format!("\n  … and {} more", missing.len() - SHOWN);
+    }
+    let total = missing.len() + kept;
+    if !skip {
+        bail!(
+            "{} of {total} views have no photo on disk:\n  {list}\nput the photos in place, or add `skip_missing = true` to {} to leave these views out (train, cast, eval and render then all use the {kept} that remain)",
+            missing.len(),
+            toml_path.display()
+        );
+    }
+    if kept == 0 {
+        bail!(
+            "none of the {total} views has a photo on disk ({} says skip_missing = true):\n  {list}",
+            toml_path.display()
+        );
+    }
+    notes.push(format!(
+        "{} of {total} views have no photo on disk and are left out (skip_missing = true in {}); the held-out split is taken over the {kept} that remain:\n  {list}",
+        missing.len(),
+        toml_path.display()
+    ));
+    Ok(())
 }
 
 /// At least one view, and unique names.

@@ -17,6 +17,7 @@
 pub mod camera;
 pub mod colmap;
 pub mod distance;
+pub mod dual;
 pub mod image;
 pub mod load;
 pub mod mask;

@@ -103,9 +103,13 @@ fn resolve_image(base: &Path, file_path: &str) -> Option<(PathBuf, String)> {
     None
 }
 
-/// Load all frames of a transforms file.
+/// Load all frames of a transforms file; a frame whose photo is not on disk is an error.
 pub fn load(path: &Path) -> Result<Vec<View>> {
-    Ok(load_full(path, AppliedTransform::Undo)?.views)
+    let loaded = load_full(path, AppliedTransform::Undo)?;
+    if let Some(m) = loaded.missing.first() {
+        bail!("{m}");
+    }
+    Ok(loaded.views)
 }
 
 /// What to do with a file's top-level `applied_transform` (nerfstudio): the map its writer
@@ -128,6 +132,12 @@ pub struct Loaded {
     /// Each frame's `mask_path` (nerfstudio's per-frame object mask; `scene/mask.rs`), resolved
     /// against the file's folder like `file_path`; `None` for a frame without one.
     pub masks: Vec<Option<PathBuf>>,
+    /// The frames whose photo is not on disk, left out of `views` and `masks`: what was tried
+    /// for each (`FILE: frame i ('path'): image not found: tried …`). [`Scene::load`] refuses
+    /// the scene when there are any, unless its `scene.toml` says `skip_missing = true`.
+    ///
+    /// [`Scene::load`]: crate::scene::Scene::load
+    pub missing: Vec<String>,
     /// Whether the file has an `applied_transform` that was undone.
     pub undone: bool,
     /// Whether the file looks written by instant-ngp's `colmap2nerf.py` without
@@ -164,6 +174,7 @@ pub fn load_full(path: &Path, applied: AppliedTransform) -> Result<Loaded> {
     }
     let mut views = Vec::with_capacity(frames.len());
     let mut masks = Vec::with_capacity(frames.len());
+    let mut missing = Vec::new();
     for (i, f) in frames.iter().enumerate() {
         let wh = format!("{pd}: frame {i}");
         let fr = f
@@ -175,13 +186,15 @@ pub fn load_full(path: &Path, applied: AppliedTransform) -> Result<Loaded> {
             .ok_or_else(|| anyhow!("{wh}: missing string 'file_path'"))?;
         let wh = format!("{wh} ('{file_path}')");
         let model = camera_model(&wh, fr, top_model)?.unwrap_or("OPENCV");
-        let (image_path, name) = resolve_image(base, file_path).ok_or_else(|| {
-            anyhow!(
+        let Some((image_path, name)) = resolve_image(base, file_path) else {
+            missing.push(format!(
                 "{wh}: image not found: tried {} and with extensions {}",
-                base.join(file_path).display(),
+                base.join(file_path.strip_prefix("./").unwrap_or(file_path))
+                    .display(),
                 super::mvsnet::IMAGE_EXTS.join(",")
-            )
-        })?;
+            ));
+            continue;
+        };
         let (mut rotation, mut translation) = pose(&wh, fr)?;
         if let Some((r, t)) = undo {
             // The file's world point is x' = r·x + t of the reconstruction's x, and its camera
@@ -211,6 +224,7 @@ pub fn load_full(path: &Path, applied: AppliedTransform) -> Result<Loaded> {
     Ok(Loaded {
         views,
         masks,
+        missing,
         undone: undo.is_some(),
         ngp_rescaled,
     })

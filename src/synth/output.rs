@@ -5,7 +5,8 @@
 //! truth.ply                   the fine true surface (only with write_truth: it is large)
 //! images/NAME.png             ground truth, 8-bit sRGB-encoded values
 //! sparse/0/{cameras,images,points3D}.txt   COLMAP text model
-//! images_1/NAME.png + cams_1/NAME_cam.txt  MVSNet layout (same images)
+//! images_1/NAME.png + cams_1/NAME_cam.txt  MVSNet layout (same images; not for `large` or a
+//!                             distorted `--lens`, which MVSNet cannot describe)
 //! transforms.json             instant-ngp / nerfstudio (file_path = images/NAME.png)
 //! synth.toml                  preset, seed, every parameter, per-view kind, summary
 //! scene.toml                  `format = "colmap"`: which of the three layouts a plain load uses
@@ -120,7 +121,9 @@ pub fn write_with(
         progress(i)?;
     }
     scene::colmap::write_text(&dir.join("sparse").join("0"), &vs)?;
-    if s.preset != Preset::Large {
+    // MVSNet's layout has no lens distortion: not written for `--lens` other than pinhole.
+    let mvsnet = s.preset != Preset::Large && s.params.lens.is_pinhole();
+    if mvsnet {
         scene::mvsnet::write(dir, &vs, 1)?;
         for v in &vs {
             let dst = dir.join("images_1").join(&v.name);
@@ -132,7 +135,7 @@ pub fn write_with(
     // All three layouts describe the same cameras (tests/synth.rs checks it); a plain
     // `Scene::load` needs to be told which to read.
     let path = dir.join("scene.toml");
-    let text = if s.preset == Preset::Large {
+    let text = if !mvsnet {
         "# The cameras are written in two layouts (COLMAP, transforms.json); they agree to 1e-9.\n\
          # Load the COLMAP one unless told otherwise.\n\
          format = \"colmap\"\n"

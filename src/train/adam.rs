@@ -105,6 +105,25 @@ impl Default for LrSchedule {
 }
 
 impl LrSchedule {
+    /// This schedule stretched from a run of `from` steps to one of `to` (`budget = "auto"`,
+    /// spec §8): every step count scaled by `to / from` and rounded to the nearest step, so the
+    /// decays fall at the same fractions of the run. `decay_end = u32::MAX` (no end) stays.
+    pub fn stretched(&self, from: u64, to: u64) -> LrSchedule {
+        let scale = |k: u32| -> u32 {
+            if k == u32::MAX || from == 0 {
+                return k;
+            }
+            ((k as u64 * to + from / 2) / from).min(u32::MAX as u64 - 1) as u32
+        };
+        LrSchedule {
+            warmup_steps: scale(self.warmup_steps),
+            decay_start: scale(self.decay_start),
+            decay_interval: scale(self.decay_interval),
+            decay_base: self.decay_base,
+            decay_end: scale(self.decay_end),
+        }
+    }
+
     /// `warm(k) * decay(k)` at 0-based step `k`.
     pub fn factor(&self, k: u64) -> f64 {
         let warm = if self.warmup_steps == 0 {
@@ -227,6 +246,20 @@ pub struct AdamConfig {
     pub appearance: AdamGroup,
     /// The vertex-feature table of the Fig. 2b baseline (sparse, like the grids).
     pub vertex: AdamGroup,
+}
+
+impl AdamConfig {
+    /// Every group, for what applies to all of them alike.
+    pub fn groups_mut(&mut self) -> [&mut AdamGroup; 6] {
+        [
+            &mut self.shader,
+            &mut self.deform,
+            &mut self.grid_h,
+            &mut self.grid_d,
+            &mut self.appearance,
+            &mut self.vertex,
+        ]
+    }
 }
 
 impl Default for AdamConfig {

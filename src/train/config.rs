@@ -15,7 +15,7 @@
 
 use crate::model::ModelConfig;
 use crate::scene::NormalizeMode;
-use crate::train::adam::AdamConfig;
+use crate::train::adam::{AdamConfig, LrSchedule};
 use crate::train::sampler::SampleMode;
 use anyhow::{bail, ensure, Context, Result};
 use serde::{Deserialize, Serialize};
@@ -52,12 +52,35 @@ impl TableSize {
     }
 }
 
+/// How a run's step count is chosen (`[train] budget`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum StepBudget {
+    /// `train.steps` as configured (the `tiny` and `paper` presets; any run given `--steps` or
+    /// `[train] steps`).
+    #[default]
+    Fixed,
+    /// The scene's size sets it (the `cpu` preset): a fixed number of epochs over the training
+    /// views' kept pixels, within a floor and a cap (`train/setup.rs` [`resolve_budget`]). The
+    /// chosen count is written to `train.steps` when a run starts, so `RUN/config.toml` and the
+    /// checkpoint hold it.
+    ///
+    /// [`resolve_budget`]: crate::train::setup::resolve_budget
+    Auto,
+}
+
 /// Everything about a training run that is not the model.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct TrainConfig {
-    /// Optimisation steps.
+    /// Optimisation steps (with `budget = "auto"`: chosen when the run starts, and stored).
     pub steps: u64,
+    /// How `steps` is chosen: `fixed` (as given) or `auto` (the `cpu` preset: from the number of
+    /// training pixels, `train/setup.rs` `resolve_budget`). `--steps`, or `[train] steps` in a
+    /// config file that does not also set `budget = "auto"`, fix it. Absent from older configs
+    /// (= fixed, as they were trained).
+    #[serde(default)]
+    pub budget: StepBudget,
     /// Pixels per batch (each with γ² sub-samples).
     pub batch_pixels: usize,
     /// Seed of initialisation and batch selection (SPEC §5).
@@ -134,6 +157,11 @@ impl TrainConfig {
         adam.appearance.lr = 1e-3;
         let base = TrainConfig {
             steps: 2000,
+            budget: if name == "cpu" {
+                StepBudget::Auto
+            } else {
+                StepBudget::Fixed
+            },
             batch_pixels: 4096,
             seed: 0,
             eval_every: 500,
@@ -168,7 +196,34 @@ impl TrainConfig {
                 log_every: 10,
                 ..base
             },
-            "cpu" => base,
+            "cpu" => {
+                let mut adam = base.adam.clone();
+                // Measured on a real capture (instant-ngp's fox, 2,000 steps, held-out masked
+                // PSNR / SSIM / ꟻLIP; docs/results.md#real): the grids' and MLPs' rate halved at
+                // steps 1000, 1250, 1500 and 1750 (1/16 from then on) took 27.67 / 0.816 / 0.149
+                // to 27.75 / 0.820 / 0.144; the appearance codes at 1e-2 instead of 1e-3 (each
+                // photo's exposure and white balance learnt within the budget) to 27.75 / 0.816
+                // / 0.149. Written for the preset's 2,000 steps; `budget = "auto"` stretches
+                // them to the chosen count (setup::resolve_budget), and the stored config holds the
+                // stretched steps, so a resumed run is the uninterrupted one.
+                let fall = LrSchedule {
+                    decay_start: 1000,
+                    decay_interval: 250,
+                    decay_base: 0.5,
+                    decay_end: 1750,
+                    ..LrSchedule::default()
+                };
+                for g in [
+                    &mut adam.shader,
+                    &mut adam.deform,
+                    &mut adam.grid_h,
+                    &mut adam.grid_d,
+                ] {
+                    g.schedule = fall;
+                }
+                adam.appearance.lr = 1e-2;
+                TrainConfig { adam, ..base }
+            }
             "paper" => TrainConfig {
                 batch_pixels: 8192,
                 ..base
@@ -226,6 +281,16 @@ impl RunConfig {
             .to_string();
         let base = RunConfig::preset(&preset).with_context(|| format!("{origin}: preset"))?;
         let mut v = toml::Value::try_from(&base).context("serialising the preset")?;
+        // The `[model.refine]` keys a file leaves out take the section's defaults: laid over the
+        // preset's table whole, since a table read alone takes the values older builds left out
+        // for `features`, `photo` and `optimizer` (`model/refine.rs`).
+        if let Some(m) = v.get_mut("model").and_then(|m| m.as_table_mut()) {
+            if !m.contains_key("refine") {
+                let r =
+                    toml::Value::try_from(&base.model.refine).context("serialising the preset")?;
+                m.insert("refine".to_string(), r);
+            }
+        }
         merge(&mut v, over);
         described(v, origin, text)
     }
@@ -319,6 +384,15 @@ impl RunConfig {
                 // automatic range adds levels at (`auto_levels`), not a fixed range.
                 if (scale || finest) && !auto_asked {
                     cfg.train.level_range = LevelRange::Fixed;
+                }
+                // `[train] steps` fixes the budget, unless the file also asks for the automatic
+                // one (a run's own config.toml, which stores the count the rule chose: given
+                // again, the rule chooses it again).
+                let train_key = |k: &str| over.get("train").and_then(|t| t.get(k));
+                if train_key("steps").is_some()
+                    && train_key("budget").and_then(|v| v.as_str()) != Some("auto")
+                {
+                    cfg.train.budget = StepBudget::Fixed;
                 }
                 if let Some(f) = cfg.model.grid_h.finest_resolution.filter(|_| finest) {
                     let g = &mut cfg.model.grid_h;
@@ -541,7 +615,10 @@ pub fn line_of_key(text: &str, path: &str) -> Option<usize> {
 /// apart, so a killed run continues from one. The tools compare
 /// [`RunConfig::results_toml`], which leaves the interval out, so runs of builds that saved none
 /// are still reused.
+/// Their runs share one step count (the variants of a table are compared at equal steps, not at
+/// what each one's kept pixels would choose), so the budget is fixed at `train.steps`.
 pub fn set_tool_run(cfg: &mut RunConfig) {
+    cfg.train.budget = StepBudget::Fixed;
     cfg.train.eval_every = 0;
     cfg.train.checkpoint_every = tool_checkpoint_every(cfg.train.steps);
 }

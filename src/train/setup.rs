@@ -11,7 +11,7 @@ use crate::raycast::consistency::PhotoCheck;
 use crate::raycast::{CacheEvent, Targets, Tracer};
 use crate::scene::Camera;
 use crate::scene::{LoadOptions, LoadReport, MaskSource, Scene};
-use crate::train::config::{LevelRange, RunConfig, TableSize};
+use crate::train::config::{LevelRange, RunConfig, StepBudget, TableSize, TrainConfig};
 use crate::train::memory;
 use crate::train::sampler::{SampleMode, Samples};
 use anyhow::{bail, Context, Result};
@@ -74,6 +74,7 @@ impl Prepared {
         for msg in resolve_table_sizes(&mut cfg, &self.samples, &self.tracer) {
             log(msg);
         }
+        log(resolve_budget(&mut cfg.train, self.samples.len()));
         self.check_model(&cfg)?;
         let ckpt = init_checkpoint_for_mesh(
             &cfg.model,
@@ -424,6 +425,56 @@ pub fn few_hits_warning(hits: u64, pixels: u64, agreed: Option<&Path>) -> Option
     })
 }
 
+/// Epochs over the training views' kept pixels that `budget = "auto"` trains (measured on `synth`
+/// `small` and `cross`, docs/results.md "Training budget").
+pub const BUDGET_EPOCHS: f64 = 12.0;
+
+/// Fewest steps `budget = "auto"` chooses (a scene of a few views still trains its MLP and
+/// appearance codes to convergence: the `tiny` scene's 15,000 pixels are 4 batches).
+pub const BUDGET_MIN_STEPS: u64 = 1000;
+
+/// Most steps `budget = "auto"` chooses: three times the fixed budget it replaced, so a default
+/// run on a large scene takes at most about three times what it did (not chosen by a quality
+/// measurement: a real phone capture of 21 million training pixels would otherwise get 20,000
+/// steps, ten times the old default's time on 2 cores; `synth --preset large` is 20,000 batches
+/// per epoch).
+pub const BUDGET_MAX_STEPS: u64 = 6_000;
+
+/// The steps `budget = "auto"` chooses for `pixels` kept training pixels in batches of `batch`:
+/// `clamp(⌈BUDGET_EPOCHS · pixels / batch⌉ rounded up to a multiple of 100, BUDGET_MIN_STEPS,
+/// BUDGET_MAX_STEPS)` — a pure function of the scene and the configuration, never of time.
+pub fn budget_steps(pixels: usize, batch: usize) -> u64 {
+    let epochs = BUDGET_EPOCHS * pixels as f64 / batch.max(1) as f64;
+    let steps = (epochs.ceil() as u64).div_ceil(100) * 100;
+    steps.clamp(BUDGET_MIN_STEPS, BUDGET_MAX_STEPS)
+}
+
+/// Resolve the step count of a new run in place (`train.budget`); returns the message saying
+/// what was chosen and why (printed when the run starts). `pixels`: the training views' kept
+/// pixels (those with a sub-sample on the mesh: the ones batches are drawn from).
+pub fn resolve_budget(train: &mut TrainConfig, pixels: usize) -> String {
+    match train.budget {
+        StepBudget::Fixed => format!(
+            "training budget (fixed): {} steps of {} pixels",
+            train.steps, train.batch_pixels
+        ),
+        StepBudget::Auto => {
+            // The preset's learning-rate schedule is written for its own `steps`: stretched to
+            // the chosen count, its decays fall at the same fractions of the run (spec §8).
+            let written_for = train.steps;
+            train.steps = budget_steps(pixels, train.batch_pixels);
+            for g in train.adam.groups_mut() {
+                g.schedule = g.schedule.stretched(written_for, train.steps);
+            }
+            let epochs = train.steps as f64 * train.batch_pixels as f64 / pixels.max(1) as f64;
+            format!(
+                "training budget (auto): {} steps of {} pixels = {epochs:.1} epochs over the {pixels} training pixels ({BUDGET_EPOCHS} epochs, within {BUDGET_MIN_STEPS}..{BUDGET_MAX_STEPS} steps; --steps N or [train] steps fixes it; learning-rate decays at the same fractions of the run)",
+                train.steps, train.batch_pixels
+            )
+        }
+    }
+}
+
 /// Which footprint sets the finest level in `level_range = "auto"`: the smallest over training
 /// views of each view's [`LEVEL_QUANTILE`]-quantile pixel footprint — the closest views' typical
 /// pixel, not their single smallest one (a pixel at a grazing angle or at the edge of a near
@@ -725,6 +776,51 @@ pub fn drop_fine_levels(model: &mut ModelConfig, footprint_min: f64) -> Option<S
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The automatic budget is epochs over the kept pixels, within its floor and cap, and only
+    /// when asked for.
+    #[test]
+    fn budget_follows_the_pixels() {
+        assert_eq!(budget_steps(0, 4096), BUDGET_MIN_STEPS);
+        assert_eq!(budget_steps(100_000_000, 4096), BUDGET_MAX_STEPS);
+        let (a, b) = (budget_steps(1_000_000, 4096), budget_steps(2_000_000, 4096));
+        assert!(a > BUDGET_MIN_STEPS && b < BUDGET_MAX_STEPS, "{a} {b}");
+        assert!(
+            b >= 2 * a - 100 && b <= 2 * a,
+            "twice the pixels, twice the steps: {a} {b}"
+        );
+        assert_eq!(a % 100, 0);
+        let want = (BUDGET_EPOCHS * 1_000_000.0 / 4096.0).ceil() as u64;
+        assert!(a >= want && a < want + 100, "{a} {want}");
+        let mut t = TrainConfig::for_preset("cpu").unwrap();
+        assert_eq!(t.budget, StepBudget::Auto);
+        let written_for = t.steps;
+        let before = t.adam.grid_h.schedule;
+        let msg = resolve_budget(&mut t, 1_000_000);
+        assert_eq!(t.steps, a);
+        assert!(msg.contains(&format!("{a} steps")), "{msg}");
+        // The preset's decays at the same fractions of the chosen run.
+        let after = t.adam.grid_h.schedule;
+        if before.decay_interval > 0 {
+            let frac = |k: u32, n: u64| k as f64 / n as f64;
+            assert!(
+                (frac(after.decay_start, a) - frac(before.decay_start, written_for)).abs() < 1e-3,
+                "{before:?} {after:?}"
+            );
+            assert!(
+                (frac(after.decay_end, a) - frac(before.decay_end, written_for)).abs() < 1e-3,
+                "{before:?} {after:?}"
+            );
+        }
+        // Resolving the stored result again (a run's config.toml given back) changes nothing.
+        let again = t.clone();
+        resolve_budget(&mut t, 1_000_000);
+        assert_eq!(format!("{:?}", t.adam), format!("{:?}", again.adam));
+        let mut t = TrainConfig::for_preset("tiny").unwrap();
+        assert_eq!(t.budget, StepBudget::Fixed);
+        resolve_budget(&mut t, 2_000_000);
+        assert_eq!(t.steps, 300, "a fixed budget is left as it is");
+    }
 
     #[test]
     fn few_hits_are_flagged() {

@@ -162,6 +162,13 @@ fn auto_sizes_follow_the_cells_and_are_the_same_streamed_or_cached_on_any_thread
         }
     }
     assert!(hashed > 5, "{hashed} hashed levels");
+    // Grid D follows the rule but never grows past the preset's size (it may shrink).
+    let d_cfg = RunConfig::preset("cpu").unwrap().model.deform.grid;
+    let td = d.log2_table_sizes.as_ref().unwrap();
+    assert!(td.iter().all(|&x| x <= d_cfg.log2_table_size), "{td:?}");
+    assert!(td.iter().any(|&x| x < d_cfg.log2_table_size), "{td:?}");
+    assert_eq!(d.log2_table_size, *td.iter().max().unwrap());
+    assert!(HashGrid::new(d).n_params() <= HashGrid::new(&d_cfg).n_params());
     assert_eq!(h.log2_table_size, *t.iter().max().unwrap());
     // Coarse levels reach few cells, finer ones more (the fixture's 18k pixels).
     assert!(cells[0] > 0.0 && cells[0] < cells[5], "{cells:?}");

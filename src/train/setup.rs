@@ -662,7 +662,8 @@ pub fn auto_log2_size(cells: f64) -> u32 {
 /// log2_table_size = "auto"`): level l holds at most `2^T_l` entries, `T_l` =
 /// [`auto_log2_size`] of the cells [`reached_cells`] counts, except that a level dense at the
 /// configured `log2_table_size` stays dense (`T_l = T`); `log2_table_size` becomes the largest `T_l`. Grid D (ξ) too,
-/// every level counted at every hit (ξ is not footprint-weighted). `fixed` keeps the configured
+/// every level counted at every hit (ξ is not footprint-weighted), never above its configured
+/// `log2_table_size`. `fixed` keeps the configured
 /// size(s). Run after [`resolve_levels`] (the sizes are per resolved level).
 pub fn resolve_table_sizes(cfg: &mut RunConfig, samples: &Samples, tracer: &Tracer) -> Vec<String> {
     let mut out = Vec::new();
@@ -673,15 +674,18 @@ pub fn resolve_table_sizes(cfg: &mut RunConfig, samples: &Samples, tracer: &Trac
     let weighted = !cfg.model.level_weight.is_none();
     let deform = cfg.model.deform.enabled;
     // Grid H (levels weighted by footprint), then grid D (ξ reads every level at every hit).
-    let grids: Vec<(&str, &mut GridConfig, bool)> = if deform {
+    // Grid D never grows past its configured size (`docs/changelog.md`, "Grid D's tables"): the
+    // rule sized it up to 2^19 where the preset has 2^17, for no measured gain.
+    let grids: Vec<(&str, &mut GridConfig, bool, bool)> = if deform {
         vec![
-            ("H", &mut cfg.model.grid_h, weighted),
-            ("D", &mut cfg.model.deform.grid, false),
+            ("H", &mut cfg.model.grid_h, weighted, false),
+            ("D", &mut cfg.model.deform.grid, false, true),
         ]
     } else {
-        vec![("H", &mut cfg.model.grid_h, weighted)]
+        vec![("H", &mut cfg.model.grid_h, weighted, false)]
     };
-    for (name, g, weighted) in grids {
+    for (name, g, weighted, capped) in grids {
+        let configured = g.log2_table_size;
         let mut counted = 0.0;
         let cells = auto.then(|| {
             let t0 = std::time::Instant::now();
@@ -693,7 +697,8 @@ pub fn resolve_table_sizes(cfg: &mut RunConfig, samples: &Samples, tracer: &Trac
                 .iter()
                 .enumerate()
                 .map(|(l, &c)| match &fixed {
-                    Some(f) if f.dense[l] => g.log2_table_size,
+                    Some(f) if f.dense[l] => configured,
+                    _ if capped => auto_log2_size(c).min(configured),
                     _ => auto_log2_size(c),
                 })
                 .collect();
@@ -715,8 +720,13 @@ pub fn resolve_table_sizes(cfg: &mut RunConfig, samples: &Samples, tracer: &Trac
             })
             .collect();
         let mode = if cells.is_some() {
+            let ceiling = if capped {
+                TABLE_CEILING_LOG2.min(configured)
+            } else {
+                TABLE_CEILING_LOG2
+            };
             format!(
-                "auto: ≥ {TABLE_HEADROOM} entries per surface cell the training rays reach, 2^{TABLE_FLOOR_LOG2}..2^{TABLE_CEILING_LOG2}, dense levels kept; cells counted in {counted:.1} s"
+                "auto: ≥ {TABLE_HEADROOM} entries per surface cell the training rays reach, 2^{TABLE_FLOOR_LOG2}..2^{ceiling}, dense levels kept; cells counted in {counted:.1} s"
             )
         } else if let Some(t) = &g.log2_table_sizes {
             format!("fixed: log2 sizes {t:?}")

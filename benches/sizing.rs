@@ -38,7 +38,10 @@ fn state(prepared: &Prepared, batch: usize, auto: bool) -> (TrainState, Grads<f3
         first.get_or_insert(s.loss);
         last = s.loss;
     }
-    assert!(last < first.unwrap(), "the loss did not fall over the warm-up");
+    assert!(
+        last < first.unwrap(),
+        "the loss did not fall over the warm-up"
+    );
     (st, g)
 }
 
@@ -54,20 +57,29 @@ fn main() {
         .unwrap();
     let mut rows = Vec::new();
     for batch in [4096usize, 16384] {
-        let mut runs = pool.install(|| [state(&prepared, batch, false), state(&prepared, batch, true)]);
+        let mut runs = pool.install(|| {
+            [
+                state(&prepared, batch, false),
+                state(&prepared, batch, true),
+            ]
+        });
         let mut best = [f64::INFINITY; 2];
         for round in 0..rounds {
             for (i, (st, g)) in runs.iter_mut().enumerate() {
                 let t = pool.install(|| {
                     let t0 = Instant::now();
                     for _ in 0..steps {
-                        let b = sample_batch(&prepared.samples, &prepared.tracer, 0, st.step, batch);
+                        let b =
+                            sample_batch(&prepared.samples, &prepared.tracer, 0, st.step, batch);
                         assert!(st.step(&b, g).unwrap().loss.is_finite());
                     }
                     t0.elapsed().as_secs_f64()
                 });
                 let ms = 1e3 * t / steps as f64;
-                eprintln!("batch {batch}, round {round}, {}: {ms:.1} ms/step", ["fixed 2^19", "auto"][i]);
+                eprintln!(
+                    "batch {batch}, round {round}, {}: {ms:.1} ms/step",
+                    ["fixed 2^19", "auto"][i]
+                );
                 best[i] = best[i].min(ms);
             }
         }

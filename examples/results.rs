@@ -139,6 +139,13 @@ const SECTIONS: &[Spec] = &[
         cost: "about 10 minutes per seed on small (20 with load), plus the bench",
         run: sizing,
     },
+    Spec {
+        name: "sizing_render",
+        title: "Rendering a 1.08-megapixel frame with tables from the scene",
+        measures: "`xscale render --scale 6` of one held-out `small` view (1200×900, γ = 2) from the `sizing` section's seed-0 models of `small` (fixed 2^19 tables and tables from the scene): the whole command (mapping the checkpoint, building the BVH, casting, shading, writing the PNG), the two alternating, 5 runs each, median.",
+        cost: "under a minute (after the sizing section)",
+        run: sizing_render,
+    },
 ];
 
 /// What a section's run gives; the runner adds name, title, host, date, commit and duration.
@@ -1033,7 +1040,10 @@ fn ckpt_params(path: &Path) -> Result<usize> {
 fn sizing(c: &Ctx) -> Result<Section> {
     let mut s = Section::default();
     let fixed = c.w("sizing-fixed19.toml");
-    std::fs::write(c.root.join(&fixed), "[model.grid_h]\nlog2_table_size = 19\n")?;
+    std::fs::write(
+        c.root.join(&fixed),
+        "[model.grid_h]\nlog2_table_size = 19\n",
+    )?;
     s.commands
         .push(format!("({fixed}: [model.grid_h] log2_table_size = 19)"));
     let seeds: Vec<String> = std::env::var("XSCALE_SIZING_SEEDS")
@@ -1100,7 +1110,11 @@ fn sizing(c: &Ctx) -> Result<Section> {
                 m.3.push(bytes as f64 / 1e6);
                 run_rows.push(vec![
                     json!(preset),
-                    json!(if *tag == "fixed" { "fixed 2^19" } else { "auto" }),
+                    json!(if *tag == "fixed" {
+                        "fixed 2^19"
+                    } else {
+                        "auto"
+                    }),
                     json!(seed),
                     e["step"].clone(),
                     json!(bytes as f64 / 1e6),
@@ -1147,7 +1161,13 @@ fn sizing(c: &Ctx) -> Result<Section> {
     ));
     s.tables.push(table(
         "means over the seeds",
-        &["scene", "tables", "seeds", "checkpoint (MB)", "masked PSNR (dB)"],
+        &[
+            "scene",
+            "tables",
+            "seeds",
+            "checkpoint (MB)",
+            "masked PSNR (dB)",
+        ],
         &[0, 0, 0, 1, 2],
         mean_rows,
     ));
@@ -1176,6 +1196,68 @@ fn sizing(c: &Ctx) -> Result<Section> {
                 "auto_params",
             ],
         )?,
+    ));
+    Ok(s)
+}
+
+fn sizing_render(c: &Ctx) -> Result<Section> {
+    let mut s = Section::default();
+    let runs = ["fixed", "auto"].map(|t| c.w(&format!("sizing-small-{t}-0")));
+    for r in &runs {
+        if !c.root.join(r).join("checkpoint.safetensors").is_file() {
+            bail!("no {r}: run the sizing section first");
+        }
+    }
+    let e = read_json(&c.root.join(&runs[1]).join("eval.json"))?;
+    let view = e["views"][0]["view"]
+        .as_str()
+        .ok_or_else(|| anyhow!("{}: no view", runs[1]))?
+        .to_string();
+    let dir = c.w("sizing-render");
+    let mut walls = [Vec::new(), Vec::new()];
+    let mut peak = [0.0f64; 2];
+    for _ in 0..5 {
+        for (i, r) in runs.iter().enumerate() {
+            let args = [
+                "render", "--run", r, "--views", &view, "--scale", "6", "--out", &dir, "-q",
+            ];
+            let ran = c.xscale(&args)?;
+            walls[i].push(ran.wall_s);
+            peak[i] = peak[i].max(ran.peak_mb.unwrap_or(0.0));
+        }
+    }
+    for (i, r) in runs.iter().enumerate() {
+        s.commands.push(format!(
+            "xscale render --run {r} --views {view} --scale 6 --out {dir} -q   (5 times, alternating)"
+        ));
+        walls[i].sort_by(f64::total_cmp);
+    }
+    let rows = (0..2)
+        .map(|i| {
+            vec![
+                json!(["fixed 2^19", "auto"][i]),
+                json!(walls[i][2]),
+                json!(walls[i][0]),
+                json!(walls[i][4]),
+                json!(peak[i]),
+            ]
+        })
+        .collect();
+    s.tables.push(table(
+        &format!("view {view} at 6× its size"),
+        &[
+            "tables",
+            "median (s)",
+            "fastest (s)",
+            "slowest (s)",
+            "peak memory (MB)",
+        ],
+        &[0, 2, 2, 2, 0],
+        rows,
+    ));
+    s.notes.push(format!(
+        "Fixed / auto (medians): {:.2}×.",
+        walls[0][2] / walls[1][2]
     ));
     Ok(s)
 }

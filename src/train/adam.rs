@@ -786,7 +786,7 @@ impl AdamState {
     pub fn save_compact(&self, f: &mut TensorFile) -> Result<()> {
         for s in &self.slots {
             let rows = s.shape.first().copied().unwrap_or(1);
-            let row_len = if rows == 0 { 0 } else { s.len() / rows };
+            let row_len = s.len().checked_div(rows).unwrap_or(0);
             let st = &self.state[s.range()];
             let zero = |m: &Moments| m.m.to_bits() == 0 && m.v.to_bits() == 0 && m.t == 0;
             let kept: Vec<u32> = if row_len == 0 || s.shape.is_empty() {
@@ -834,7 +834,11 @@ impl AdamState {
 /// `adam.m.<name>`, `adam.v.<name>` (F32) and `adam.t.<name>` (U32) of `shape`.
 fn insert_state(f: &mut TensorFile, name: &str, shape: &[usize], b: [Vec<u8>; 3]) -> Result<()> {
     let [m, v, t] = b;
-    for (kind, dtype, bytes) in [("m", DType::F32, m), ("v", DType::F32, v), ("t", DType::U32, t)] {
+    for (kind, dtype, bytes) in [
+        ("m", DType::F32, m),
+        ("v", DType::F32, v),
+        ("t", DType::U32, t),
+    ] {
         f.insert(
             format!("adam.{kind}.{name}"),
             Tensor::from_bytes(dtype, shape.to_vec(), bytes)?,
@@ -889,7 +893,8 @@ impl AdamState {
             );
             if let Some(rows) = rows {
                 let row_len = s.len() / s.shape[0];
-                let word = |b: &[u8], i: usize| -> [u8; 4] { b[i * 4..i * 4 + 4].try_into().unwrap() };
+                let word =
+                    |b: &[u8], i: usize| -> [u8; 4] { b[i * 4..i * 4 + 4].try_into().unwrap() };
                 let out = &mut st.state[s.range()];
                 for (k, &r) in rows.iter().enumerate() {
                     for j in 0..row_len {
@@ -942,7 +947,11 @@ fn kept_rows(f: &TensorFile, s: &ParamSlot) -> Result<Vec<u32>> {
     let rows = f.get_u32(&name)?;
     let n = s.shape[0];
     if let Some(w) = rows.windows(2).find(|w| w[0] >= w[1]) {
-        bail!("{label}: tensor {name}: rows not ascending ({} then {})", w[0], w[1]);
+        bail!(
+            "{label}: tensor {name}: rows not ascending ({} then {})",
+            w[0],
+            w[1]
+        );
     }
     if let Some(&r) = rows.last().filter(|&&r| r as usize >= n) {
         bail!("{label}: tensor {name}: row {r} beyond the parameter's {n} rows");
@@ -968,6 +977,40 @@ pub fn zero_entries(grads: &mut [f32], entries: &[u32], entry_len: usize) {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// `save_compact` keeps the stepped rows only and reads back to the same state; a slot with
+    /// every row stepped is written whole; a bad row list is an error naming the tensor.
+    #[test]
+    fn compact_state_round_trips_and_checks_its_rows() {
+        let specs = [("a", vec![5, 2]), ("b", vec![3])];
+        let mut st = AdamState::new(&specs);
+        for (i, m) in st.state.iter_mut().enumerate() {
+            // Rows 1 and 3 of `a` (one scalar of row 3) and every scalar of `b` have stepped.
+            if matches!(i, 2 | 3 | 7) || i >= 10 {
+                *m = Moments {
+                    m: 0.5 + i as f32,
+                    v: 0.25,
+                    t: i as u32,
+                };
+            }
+        }
+        let mut f = TensorFile::default();
+        st.save_compact(&mut f).unwrap();
+        assert_eq!(f.get_u32("adam.rows.a").unwrap(), vec![1, 3]);
+        assert_eq!(f.get("adam.m.a").unwrap().shape, vec![2, 2]);
+        assert!(!f.tensors.contains_key("adam.rows.b"));
+        assert_eq!(AdamState::load(&f, &specs).unwrap().state, st.state);
+        for (rows, want) in [(vec![3u32, 1], "not ascending"), (vec![1, 5], "beyond")] {
+            let mut g = f.clone();
+            let b: Vec<u8> = rows.iter().flat_map(|r| r.to_le_bytes()).collect();
+            g.insert(
+                "adam.rows.a",
+                Tensor::from_bytes(DType::U32, vec![2], b).unwrap(),
+            );
+            let e = format!("{:#}", AdamState::load(&g, &specs).unwrap_err());
+            assert!(e.contains("adam.rows.a") && e.contains(want), "{e}");
+        }
+    }
 
     /// The kept `lr_t` tables give the values of a fresh computation whatever the order of
     /// calls: one key growing step by step, keys interleaved, more keys than are kept, a

@@ -100,7 +100,7 @@ const SECTIONS: &[Spec] = &[
     Spec {
         name: "bench_quality",
         title: "Run time against error (`xscale bench-quality`)",
-        measures: "Every configuration of `xscale bench-quality --list` trained for the same wall-clock budget on `small` and scored on the held-out views at the budget and at its halvings (evaluation time not counted); then the default, two of its variants and ULR on a real capture (the skull of section `real`). One seed per configuration: differences of a few tenths of a dB are within what two runs of one configuration differ by.",
+        measures: "Every configuration of `xscale bench-quality --list` trained for the same wall-clock budget on `small` and scored on the held-out views at the budget and at its halvings (evaluation time not counted); then the default, three of its variants (mesh refinement among them) and ULR on a real capture (the skull of section `real`). One seed per configuration: differences of a few tenths of a dB are within what two runs of one configuration differ by.",
         cost: "about 20 minutes",
         run: bench_quality,
     },
@@ -1025,8 +1025,8 @@ fn budget(c: &Ctx) -> Result<Section> {
 const BQ_MINUTES: &str = "0.5";
 
 /// The configurations `bench-quality` runs on the real capture (the default, the fastest step
-/// and the largest batch of the `small` table, and the no-learning baseline).
-const BQ_REAL_CONFIGS: &str = "cpu,cpu-gamma1,cpu-batch16k,ulr";
+/// and the largest batch of the `small` table, mesh refinement, and the no-learning baseline).
+const BQ_REAL_CONFIGS: &str = "cpu,cpu-refine,cpu-gamma1,cpu-batch16k,ulr";
 
 fn bench_quality(c: &Ctx) -> Result<Section> {
     let mut s = Section::default();

@@ -135,7 +135,7 @@ const SECTIONS: &[Spec] = &[
     Spec {
         name: "refine",
         title: "Mesh refinement on and off (`xscale bench-geometry`)",
-        measures: "Photo-consistency mesh refinement (`[model.refine] enabled = true` with the section's defaults) on and off, with the `cpu` preset's default budget, deformation on, on `synth --preset small --write-truth` (seed 1): the exact mesh with training seeds 0, 1 and 2, and a proxy displaced by 0.3 % of the diagonal RMS (seed 0). Held-out masked PSNR and SSIM, close-ups and aerial views apart, training time of each run (one after another on the same host). The `cpu` preset keeps refinement off; this table is what that rule rests on.",
+        measures: "Photo-consistency mesh refinement (`[model.refine] enabled = true` with the section's defaults) on and off, `cpu` preset at `bench-geometry`'s fixed 2,000 steps (the same count for every run), deformation on, on `synth --preset small --write-truth` (seed 1): the exact mesh with training seeds 0, 1 and 2, and a proxy displaced by 0.3 % of the diagonal RMS (seed 0). Held-out masked PSNR and SSIM, close-ups and aerial views apart, training time of each run (one after another on the same host). The `cpu` preset keeps refinement off; this table is what that rule rests on.",
         cost: "about 30 minutes",
         run: refine,
     },

@@ -93,7 +93,7 @@ const SECTIONS: &[Spec] = &[
     Spec {
         name: "real",
         title: "Real photographs: the default against reprojection (ULR)",
-        measures: "The default `cpu` preset trained on real captures and scored on their held-out views (every 7th) against the no-learning ULR baseline on the same pixels: masked PSNR, SSIM and ꟻLIP (lower is better), and the full-image PSNR (every pixel, the mesh's misses counted). The committed capture is `fixtures/prepare_skull` (10 photos of a skull, 709×473, CC BY 4.0; its COLMAP model meshed by `xscale prepare --sparse`, black background); scene folders listed in `XSCALE_REAL_SCENES` (colon-separated; their photos are not in the repository) are run the same way — on this page instant-ngp's `fox` (50 phone photos halved to 540×960, NVIDIA's non-commercial licence), prepared with `xscale prepare --photos fox/images --poses fox --downsample 2 --out fox_scene` (docs/prepare.md). The row `mean code` scores the same model with every held-out view given the mean appearance code (`eval --appearance mean`) instead of its pose neighbours' codes (the default, spec §4.6).",
+        measures: "The default `cpu` preset trained on real captures and scored on their held-out views (every 7th) against the no-learning ULR baseline on the same pixels: masked PSNR, SSIM and ꟻLIP (lower is better), and the full-image PSNR (every pixel, the mesh's misses counted). The committed capture is `fixtures/prepare_skull` (10 photos of a skull, 709×473, CC BY 4.0; its COLMAP model meshed by `xscale prepare --sparse`, black background); scene folders listed in `XSCALE_REAL_SCENES` (colon-separated; their photos are not in the repository) are run the same way — on this page instant-ngp's `fox` (50 phone photos halved to 540×960, NVIDIA's non-commercial licence), prepared with `xscale prepare --photos fox/images --poses fox --downsample 2 --out fox_scene` (docs/prepare.md). The refinement row trains the same scene with photo-consistency mesh refinement on (`[model.refine] enabled = true`), which the `cpu` preset leaves off. The row `mean code` scores the same model with every held-out view given the mean appearance code (`eval --appearance mean`) instead of its pose neighbours' codes (the default, spec §4.6).",
         cost: "about 5 minutes, plus 10 per scene of XSCALE_REAL_SCENES",
         run: real,
     },
@@ -889,6 +889,27 @@ fn real(c: &Ctx) -> Result<Section> {
             "the same model, held-out views with the mean code",
             &read_json(&c.root.join(&mean_json))?,
             json!(trained_s(&run)?),
+        ));
+        // Mesh refinement on the same scene: what it does to a real, reconstructed mesh.
+        let refined = c.w(&format!("real-{name}-refine"));
+        let _ = std::fs::remove_dir_all(c.root.join(&refined));
+        let cfg = c.w("real-refine.toml");
+        let text = "[model.refine]\nenabled = true\n";
+        std::fs::write(c.root.join(&cfg), text)?;
+        let args = [
+            "train", "--scene", scene, "--out", &refined, "--config", &cfg, "-q",
+        ];
+        c.xscale(&args)?;
+        s.commands.push(format!(
+            "xscale {}   ({cfg}: {})",
+            args.join(" "),
+            text.trim().replace('\n', " ")
+        ));
+        let run_r = c.root.join(&refined);
+        rows.push(row(
+            "xscale with mesh refinement (`[model.refine] enabled = true`)",
+            &read_json(&run_r.join("eval.json"))?,
+            json!(trained_s(&run_r)?),
         ));
         rows.push(row("ULR (no training)", &ulr, json!(0.0)));
         let (a, b) = (&trained["mean"], &ulr["mean"]);

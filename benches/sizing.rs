@@ -8,7 +8,7 @@
 //! Run: `cargo bench --bench sizing` (`XSCALE_BENCH_STEPS`, `XSCALE_BENCH_ROUNDS`).
 
 mod common;
-use common::{emit_json, env_count, small_scene as scene};
+use common::{emit_json, env_count, small_scene as scene, warm_up};
 use std::time::Instant;
 use xscale::model::params::Grads;
 use xscale::train::config::{RunConfig, TableSize};
@@ -29,19 +29,7 @@ fn state(prepared: &Prepared, batch: usize, auto: bool) -> (TrainState, Grads<f3
     let mut st = TrainState::init(cfg, prepared, &mut |_| {}).unwrap();
     let mut g = Grads::new(&st.ckpt.model.layout);
     g.inputs = false;
-    let mut first = None;
-    let mut last = 0.0;
-    for _ in 0..WARMUP {
-        let b = sample_batch(&prepared.samples, &prepared.tracer, 0, st.step, batch);
-        let s = st.step(&b, &mut g).unwrap();
-        assert!(s.loss.is_finite(), "loss is not finite");
-        first.get_or_insert(s.loss);
-        last = s.loss;
-    }
-    assert!(
-        last < first.unwrap(),
-        "the loss did not fall over the warm-up"
-    );
+    warm_up(&mut st, &mut g, prepared, batch, WARMUP);
     (st, g)
 }
 

@@ -49,8 +49,8 @@
 //! than [`NB_MARGIN_ALONE`] above it), is named in a warning ([`Consistency::beaten`]).
 //! With the pairs' whole correlation instead, the crude mesh of a real capture (the skull of
 //! `xscale prepare`, 1,535 triangles from 808 sparse points, on a black backdrop) was beaten by
-//! itself moved by 4 % (0.78 against 0.72): its texture agrees no better moved, but more of
-//! its samples fall on the backdrop in every view, which correlates dark with dark. Within
+//! itself moved by 4 % (0.78 against 0.72), probably because more of its samples then fall on
+//! the backdrop in every view, which correlates dark with dark (not measured apart). Within
 //! cubes it gains less (0.69 against 0.67; 0.72 against 0.69 on the committed smaller photos)
 //! and wins only 14–17 of 28 view pairs, while its turned, moved and scaled copies are beaten
 //! by 0.04 to 0.45 in 21 to 27 (`docs/results.md`, section `meshcheck`).
@@ -682,7 +682,7 @@ impl PhotoCheck {
 
     /// Each pair of views read that shares at least [`MIN_SHARED`] samples: (slot a, slot b,
     /// the samples, their luminances in a and b), a < b.
-    fn pair_samples(&self) -> Vec<(usize, usize, Vec<u32>, Vec<(f64, f64)>)> {
+    fn pair_samples(&self) -> Vec<PairSamples> {
         let read: Vec<usize> = (0..self.seen.len())
             .filter(|&s| self.lum[s].is_some())
             .collect();
@@ -819,6 +819,9 @@ fn neighbours(given: &PhotoCheck) -> Option<(Vec<Neighbour>, (DVec3, f64))> {
 
 /// A correlated pair of views: (slot a, slot b, samples shared, correlation).
 type Pair = (usize, usize, usize, f64);
+
+/// A pair of views' shared samples: (slot a, slot b, the samples, their luminances in a and b).
+type PairSamples = (usize, usize, Vec<u32>, Vec<(f64, f64)>);
 
 /// The weight (samples shared) and the shared-weighted mean correlation of the pairs `keep`
 /// takes (0 when it takes none).

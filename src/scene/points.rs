@@ -96,15 +96,15 @@ pub struct Agreement {
     pub measured: usize,
     /// Of those, inside the grown bounding box.
     pub inside: usize,
-    /// Of those inside, within [`NEAR`] of the diagonal of the mesh.
+    /// Of those inside, within `tolerance` of the mesh.
     pub near: usize,
     /// The distance that counts as on the mesh ([`NEAR`] × `size`).
     pub tolerance: f64,
     /// The size tolerances are measured in: the seen region's ([`seen_size`]), else the mesh's
     /// diagonal.
     pub size: f64,
-    /// Area samples of the mesh measured, and of those, with a point within [`COVER`] of the
-    /// diagonal.
+    /// Area samples of the mesh measured, and of those, with a point within [`COVER`] ×
+    /// `size`.
     pub samples: usize,
     pub covered: usize,
 }

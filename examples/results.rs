@@ -153,6 +153,13 @@ const SECTIONS: &[Spec] = &[
         cost: "about 30 minutes",
         run: refine,
     },
+    Spec {
+        name: "meshcheck",
+        title: "The mesh check: a correct mesh against turned, moved and scaled ones",
+        measures: "`xscale cast` on each scene with its own mesh and with that mesh turned a quarter about x, moved along z by 5 % of its bounding box's diagonal, along x by 3 %, and scaled by 1.1 (about the box's centre; the meshes `raycast::photo_check_neighbours_table` uses), and what its checks say (docs/spec.md §3.9): the photo check's correlation (a warning below 0.5), its neighbour check (the best of the 20 neighbours — the mesh moved by ± 4 % of the region the cameras see, turned by ± 5° and a quarter, scaled ×/÷ 1.1 — against the mesh as given, both scored by the correlation within cubes of a quarter of that region; a warning when it wins by more than 0.03 in the mean and in two thirds of the view pairs, or by more than 0.1), and the check against the reconstruction's points (tolerances in units of the region the cameras see). A correct mesh should stay silent, every other warn. Scenes: the `tiny` fixture, `synth --preset small --seed 1`, the committed real skull (section `real`), and any scene folder of `XSCALE_REAL_SCENES` (here instant-ngp's fox and the skull's full capture, /work/data/skull: 10 registered photos of 1418×946).",
+        cost: "a few minutes, plus about a minute per scene of XSCALE_REAL_SCENES",
+        run: meshcheck,
+    },
 ];
 
 /// What a section's run gives; the runner adds name, title, host, date, commit and duration.
@@ -983,6 +990,169 @@ fn stretched_config(steps: u64) -> String {
         );
     }
     t
+}
+
+/// The meshes of section `meshcheck`: the scene's own, turned a quarter about x, moved along z
+/// by 5 % and along x by 3 % of its bounding box's diagonal, scaled by 1.1 (about the box's
+/// centre), as `raycast::photo_check_neighbours_table` makes them.
+fn wrong_meshes(mesh: &xscale::scene::Mesh) -> Vec<(&'static str, xscale::scene::Mesh)> {
+    use glam::{DMat3, DVec3};
+    let (lo, hi) = mesh.bbox();
+    let (mid, diag) = (0.5 * (lo + hi), (hi - lo).length());
+    let moved = |f: &dyn Fn(DVec3) -> DVec3| xscale::scene::Mesh {
+        vertices: mesh.vertices.iter().map(|&v| f(v)).collect(),
+        triangles: mesh.triangles.clone(),
+    };
+    let quarter = DMat3::from_rotation_x(std::f64::consts::FRAC_PI_2);
+    vec![
+        ("correct", mesh.clone()),
+        ("turned 90° about x", moved(&|v| mid + quarter * (v - mid))),
+        (
+            "moved +z by 5% of the diagonal",
+            moved(&|v| v + DVec3::Z * 0.05 * diag),
+        ),
+        (
+            "moved +x by 3% of the diagonal",
+            moved(&|v| v + DVec3::X * 0.03 * diag),
+        ),
+        ("scaled 1.1×", moved(&|v| mid + 1.1 * (v - mid))),
+    ]
+}
+
+/// Whether the scene's COLMAP model has any reconstruction points (the synthetic scenes write
+/// an empty `points3D.txt`).
+fn has_points(scene: &Path) -> bool {
+    let model = scene.join("sparse/0");
+    match std::fs::read_to_string(model.join("points3D.txt")) {
+        Ok(t) => t
+            .lines()
+            .any(|l| !l.starts_with('#') && !l.trim().is_empty()),
+        Err(_) => model.join("points3D.bin").is_file(),
+    }
+}
+
+/// The number after `key` in `line` (up to the next character that cannot be part of it).
+fn number_after(line: &str, key: &str) -> Option<f64> {
+    let rest = &line[line.find(key)? + key.len()..];
+    let end = rest
+        .find(|c: char| !(c.is_ascii_digit() || c == '.' || c == '-'))
+        .unwrap_or(rest.len());
+    rest[..end].parse().ok()
+}
+
+fn meshcheck(c: &Ctx) -> Result<Section> {
+    let mut s = Section::default();
+    let (small, _) = small_scene(c, &mut s.commands)?;
+    let mut scenes = vec![
+        ("tiny".to_string(), "fixtures/tiny".to_string()),
+        ("small".to_string(), small),
+        (
+            "skull (fixtures/prepare_skull)".to_string(),
+            skull_scene(c, &mut s.commands)?,
+        ),
+    ];
+    if let Ok(list) = std::env::var("XSCALE_REAL_SCENES") {
+        scenes.extend(
+            (list.split(':').filter(|d| !d.is_empty())).map(|d| (d.to_string(), d.to_string())),
+        );
+    }
+    let mut rows = Vec::new();
+    let mut right = 0;
+    for (name, scene) in &scenes {
+        let mesh_path = c.root.join(scene).join("mesh.ply");
+        let (mesh, _) = xscale::scene::mesh::load_mesh(&mesh_path)?;
+        let tag = name.replace(|ch: char| !ch.is_ascii_alphanumeric(), "_");
+        for (k, (what, m)) in wrong_meshes(&mesh).into_iter().enumerate() {
+            let file = c.w(&format!("meshcheck-{tag}-{k}.ply"));
+            xscale::scene::mesh::write_ply(&c.root.join(&file), &m)?;
+            let args = ["cast", "--scene", scene, "--mesh", &file, "--gamma", "1"];
+            let r = c.xscale(&args)?;
+            if k == 0 || k == 1 {
+                s.commands.push(format!("xscale {}", args.join(" ")));
+            }
+            let lines: Vec<&str> = r.stderr.lines().collect();
+            let find = |key: &str| lines.iter().find(|l| l.contains(key)).copied();
+            let correlation = find("photos see at the same surface points correlate")
+                .and_then(|l| number_after(l, "correlate "));
+            let photo_warns = find("warning: the colours two photos see").is_some();
+            let beaten = find("agrees better with the photos than the mesh as given");
+            let silent = find("no neighbour of the mesh");
+            let (best, best_score, given) = match (beaten, silent) {
+                (Some(l), _) => (
+                    l.split(" agrees better")
+                        .next()
+                        .unwrap_or("")
+                        .trim_start_matches("warning: the mesh ")
+                        .to_string(),
+                    number_after(l, "local correlation "),
+                    number_after(l, " against "),
+                ),
+                (None, Some(l)) => (
+                    l.split("the best, ")
+                        .nth(1)
+                        .and_then(|t| t.split(':').next())
+                        .unwrap_or("")
+                        .to_string(),
+                    number_after(l, "local correlation "),
+                    number_after(l, " against "),
+                ),
+                _ => (String::new(), None, None),
+            };
+            let points = lines
+                .iter()
+                .any(|l| l.contains("points of") && l.contains("another frame"))
+                || lines.iter().any(|l| l.contains("lie inside its bounds"));
+            let has_points = has_points(&c.root.join(scene));
+            let warns = photo_warns || beaten.is_some() || points;
+            right += usize::from(warns == (what != "correct"));
+            let wins = beaten.or(silent).and_then(|l| {
+                let t = &l[l.find("higher in ")? + "higher in ".len()..];
+                Some(t.split(" view pairs").next()?.to_string())
+            });
+            rows.push(vec![
+                json!(name),
+                json!(what),
+                json!(correlation),
+                json!(given),
+                json!(best),
+                json!(best_score),
+                json!(wins),
+                json!(if beaten.is_some() { "warns" } else { "silent" }),
+                json!(if !has_points {
+                    "no points"
+                } else if points {
+                    "warns"
+                } else {
+                    "silent"
+                }),
+                json!(if warns { "warns" } else { "silent" }),
+                json!(r.wall_s),
+            ]);
+        }
+    }
+    s.notes.push(format!(
+        "{right} of {} meshes judged as they should be (a correct mesh silent, every other warned of).",
+        rows.len()
+    ));
+    s.tables.push(table(
+        "what `xscale cast` says of each mesh",
+        &[
+            "scene",
+            "mesh",
+            "photo correlation",
+            "local correlation as given",
+            "best neighbour",
+            "its local correlation",
+            "view pairs it wins",
+            "neighbour check",
+            "points check",
+            "verdict",
+            "cast (s)",
+        ],
+        &[0, 0, 2, 3, 0, 3, 0, 0, 0, 0, 1],
+        rows,
+    ));
+    Ok(s)
 }
 
 fn budget(c: &Ctx) -> Result<Section> {

@@ -1596,6 +1596,59 @@ fn a_mesh_in_another_frame_than_the_colmap_points_is_flagged() {
     );
 }
 
+/// The points check measures its tolerances in the region the cameras see, not the mesh's
+/// bounding box: the `tiny` mesh with one speck of a triangle far away (its diagonal 20× the
+/// scene's, as background a few views see inflates a real mesh's) stays silent in place and is
+/// flagged moved up by 8 % of the seen region, which within the inflated diagonal's tolerances
+/// (1 % and 5 % of it) it would not be.
+#[test]
+fn the_points_check_measures_in_the_region_the_cameras_see() {
+    let d = tiny_copy("points_seen_region");
+    let (mesh, _) = mesh::load_mesh(&tiny().join("mesh.ply")).unwrap();
+    write_points_text(
+        &d.join("sparse/0/points3D.txt"),
+        &reconstruction_points(&mesh, 3000),
+    );
+    let (lo, hi) = mesh.bbox();
+    let far = lo + (hi - lo) * 20.0;
+    let speck = |m: &Mesh, up: f64| {
+        let mut v: Vec<DVec3> = m.vertices.iter().map(|&p| p + DVec3::Z * up).collect();
+        let n = v.len() as u32;
+        v.extend([far, far + DVec3::X * 1e-4, far + DVec3::Y * 1e-4]);
+        let mut t = m.triangles.clone();
+        t.push([n, n + 1, n + 2]);
+        Mesh {
+            vertices: v,
+            triangles: t,
+        }
+    };
+    let scene = load_as(&tiny(), CameraFormat::Colmap).unwrap().0;
+    let cams: Vec<&xscale::scene::Camera> = scene.views.iter().map(|v| &v.camera).collect();
+    let inflated = speck(&mesh, 0.0);
+    let size = xscale::scene::points::seen_size(&inflated, &cams).unwrap();
+    let (ilo, ihi) = inflated.bbox();
+    assert!(
+        size < 0.1 * (ihi - ilo).length(),
+        "seen {size}, diagonal {}",
+        (ihi - ilo).length()
+    );
+    mesh::write_ply(&d.join("mesh.ply"), &inflated).unwrap();
+    let r = load_as(&d, CameraFormat::Colmap).unwrap().1;
+    assert_eq!(frame_warning(&r), None, "in place: {:?}", r.warnings);
+    // Measured in the inflated diagonal (the check as it was), the moved mesh passes.
+    let pts: Vec<DVec3> = (reconstruction_points(&mesh, 3000).into_iter())
+        .filter(|p| p.1 >= xscale::scene::points::MIN_TRACK)
+        .map(|p| p.0)
+        .collect();
+    let moved = speck(&mesh, 0.08 * size);
+    assert!(!xscale::scene::points::check(&moved, &pts, None).disagrees());
+    assert!(xscale::scene::points::check(&moved, &pts, Some(size)).disagrees());
+    mesh::write_ply(&d.join("mesh.ply"), &moved).unwrap();
+    let r = load_as(&d, CameraFormat::Colmap).unwrap().1;
+    let w = frame_warning(&r).unwrap_or_else(|| panic!("moved up: {:?}", r.warnings));
+    assert_contains(w, &["points3D.txt", "the region the cameras see"]);
+}
+
 /// A scratch copy of `tiny` as `ns-process-data` writes it: poses moved by [`NERFSTUDIO_MAP`]
 /// (its `applied_transform`) and a `sparse_pc.ply` named by `ply_file_path`, the reconstruction's
 /// points moved the same way, in open3d's point cloud PLY (binary, double x y z, uchar colours).

@@ -347,9 +347,9 @@ impl Scene {
         // The reconstruction's own points against the mesh (`points.rs`): an auxiliary file, so
         // one that cannot be read skips the check with a note rather than failing the scene.
         let frame_check = points_check(
-            dir,
+            points::find(dir, format, applied),
             format,
-            applied,
+            &views,
             &mesh,
             &mesh_path,
             &mut warnings,
@@ -615,17 +615,19 @@ fn photo_on_disk(v: &View, missing: &mut Vec<String>) -> bool {
 /// The reconstruction's own points against the mesh (`points.rs`): an auxiliary file, so one
 /// that cannot be read skips the check with a note rather than failing the scene.
 fn points_check(
-    dir: &Path,
+    found: Result<Option<points::SparsePoints>>,
     format: CameraFormat,
-    applied: transforms::AppliedTransform,
+    views: &[View],
     mesh: &super::Mesh,
     mesh_path: &Path,
     warnings: &mut Vec<String>,
     notes: &mut Vec<String>,
 ) -> Option<(PathBuf, points::Agreement)> {
-    match points::find(dir, format, applied) {
+    match found {
         Ok(Some(p)) => {
-            let agreement = points::check(mesh, &p.xyz);
+            let cameras: Vec<&super::Camera> = views.iter().map(|v| &v.camera).collect();
+            let seen = points::seen_size(mesh, &cameras);
+            let agreement = points::check(mesh, &p.xyz, seen);
             warnings.extend(
                 points::frame_disagreement(mesh_path, &p.source, &agreement).map(|w| {
                     if format == CameraFormat::Transforms {

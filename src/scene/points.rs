@@ -8,11 +8,12 @@
 //! [`check`] measures both ways, and [`Agreement::disagrees`] needs both to fail:
 //! * points → mesh: of the points inside the bounding box of the mesh's triangles (grown by
 //!   [`BOX_MARGIN`] of its diagonal, so a mesh cropped to an object is judged on that object's
-//!   points), the share within [`NEAR`] of the diagonal of the mesh (`distance::SurfaceIndex`,
+//!   points), the share within [`NEAR`] of the size of the region the cameras see
+//!   ([`seen_size`], not the mesh's diagonal, which background inflates) (`distance::SurfaceIndex`,
 //!   exact, stopped at the threshold) is below [`MIN_NEAR_SHARE`], or fewer than [`MIN_POINTS`]
 //!   lie inside the box;
 //! * mesh → points: of [`MESH_SAMPLES`] area samples of the mesh, the share with a point within
-//!   [`COVER`] of the diagonal is below [`MIN_COVER_SHARE`].
+//!   [`COVER`] of that size is below [`MIN_COVER_SHARE`].
 //!
 //! One way alone is not enough. A real COLMAP workspace (5 photos, `meshed-poisson.ply` trimmed
 //! to a floor by `--trim 10`) has only 9 % of its in-box points on the mesh — the trimmed-away
@@ -21,7 +22,7 @@
 //! place whether 100 or 3,000 points, 9–20 % turned about x. A loader's warning, not an error.
 
 use super::distance::SurfaceIndex;
-use super::{colmap, transforms, CameraFormat, Mesh};
+use super::{colmap, transforms, Camera, CameraFormat, Mesh};
 use anyhow::Result;
 use glam::DVec3;
 use rayon::prelude::*;
@@ -34,7 +35,8 @@ pub const MIN_TRACK: u32 = 3;
 pub const MAX_POINTS: usize = 20_000;
 /// Fewer points than this in all: no verdict; fewer inside the box: the points miss the mesh.
 pub const MIN_POINTS: usize = 50;
-/// A point is on the mesh within this fraction of the mesh's bounding-box diagonal.
+/// A point is on the mesh within this fraction of the size of the region the cameras see
+/// ([`seen_size`]; the mesh's bounding-box diagonal when no camera sees it).
 pub const NEAR: f64 = 0.01;
 /// The mesh's bounding box is grown by this fraction of its diagonal on every side.
 pub const BOX_MARGIN: f64 = 0.05;
@@ -42,7 +44,7 @@ pub const BOX_MARGIN: f64 = 0.05;
 pub const MIN_NEAR_SHARE: f64 = 0.3;
 /// Area samples of the mesh measured against the points.
 pub const MESH_SAMPLES: usize = 4000;
-/// A mesh sample is covered by a point within this fraction of the mesh's diagonal (sparse
+/// A mesh sample is covered by a point within this fraction of the seen region's size (sparse
 /// points are far apart where the photos have little texture: a looser bound than [`NEAR`]).
 pub const COVER: f64 = 0.05;
 /// Below this share of covered mesh samples, the mesh disagrees with the points.
@@ -94,12 +96,15 @@ pub struct Agreement {
     pub measured: usize,
     /// Of those, inside the grown bounding box.
     pub inside: usize,
-    /// Of those inside, within [`NEAR`] of the diagonal of the mesh.
+    /// Of those inside, within `tolerance` of the mesh.
     pub near: usize,
-    /// The distance that counts as on the mesh.
+    /// The distance that counts as on the mesh ([`NEAR`] × `size`).
     pub tolerance: f64,
-    /// Area samples of the mesh measured, and of those, with a point within [`COVER`] of the
+    /// The size tolerances are measured in: the seen region's ([`seen_size`]), else the mesh's
     /// diagonal.
+    pub size: f64,
+    /// Area samples of the mesh measured, and of those, with a point within [`COVER`] ×
+    /// `size`.
     pub samples: usize,
     pub covered: usize,
 }
@@ -139,9 +144,57 @@ impl Agreement {
     }
 }
 
-/// Measure how many of `points` lie on `mesh` (module docs). Each point is measured on its own
-/// and the counts are sums, so the result does not depend on the thread count.
-pub fn check(mesh: &Mesh, points: &[DVec3]) -> Agreement {
+/// Area samples of the mesh [`seen_size`] measures.
+pub const SEEN_SAMPLES: usize = 2000;
+
+/// The size of the region of `mesh` the cameras see: of [`SEEN_SAMPLES`] area samples, those
+/// in front of and inside the image of at least half of the cameras (at least two; of at least
+/// two when fewer than a tenth of the samples are), twice their RMS distance from their centroid.
+/// The object a capture circles, not the background a few views see past it, which inflates the
+/// mesh's bounding box (instant-ngp's fox: the room). No occlusion test. `None` when fewer than
+/// two samples are seen so.
+pub fn seen_size(mesh: &Mesh, cameras: &[&Camera]) -> Option<f64> {
+    let samples = super::distance::area_samples(mesh, SEEN_SAMPLES);
+    let count: Vec<usize> = samples
+        .par_iter()
+        .map(|&p| {
+            (cameras.iter())
+                .filter(|c| {
+                    c.project(p).is_some_and(|(x, y)| {
+                        x >= 0.0 && y >= 0.0 && x < c.width as f64 && y < c.height as f64
+                    })
+                })
+                .count()
+        })
+        .collect();
+    let pick = |least: usize| -> Vec<DVec3> {
+        (samples.iter().zip(&count))
+            .filter(|(_, &c)| c >= least)
+            .map(|(&p, _)| p)
+            .collect()
+    };
+    let mut seen = pick((cameras.len() / 2).max(2));
+    if seen.len() * 10 < samples.len() {
+        seen = pick(2);
+    }
+    if seen.len() < 2 {
+        return None;
+    }
+    let centre = seen.iter().sum::<DVec3>() / seen.len() as f64;
+    let ms = seen
+        .iter()
+        .map(|p| (*p - centre).length_squared())
+        .sum::<f64>()
+        / seen.len() as f64;
+    let size = 2.0 * ms.sqrt();
+    (size > 0.0 && size.is_finite()).then_some(size)
+}
+
+/// Measure how many of `points` lie on `mesh` (module docs), with tolerances in units of
+/// `seen` (the size of the region the cameras see, [`seen_size`]; the mesh's diagonal when
+/// `None`). Each point is measured on its own and the counts are sums, so the result does not
+/// depend on the thread count.
+pub fn check(mesh: &Mesh, points: &[DVec3], seen: Option<f64>) -> Agreement {
     // The bounds of the surface: vertices no triangle uses (a cropped export often keeps them)
     // do not count.
     let (lo, hi) = (mesh.triangles.iter().flatten()).fold(
@@ -154,7 +207,8 @@ pub fn check(mesh: &Mesh, points: &[DVec3]) -> Agreement {
     let diag = (hi - lo).length();
     // A mesh of one point or a non-finite one: nothing to measure against.
     let sized = diag > 0.0 && diag.is_finite();
-    let tolerance = NEAR * diag;
+    let size = seen.unwrap_or(diag);
+    let tolerance = NEAR * size;
     let step = points.len().div_ceil(MAX_POINTS).max(1);
     let measured: Vec<DVec3> = points.iter().step_by(step).copied().collect();
     let grow = DVec3::splat(BOX_MARGIN * diag);
@@ -178,8 +232,9 @@ pub fn check(mesh: &Mesh, points: &[DVec3]) -> Agreement {
     } else {
         Vec::new()
     };
-    let covered = covered(&samples, &measured, COVER * diag);
+    let covered = covered(&samples, &measured, COVER * size);
     Agreement {
+        size,
         measured: measured.len(),
         inside: inside.len(),
         near,
@@ -231,7 +286,7 @@ pub fn frame_disagreement(mesh_path: &Path, source: &Path, a: &Agreement) -> Opt
         )
     } else {
         format!(
-            "only {} of the {} points of {src} inside its bounds ({:.0} %) lie on it (within {:.3e}, {} % of its size)",
+            "only {} of the {} points of {src} inside its bounds ({:.0} %) lie on it (within {:.3e}, {} % of the size of the region the cameras see)",
             a.near,
             a.inside,
             100.0 * a.share(),
@@ -240,7 +295,7 @@ pub fn frame_disagreement(mesh_path: &Path, source: &Path, a: &Agreement) -> Opt
         )
     };
     let what = format!(
-        "{onto}, and only {:.0} % of its surface has one of them within {} % of its size",
+        "{onto}, and only {:.0} % of its surface has one of them within {} % of that size",
         100.0 * a.cover(),
         100.0 * COVER
     );

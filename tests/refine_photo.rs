@@ -32,6 +32,10 @@ fn photo_cfg(opt: RefineOptimizer, measure: PhotoMeasure) -> RunConfig {
     r.photo_levels = [1, 0];
     r.photo_angle = [2.0, 80.0];
     r.photo_scale = 4.0;
+    // The cross-scale levels, weights and neighbours chosen again (configs/refine-cross.toml).
+    r.photo_reach = 2.0;
+    r.photo_balance = true;
+    r.photo_rechoose = true;
     r.optimizer = opt;
     if opt == RefineOptimizer::GaussNewton {
         r.lr = 0.5;
@@ -111,7 +115,7 @@ fn photo_refinement_is_thread_independent_and_resumes_exactly() {
             u["step"]
         );
     }
-    // The cross-scale levels (photo_reach, the default): the close-ups (footprints ~30× finer)
+    // The cross-scale levels (photo_reach): the close-ups (footprints ~30× finer)
     // start at level 2, the last a 48-row photo holds a 3 × 3 patch and its pull-in at, the
     // aerial views at photo_levels[0] = 1, each view's first span at its top; every view
     // descends to 0 by the last update; the weights are positive.

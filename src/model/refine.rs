@@ -118,9 +118,10 @@ pub struct RefineConfig {
     /// training view (a mesh made from the far views); each view's deepest image level is chosen
     /// so that this displacement is at most [`PHOTO_PULL`] of its pixels there (at least
     /// `photo_levels[0]`; `refine/photo_term.rs`): views much finer than the coarsest (close-ups)
-    /// start deeper and go coarse to fine over more levels. 0 = every view uses `photo_levels`.
-    /// Always written, like the next two; absent (a table written before the cross-scale
-    /// refinement of issue #39) = 0, false, false, what such a build did.
+    /// start deeper and go coarse to fine over more levels. 0 (the default) = every view uses
+    /// `photo_levels`. Opt-in with the next two (`configs/refine-cross.toml`): on an exact mesh
+    /// it moves the surface more than the defaults (docs/geometry.md §5). Always written, like
+    /// the next two; absent (a table written before the cross-scale refinement) = 0, false, false.
     #[serde(default)]
     pub photo_reach: f64,
     /// Weight each view's patches by the inverse of the number of training views in its scale
@@ -186,7 +187,6 @@ const PHOTO_LEVELS: [u32; 2] = [2, 0];
 const PHOTO_NEIGHBOURS: u32 = 4;
 const PHOTO_ANGLE: [f64; 2] = [5.0, 45.0];
 const PHOTO_SCALE: f64 = 2.0;
-const PHOTO_REACH: f64 = 2.0;
 /// Pixels a patch's energy pulls in from (`photo_reach`): about half a 5×5 patch.
 pub const PHOTO_PULL: f64 = 2.0;
 
@@ -286,9 +286,9 @@ impl RefineConfig {
             photo_neighbours: PHOTO_NEIGHBOURS,
             photo_angle: PHOTO_ANGLE,
             photo_scale: PHOTO_SCALE,
-            photo_reach: PHOTO_REACH,
-            photo_balance: true,
-            photo_rechoose: true,
+            photo_reach: 0.0,
+            photo_balance: false,
+            photo_rechoose: false,
             optimizer: RefineOptimizer::default(),
             damping: DAMPING,
         }

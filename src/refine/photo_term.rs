@@ -689,7 +689,11 @@ mod tests {
 
     #[test]
     fn levels_follow_the_footprints_and_bands_weigh_alike() {
-        let cfg = RefineConfig::default();
+        let cfg = RefineConfig {
+            photo_reach: 2.0,
+            photo_balance: true,
+            ..RefineConfig::default()
+        };
         assert_eq!(cfg.photo_levels, [2, 0]);
         // 200 × 150 with 5 × 5 patches: level 4 is 12 × 9, the last that holds 5 + 2·2 pixels.
         let mut views = vec![

@@ -93,14 +93,14 @@ const SECTIONS: &[Spec] = &[
     Spec {
         name: "real",
         title: "Real photographs: the default against reprojection (ULR)",
-        measures: "The default `cpu` preset trained on real captures and scored on their held-out views (every 7th) against the no-learning ULR baseline on the same pixels: masked PSNR, SSIM and ꟻLIP (lower is better), and the full-image PSNR (every pixel, the mesh's misses counted). The committed capture is `fixtures/prepare_skull` (10 photos of a skull, 709×473, CC BY 4.0; its COLMAP model meshed by `xscale prepare --sparse`, black background); scene folders listed in `XSCALE_REAL_SCENES` (colon-separated; their photos are not in the repository) are run the same way — on this page instant-ngp's `fox` (50 phone photos halved to 540×960, NVIDIA's non-commercial licence), prepared with `xscale prepare --photos fox/images --poses fox --downsample 2 --out fox_scene` (docs/prepare.md). The row `mean code` scores the same model with every held-out view given the mean appearance code (`eval --appearance mean`) instead of its pose neighbours' codes (the default, spec §4.6).",
+        measures: "The default `cpu` preset trained on real captures and scored on their held-out views (every 7th) against the no-learning ULR baseline on the same pixels: masked PSNR, SSIM and ꟻLIP (lower is better), and the full-image PSNR (every pixel, the mesh's misses counted). The committed capture is `fixtures/prepare_skull` (10 photos of a skull, 709×473, CC BY 4.0; its COLMAP model meshed by `xscale prepare --sparse`, black background); scene folders listed in `XSCALE_REAL_SCENES` (colon-separated; their photos are not in the repository) are run the same way — on this page instant-ngp's `fox` (50 phone photos halved to 540×960, NVIDIA's non-commercial licence), prepared with `xscale prepare --photos fox/images --poses fox --downsample 2 --out fox_scene` (docs/prepare.md). The refinement row trains the same scene with photo-consistency mesh refinement on (`[model.refine] enabled = true`), which the `cpu` preset leaves off. The row `mean code` scores the same model with every held-out view given the mean appearance code (`eval --appearance mean`) instead of its pose neighbours' codes (the default, spec §4.6).",
         cost: "about 5 minutes, plus 10 per scene of XSCALE_REAL_SCENES",
         run: real,
     },
     Spec {
         name: "bench_quality",
         title: "Run time against error (`xscale bench-quality`)",
-        measures: "Every configuration of `xscale bench-quality --list` trained for the same wall-clock budget on `small` and scored on the held-out views at the budget and at its halvings (evaluation time not counted); then the default, two of its variants and ULR on a real capture (the skull of section `real`). One seed per configuration: differences of a few tenths of a dB are within what two runs of one configuration differ by.",
+        measures: "Every configuration of `xscale bench-quality --list` trained for the same wall-clock budget on `small` and scored on the held-out views at the budget and at its halvings (evaluation time not counted); then the default, three of its variants (mesh refinement among them) and ULR on a real capture (the skull of section `real`). One seed per configuration: differences of a few tenths of a dB are within what two runs of one configuration differ by.",
         cost: "about 20 minutes",
         run: bench_quality,
     },
@@ -138,6 +138,13 @@ const SECTIONS: &[Spec] = &[
         measures: "The `cpu` preset's training budget (`[train] budget = \"auto\"`: about 12 epochs over the kept training pixels, 1,000 to 6,000 steps, with the preset's learning-rate decays stretched to the chosen count) on `synth --preset small` and `cross` (seed 1), against fixed 2,000 steps (`--steps 2000`: the preset's schedule as written) and, on `cross`, a run 3× the rule's steps with the schedule stretched the same way. Held-out masked PSNR and SSIM, close-ups and aerial views apart; wall time of each `train` command (casting and the final evaluation included), one run after another on the same host.",
         cost: "about 20 minutes",
         run: budget,
+    },
+    Spec {
+        name: "refine",
+        title: "Mesh refinement on and off (`xscale bench-geometry`)",
+        measures: "Photo-consistency mesh refinement (`[model.refine] enabled = true` with the section's defaults) on and off, `cpu` preset at `bench-geometry`'s fixed 2,000 steps (the same count for every run), deformation on, on `synth --preset small --write-truth` (seed 1): the exact mesh with training seeds 0, 1 and 2, and a proxy displaced by 0.3 % of the diagonal RMS (seed 0). Held-out masked PSNR and SSIM, close-ups and aerial views apart, training time of each run (one after another on the same host). The `cpu` preset keeps refinement off; this table is what that rule rests on.",
+        cost: "about 30 minutes",
+        run: refine,
     },
 ];
 
@@ -890,6 +897,27 @@ fn real(c: &Ctx) -> Result<Section> {
             &read_json(&c.root.join(&mean_json))?,
             json!(trained_s(&run)?),
         ));
+        // Mesh refinement on the same scene: what it does to a real, reconstructed mesh.
+        let refined = c.w(&format!("real-{name}-refine"));
+        let _ = std::fs::remove_dir_all(c.root.join(&refined));
+        let cfg = c.w("real-refine.toml");
+        let text = "[model.refine]\nenabled = true\n";
+        std::fs::write(c.root.join(&cfg), text)?;
+        let args = [
+            "train", "--scene", scene, "--out", &refined, "--config", &cfg, "-q",
+        ];
+        c.xscale(&args)?;
+        s.commands.push(format!(
+            "xscale {}   ({cfg}: {})",
+            args.join(" "),
+            text.trim().replace('\n', " ")
+        ));
+        let run_r = c.root.join(&refined);
+        rows.push(row(
+            "xscale with mesh refinement (`[model.refine] enabled = true`)",
+            &read_json(&run_r.join("eval.json"))?,
+            json!(trained_s(&run_r)?),
+        ));
         rows.push(row("ULR (no training)", &ulr, json!(0.0)));
         let (a, b) = (&trained["mean"], &ulr["mean"]);
         let ahead = |k: &str, lower: bool| {
@@ -1025,8 +1053,8 @@ fn budget(c: &Ctx) -> Result<Section> {
 const BQ_MINUTES: &str = "0.5";
 
 /// The configurations `bench-quality` runs on the real capture (the default, the fastest step
-/// and the largest batch of the `small` table, and the no-learning baseline).
-const BQ_REAL_CONFIGS: &str = "cpu,cpu-gamma1,cpu-batch16k,ulr";
+/// and the largest batch of the `small` table, mesh refinement, and the no-learning baseline).
+const BQ_REAL_CONFIGS: &str = "cpu,cpu-refine,cpu-gamma1,cpu-batch16k,ulr";
 
 fn bench_quality(c: &Ctx) -> Result<Section> {
     let mut s = Section::default();
@@ -1512,6 +1540,129 @@ fn geometry_cross(c: &Ctx) -> Result<Section> {
         ],
         &[0, 0, 3, 2, 2, 2, 0, 0],
         rows,
+    ));
+    Ok(s)
+}
+
+/// Training seeds of section `refine` on the exact mesh (the proxy runs with the first).
+const REFINE_SEEDS: [u64; 3] = [0, 1, 2];
+
+fn refine(c: &Ctx) -> Result<Section> {
+    let mut s = Section::default();
+    let mut rows = Vec::new();
+    // (mesh, refinement) → PSNR per seed, and training seconds.
+    let mut by: std::collections::BTreeMap<(String, bool), Vec<(f64, f64)>> = Default::default();
+    let first = c.w(&format!("refine-s{}", REFINE_SEEDS[0]));
+    let scene = format!("{first}/scene");
+    for seed in REFINE_SEEDS {
+        let out = c.w(&format!("refine-s{seed}"));
+        let _ = std::fs::remove_dir_all(c.root.join(&out));
+        let seed_s = seed.to_string();
+        let rms = if seed == REFINE_SEEDS[0] {
+            "0,0.3"
+        } else {
+            "0"
+        };
+        let mut args = vec!["bench-geometry"];
+        if seed == REFINE_SEEDS[0] {
+            args.extend(["--scene-preset", "small", "--synth-seed", "1"]);
+        } else {
+            args.extend(["--scene", &scene]);
+        }
+        args.extend([
+            "--out",
+            &out,
+            "--seed",
+            &seed_s,
+            "--rms",
+            rms,
+            "--decimate",
+            "0",
+            "--deform",
+            "on",
+            "--refine",
+            "on,off",
+            "-q",
+        ]);
+        c.xscale(&args)?;
+        s.commands.push(format!("xscale {}", args.join(" ")));
+        let rep = read_json(&c.root.join(&out).join("geometry.json"))?;
+        for v in rep["variants"].as_array().into_iter().flatten() {
+            let proxy = v["proxy"].as_str().unwrap_or("?").to_string();
+            let on = v["refine"].as_bool().unwrap_or(false);
+            let psnr = v["all"]["psnr_masked"].as_f64().unwrap_or(f64::NAN);
+            let secs = v["train_seconds"].as_f64().unwrap_or(f64::NAN);
+            by.entry((proxy.clone(), on))
+                .or_default()
+                .push((psnr, secs));
+            rows.push(vec![
+                json!(proxy),
+                json!(seed),
+                json!(if on { "on" } else { "off" }),
+                v["steps"].clone(),
+                v["all"]["psnr_masked"].clone(),
+                v["all"]["ssim_masked"].clone(),
+                v["near"]["psnr_masked"].clone(),
+                v["far"]["psnr_masked"].clone(),
+                v["train_seconds"].clone(),
+            ]);
+        }
+    }
+    s.tables.push(table(
+        "every run: held-out masked scores",
+        &[
+            "mesh",
+            "seed",
+            "refinement",
+            "steps",
+            "PSNR (dB)",
+            "SSIM",
+            "close-ups (dB)",
+            "aerial (dB)",
+            "training (s)",
+        ],
+        &[0, 0, 0, 0, 2, 4, 2, 2, 0],
+        rows,
+    ));
+    let mean = |v: &[(f64, f64)], i: usize| {
+        v.iter()
+            .map(|p| if i == 0 { p.0 } else { p.1 })
+            .sum::<f64>()
+            / v.len() as f64
+    };
+    let mut summary = Vec::new();
+    for proxy in by
+        .keys()
+        .map(|k| k.0.clone())
+        .collect::<std::collections::BTreeSet<_>>()
+    {
+        let (Some(on), Some(off)) = (
+            by.get(&(proxy.clone(), true)),
+            by.get(&(proxy.clone(), false)),
+        ) else {
+            continue;
+        };
+        summary.push(vec![
+            json!(proxy),
+            json!(on.len().min(off.len())),
+            json!(mean(off, 0)),
+            json!(mean(on, 0)),
+            json!(mean(on, 0) - mean(off, 0)),
+            json!(mean(on, 1) / mean(off, 1)),
+        ]);
+    }
+    s.tables.push(table(
+        "means over seeds: what refinement gains (negative: costs) and its time",
+        &[
+            "mesh",
+            "seeds",
+            "off (dB)",
+            "on (dB)",
+            "on − off (dB)",
+            "training time on / off",
+        ],
+        &[0, 0, 2, 2, 2, 2],
+        summary,
     ));
     Ok(s)
 }

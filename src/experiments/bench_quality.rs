@@ -30,7 +30,7 @@ use std::path::Path;
 use std::time::Instant;
 
 /// Every configuration: name and what it is.
-pub const CONFIGS: [(&str, &str); 12] = [
+pub const CONFIGS: [(&str, &str); 13] = [
     (
         "tiny",
         "the tiny preset (4 levels, 2^12 table): a smoke test",
@@ -57,6 +57,10 @@ pub const CONFIGS: [(&str, &str); 12] = [
     ("cpu-batch16k", "cpu with 16,384-pixel batches"),
     ("cpu-gamma1", "cpu with gamma = 1 (no multisampling)"),
     ("cpu-no-deform", "cpu without the deformation xi"),
+    (
+        "cpu-refine",
+        "cpu with photo-consistency mesh refinement ([model.refine] enabled = true)",
+    ),
     (
         "cpu-f64",
         "cpu with the model's forward and backward in f64 (Adam and parameters f32)",
@@ -94,6 +98,11 @@ pub fn config(name: &str) -> Result<Option<RunConfig>> {
         "cpu-no-deform" => {
             let mut c = cpu()?;
             c.model.deform.enabled = false;
+            c
+        }
+        "cpu-refine" => {
+            let mut c = cpu()?;
+            c.model.refine.enabled = true;
             c
         }
         "cpu-f64" => {

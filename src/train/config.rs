@@ -295,9 +295,18 @@ impl RunConfig {
                     .and_then(|t| t.get("level_range"))
                     .and_then(|v| v.as_str())
                     == Some("auto");
-                let (scale, finest) = (has("per_level_scale"), has("finest_resolution"));
+                let (scale, mut finest) = (has("per_level_scale"), has("finest_resolution"));
                 if scale && finest {
-                    bail!("{origin}: give [model.grid_h] per_level_scale or finest_resolution, not both");
+                    // A run's own config.toml stores both, in agreement: its per_level_scale is
+                    // what it trained with, its finest_resolution the level that spacing reached
+                    // before finer levels were dropped. Given back, it means that spacing.
+                    if !scale_reaches_finest(&cfg.model.grid_h) {
+                        bail!("{origin}: give [model.grid_h] per_level_scale or finest_resolution, not both (these disagree: per_level_scale {} from base_resolution {} reaches no level at finest_resolution {})",
+                            cfg.model.grid_h.per_level_scale,
+                            cfg.model.grid_h.base_resolution,
+                            cfg.model.grid_h.finest_resolution.unwrap_or(f64::NAN));
+                    }
+                    finest = false;
                 }
                 if finest && auto_asked {
                     bail!(
@@ -649,9 +658,53 @@ pub fn toml_differences(given: &toml::Value, have: &toml::Value, have_name: &str
     }
 }
 
+/// Whether grid `g`'s `per_level_scale` reaches its `finest_resolution` at some level at or past
+/// its last one (`base · s^(L'-1) = finest` for an integer `L' ≥ levels`, to 1e-6 in `L'`): the
+/// pair a run stores in its `config.toml` after resolving its level range and dropping the levels
+/// finer than any footprint.
+fn scale_reaches_finest(g: &crate::model::config::GridConfig) -> bool {
+    let Some(finest) = g.finest_resolution else {
+        return false;
+    };
+    let at = 1.0 + (finest / g.base_resolution as f64).ln() / g.per_level_scale.ln();
+    at.is_finite() && (at - at.round()).abs() < 1e-6 && at.round() >= g.levels as f64
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A run's stored config.toml (grid H resolved by the automatic range, finer levels dropped:
+    /// both per_level_scale and finest_resolution written) is accepted back as `--config`, as the
+    /// spacing it trained with; a pair that disagrees is still refused.
+    #[test]
+    fn a_stored_config_is_accepted_as_a_config() {
+        let mut cfg = RunConfig::preset("cpu").unwrap();
+        let g = &mut cfg.model.grid_h;
+        g.levels = 18;
+        g.per_level_scale = crate::model::config::per_level_scale_for(16.0, 3370.5, 18);
+        g.finest_resolution = Some(3370.5);
+        g.levels = 15;
+        cfg.train.steps = 1200;
+        let dir = std::env::temp_dir().join(format!("xscale-stored-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("config.toml");
+        std::fs::write(&path, cfg.to_toml()).unwrap();
+        let back = RunConfig::resolve("cpu", Some(&path)).unwrap();
+        assert_eq!(
+            back.model.grid_h.per_level_scale,
+            cfg.model.grid_h.per_level_scale
+        );
+        assert_eq!(back.model.grid_h.levels, 15);
+        assert_eq!(back.train.level_range, LevelRange::Auto);
+        assert_eq!(back.train.budget, cfg.train.budget);
+        let mut bad = cfg.clone();
+        bad.model.grid_h.finest_resolution = Some(3000.0);
+        std::fs::write(&path, bad.to_toml()).unwrap();
+        let e = RunConfig::resolve("cpu", Some(&path)).unwrap_err();
+        assert!(format!("{e:#}").contains("disagree"), "{e:#}");
+        std::fs::remove_dir_all(&dir).ok();
+    }
 
     #[test]
     fn keys_are_found_on_their_lines() {

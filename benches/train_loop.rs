@@ -14,7 +14,7 @@
 //! default `auto`, which takes the sample cache on `small`).
 
 mod common;
-use common::{emit_json, env_count, small_scene as scene};
+use common::{emit_json, env_count, small_scene as scene, warm_up};
 use std::time::Instant;
 use xscale::model::params::Grads;
 use xscale::train::config::RunConfig;
@@ -52,20 +52,7 @@ fn main() {
     let mut grads = Grads::new(&state.ckpt.model.layout);
     grads.inputs = false;
     // Warm-up, and the check that the loop learns.
-    let mut first = None;
-    let mut last = 0.0;
-    for _ in 0..WARMUP {
-        let b = sample_batch(&prepared.samples, &prepared.tracer, 0, state.step, batch);
-        let st = state.step(&b, &mut grads).unwrap();
-        assert!(st.loss.is_finite(), "loss is not finite");
-        first.get_or_insert(st.loss);
-        last = st.loss;
-    }
-    assert!(
-        last < first.unwrap(),
-        "the loss did not fall over the warm-up ({} -> {last})",
-        first.unwrap()
-    );
+    warm_up(&mut state, &mut grads, &prepared, batch, WARMUP);
     {
         // What a step touches (for reading the Adam column).
         let b = sample_batch(&prepared.samples, &prepared.tracer, 0, 999_999, batch);

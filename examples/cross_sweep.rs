@@ -56,6 +56,7 @@ fn configs(seed: u64) -> Result<Vec<(String, RunConfig)>> {
             g.finest_resolution = Some(f);
             g.log2_table_size = t;
             c.train.level_range = LevelRange::Fixed;
+            c.train.table_size = xscale::train::config::TableSize::Fixed;
             out.push((format!("g{f}_t{t}"), c));
         }
     }

@@ -140,6 +140,20 @@ const SECTIONS: &[Spec] = &[
         run: budget,
     },
     Spec {
+        name: "sizing",
+        title: "Table sizes from the scene: parameters, checkpoints, quality, step time",
+        measures: "The `cpu` preset's hash-table sizes chosen from the surface cells the training rays reach (`[model.grid_h] log2_table_size = \"auto\"`, the default: each hashed level 4 entries per reached cell, 2^12..2^19, grid D never above its configured 2^17; the checkpoint leaves out the Adam state of entries no ray reached) against fixed tables of 2^19 entries per level (`--config` with `[model.grid_h] log2_table_size = 19`, the preset before). `tiny`, `small` and `cross` (`synth --preset NAME --seed 1`): parameters of the model `xscale init` builds; on `tiny` and `small`, each trained with the default budget (training seeds `XSCALE_SIZING_SEEDS`, default 0,1,2 on `small`, 0 on `tiny`): checkpoint bytes, held-out masked PSNR, wall time of the `train` command, the two configurations alternating seed by seed. Then `cargo bench --bench sizing`: milliseconds per training step on `small`, 2 threads, 4,096- and 16,384-pixel batches, the two models alternating in rounds (best round).",
+        cost: "about 10 minutes per seed on small (20 with load), plus the bench",
+        run: sizing,
+    },
+    Spec {
+        name: "sizing_render",
+        title: "Rendering a 1.08-megapixel frame with tables from the scene",
+        measures: "`xscale render --scale 6` of one held-out `small` view (1200×900, γ = 2) from the `sizing` section's seed-0 models of `small` (fixed 2^19 tables and tables from the scene): the whole command (mapping the checkpoint, building the BVH, casting, shading, writing the PNG), the two alternating, 5 runs each, median.",
+        cost: "under a minute (after the sizing section)",
+        run: sizing_render,
+    },
+    Spec {
         name: "refine",
         title: "Mesh refinement on and off (`xscale bench-geometry`)",
         measures: "Photo-consistency mesh refinement (`[model.refine] enabled = true` with the section's defaults) on and off, `cpu` preset at `bench-geometry`'s fixed 2,000 steps (the same count for every run), deformation on, on `synth --preset small --write-truth` (seed 1): the exact mesh with training seeds 0, 1 and 2, and a proxy displaced by 0.3 % of the diagonal RMS (seed 0). Held-out masked PSNR and SSIM, close-ups and aerial views apart, training time of each run (one after another on the same host). The `cpu` preset keeps refinement off; this table is what that rule rests on.",
@@ -1047,6 +1061,239 @@ fn budget(c: &Ctx) -> Result<Section> {
         rows,
     ));
     s.notes.push("Close-ups and aerial views: the held-out views below and above the near/far split of `eval.json` (`by_scale.near_far`); on `small` the split is by footprint too.".into());
+    Ok(s)
+}
+
+/// The model's parameter count of a checkpoint (its layout's total).
+fn ckpt_params(path: &Path) -> Result<usize> {
+    Ok(xscale::model::checkpoint::Checkpoint::load(path)?
+        .model
+        .layout
+        .total)
+}
+
+fn sizing(c: &Ctx) -> Result<Section> {
+    let mut s = Section::default();
+    let fixed = c.w("sizing-fixed19.toml");
+    std::fs::write(
+        c.root.join(&fixed),
+        "[model.grid_h]\nlog2_table_size = 19\n",
+    )?;
+    s.commands
+        .push(format!("({fixed}: [model.grid_h] log2_table_size = 19)"));
+    let seeds: Vec<String> = std::env::var("XSCALE_SIZING_SEEDS")
+        .unwrap_or_else(|_| "0,1,2".into())
+        .split(',')
+        .map(|x| x.trim().to_string())
+        .filter(|x| !x.is_empty())
+        .collect();
+    let mut size_rows = Vec::new();
+    let mut run_rows = Vec::new();
+    let mut means: Vec<(String, String, Vec<f64>, Vec<f64>)> = Vec::new();
+    for preset in ["tiny", "small", "cross"] {
+        let scene = c.w(&format!("sizing-{preset}"));
+        let args = ["synth", "--preset", preset, "--seed", "1", "--out", &scene];
+        c.xscale(&args)?;
+        s.commands.push(format!("xscale {}", args.join(" ")));
+        let mut params = [0usize; 2];
+        for (i, tag) in ["fixed", "auto"].iter().enumerate() {
+            let out = c.w(&format!("sizing-{preset}-{tag}-init.safetensors"));
+            let mut args = vec!["init", "--scene", &scene, "--out", &out];
+            if *tag == "fixed" {
+                args.extend_from_slice(&["--config", &fixed]);
+            }
+            c.xscale(&args)?;
+            s.commands.push(format!("xscale {}", args.join(" ")));
+            params[i] = ckpt_params(&c.root.join(&out))?;
+        }
+        size_rows.push(vec![
+            json!(preset),
+            json!(params[0]),
+            json!(params[1]),
+            json!(params[1] as f64 / params[0] as f64),
+        ]);
+        if preset == "cross" {
+            continue;
+        }
+        let seeds: Vec<String> = if preset == "tiny" {
+            vec!["0".into()]
+        } else {
+            seeds.clone()
+        };
+        for tag in ["fixed", "auto"] {
+            means.push((preset.into(), tag.into(), Vec::new(), Vec::new()));
+        }
+        let n = means.len();
+        for seed in &seeds {
+            for (i, tag) in ["fixed", "auto"].iter().enumerate() {
+                let out = c.w(&format!("sizing-{preset}-{tag}-{seed}"));
+                let _ = std::fs::remove_dir_all(c.root.join(&out));
+                let mut args = vec![
+                    "train", "--scene", &scene, "--out", &out, "--seed", seed, "-q",
+                ];
+                if *tag == "fixed" {
+                    args.extend_from_slice(&["--config", &fixed]);
+                }
+                let r = c.xscale(&args)?;
+                s.commands.push(format!("xscale {}", args.join(" ")));
+                let run = c.root.join(&out);
+                let e = read_json(&run.join("eval.json"))?;
+                let bytes = std::fs::metadata(run.join("checkpoint.safetensors"))?.len();
+                let psnr = e["mean"]["psnr_masked"].as_f64().unwrap_or(f64::NAN);
+                let m = &mut means[n - 2 + i];
+                m.2.push(psnr);
+                m.3.push(bytes as f64 / 1e6);
+                run_rows.push(vec![
+                    json!(preset),
+                    json!(if *tag == "fixed" {
+                        "fixed 2^19"
+                    } else {
+                        "auto"
+                    }),
+                    json!(seed),
+                    e["step"].clone(),
+                    json!(bytes as f64 / 1e6),
+                    json!(psnr),
+                    json!(r.wall_s),
+                    json!(peak_mb(&run)),
+                ]);
+            }
+        }
+    }
+    let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len().max(1) as f64;
+    let mean_rows = means
+        .iter()
+        .map(|(p, t, psnr, mb)| {
+            vec![
+                json!(p),
+                json!(if t == "fixed" { "fixed 2^19" } else { "auto" }),
+                json!(psnr.len()),
+                json!(mean(mb)),
+                json!(mean(psnr)),
+            ]
+        })
+        .collect();
+    s.tables.push(table(
+        "parameters of the model `xscale init` builds",
+        &["scene", "fixed 2^19", "auto", "auto / fixed"],
+        &[0, 0, 0, 3],
+        size_rows,
+    ));
+    s.tables.push(table(
+        "trained with the default budget, held-out views",
+        &[
+            "scene",
+            "tables",
+            "seed",
+            "steps",
+            "checkpoint (MB)",
+            "masked PSNR (dB)",
+            "wall (s)",
+            "peak memory (MB)",
+        ],
+        &[0, 0, 0, 0, 1, 2, 0, 0],
+        run_rows,
+    ));
+    s.tables.push(table(
+        "means over the seeds",
+        &[
+            "scene",
+            "tables",
+            "seeds",
+            "checkpoint (MB)",
+            "masked PSNR (dB)",
+        ],
+        &[0, 0, 0, 1, 2],
+        mean_rows,
+    ));
+    let v = c.bench("sizing", &[])?;
+    s.commands.push("cargo bench --bench sizing".into());
+    s.tables.push(table(
+        "a training step on `small`, 2 threads (best of alternating rounds)",
+        &[
+            "batch (pixels)",
+            "fixed 2^19 (ms)",
+            "auto (ms)",
+            "fixed / auto",
+            "fixed parameters",
+            "auto parameters",
+        ],
+        &[0, 1, 1, 2, 0, 0],
+        columns(
+            &v,
+            "sizing",
+            &[
+                "batch",
+                "fixed_ms",
+                "auto_ms",
+                "fixed_over_auto",
+                "fixed_params",
+                "auto_params",
+            ],
+        )?,
+    ));
+    Ok(s)
+}
+
+fn sizing_render(c: &Ctx) -> Result<Section> {
+    let mut s = Section::default();
+    let runs = ["fixed", "auto"].map(|t| c.w(&format!("sizing-small-{t}-0")));
+    for r in &runs {
+        if !c.root.join(r).join("checkpoint.safetensors").is_file() {
+            bail!("no {r}: run the sizing section first");
+        }
+    }
+    let e = read_json(&c.root.join(&runs[1]).join("eval.json"))?;
+    let view = e["views"][0]["view"]
+        .as_str()
+        .ok_or_else(|| anyhow!("{}: no view", runs[1]))?
+        .to_string();
+    let dir = c.w("sizing-render");
+    let mut walls = [Vec::new(), Vec::new()];
+    let mut peak = [0.0f64; 2];
+    for _ in 0..5 {
+        for (i, r) in runs.iter().enumerate() {
+            let args = [
+                "render", "--run", r, "--views", &view, "--scale", "6", "--out", &dir, "-q",
+            ];
+            let ran = c.xscale(&args)?;
+            walls[i].push(ran.wall_s);
+            peak[i] = peak[i].max(ran.peak_mb.unwrap_or(0.0));
+        }
+    }
+    for (i, r) in runs.iter().enumerate() {
+        s.commands.push(format!(
+            "xscale render --run {r} --views {view} --scale 6 --out {dir} -q   (5 times, alternating)"
+        ));
+        walls[i].sort_by(f64::total_cmp);
+    }
+    let rows = (0..2)
+        .map(|i| {
+            vec![
+                json!(["fixed 2^19", "auto"][i]),
+                json!(walls[i][2]),
+                json!(walls[i][0]),
+                json!(walls[i][4]),
+                json!(peak[i]),
+            ]
+        })
+        .collect();
+    s.tables.push(table(
+        &format!("view {view} at 6× its size"),
+        &[
+            "tables",
+            "median (s)",
+            "fastest (s)",
+            "slowest (s)",
+            "peak memory (MB)",
+        ],
+        &[0, 2, 2, 2, 0],
+        rows,
+    ));
+    s.notes.push(format!(
+        "Fixed / auto (medians): {:.2}×.",
+        walls[0][2] / walls[1][2]
+    ));
     Ok(s)
 }
 

@@ -115,7 +115,7 @@ def _grid_config(d: dict, where: str) -> GridConfig:
 # records how per_level_scale was chosen; `gamma` is the batch's S = gamma^2; `[refine]` moves the mesh
 # batches are drawn from, not the evaluation of a batch.
 _GRID_KEYS = {"levels", "features", "log2_table_size", "base_resolution", "per_level_scale", "interpolation",
-              "finest_resolution"}
+              "finest_resolution", "log2_table_sizes"}
 _KEYS = {
     "": {"grid_h", "deform", "shader", "appearance_dim", "appearance_views", "gamma", "positions", "loss",
          "smooth_l1_delta", "level_weight", "featurization", "refine"},

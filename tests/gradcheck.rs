@@ -344,6 +344,7 @@ fn grid_cfg(levels: u32, log2: u32, interp: Interpolation) -> GridConfig {
         per_level_scale: 2.0,
         interpolation: interp,
         finest_resolution: None,
+        log2_table_sizes: None,
     }
 }
 

@@ -16,6 +16,7 @@ fn cfg(levels: u32, features: u32, t: u32, n0: f32, b: f64, interp: Interpolatio
         per_level_scale: b,
         interpolation: interp,
         finest_resolution: None,
+        log2_table_sizes: None,
     }
 }
 

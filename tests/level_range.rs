@@ -4,9 +4,11 @@
 
 use std::path::PathBuf;
 use xscale::model::config::per_level_scale_for;
-use xscale::train::config::{LevelRange, RunConfig};
+use xscale::train::config::{LevelRange, RunConfig, TableSize};
 use xscale::train::sampler::SampleMode;
-use xscale::train::setup::{auto_levels, prepare, resolve_levels, AUTO_FINEST_MAX, LEVEL_QUANTILE};
+use xscale::train::setup::{
+    auto_levels, prepare, resolve_levels, resolve_table_sizes, AUTO_FINEST_MAX, LEVEL_QUANTILE,
+};
 use xscale::train::state::TrainState;
 
 fn fixture() -> PathBuf {
@@ -213,6 +215,7 @@ fn a_cpu_run_records_its_range_and_is_thread_independent() {
         let mut want = RunConfig::preset("cpu").unwrap();
         let p = prepare(&scene, &want, false, &mut |_| {}).unwrap();
         resolve_levels(&mut want, &p.samples);
+        resolve_table_sizes(&mut want, &p.samples, &p.tracer);
         assert_eq!(saved.model.grid_h, want.model.grid_h);
         assert!(saved.model.grid_h.finest_resolution.is_some());
         bytes.push(std::fs::read(run.join("checkpoint.safetensors")).unwrap());
@@ -306,6 +309,8 @@ fn the_memory_check_sees_the_levels_the_range_added() {
     let scene = zoomed_fixture("zoom-memory", 1e3);
     let mut cfg = RunConfig::preset("cpu").unwrap();
     cfg.train.memory_gb = 0.6;
+    // The preset's 2^19 tables on every level (auto sizes make these 37 levels fit).
+    cfg.train.table_size = TableSize::Fixed;
     let p = prepare(&scene, &cfg, false, &mut |_| {}).unwrap();
     let mut fixed = cfg.clone();
     fixed.train.level_range = LevelRange::Fixed;
@@ -337,7 +342,12 @@ fn the_memory_check_sees_the_levels_the_range_added() {
 fn init_checks_the_memory_of_the_levels_the_range_added() {
     let scene = zoomed_fixture("zoom-init", 1e3);
     let cfg = scene.join("mem.toml");
-    std::fs::write(&cfg, "[train]\nmemory_gb = 0.6\n").unwrap();
+    // The preset's 2^19 tables on every level (auto sizes make these 37 levels fit).
+    std::fs::write(
+        &cfg,
+        "[train]\nmemory_gb = 0.6\n[model.grid_h]\nlog2_table_size = 19\n",
+    )
+    .unwrap();
     let out = scene.join("init.safetensors");
     let o = std::process::Command::new(env!("CARGO_BIN_EXE_xscale"))
         .args(["init", "--preset", "cpu", "--scene"])

@@ -457,6 +457,7 @@ fn grid_cfg(interp: Interpolation) -> GridConfig {
         per_level_scale: 2.0,
         interpolation: interp,
         finest_resolution: None,
+        log2_table_sizes: None,
     }
 }
 

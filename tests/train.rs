@@ -89,6 +89,51 @@ fn f64_arithmetic_resumes_exactly_and_differs_from_f32() {
     let _ = std::fs::remove_dir_all(&f32_run);
 }
 
+/// The `cpu` preset's tables sized from the scene: its checkpoint leaves out the Adam state of
+/// the grid entries no ray reached (`adam.rows.*`), loads back to the very state trained (what
+/// the full layout writes), and a resumed run is still byte-identical on 1 and 2 threads.
+#[test]
+fn compact_adam_state_resumes_exactly() {
+    let mut c = RunConfig::preset("cpu").unwrap();
+    assert_eq!(c.train.table_size, xscale::train::config::TableSize::Auto);
+    c.train.budget = xscale::train::config::StepBudget::Fixed;
+    c.train.steps = 200;
+    c.train.batch_pixels = 512;
+    c.train.eval_every = 50;
+    c.train.checkpoint_every = 30;
+    let bytes = resume_exact(c, "auto");
+    let f = xscale::io::tensors::TensorFile::from_bytes(&bytes, "auto run").unwrap();
+    let rows = f.get_u32("adam.rows.grid_h.table").unwrap();
+    let entries = f.get("grid_h.table").unwrap().shape[0];
+    assert!(
+        !rows.is_empty() && rows.len() < entries,
+        "{} of {entries} rows kept",
+        rows.len()
+    );
+    assert_eq!(f.get("adam.m.grid_h.table").unwrap().shape[0], rows.len());
+    // The MLPs step every scalar every step: written whole, without a row list.
+    assert!(!f.tensors.contains_key("adam.rows.shader.layers.0.weight"));
+    let st = TrainState::from_tensor_file(&f).unwrap();
+    let mut full = xscale::io::tensors::TensorFile::default();
+    st.adam.save(&mut full).unwrap();
+    let names: Vec<(String, Vec<usize>)> = st
+        .adam
+        .slots
+        .iter()
+        .map(|s| (s.name.clone(), s.shape.clone()))
+        .collect();
+    let back = xscale::train::adam::AdamState::load(&full, &names).unwrap();
+    assert_eq!(back.state, st.adam.state);
+    // The left-out rows are exactly the never-stepped ones.
+    let r = st.adam.range("grid_h.table").unwrap();
+    let t = st.adam.t(r);
+    let width = t.len() / entries;
+    let stepped = (0..entries)
+        .filter(|&e| t[e * width..(e + 1) * width].iter().any(|&x| x > 0))
+        .count();
+    assert_eq!(stepped, rows.len());
+}
+
 /// Train `c` straight and interrupted + resumed, on 1 and 2 threads; all four checkpoints must
 /// be the same bytes. Returns them.
 fn resume_exact(c: RunConfig, tag: &str) -> Vec<u8> {

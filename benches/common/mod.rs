@@ -55,3 +55,34 @@ pub fn emit_json(value: serde_json::Value) {
         }
     }
 }
+
+/// `steps` training steps of `state` on `batch`-pixel batches of `prepared`, checking that the
+/// loss stays finite and falls over them (a broken loop is not timed).
+pub fn warm_up(
+    state: &mut xscale::train::state::TrainState,
+    grads: &mut xscale::model::params::Grads<f32>,
+    prepared: &xscale::train::setup::Prepared,
+    batch: usize,
+    steps: u64,
+) {
+    let mut first = None;
+    let mut last = 0.0;
+    for _ in 0..steps {
+        let b = xscale::train::sampler::sample_batch(
+            &prepared.samples,
+            &prepared.tracer,
+            0,
+            state.step,
+            batch,
+        );
+        let st = state.step(&b, grads).unwrap();
+        assert!(st.loss.is_finite(), "loss is not finite");
+        first.get_or_insert(st.loss);
+        last = st.loss;
+    }
+    assert!(
+        last < first.unwrap(),
+        "the loss did not fall over the warm-up ({} -> {last})",
+        first.unwrap()
+    );
+}

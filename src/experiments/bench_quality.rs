@@ -30,7 +30,7 @@ use std::path::Path;
 use std::time::Instant;
 
 /// Every configuration: name and what it is.
-pub const CONFIGS: [(&str, &str); 13] = [
+pub const CONFIGS: [(&str, &str); 14] = [
     (
         "tiny",
         "the tiny preset (4 levels, 2^12 table): a smoke test",
@@ -40,6 +40,10 @@ pub const CONFIGS: [(&str, &str); 13] = [
     (
         "cpu-table17",
         "cpu with log2_table_size = 17 (a quarter of the table)",
+    ),
+    (
+        "cpu-table19",
+        "cpu with fixed 2^19 tables on every level (the cpu default before log2_table_size = \"auto\")",
     ),
     (
         "cpu-table21",
@@ -73,9 +77,10 @@ pub fn config(name: &str) -> Result<Option<RunConfig>> {
     let c = match name {
         "ulr" => return Ok(None),
         "tiny" | "cpu" | "paper" => RunConfig::preset(name)?,
-        "cpu-table17" | "cpu-table21" => {
+        "cpu-table17" | "cpu-table19" | "cpu-table21" => {
             let mut c = cpu()?;
-            c.model.grid_h.log2_table_size = if name == "cpu-table17" { 17 } else { 21 };
+            c.model.grid_h.log2_table_size = name["cpu-table".len()..].parse()?;
+            c.train.table_size = crate::train::config::TableSize::Fixed;
             c
         }
         "cpu-spacing1.6" | "cpu-spacing2" => {

@@ -32,8 +32,14 @@ pub struct GridConfig {
     pub levels: u32,
     /// Features per level F ∈ {1, 2, 4, 8}.
     pub features: u32,
-    /// log2 of the maximum entries per level, T.
+    /// log2 of the maximum entries per level, T (with `log2_table_sizes`: their largest).
     pub log2_table_size: u32,
+    /// log2 of the maximum entries of each level, `T_l` (a documented extension of tiny-cuda-nn,
+    /// which has one `T` for all levels; SPEC §4.2): chosen by `log2_table_size = "auto"` from the
+    /// surface cells the training rays reach (`train/setup.rs` `resolve_table_sizes`). Absent: every
+    /// level has `T`, as in tiny-cuda-nn (the `tiny` and `paper` presets, an explicit integer).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub log2_table_sizes: Option<Vec<u32>>,
     /// N0.
     pub base_resolution: f32,
     /// b; `scale_l = exp2(l * log2(b)) * N0 - 1` with log2(b) in f32.
@@ -45,6 +51,16 @@ pub struct GridConfig {
     /// defines the grid. Absent when the preset's scale is used.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub finest_resolution: Option<f64>,
+}
+
+impl GridConfig {
+    /// `T_l`: log2 of the maximum entries of level `l` (`log2_table_sizes[l]`, else `T`).
+    pub fn log2_table_size_of(&self, l: usize) -> u32 {
+        self.log2_table_sizes
+            .as_ref()
+            .and_then(|v| v.get(l).copied())
+            .unwrap_or(self.log2_table_size)
+    }
 }
 
 /// The manifold deformation ξ (SPEC §4.4, Eq. 5).
@@ -177,6 +193,7 @@ impl ModelConfig {
                 per_level_scale: 2.0,
                 interpolation: Interpolation::Linear,
                 finest_resolution: None,
+                log2_table_sizes: None,
             },
             deform: DeformConfig {
                 enabled: true,
@@ -188,6 +205,7 @@ impl ModelConfig {
                     per_level_scale: 2.0,
                     interpolation: Interpolation::Linear,
                     finest_resolution: None,
+                    log2_table_sizes: None,
                 },
                 hidden: 8,
             },
@@ -221,6 +239,7 @@ impl ModelConfig {
                 per_level_scale: per_level_scale_for(16.0, 2048.0, 16),
                 interpolation: Interpolation::Linear,
                 finest_resolution: None,
+                log2_table_sizes: None,
             },
             deform: DeformConfig {
                 enabled: true,
@@ -232,6 +251,7 @@ impl ModelConfig {
                     per_level_scale: per_level_scale_for(16.0, 512.0, 8),
                     interpolation: Interpolation::Linear,
                     finest_resolution: None,
+                    log2_table_sizes: None,
                 },
                 hidden: 32,
             },
@@ -267,6 +287,7 @@ impl ModelConfig {
             per_level_scale: 1.4768261459394993,
             interpolation: Interpolation::Smoothstep,
             finest_resolution: None,
+            log2_table_sizes: None,
         };
         c.deform.grid.interpolation = Interpolation::Smoothstep;
         c

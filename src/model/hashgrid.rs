@@ -16,15 +16,16 @@
 //! log2b   = log2f((float)b)                              (f32, as tcnn's host code)
 //! scale_l = exp2f(l * log2b) * N0 - 1                    (f32; product then difference)
 //! res_l   = (u32)ceilf(scale_l) + 1
-//! size_l  = min(next_multiple_of_8(min(res_l^3, 2^31-1)), 2^T)
-//! dense_l = res_l <= 1625 && res_l^3 <= size_l           (else hashed, size_l = 2^T)
+//! size_l  = min(next_multiple_of_8(min(res_l^3, 2^31-1)), 2^T_l)
+//! dense_l = res_l <= 1625 && res_l^3 <= size_l           (else hashed, size_l = 2^T_l)
 //! p = fma(scale_l, x, 0.5); c = (u32)(i32)floor(p); t = p - c   (exact; the i32 conversion
 //!                                             saturates, NaN → i32::MIN, output NaN)
 //! w = t | t*t*(3-2t) ;  corner k: bit d of k → c_d+1 with w_d, else c_d with 1-w_d
 //! weight_k = ((w_0' * w_1') * w_2')                      (d = 0, 1, 2 order; tcnn starts at 1*)
 //! index_k  = dense:  (c_x + c_y*res + c_z*res^2) mod size   (u32 wrapping, no clamping:
 //!                                                     the +1 corner at the upper face wraps)
-//!            hashed: (c_x ^ c_y*2654435761 ^ c_z*805459861) mod 2^T   (u32 wrapping)
+//!            hashed: (c_x ^ c_y*2654435761 ^ c_z*805459861) mod 2^T_l (u32 wrapping)
+//! T_l = T for every level (tiny-cuda-nn), or `log2_table_sizes[l]` (a documented extension)
 //! out[l*F+f] = fma(w_7, v_7, … fma(w_1, v_1, fma(w_0, v_0, 0)))     (k order)
 //! ```
 //! Precision modes: [`PositionMode::Tcnn`] rounds `x` to f32 and computes `p` with an f32 FMA, so
@@ -129,6 +130,17 @@ pub fn validate_config(cfg: &GridConfig) -> anyhow::Result<()> {
         "grid: log2_table_size = {} must be at most 31",
         cfg.log2_table_size
     );
+    if let Some(t) = &cfg.log2_table_sizes {
+        ensure!(
+            t.len() == cfg.levels as usize,
+            "grid: log2_table_sizes has {} values, expected one per level ({})",
+            t.len(),
+            cfg.levels
+        );
+        if let Some((l, v)) = t.iter().enumerate().find(|(_, &v)| v > 31) {
+            bail!("grid: log2_table_sizes[{l}] = {v} must be at most 31");
+        }
+    }
     ensure!(
         cfg.base_resolution.is_finite() && cfg.base_resolution >= 1.0,
         "grid: base_resolution = {} must be a finite number >= 1",
@@ -163,8 +175,9 @@ pub fn tcnn_scales(cfg: &GridConfig) -> Vec<f32> {
         .collect()
 }
 
-/// `min(next_multiple_of_8(min(res^3, 2^31-1)), 2^T)` (tcnn's `params_in_level` for a hash grid).
-fn level_size(res: u32, log2_table_size: u32) -> u32 {
+/// `min(next_multiple_of_8(min(res^3, 2^31-1)), 2^T)` (tcnn's `params_in_level` for a hash grid;
+/// with per-level sizes, `T = T_l`).
+pub fn level_size(res: u32, log2_table_size: u32) -> u32 {
     // Saturating: res^3 overflows u64 from res = 2^21.34 (scales up to 1e9 are valid), and a
     // wrapped cube made the level 0 entries long (found by cargo fuzz, checkpoint target).
     let cube = (res as u64).saturating_pow(3);
@@ -222,7 +235,7 @@ impl HashGrid {
                 bail!("grid: scale of level {l} is {s}, expected a finite number in [0, 1e9]");
             }
             let res = s.ceil() as u32 + 1;
-            let size = level_size(res, cfg.log2_table_size);
+            let size = level_size(res, cfg.log2_table_size_of(l));
             resolutions.push(res);
             dense
                 .push(res <= MAX_DENSE_RESOLUTION && (res as u64).saturating_pow(3) <= size as u64);

@@ -771,17 +771,55 @@ impl AdamState {
     /// each with the parameter's shape.
     pub fn save(&self, f: &mut TensorFile) -> Result<()> {
         for s in &self.slots {
-            let [m, v, t] = self.state_bytes(s.range());
-            for (kind, dtype, bytes) in [
-                ("m", DType::F32, m),
-                ("v", DType::F32, v),
-                ("t", DType::U32, t),
-            ] {
-                f.insert(
-                    format!("adam.{kind}.{}", s.name),
-                    Tensor::from_bytes(dtype, s.shape.clone(), bytes)?,
-                );
+            insert_state(f, &s.name, &s.shape, self.state_bytes(s.range()))?;
+        }
+        Ok(())
+    }
+
+    /// [`AdamState::save`], but a slot's rows (its first dimension: a grid's entries) whose
+    /// state is still zero — never stepped: entries and levels no training ray reached — are not
+    /// written. Such a slot is stored as `adam.rows.<name>` (U32 `[k]`, the kept rows, ascending)
+    /// and `adam.{m,v,t}.<name>` of shape `[k, …]`; a slot every row of which has stepped is
+    /// written as by `save` (so is every dense group). [`AdamState::load`] reads either back
+    /// to the same state, so a resumed run is bit-identical. `train.table_size = "auto"`
+    /// checkpoints use it (`train/state.rs`).
+    pub fn save_compact(&self, f: &mut TensorFile) -> Result<()> {
+        for s in &self.slots {
+            let rows = s.shape.first().copied().unwrap_or(1);
+            let row_len = s.len().checked_div(rows).unwrap_or(0);
+            let st = &self.state[s.range()];
+            let zero = |m: &Moments| m.m.to_bits() == 0 && m.v.to_bits() == 0 && m.t == 0;
+            let kept: Vec<u32> = if row_len == 0 || s.shape.is_empty() {
+                Vec::new()
+            } else {
+                st.par_chunks(row_len)
+                    .enumerate()
+                    .filter(|(_, r)| !r.iter().all(zero))
+                    .map(|(i, _)| i as u32)
+                    .collect()
+            };
+            if s.shape.is_empty() || kept.len() == rows {
+                let [m, v, t] = self.state_bytes(s.range());
+                insert_state(f, &s.name, &s.shape, [m, v, t])?;
+                continue;
             }
+            let mut shape = s.shape.clone();
+            shape[0] = kept.len();
+            let mut packed = Vec::with_capacity(kept.len() * row_len);
+            for &r in &kept {
+                let b = r as usize * row_len;
+                packed.extend_from_slice(&st[b..b + row_len]);
+            }
+            let [m, v, t] = moments_bytes(&packed);
+            insert_state(f, &s.name, &shape, [m, v, t])?;
+            f.insert(
+                format!("adam.rows.{}", s.name),
+                Tensor::from_bytes(
+                    DType::U32,
+                    vec![kept.len()],
+                    kept.iter().flat_map(|r| r.to_le_bytes()).collect(),
+                )?,
+            );
         }
         Ok(())
     }
@@ -789,32 +827,63 @@ impl AdamState {
     /// The little-endian bytes of `m`, `v` and `t` over `range`, written in one pass over the
     /// state in parallel chunks (a checkpoint holds hundreds of MB of it).
     fn state_bytes(&self, range: Range<usize>) -> [Vec<u8>; 3] {
-        let st = &self.state[range];
-        let mut out = [0; 3].map(|_| vec![0u8; st.len() * 4]);
-        let [m, v, t] = &mut out;
-        m.par_chunks_mut(IO_CHUNK * 4)
-            .zip(v.par_chunks_mut(IO_CHUNK * 4))
-            .zip(t.par_chunks_mut(IO_CHUNK * 4))
-            .zip(st.par_chunks(IO_CHUNK))
-            .for_each(|(((m, v), t), st)| {
-                for (i, s) in st.iter().enumerate() {
-                    let b = i * 4..i * 4 + 4;
-                    m[b.clone()].copy_from_slice(&s.m.to_le_bytes());
-                    v[b.clone()].copy_from_slice(&s.v.to_le_bytes());
-                    t[b].copy_from_slice(&s.t.to_le_bytes());
-                }
-            });
-        out
+        moments_bytes(&self.state[range])
     }
+}
 
+/// `adam.m.<name>`, `adam.v.<name>` (F32) and `adam.t.<name>` (U32) of `shape`.
+fn insert_state(f: &mut TensorFile, name: &str, shape: &[usize], b: [Vec<u8>; 3]) -> Result<()> {
+    let [m, v, t] = b;
+    for (kind, dtype, bytes) in [
+        ("m", DType::F32, m),
+        ("v", DType::F32, v),
+        ("t", DType::U32, t),
+    ] {
+        f.insert(
+            format!("adam.{kind}.{name}"),
+            Tensor::from_bytes(dtype, shape.to_vec(), bytes)?,
+        );
+    }
+    Ok(())
+}
+
+/// The little-endian bytes of `m`, `v` and `t` of `st`, in parallel chunks.
+fn moments_bytes(st: &[Moments]) -> [Vec<u8>; 3] {
+    let mut out = [0; 3].map(|_| vec![0u8; st.len() * 4]);
+    let [m, v, t] = &mut out;
+    m.par_chunks_mut(IO_CHUNK * 4)
+        .zip(v.par_chunks_mut(IO_CHUNK * 4))
+        .zip(t.par_chunks_mut(IO_CHUNK * 4))
+        .zip(st.par_chunks(IO_CHUNK))
+        .for_each(|(((m, v), t), st)| {
+            for (i, s) in st.iter().enumerate() {
+                let b = i * 4..i * 4 + 4;
+                m[b.clone()].copy_from_slice(&s.m.to_le_bytes());
+                v[b.clone()].copy_from_slice(&s.v.to_le_bytes());
+                t[b].copy_from_slice(&s.t.to_le_bytes());
+            }
+        });
+    out
+}
+
+impl AdamState {
     /// Read the state of named parameters `(name, shape)` (laid out as [`AdamState::new`]) from a
     /// file written by [`AdamState::save`]. Errors name the file, the tensor and the expected
     /// dtype/shape.
     pub fn load<S: AsRef<str>>(f: &TensorFile, params: &[(S, Vec<usize>)]) -> Result<AdamState> {
         let mut st = AdamState::new(params);
         for s in st.slots.clone() {
+            // Rows kept by `save_compact` (absent: every row).
+            let rows = match f.tensors.get(&format!("adam.rows.{}", s.name)) {
+                None => None,
+                Some(_) => Some(kept_rows(f, &s)?),
+            };
+            let mut shape = s.shape.clone();
+            if let Some(r) = &rows {
+                shape[0] = r.len();
+            }
             let get = |kind: &str, dtype| {
-                f.get_checked(&format!("adam.{kind}.{}", s.name), dtype, &s.shape)
+                f.get_checked(&format!("adam.{kind}.{}", s.name), dtype, &shape)
                     .map(|t| &t.data[..])
             };
             let (m, v, t) = (
@@ -822,6 +891,23 @@ impl AdamState {
                 get("v", DType::F32)?,
                 get("t", DType::U32)?,
             );
+            if let Some(rows) = rows {
+                let row_len = s.len() / s.shape[0];
+                let word =
+                    |b: &[u8], i: usize| -> [u8; 4] { b[i * 4..i * 4 + 4].try_into().unwrap() };
+                let out = &mut st.state[s.range()];
+                for (k, &r) in rows.iter().enumerate() {
+                    for j in 0..row_len {
+                        let i = k * row_len + j;
+                        out[r as usize * row_len + j] = Moments {
+                            m: f32::from_le_bytes(word(m, i)),
+                            v: f32::from_le_bytes(word(v, i)),
+                            t: u32::from_le_bytes(word(t, i)),
+                        };
+                    }
+                }
+                continue;
+            }
             // Decoded straight from the file's bytes into the state, in parallel chunks.
             let word = |b: &[u8], i: usize| -> [u8; 4] { b[i * 4..i * 4 + 4].try_into().unwrap() };
             st.state[s.range()]
@@ -842,6 +928,37 @@ impl AdamState {
     }
 }
 
+/// The `adam.rows.<name>` of a compact slot, checked: ascending, distinct, within the slot's rows.
+fn kept_rows(f: &TensorFile, s: &ParamSlot) -> Result<Vec<u32>> {
+    let name = format!("adam.rows.{}", s.name);
+    let t = f.get(&name)?;
+    let label = f
+        .source
+        .as_ref()
+        .map_or("<checkpoint>".into(), |p| p.display().to_string());
+    if t.dtype != DType::U32 || t.shape.len() != 1 || s.shape.is_empty() {
+        bail!(
+            "{label}: tensor {name} is {} {:?}, expected U32 [k] (rows of a parameter of shape {:?})",
+            t.dtype,
+            t.shape,
+            s.shape
+        );
+    }
+    let rows = f.get_u32(&name)?;
+    let n = s.shape[0];
+    if let Some(w) = rows.windows(2).find(|w| w[0] >= w[1]) {
+        bail!(
+            "{label}: tensor {name}: rows not ascending ({} then {})",
+            w[0],
+            w[1]
+        );
+    }
+    if let Some(&r) = rows.last().filter(|&&r| r as usize >= n) {
+        bail!("{label}: tensor {name}: row {r} beyond the parameter's {n} rows");
+    }
+    Ok(rows)
+}
+
 /// Sort and deduplicate a touched-entry list into the form [`AdamState::step_sparse`] requires.
 pub fn normalize_entries(entries: &mut Vec<u32>) {
     entries.sort_unstable();
@@ -860,6 +977,40 @@ pub fn zero_entries(grads: &mut [f32], entries: &[u32], entry_len: usize) {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// `save_compact` keeps the stepped rows only and reads back to the same state; a slot with
+    /// every row stepped is written whole; a bad row list is an error naming the tensor.
+    #[test]
+    fn compact_state_round_trips_and_checks_its_rows() {
+        let specs = [("a", vec![5, 2]), ("b", vec![3])];
+        let mut st = AdamState::new(&specs);
+        for (i, m) in st.state.iter_mut().enumerate() {
+            // Rows 1 and 3 of `a` (one scalar of row 3) and every scalar of `b` have stepped.
+            if matches!(i, 2 | 3 | 7) || i >= 10 {
+                *m = Moments {
+                    m: 0.5 + i as f32,
+                    v: 0.25,
+                    t: i as u32,
+                };
+            }
+        }
+        let mut f = TensorFile::default();
+        st.save_compact(&mut f).unwrap();
+        assert_eq!(f.get_u32("adam.rows.a").unwrap(), vec![1, 3]);
+        assert_eq!(f.get("adam.m.a").unwrap().shape, vec![2, 2]);
+        assert!(!f.tensors.contains_key("adam.rows.b"));
+        assert_eq!(AdamState::load(&f, &specs).unwrap().state, st.state);
+        for (rows, want) in [(vec![3u32, 1], "not ascending"), (vec![1, 5], "beyond")] {
+            let mut g = f.clone();
+            let b: Vec<u8> = rows.iter().flat_map(|r| r.to_le_bytes()).collect();
+            g.insert(
+                "adam.rows.a",
+                Tensor::from_bytes(DType::U32, vec![2], b).unwrap(),
+            );
+            let e = format!("{:#}", AdamState::load(&g, &specs).unwrap_err());
+            assert!(e.contains("adam.rows.a") && e.contains(want), "{e}");
+        }
+    }
 
     /// The kept `lr_t` tables give the values of a fresh computation whatever the order of
     /// calls: one key growing step by step, keys interleaved, more keys than are kept, a

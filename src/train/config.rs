@@ -33,6 +33,25 @@ pub enum LevelRange {
     Auto,
 }
 
+/// How grid H's table sizes are chosen (`[model.grid_h] log2_table_size = "auto"` or an integer).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum TableSize {
+    /// Every level `2^log2_table_size` entries at most (tiny-cuda-nn; the `tiny` and `paper`
+    /// presets, an integer `log2_table_size`).
+    #[default]
+    Fixed,
+    /// Each hashed level sized from the surface cells the training rays reach at that level
+    /// (`cpu`; `train/setup.rs` `resolve_table_sizes`).
+    Auto,
+}
+
+impl TableSize {
+    pub fn is_fixed(&self) -> bool {
+        *self == TableSize::Fixed
+    }
+}
+
 /// How a run's step count is chosen (`[train] budget`).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
@@ -88,6 +107,15 @@ pub struct TrainConfig {
     /// from older configs (= fixed, as they were trained).
     #[serde(default)]
     pub level_range: LevelRange,
+    /// How grid H's table sizes are chosen at the start of a run (SPEC §8, `train/setup.rs`
+    /// `resolve_table_sizes`): set in a config file as `[model.grid_h] log2_table_size = "auto"`
+    /// (the `cpu` preset) or an integer (`fixed`). The sizes chosen are saved as grid H's
+    /// `log2_table_sizes`. Absent when `fixed` (so the `paper` and `tiny` presets' configs and
+    /// checkpoints are byte for byte those of the builds before it) and from older configs (=
+    /// fixed, as they were trained). A config without it laid over the `cpu` preset as a
+    /// `--config` stays fixed: its integer `log2_table_size` says so.
+    #[serde(default, skip_serializing_if = "TableSize::is_fixed")]
+    pub table_size: TableSize,
     pub adam: AdamConfig,
     /// Mesh file to use instead of the scene's own (e.g. a decimated one, `xscale decimate`);
     /// `xscale train --mesh` stores it absolute, so `eval`/`render --run` find it again. The
@@ -147,6 +175,11 @@ impl TrainConfig {
                 LevelRange::Auto
             } else {
                 LevelRange::Fixed
+            },
+            table_size: if name == "cpu" {
+                TableSize::Auto
+            } else {
+                TableSize::Fixed
             },
             adam,
             mesh: None,
@@ -238,8 +271,9 @@ impl RunConfig {
     /// The preset (`preset` key of the text, else `default_preset`) with the text's tables laid
     /// over it. `origin` names the source in errors.
     pub fn from_toml_str(text: &str, default_preset: &str, origin: &str) -> Result<RunConfig> {
-        let over: toml::Value =
+        let mut over: toml::Value =
             toml::from_str(text).with_context(|| format!("{origin}: not valid TOML"))?;
+        table_size_key(&mut over, origin)?;
         let preset = over
             .get("preset")
             .and_then(|p| p.as_str())
@@ -260,7 +294,49 @@ impl RunConfig {
         merge(&mut v, over);
         described(v, origin, text)
     }
+}
 
+/// `[model.grid_h] log2_table_size = "auto"` becomes `[train] table_size = "auto"` (the
+/// preset's `log2_table_size` stays, the ceiling's reference); an integer there, or per-level
+/// `log2_table_sizes`, makes it `fixed`.
+fn table_size_key(over: &mut toml::Value, origin: &str) -> Result<()> {
+    let Some(g) = over
+        .get_mut("model")
+        .and_then(|m| m.get_mut("grid_h"))
+        .and_then(|g| g.as_table_mut())
+    else {
+        return Ok(());
+    };
+    let mode = match g.get("log2_table_size") {
+        Some(toml::Value::String(s)) if s == "auto" => {
+            g.remove("log2_table_size");
+            if g.contains_key("log2_table_sizes") {
+                bail!("{origin}: [model.grid_h] log2_table_size = \"auto\" chooses each level's size itself; remove log2_table_sizes or give log2_table_size as an integer");
+            }
+            "auto"
+        }
+        Some(toml::Value::String(s)) => bail!(
+            "{origin}: [model.grid_h] log2_table_size = {s:?}: expected \"auto\" or an integer (log2 of the entries per level, e.g. 19)"
+        ),
+        Some(_) => "fixed",
+        None if g.contains_key("log2_table_sizes") => "fixed",
+        None => return Ok(()),
+    };
+    let train = over
+        .as_table_mut()
+        .expect("a TOML document is a table")
+        .entry("train")
+        .or_insert_with(|| toml::Value::Table(Default::default()));
+    if let Some(t) = train.as_table_mut() {
+        // An explicit `[train] table_size` (a stored `RUN/config.toml`) is kept with an integer.
+        if mode == "auto" || !t.contains_key("table_size") {
+            t.insert("table_size".into(), toml::Value::String(mode.into()));
+        }
+    }
+    Ok(())
+}
+
+impl RunConfig {
     /// A configuration a run stored (`RUN/config.toml`, a checkpoint's `run_config`): complete
     /// as written, so it is read as it stands, not laid over its preset. A key it lacks takes
     /// its serde default — what the build that wrote it meant: a key skipped when it holds its

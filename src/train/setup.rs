@@ -11,7 +11,7 @@ use crate::raycast::consistency::PhotoCheck;
 use crate::raycast::{CacheEvent, Targets, Tracer};
 use crate::scene::Camera;
 use crate::scene::{LoadOptions, LoadReport, MaskSource, Scene};
-use crate::train::config::{LevelRange, RunConfig, StepBudget, TrainConfig};
+use crate::train::config::{LevelRange, RunConfig, StepBudget, TableSize, TrainConfig};
 use crate::train::memory;
 use crate::train::sampler::{SampleMode, Samples};
 use anyhow::{bail, Context, Result};
@@ -69,6 +69,9 @@ impl Prepared {
         log: &mut dyn FnMut(String),
     ) -> Result<(RunConfig, Checkpoint)> {
         for msg in resolve_levels(&mut cfg, &self.samples) {
+            log(msg);
+        }
+        for msg in resolve_table_sizes(&mut cfg, &self.samples, &self.tracer) {
             log(msg);
         }
         log(resolve_budget(&mut cfg.train, self.samples.len()));
@@ -550,6 +553,192 @@ pub fn resolve_levels(cfg: &mut RunConfig, samples: &Samples) -> Vec<String> {
                 out.push(msg);
             }
         }
+    }
+    out
+}
+
+/// `log2_table_size = "auto"`: a hashed level gets at least this many entries per surface cell
+/// the training rays reach at that level (`2^ceil(log2(TABLE_HEADROOM · cells))`: at most a
+/// quarter of a table's entries hold a cell, so collisions stay rare). Measured on `synth small`
+/// (600 steps, seed 0, masked held-out PSNR): 35.00 dB against 34.99 dB with 2^19 on every level;
+/// about 0.5 entries per cell (the load 2^19 has on the finest levels) scored 34.53 dB, 1 entry
+/// 34.44 dB, 2 entries 34.65 dB — collisions on the middle levels cost more than the fine
+/// levels' tolerance of them suggested.
+pub const TABLE_HEADROOM: f64 = 4.0;
+/// The smallest `T_l` of `log2_table_size = "auto"` (also that of a level no ray reaches).
+pub const TABLE_FLOOR_LOG2: u32 = 12;
+/// The largest `T_l` of `log2_table_size = "auto"`: the `cpu` preset's fixed 2^19. With 2^21
+/// `synth small`'s model grew 3.5× (its finest levels reach ~1 M cells each) and its steps slowed
+/// for the same held-out PSNR at the same steps, so the rule only shrinks what a scene leaves
+/// empty (`docs/changelog.md`). A scene that needs more sets `log2_table_size` itself.
+pub const TABLE_CEILING_LOG2: u32 = 19;
+/// The training pixels `log2_table_size = "auto"` counts cells of, at most (every
+/// `⌈kept / this⌉`-th kept pixel, all its sub-samples).
+pub const TABLE_SAMPLE_PIXELS: usize = 1 << 16;
+
+/// Distinct grid-H cells (level by level) the training rays reach: the sub-samples of every
+/// `stride`-th kept pixel (`stride = ⌈kept / TABLE_SAMPLE_PIXELS⌉`), at each level the footprint
+/// weighting gives a weight > 0 (every level without it). Cell of a point at level l:
+/// `⌊fma(scale_l, x_n, 0.5)⌋` per axis (f64), as the grid locates it. With `stride > 1` the count
+/// of the subset, `d_s` of `n_s` points, is extrapolated to `d_s · (1 + (stride − 1) · d_s / n_s)`
+/// (all cells found when points share cells, `stride ×` when each point has a cell of its own).
+/// Pure and deterministic: the same pixels in the same order whatever the thread count.
+pub fn reached_cells(
+    grid: &GridConfig,
+    weighted: bool,
+    samples: &Samples,
+    tracer: &Tracer,
+) -> Vec<f64> {
+    let scales = tcnn_scales(grid);
+    let nl = scales.len();
+    let kept = samples.len();
+    if kept == 0 {
+        return vec![0.0; nl];
+    }
+    let stride = kept.div_ceil(TABLE_SAMPLE_PIXELS);
+    let pixels: Vec<usize> = (0..kept).step_by(stride).collect();
+    let mut cells: Vec<Vec<u64>> = vec![Vec::new(); nl];
+    let mut points = vec![0u64; nl];
+    for chunk in pixels.chunks(8192) {
+        let b = samples.batch(tracer, chunk);
+        let s = b.samples_per_pixel();
+        for (l, &sc) in scales.iter().enumerate() {
+            let sc = sc as f64;
+            let keys = &mut cells[l];
+            for px in 0..b.n_pixels() {
+                if weighted
+                    && !b.footprint.is_empty()
+                    && crate::model::level_weight::weight(b.footprint[px] as f64 * sc) <= 0.0
+                {
+                    continue;
+                }
+                for j in px * s..(px + 1) * s {
+                    if b.valid[j] == 0 {
+                        continue;
+                    }
+                    let x = b.positions[j];
+                    let c = x.map(|v| sc.mul_add(v, 0.5).floor() as i64 as u64);
+                    keys.push(cell_key(c));
+                    points[l] += 1;
+                }
+            }
+            keys.sort_unstable();
+            keys.dedup();
+        }
+    }
+    cells
+        .iter()
+        .zip(&points)
+        .map(|(k, &n)| {
+            let d = k.len() as f64;
+            if n == 0 {
+                0.0
+            } else {
+                d * (1.0 + (stride as f64 - 1.0) * d / n as f64)
+            }
+        })
+        .collect()
+}
+
+/// A 64-bit hash of a cell (a collision of two keys only lowers an estimate by one).
+fn cell_key(c: [u64; 3]) -> u64 {
+    let mut h = 0x9E37_79B9_7F4A_7C15u64;
+    for v in c {
+        h = (h ^ v).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        h ^= h >> 29;
+    }
+    h.wrapping_mul(0x94D0_49BB_1331_11EB) ^ (h >> 32)
+}
+
+/// `T_l` of `log2_table_size = "auto"` for a level reaching `cells` surface cells:
+/// `ceil(log2(TABLE_HEADROOM · cells))` (f64) within [`TABLE_FLOOR_LOG2`], [`TABLE_CEILING_LOG2`].
+pub fn auto_log2_size(cells: f64) -> u32 {
+    let want = (TABLE_HEADROOM * cells).max(1.0).log2().ceil();
+    (want as u32).clamp(TABLE_FLOOR_LOG2, TABLE_CEILING_LOG2)
+}
+
+/// Resolve grid H's table sizes of a new run (SPEC §8), in place; returns the messages saying
+/// what was chosen. `train.table_size = "auto"` (the `cpu` preset, `[model.grid_h]
+/// log2_table_size = "auto"`): level l holds at most `2^T_l` entries, `T_l` =
+/// [`auto_log2_size`] of the cells [`reached_cells`] counts, except that a level dense at the
+/// configured `log2_table_size` stays dense (`T_l = T`); `log2_table_size` becomes the largest `T_l`. Grid D (ξ) too,
+/// every level counted at every hit (ξ is not footprint-weighted), never above its configured
+/// `log2_table_size`. `fixed` keeps the configured
+/// size(s). Run after [`resolve_levels`] (the sizes are per resolved level).
+pub fn resolve_table_sizes(cfg: &mut RunConfig, samples: &Samples, tracer: &Tracer) -> Vec<String> {
+    let mut out = Vec::new();
+    if !cfg.model.featurization.is_hash() {
+        return out;
+    }
+    let auto = cfg.train.table_size == TableSize::Auto;
+    let weighted = !cfg.model.level_weight.is_none();
+    let deform = cfg.model.deform.enabled;
+    // Grid H (levels weighted by footprint), then grid D (ξ reads every level at every hit).
+    // Grid D never grows past its configured size (`docs/changelog.md`, "Grid D's tables"): the
+    // rule sized it up to 2^19 where the preset has 2^17, for no measured gain.
+    let grids: Vec<(&str, &mut GridConfig, bool, bool)> = if deform {
+        vec![
+            ("H", &mut cfg.model.grid_h, weighted, false),
+            ("D", &mut cfg.model.deform.grid, false, true),
+        ]
+    } else {
+        vec![("H", &mut cfg.model.grid_h, weighted, false)]
+    };
+    for (name, g, weighted, capped) in grids {
+        let configured = g.log2_table_size;
+        let mut counted = 0.0;
+        let cells = auto.then(|| {
+            let t0 = std::time::Instant::now();
+            let cells = reached_cells(g, weighted, samples, tracer);
+            counted = t0.elapsed().as_secs_f64();
+            // A level dense at the configured size stays dense (and as it was).
+            let fixed = crate::model::hashgrid::HashGrid::try_new(g).ok();
+            let t: Vec<u32> = cells
+                .iter()
+                .enumerate()
+                .map(|(l, &c)| match &fixed {
+                    Some(f) if f.dense[l] => configured,
+                    _ if capped => auto_log2_size(c).min(configured),
+                    _ => auto_log2_size(c),
+                })
+                .collect();
+            g.log2_table_size = t.iter().copied().max().unwrap_or(TABLE_FLOOR_LOG2);
+            g.log2_table_sizes = Some(t);
+            cells
+        });
+        let Ok(grid) = crate::model::hashgrid::HashGrid::try_new(g) else {
+            continue; // the model's construction reports it
+        };
+        let per_level: Vec<String> = (0..g.levels as usize)
+            .map(|l| {
+                let n = grid.level_entries(l);
+                let kind = if grid.dense[l] { "dense" } else { "hashed" };
+                match &cells {
+                    Some(c) => format!("{l}: {:.0} cells → {n} {kind}", c[l]),
+                    None => format!("{l}: {n} {kind}"),
+                }
+            })
+            .collect();
+        let mode = if cells.is_some() {
+            let ceiling = if capped {
+                TABLE_CEILING_LOG2.min(configured)
+            } else {
+                TABLE_CEILING_LOG2
+            };
+            format!(
+                "auto: ≥ {TABLE_HEADROOM} entries per surface cell the training rays reach, 2^{TABLE_FLOOR_LOG2}..2^{ceiling}, dense levels kept; cells counted in {counted:.1} s"
+            )
+        } else if let Some(t) = &g.log2_table_sizes {
+            format!("fixed: log2 sizes {t:?}")
+        } else {
+            format!("fixed: at most 2^{} entries per level", g.log2_table_size)
+        };
+        out.push(format!(
+            "grid {name} tables ({mode}): {} entries, {} parameters (levels {})",
+            grid.n_entries(),
+            grid.n_params(),
+            per_level.join(", ")
+        ));
     }
     out
 }

@@ -8,7 +8,7 @@ use crate::model::batch::Batch;
 use crate::model::checkpoint::Checkpoint;
 use crate::model::params::{Grads, Group};
 use crate::train::adam::AdamState;
-use crate::train::config::RunConfig;
+use crate::train::config::{RunConfig, TableSize};
 use crate::train::setup::Prepared;
 use anyhow::{Context, Result};
 use std::path::Path;
@@ -74,7 +74,13 @@ impl TrainState {
 
     pub fn to_tensor_file(&self) -> Result<TensorFile> {
         let mut f = self.ckpt.to_tensor_file()?;
-        self.adam.save(&mut f)?;
+        // Tables sized from the scene also leave out the Adam state of entries no ray reached;
+        // fixed tables (the `paper` and `tiny` presets) keep every row, as before.
+        if self.cfg.train.table_size == TableSize::Auto {
+            self.adam.save_compact(&mut f)?;
+        } else {
+            self.adam.save(&mut f)?;
+        }
         f.set_meta("step", self.step.to_string());
         f.set_meta("run_config", self.cfg.to_toml());
         Ok(f)

@@ -44,7 +44,9 @@ fn main() -> anyhow::Result<()> {
     let steps: u64 = a[4].parse()?;
     let level: u32 = a[5].parse()?;
     let mut text = String::from("enabled = true\nphoto = 1.0\nfeatures = 0.0\n");
-    text.push_str(&format!("photo_levels = [{level}, {level}]\n"));
+    text.push_str(&format!(
+        "photo_levels = [{level}, {level}]\nphoto_reach = 0\n"
+    ));
     for kv in &a[6..] {
         text.push_str(kv);
         text.push('\n');
@@ -70,6 +72,7 @@ fn main() -> anyhow::Result<()> {
         norm.center,
         &rcfg,
         &prepared.train_names(),
+        (0, 1),
     )?;
     eprintln!("photo term set up in {:.2} s", t0.elapsed().as_secs_f64());
     for v in &term.views {
@@ -94,7 +97,7 @@ fn main() -> anyhow::Result<()> {
     let (mut drawn, mut valid, mut energy) = (0u64, 0u64, 0.0);
     let t1 = std::time::Instant::now();
     for k in 0..steps {
-        let patches = term.draw(stream, &prepared.tracer, cfg.train.seed, k, level);
+        let patches = term.draw(stream, &prepared.tracer, cfg.train.seed, k);
         let evals = term.evaluate(&geom, &theta, &patches);
         for e in evals.iter().flatten() {
             for &(v, _) in &e.grad {

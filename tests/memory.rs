@@ -126,6 +126,13 @@ fn the_photo_term_is_counted_and_named() {
     cfg.model.refine.enabled = true;
     cfg.model.refine.photo = 1.0;
     cfg.model.refine.photo_levels = [2, 0];
+    // With the cross-scale levels (photo_reach) every view also keeps levels 3 ..= 6 (1080 >> 6
+    // = 16 rows hold a 5 × 5 patch and 2 pixels either side; 1080 >> 7 would not).
+    cfg.model.refine.photo_reach = 2.0;
+    let e = estimate(&cfg, &sizes, 1).unwrap();
+    let level = |l: u32| 12 * 1920u64.div_ceil(1 << l) * 1080u64.div_ceil(1 << l);
+    assert_eq!(e.photo, 150 * (0..=6).map(level).sum::<u64>());
+    cfg.model.refine.photo_reach = 0.0;
     let e = estimate(&cfg, &sizes, 1).unwrap();
     // 12 bytes per pixel at levels 0, 1, 2: 150 · 12 · (1920·1080 + 960·540 + 480·270) = 4.90 GB.
     assert_eq!(e.photo, 150 * 12 * (1920 * 1080 + 960 * 540 + 480 * 270));

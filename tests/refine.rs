@@ -146,6 +146,25 @@ fn configurations_refinement_cannot_run_are_errors() {
             "{on:?}"
         );
     }
+    // configs/refine-cross.toml: those defaults with the cross-scale levels, weights and
+    // neighbours chosen again (docs/geometry.md §5), and nothing else changed.
+    let cross = RunConfig::resolve(
+        "cpu",
+        Some(&std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("configs/refine-cross.toml")),
+    )
+    .unwrap()
+    .model
+    .refine;
+    assert_eq!(
+        cross,
+        xscale::model::refine::RefineConfig {
+            enabled: true,
+            photo_reach: 2.0,
+            photo_balance: true,
+            photo_rechoose: true,
+            ..Default::default()
+        }
+    );
     // A table written before that (which left out `features`, `photo` and `optimizer` at the
     // learned-features values) reads back as what it trained with.
     let mut old = RunConfig::preset("cpu").unwrap();

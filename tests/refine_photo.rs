@@ -32,6 +32,10 @@ fn photo_cfg(opt: RefineOptimizer, measure: PhotoMeasure) -> RunConfig {
     r.photo_levels = [1, 0];
     r.photo_angle = [2.0, 80.0];
     r.photo_scale = 4.0;
+    // The cross-scale levels, weights and neighbours chosen again (configs/refine-cross.toml).
+    r.photo_reach = 2.0;
+    r.photo_balance = true;
+    r.photo_rechoose = true;
     r.optimizer = opt;
     if opt == RefineOptimizer::GaussNewton {
         r.lr = 0.5;
@@ -110,6 +114,29 @@ fn photo_refinement_is_thread_independent_and_resumes_exactly() {
             "no patch took part in the update after step {}: {p}",
             u["step"]
         );
+    }
+    // The cross-scale levels (photo_reach): the close-ups (footprints ~30× finer)
+    // start at level 2, the last a 48-row photo holds a 3 × 3 patch and its pull-in at, the
+    // aerial views at photo_levels[0] = 1, each view's first span at its top; every view
+    // descends to 0 by the last update; the weights are positive.
+    let views: Vec<&serde_json::Value> = logs[0].iter().filter_map(|l| l.get("views")).collect();
+    assert_eq!(views.len(), 7, "{:?}", logs[0]);
+    let tops: Vec<u64> = views[0]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| v["top"].as_u64().unwrap())
+        .collect();
+    assert!(tops.contains(&2) && tops.contains(&1), "tops {tops:?}");
+    for v in views[0].as_array().unwrap() {
+        assert!(v["weight"].as_f64().unwrap() > 0.0, "{v}");
+        assert_eq!(
+            v["level"], v["top"],
+            "the first update is at each view's top: {v}"
+        );
+    }
+    for v in views[6].as_array().unwrap() {
+        assert_eq!(v["level"], 0, "{v}");
     }
     // Stopped at 100 (between the updates after steps 91 and 108, gradient and curvature
     // pending) and resumed: the same bytes.
@@ -204,6 +231,10 @@ fn bad_photo_settings_are_named() {
         (
             "photo_scale = 0.5",
             Box::new(|c| c.model.refine.photo_scale = 0.5),
+        ),
+        (
+            "photo_reach = -1",
+            Box::new(|c| c.model.refine.photo_reach = -1.0),
         ),
         ("damping = -1", Box::new(|c| c.model.refine.damping = -1.0)),
         (

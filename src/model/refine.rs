@@ -114,6 +114,25 @@ pub struct RefineConfig {
     /// Largest ratio of the two views' pixel footprints at the surface for a pair.
     #[serde(skip_serializing_if = "is_default_photo_scale")]
     pub photo_scale: f64,
+    /// The training mesh is taken to be off by up to this many pixel footprints of the coarsest
+    /// training view (a mesh made from the far views); each view's deepest image level is chosen
+    /// so that this displacement is at most [`PHOTO_PULL`] of its pixels there (at least
+    /// `photo_levels[0]`; `refine/photo_term.rs`): views much finer than the coarsest (close-ups)
+    /// start deeper and go coarse to fine over more levels. 0 (the default) = every view uses
+    /// `photo_levels`. Opt-in with the next two (`configs/refine-cross.toml`): on an exact mesh
+    /// it moves the surface more than the defaults (docs/geometry.md §5). Always written, like
+    /// the next two; absent (a table written before the cross-scale refinement) = 0, false, false.
+    #[serde(default)]
+    pub photo_reach: f64,
+    /// Weight each view's patches by the inverse of the number of training views in its scale
+    /// band (footprint ratio within `photo_scale`), normalised to a mean of 1: a few close views
+    /// count as much as many far ones.
+    #[serde(default)]
+    pub photo_balance: bool,
+    /// Choose the neighbour views again from the moved mesh at every BVH rebuild (else once,
+    /// from the training mesh).
+    #[serde(default)]
+    pub photo_rechoose: bool,
     /// How the offset field steps at an update: `adam` (tiny-cuda-nn rules) or `gauss-newton`
     /// (the summed gradient over the photo term's summed curvature: `refine/refiner.rs`).
     /// Always written; absent (a table written before issue #39) = `adam`.
@@ -168,6 +187,8 @@ const PHOTO_LEVELS: [u32; 2] = [2, 0];
 const PHOTO_NEIGHBOURS: u32 = 4;
 const PHOTO_ANGLE: [f64; 2] = [5.0, 45.0];
 const PHOTO_SCALE: f64 = 2.0;
+/// Pixels a patch's energy pulls in from (`photo_reach`): about half a 5×5 patch.
+pub const PHOTO_PULL: f64 = 2.0;
 
 fn one_f64() -> f64 {
     1.0
@@ -265,6 +286,9 @@ impl RefineConfig {
             photo_neighbours: PHOTO_NEIGHBOURS,
             photo_angle: PHOTO_ANGLE,
             photo_scale: PHOTO_SCALE,
+            photo_reach: 0.0,
+            photo_balance: false,
+            photo_rechoose: false,
             optimizer: RefineOptimizer::default(),
             damping: DAMPING,
         }
@@ -459,6 +483,12 @@ impl RefineConfig {
         }
         if !(self.photo_scale.is_finite() && self.photo_scale >= 1.0) {
             bad.push(format!("photo_scale = {} (≥ 1)", self.photo_scale));
+        }
+        if !(self.photo_reach.is_finite() && self.photo_reach >= 0.0) {
+            bad.push(format!(
+                "photo_reach = {} (coarsest-view footprints, a finite value ≥ 0)",
+                self.photo_reach
+            ));
         }
     }
 

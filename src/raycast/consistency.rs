@@ -434,7 +434,7 @@ impl Consistency {
                 .map(|&(k, m)| format!("{} ({m:.2})", name(k)))
                 .collect();
             out.push(format!(
-                "note: the close-ups agree less ({c:.2} over {n} view pairs; least where {} look) than the other views ({o:.2}): the mesh is probably off by more than their pixels where they look, which costs most on the close-ups; mesh refinement by the photos moves it there (`xscale train --config configs/refine-photo.toml`, the repository's file; docs/geometry.md §4)",
+                "note: the close-ups agree less ({c:.2} over {n} view pairs; least where {} look) than the other views ({o:.2}): the mesh is probably off by more than their pixels where they look, which costs most on the close-ups; mesh refinement by the photos, with image levels as deep as the close-ups need, moves it there (`xscale train --config configs/refine-cross.toml`, the repository's file; docs/geometry.md §5)",
                 worst.join(", ")
             ));
         }

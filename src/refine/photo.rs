@@ -15,7 +15,8 @@
 //! D_j(c_x/c_z, c_y/c_z)`, D_j the view's lens distortion — the identity for a pinhole — as
 //! `Camera::project`) and sampled there
 //! bilinearly between pixel centres: `b_q = I_j(π(x_q))`. The patch's energy is `w · ρ(a, b)`,
-//! with `w` = `photo / photo_pixels` and ρ one of
+//! with `w` = `photo / photo_pixels` times the reference view's weight (`photo_balance`) and ρ
+//! one of
 //!
 //! ```text
 //! zncc:  a' = a − mean_q a (per channel), b' likewise (3K values each),

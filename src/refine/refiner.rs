@@ -23,6 +23,8 @@
 //! computed at all when that is 0), into the same pending sums; with `optimizer = "gauss-newton"`
 //! its curvature is gathered alongside (`refine.pending_h.*`) and an update divides the one by the
 //! other instead of taking an Adam step (SPEC §4.11).
+//! With `photo_rechoose`, every BVH rebuild (and a resumed run's first BVH) also chooses the photo
+//! term's neighbour views again on the moved mesh.
 //!
 //! While the mesh moves, every batch's valid sub-samples are re-intersected with the current
 //! plane of the triangle their ray hit (`hit::reintersect_batch`): between updates the
@@ -97,8 +99,9 @@ pub struct Refiner {
     trust_before: Option<(Vec<Vec<f32>>, Vec<f32>)>,
     /// The photo-consistency term (`photo` > 0; `photo_term.rs`).
     photo: Option<PhotoTerm>,
-    /// Its sums since the last update (diagnostics only).
+    /// Its sums since the last update (diagnostics only), and per view (with `diag`).
     photo_stats: PhotoStats,
+    view_stats: Vec<PhotoStats>,
 }
 
 impl Refiner {
@@ -175,6 +178,7 @@ impl Refiner {
             trust_before: None,
             photo: None,
             photo_stats: Default::default(),
+            view_stats: Vec::new(),
             diag: Diagnostics::from_env(nv)?,
             cfg,
         };
@@ -188,6 +192,7 @@ impl Refiner {
                 norm.center,
                 &r.cfg,
                 &prepared.train_names(),
+                (r.start_step(), r.stop_step()),
             )?;
             if let Some(d) = &r.diag {
                 let pairs: Vec<serde_json::Value> = term
@@ -217,7 +222,12 @@ impl Refiner {
             r.traced = p.traced.iter().map(|&t| t as f64).collect();
         }
         if r.traced.iter().any(|&t| t != 0.0) {
-            r.tracer = Some(Arc::new(r.build_tracer(&r.traced)?));
+            let t = Arc::new(r.build_tracer(&r.traced)?);
+            // A resumed run: the neighbours of the mesh it was stopped on.
+            if let Some(photo) = r.photo.as_mut().filter(|_| r.cfg.photo_rechoose) {
+                photo.choose(&t);
+            }
+            r.tracer = Some(t);
         }
         Ok(Some(r))
     }
@@ -272,17 +282,6 @@ impl Refiner {
             return None;
         }
         Some(self.geometric(g0, g1, k, self.steps) as f32)
-    }
-
-    /// Image level of the photo term at step k (`photo_levels`, equal spans of the moving steps,
-    /// coarse to fine; `photo_term.rs`).
-    pub fn photo_level(&self, k: u64) -> u32 {
-        let [l0, l1] = self.cfg.photo_levels;
-        let (k0, k1) = (self.start_step(), self.stop_step());
-        let n = (l0 - l1 + 1) as u64;
-        let span = k1.saturating_sub(k0).max(1);
-        let i = (k.saturating_sub(k0) * n / span).min(n - 1);
-        l0 - i as u32
     }
 
     /// Adam's rate for the update after step k: `lr`, or geometric from `lr` at the first moving
@@ -356,7 +355,11 @@ impl Refiner {
                 self.photo.as_ref().map(|_| self.photo_stats),
             )?;
         }
+        if let (Some(d), Some(photo)) = (&self.diag, &self.photo) {
+            d.views(state.step, &self.geom, &theta, photo, &self.view_stats)?;
+        }
         self.photo_stats = Default::default();
+        self.view_stats.clear();
         p.offsets = theta.iter().map(|&t| t as f32).collect();
         p.traced = p.offsets.clone();
         self.traced = p.traced.iter().map(|&t| t as f64).collect();
@@ -364,6 +367,9 @@ impl Refiner {
             Some(t) => t,
             None => self.build_tracer(&self.traced)?,
         };
+        if let Some(photo) = self.photo.as_mut().filter(|_| self.cfg.photo_rechoose) {
+            photo.choose(&t);
+        }
         self.tracer = Some(Arc::new(t));
         Ok(())
     }
@@ -663,7 +669,7 @@ impl Refiner {
             };
             let k = state.step;
             let tracer = self.tracer.as_deref().unwrap_or(&prepared.tracer);
-            let patches = photo.draw(stream, tracer, self.seed, k, self.photo_level(k));
+            let patches = photo.draw(stream, tracer, self.seed, k);
             let used = photo_term::patch_vertices(geom, &patches);
             let params = state.ckpt.refine.as_ref().expect("refine params");
             field::theta_of(params, &self.cfg, geom, &used, &mut self.theta);
@@ -672,6 +678,18 @@ impl Refiner {
             let st = photo_term::accumulate(&evals, &mut self.d_theta, curv);
             self.photo_stats.add(&st);
             if let Some(d) = self.diag.as_mut() {
+                self.view_stats
+                    .resize(photo.views.len(), PhotoStats::default());
+                for (p, e) in patches.iter().zip(&evals) {
+                    if let Some(p) = p {
+                        let s = &mut self.view_stats[p.view];
+                        s.drawn += 1;
+                        if let Some(e) = e {
+                            s.valid += 1;
+                            s.energy += e.energy;
+                        }
+                    }
+                }
                 d.seen.resize(geom.n_vertices(), false);
                 for &i in &used {
                     d.seen[i as usize] = true;

@@ -12,7 +12,8 @@
 //! - **model**: 20 bytes per parameter (f32 value, gradient, Adam m, v, step count);
 //! - **photo**: with mesh refinement's photo-consistency term (`[model.refine] photo` > 0), every
 //!   training view's f32 RGB copies at the image levels `photo_levels[1] ..= photo_levels[0]`
-//!   (`12·⌈w/2^l⌉·⌈h/2^l⌉` bytes at level l; `refine/photo_term.rs`);
+//!   (`12·⌈w/2^l⌉·⌈h/2^l⌉` bytes at level l; `refine/photo_term.rs`), with `photo_reach` > 0
+//!   up to the view's last usable level (`photo_term::level_cap_of`) instead of `photo_levels[0]`;
 //! - **step**: [`STEP_BYTES_PER_SAMPLE`] per sub-sample of a batch (forward activations kept for
 //!   the backward pass, gradients of the inputs, touched-entry lists), measured on the `cpu`
 //!   preset (see the constant);
@@ -187,10 +188,15 @@ fn estimate_for(
     let r = &cfg.model.refine;
     let photo = if r.enabled && r.photo > 0.0 {
         let [hi, lo] = r.photo_levels;
+        let (reach, patch) = (r.photo_reach > 0.0, r.photo_patch);
         sizes
             .iter()
             .flat_map(|&(w, h)| {
-                (lo..=hi).map(move |l| {
+                let top = match reach {
+                    true => crate::refine::photo_term::level_cap_of(w, h, hi, patch),
+                    false => hi,
+                };
+                (lo..=top).map(move |l| {
                     let f = 1u64 << l.min(31);
                     12 * (w as u64).div_ceil(f) * (h as u64).div_ceil(f)
                 })

@@ -190,6 +190,21 @@ const PHOTO_SCALE: f64 = 2.0;
 /// Pixels a patch's energy pulls in from (`photo_reach`): about half a 5×5 patch.
 pub const PHOTO_PULL: f64 = 2.0;
 
+/// Deepest image level the photo term uses.
+pub const PHOTO_MAX_LEVEL: u32 = 8;
+
+/// The deepest image level, from `l0` up to [`PHOTO_MAX_LEVEL`], at which a `w × h` photo holds a
+/// patch and its pull-in on either side (`patch + 2·⌈PHOTO_PULL⌉` pixels high and wide), else `l0`
+/// (`refine::photo_term::level_cap`; the memory estimate counts the levels it allows).
+pub fn photo_level_cap(w: u32, h: u32, l0: u32, patch: u32) -> u32 {
+    let side = patch + 2 * PHOTO_PULL.ceil() as u32;
+    let mut l = l0;
+    while l < PHOTO_MAX_LEVEL && (w.min(h) >> (l + 1)) >= side {
+        l += 1;
+    }
+    l
+}
+
 fn one_f64() -> f64 {
     1.0
 }

@@ -8,7 +8,7 @@
 //!   `|x − o_i| / √(f_x f_y)` (NaN without hits); `F` is the largest footprint of the active views
 //!   (the coarsest view: the mesh is taken to come from such views).
 //! - Levels: view i's last usable level `cap_i` is the largest `l ≥ photo_levels[0]` (at most
-//!   [`MAX_LEVEL`]) at which its image is at least `photo_patch + 2·⌈PHOTO_PULL⌉` pixels high and
+//!   [`PHOTO_MAX_LEVEL`](crate::model::refine::PHOTO_MAX_LEVEL)) at which its image is at least `photo_patch + 2·⌈PHOTO_PULL⌉` pixels high and
 //!   wide (a patch and its pull-in on either side); `photo_levels[0]` when `photo_reach` = 0. With `photo_reach` = r > 0 the mesh is
 //!   taken to be off by up to `r·F`, which is `r·F/f_i` of view i's pixels; its deepest level is
 //!   `top_i = min(cap_i, max(photo_levels[0], ⌈log2(r·F / (f_i · PHOTO_PULL))⌉))`, the level at
@@ -53,7 +53,7 @@
 //! depend on the thread count, and everything is a pure function of (seed, k, the BVH), so a
 //! resumed run draws the same patches.
 
-use crate::model::refine::{RefineConfig, PHOTO_PULL};
+use crate::model::refine::{photo_level_cap, RefineConfig, PHOTO_PULL};
 use crate::raycast::{Packet, RayStream, Scratch, Tracer};
 use crate::refine::field::RefineGeom;
 use crate::refine::photo::{
@@ -576,25 +576,12 @@ fn probe(tracer: &Tracer, sc: &mut Scratch, cam: &PhotoCamera) -> Vec<(DVec3, u3
 }
 
 /// The deepest level a view's photo can be used at: the largest `l ≥ l0` (at most
-/// [`MAX_LEVEL`]) whose image holds a patch and its pull-in on either side
+/// [`PHOTO_MAX_LEVEL`](crate::model::refine::PHOTO_MAX_LEVEL)) whose image holds a patch and its pull-in on either side
 /// (`photo_patch + 2·⌈PHOTO_PULL⌉` pixels high and wide), else `l0` (which `PhotoTerm::new`
 /// checks holds one patch).
 pub fn level_cap(cam: &PhotoCamera, l0: u32, patch: u32) -> u32 {
-    level_cap_of(cam.width, cam.height, l0, patch)
+    photo_level_cap(cam.width, cam.height, l0, patch)
 }
-
-/// [`level_cap`] of a `w × h` photo.
-pub fn level_cap_of(w: u32, h: u32, l0: u32, patch: u32) -> u32 {
-    let side = patch + 2 * PHOTO_PULL.ceil() as u32;
-    let mut l = l0;
-    while l < MAX_LEVEL && (w.min(h) >> (l + 1)) >= side {
-        l += 1;
-    }
-    l
-}
-
-/// Deepest image level the photo term uses.
-pub const MAX_LEVEL: u32 = 8;
 
 /// Each view's deepest level `top` and weight (module docs) from the footprints.
 pub fn plan_views(views: &mut [PhotoView], cfg: &RefineConfig) {

@@ -13,7 +13,7 @@
 //! - **photo**: with mesh refinement's photo-consistency term (`[model.refine] photo` > 0), every
 //!   training view's f32 RGB copies at the image levels `photo_levels[1] ..= photo_levels[0]`
 //!   (`12·⌈w/2^l⌉·⌈h/2^l⌉` bytes at level l; `refine/photo_term.rs`), with `photo_reach` > 0
-//!   up to the view's last usable level (`photo_term::level_cap_of`) instead of `photo_levels[0]`;
+//!   up to the view's last usable level (`model::refine::photo_level_cap`) instead of `photo_levels[0]`;
 //! - **step**: [`STEP_BYTES_PER_SAMPLE`] per sub-sample of a batch (forward activations kept for
 //!   the backward pass, gradients of the inputs, touched-entry lists), measured on the `cpu`
 //!   preset (see the constant);
@@ -193,7 +193,7 @@ fn estimate_for(
             .iter()
             .flat_map(|&(w, h)| {
                 let top = match reach {
-                    true => crate::refine::photo_term::level_cap_of(w, h, hi, patch),
+                    true => crate::model::refine::photo_level_cap(w, h, hi, patch),
                     false => hi,
                 };
                 (lo..=top).map(move |l| {

@@ -2047,11 +2047,13 @@ fn refine(c: &Ctx) -> Result<Section> {
         &[0, 0, 0, 0, 2, 4, 2, 2, 0],
         rows,
     ));
-    let mean = |v: &[(f64, f64)], i: usize| {
-        v.iter()
-            .map(|p| if i == 0 { p.0 } else { p.1 })
-            .sum::<f64>()
-            / v.len() as f64
+    // Mean PSNR and mean training seconds of a group of runs.
+    let mean = |v: &[(f64, f64)]| {
+        let n = v.len() as f64;
+        (
+            v.iter().map(|p| p.0).sum::<f64>() / n,
+            v.iter().map(|p| p.1).sum::<f64>() / n,
+        )
     };
     let mut summary = Vec::new();
     for proxy in by
@@ -2065,13 +2067,14 @@ fn refine(c: &Ctx) -> Result<Section> {
         ) else {
             continue;
         };
+        let ((psnr_on, s_on), (psnr_off, s_off)) = (mean(on), mean(off));
         summary.push(vec![
             json!(proxy),
             json!(on.len().min(off.len())),
-            json!(mean(off, 0)),
-            json!(mean(on, 0)),
-            json!(mean(on, 0) - mean(off, 0)),
-            json!(mean(on, 1) / mean(off, 1)),
+            json!(psnr_off),
+            json!(psnr_on),
+            json!(psnr_on - psnr_off),
+            json!(s_on / s_off),
         ]);
     }
     s.tables.push(table(

@@ -687,6 +687,17 @@ fn mesh_moved(mesh: &Mesh, f: impl Fn(DVec3) -> DVec3) -> Mesh {
     }
 }
 
+/// The cameras and photos of `scene`'s training views, in order (what the photo check reads).
+fn training_photos(scene: &xscale::scene::Scene) -> (Vec<&Camera>, Vec<Image>) {
+    let train = scene.train();
+    let cams = train.iter().map(|&i| &scene.views[i].camera).collect();
+    let photos = train
+        .iter()
+        .map(|&i| scene.load_image(i).unwrap())
+        .collect();
+    (cams, photos)
+}
+
 /// The photo check (`raycast/consistency.rs`) on the `tiny` fixture: in place its photos agree
 /// where the mesh is (correlation ≥ 0.9); the mesh turned a quarter about x or moved up by 5 % of
 /// its size, they do not, and `train`'s setup says so; photos of one flat colour give no verdict
@@ -697,12 +708,7 @@ fn photo_check_flags_a_mesh_where_the_photos_disagree() {
     use xscale::scene::{LoadOptions, Scene};
     let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/tiny");
     let scene = Scene::load(&dir, &LoadOptions::default()).unwrap();
-    let train = scene.train();
-    let cams: Vec<&Camera> = train.iter().map(|&i| &scene.views[i].camera).collect();
-    let photos: Vec<Image> = train
-        .iter()
-        .map(|&i| scene.load_image(i).unwrap())
-        .collect();
+    let (cams, photos) = training_photos(&scene);
     let check = |mesh: &Mesh, photos: &[Image]| {
         photo_check(mesh, &scene.normalization, &cams, photos, None)
     };
@@ -966,12 +972,7 @@ fn neighbour_table(
 )> {
     use xscale::scene::{LoadOptions, Scene};
     let scene = Scene::load(dir, &LoadOptions::default()).unwrap();
-    let train = scene.train();
-    let cams: Vec<&Camera> = train.iter().map(|&i| &scene.views[i].camera).collect();
-    let photos: Vec<Image> = train
-        .iter()
-        .map(|&i| scene.load_image(i).unwrap())
-        .collect();
+    let (cams, photos) = training_photos(&scene);
     (wrong_meshes(&scene.mesh).into_iter())
         .map(|(what, mesh)| {
             let r = photo_check(&mesh, &scene.normalization, &cams, &photos, None);

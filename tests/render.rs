@@ -21,11 +21,17 @@ fn bits(r: &Rendered) -> (Vec<u32>, Vec<bool>, Vec<u32>) {
     )
 }
 
-#[test]
-fn bands_do_not_show_in_the_frame() {
+/// The `tiny` fixture and a BVH of its mesh.
+fn tiny_scene() -> (Scene, Tracer) {
     let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/tiny");
     let scene = Scene::load(&root, &LoadOptions::default()).unwrap();
     let tracer = Tracer::new(&scene.mesh, &scene.normalization).unwrap();
+    (scene, tracer)
+}
+
+#[test]
+fn bands_do_not_show_in_the_frame() {
+    let (scene, tracer) = tiny_scene();
     let mut cfg = ModelConfig::tiny();
     cfg.appearance_views = 6;
     let model = Hfm::new(&cfg).unwrap();
@@ -71,9 +77,7 @@ fn bands_do_not_show_in_the_frame() {
 /// the same as row −1; a different code changes the frame.
 #[test]
 fn a_code_of_its_own_renders_as_the_row_that_holds_it() {
-    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/tiny");
-    let scene = Scene::load(&root, &LoadOptions::default()).unwrap();
-    let tracer = Tracer::new(&scene.mesh, &scene.normalization).unwrap();
+    let (scene, tracer) = tiny_scene();
     let mut cfg = ModelConfig::tiny();
     cfg.appearance_views = 3;
     let model = Hfm::new(&cfg).unwrap();

@@ -472,6 +472,15 @@ impl RunConfig {
         if !(1..=4).contains(&self.model.gamma) {
             bail!("model.gamma must be 1..=4, got {}", self.model.gamma);
         }
+        let m = &self.model;
+        if m.loss == crate::model::config::LossKind::SmoothL1
+            && !(m.smooth_l1_delta > 0.0 && m.smooth_l1_delta.is_finite())
+        {
+            bail!(
+                "model.smooth_l1_delta must be a number > 0 (the δ of loss = \"smooth_l1\"), got {}",
+                m.smooth_l1_delta
+            );
+        }
         t.adam.validate().context("train.adam")?;
         self.validate_refine()?;
         let sh = &self.model.shader;
@@ -803,6 +812,28 @@ mod tests {
             RunConfig::from_toml_str("\n[model]\ngamma = 9\n", "tiny", "c.toml").unwrap_err()
         );
         assert!(e.starts_with("c.toml:3: invalid configuration"), "{e}");
+    }
+
+    #[test]
+    fn smooth_l1_needs_a_positive_delta() {
+        // δ = 0 divided by zero in ρ(r) = 0.5·r²/δ: every loss and gradient NaN.
+        for bad in ["0", "-0.01", "nan"] {
+            let text = format!("[model]\nloss = \"smooth_l1\"\nsmooth_l1_delta = {bad}\n");
+            let e = format!(
+                "{:#}",
+                RunConfig::from_toml_str(&text, "cpu", "c.toml").unwrap_err()
+            );
+            assert!(e.starts_with("c.toml:3: invalid configuration"), "{e}");
+            assert!(
+                e.contains("model.smooth_l1_delta must be a number > 0"),
+                "{e}"
+            );
+        }
+        // The other losses do not read δ: a stored 0 stays accepted.
+        let text = "[model]\nloss = \"l1\"\nsmooth_l1_delta = 0\n";
+        assert!(RunConfig::from_toml_str(text, "cpu", "c.toml").is_ok());
+        let text = "[model]\nloss = \"smooth_l1\"\nsmooth_l1_delta = 0.02\n";
+        assert!(RunConfig::from_toml_str(text, "cpu", "c.toml").is_ok());
     }
 
     #[test]

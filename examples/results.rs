@@ -176,6 +176,9 @@ struct Section {
     tables: Vec<Value>,
     notes: Vec<String>,
     images: Vec<(String, String)>,
+    /// Why the whole section could not be measured on this host (a missing tool): the page then
+    /// keeps the section's earlier measurement, if it has one, instead of a "not measured" note.
+    skipped: Option<String>,
 }
 
 struct Ctx {
@@ -602,6 +605,7 @@ fn torch_peer(c: &Ctx) -> Result<Section> {
     };
     if let Some(why) = v["skipped"].as_str() {
         s.notes.push(format!("Not measured on this host: {why}."));
+        s.skipped = Some(why.to_string());
         return Ok(s);
     }
     s.tables.push(table(
@@ -705,10 +709,12 @@ fn python(c: &Ctx) -> Result<Section> {
         .current_dir(&c.root)
         .output();
     if !probe.is_ok_and(|o| o.status.success()) {
-        s.notes.push(format!(
-            "Not measured on this host: `{py}` cannot import the package (`pip install ./python`; \
-             XSCALE_PYTHON names another interpreter)."
-        ));
+        let why = format!(
+            "`{py}` cannot import the package (`pip install ./python`; \
+             XSCALE_PYTHON names another interpreter)"
+        );
+        s.notes.push(format!("Not measured on this host: {why}."));
+        s.skipped = Some(why);
         return Ok(s);
     }
     let json = c.work.join("python.json");
@@ -2597,6 +2603,11 @@ fn write_page(docs: &Path) -> Result<()> {
     Ok(())
 }
 
+/// Whether a section's page file holds a measurement (a table), not just a "not measured" note.
+fn measured_before(path: &Path) -> bool {
+    read_json(path).is_ok_and(|v| v["tables"].as_array().is_some_and(|t| !t.is_empty()))
+}
+
 fn main() -> Result<()> {
     let argv: Vec<String> = std::env::args().skip(1).collect();
     let root = PathBuf::from(env!("CARGO_MANIFEST_DIR"));
@@ -2668,6 +2679,7 @@ fn main() -> Result<()> {
         docs: docs.clone(),
     };
     let mut failed = Vec::new();
+    let mut kept = Vec::new();
     for spec in SECTIONS {
         if only
             .as_ref()
@@ -2677,7 +2689,17 @@ fn main() -> Result<()> {
         }
         eprintln!("== {} ({})", spec.name, spec.cost);
         let (date, load_before, t0) = (now_utc(), load(), Instant::now());
+        let path = docs.join(format!("results/{}.json", spec.name));
         match (spec.run)(&ctx) {
+            Ok(s) if s.skipped.is_some() && measured_before(&path) => {
+                eprintln!(
+                    "   {}: not measurable here ({}); kept the earlier measurement in {}",
+                    spec.name,
+                    s.skipped.as_deref().unwrap_or(""),
+                    path.display()
+                );
+                kept.push(spec.name);
+            }
             Ok(s) => {
                 let v = json!({
                     "section": spec.name,
@@ -2693,7 +2715,6 @@ fn main() -> Result<()> {
                     "notes": s.notes,
                     "images": s.images.iter().map(|(p, c)| json!([p, c])).collect::<Vec<_>>(),
                 });
-                let path = docs.join(format!("results/{}.json", spec.name));
                 std::fs::write(&path, serde_json::to_string_pretty(&v)? + "\n")?;
                 eprintln!(
                     "   {} in {:.0} s",
@@ -2708,6 +2729,12 @@ fn main() -> Result<()> {
         }
         // The page after every section, so an interrupted run keeps what it measured.
         write_page(&docs)?;
+    }
+    if !kept.is_empty() {
+        eprintln!(
+            "not measurable on this host, earlier measurements kept: {}",
+            kept.join(", ")
+        );
     }
     if !failed.is_empty() {
         bail!(

@@ -65,7 +65,7 @@ const SECTIONS: &[Spec] = &[
     Spec {
         name: "torch_peer",
         title: "Against PyTorch (`cargo bench --bench torch_peer`)",
-        measures: "One training step of the same model, checkpoint and 16,384-pixel batch on 2 threads in xscale and in a PyTorch peer (`reference/bench_torch.py`, compiled with `torch.compile`), timed in alternating rounds after the peer reproduced xscale's loss. Needs `pip install torch numpy safetensors`; without them the section says it was skipped.",
+        measures: "One training step of the same model, checkpoint and 16,384-pixel batch on 2 threads in xscale and in a PyTorch peer (`reference/bench_torch.py`, compiled with `torch.compile`), timed in alternating rounds after the peer reproduced xscale's loss. Needs `pip install torch numpy safetensors` for `python3` (or the interpreter `XSCALE_TORCH_PYTHON` names); without them the section keeps its earlier measurement, or says it was skipped.",
         cost: "a few minutes when torch is installed",
         run: torch_peer,
     },

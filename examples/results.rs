@@ -142,7 +142,7 @@ const SECTIONS: &[Spec] = &[
     Spec {
         name: "sizing",
         title: "Table sizes from the scene: parameters, checkpoints, quality, step time",
-        measures: "The `cpu` preset's hash-table sizes chosen from the surface cells the training rays reach (`[model.grid_h] log2_table_size = \"auto\"`, the default: each hashed level 4 entries per reached cell, 2^12..2^19, grid D never above its configured 2^17; the checkpoint leaves out the Adam state of entries no ray reached) against fixed tables of 2^19 entries per level (`--config` with `[model.grid_h] log2_table_size = 19`, the preset before). `tiny`, `small` and `cross` (`synth --preset NAME --seed 1`): parameters of the model `xscale init` builds; on `tiny` and `small`, each trained with the default budget (training seeds `XSCALE_SIZING_SEEDS`, default 0,1,2 on `small`, 0 on `tiny`): checkpoint bytes, held-out masked PSNR, wall time of the `train` command, the two configurations alternating seed by seed. Then `cargo bench --bench sizing`: milliseconds per training step on `small`, 2 threads, 4,096- and 16,384-pixel batches, the two models alternating in rounds (best round).",
+        measures: "The `cpu` preset's hash-table sizes chosen from the surface cells the training rays reach (`[model.grid_h] log2_table_size = \"auto\"`, the default: each hashed level 4 entries per reached cell, 2^12..2^19, grid D never above its configured 2^17; the checkpoint leaves out the Adam state of entries no ray reached) against fixed tables of 2^19 entries per level (`--config` with `[model.grid_h] log2_table_size = 19`, the preset before). `tiny`, `small` and `cross` (`synth --preset NAME --seed 1`): parameters of the model `xscale init` builds; on `tiny` and `small`, each trained with the default budget (training seeds `XSCALE_SIZING_SEEDS`, default 0,1,2 on `small`, 0 on `tiny`): checkpoint bytes, held-out masked PSNR, wall time of the `train` command, the two configurations alternating seed by seed. Then `cargo bench --bench sizing`: milliseconds per training step on `small` and `cross`, 2 threads, 4,096- and 16,384-pixel batches, the two models alternating in rounds (best round).",
         cost: "about 10 minutes per seed on small (20 with load), plus the bench",
         run: sizing,
     },
@@ -1391,8 +1391,9 @@ fn sizing(c: &Ctx) -> Result<Section> {
     let v = c.bench("sizing", &[])?;
     s.commands.push("cargo bench --bench sizing".into());
     s.tables.push(table(
-        "a training step on `small`, 2 threads (best of alternating rounds)",
+        "a training step on `small` and `cross`, 2 threads (best of alternating rounds)",
         &[
+            "scene",
             "batch (pixels)",
             "fixed 2^19 (ms)",
             "auto (ms)",
@@ -1400,11 +1401,12 @@ fn sizing(c: &Ctx) -> Result<Section> {
             "fixed parameters",
             "auto parameters",
         ],
-        &[0, 1, 1, 2, 0, 0],
+        &[0, 0, 1, 1, 2, 0, 0],
         columns(
             &v,
             "sizing",
             &[
+                "scene",
                 "batch",
                 "fixed_ms",
                 "auto_ms",

@@ -781,9 +781,11 @@ impl AdamState {
     /// written. Such a slot is stored as `adam.mask.<name>` (U8 `[ceil(rows / 8)]`, bit `r % 8`
     /// of byte `r / 8` set iff row `r` is kept; bits past the last row 0) and
     /// `adam.{m,v}.<name>` of shape `[k, …]` (the kept rows, ascending), `adam.t.<name>` of shape
-    /// `[k]` when every kept row's scalars share one step count (one count per row), else
-    /// `[k, …]`; a slot every row of which has stepped is written as by `save` (so is every
-    /// dense group). [`AdamState::load`] reads either back (and the `adam.rows.<name>` row lists
+    /// `[k]` (each kept row's first scalar's step count: a grid entry's features step together
+    /// unless one has an exactly zero gradient) with `adam.t_exceptions.<name>` (U32 `[e, 3]`:
+    /// kept row, scalar within the row, count; ascending; absent when `e = 0`) for the scalars
+    /// whose count differs; a slot every row of which has stepped is written as by `save` (so is
+    /// every dense group). [`AdamState::load`] reads either back (and the `adam.rows.<name>` row lists
     /// of earlier checkpoints) to the same state, so a resumed run is bit-identical.
     /// `train.table_size = "auto"` checkpoints use it (`train/state.rs`).
     pub fn save_compact(&self, f: &mut TensorFile) -> Result<()> {
@@ -807,10 +809,33 @@ impl AdamState {
                 continue;
             }
             let row = |r: u32| &st[r as usize * row_len..(r as usize + 1) * row_len];
-            let t_per_row = row_len > 1
-                && kept
-                    .par_iter()
-                    .all(|&r| row(r).iter().all(|m| m.t == row(r)[0].t));
+            let t_per_row = row_len > 1;
+            // The scalars whose count is not their row's first: (kept row, scalar, count).
+            let exceptions: Vec<u32> = if t_per_row {
+                kept.par_iter()
+                    .enumerate()
+                    .flat_map_iter(|(k, &r)| {
+                        let first = row(r)[0].t;
+                        row(r)
+                            .iter()
+                            .enumerate()
+                            .filter(move |(_, m)| m.t != first)
+                            .flat_map(move |(j, m)| [k as u32, j as u32, m.t])
+                    })
+                    .collect()
+            } else {
+                Vec::new()
+            };
+            if !exceptions.is_empty() {
+                f.insert(
+                    format!("adam.t_exceptions.{}", s.name),
+                    Tensor::from_bytes(
+                        DType::U32,
+                        vec![exceptions.len() / 3, 3],
+                        exceptions.iter().flat_map(|x| x.to_le_bytes()).collect(),
+                    )?,
+                );
+            }
             let mut shape = s.shape.clone();
             shape[0] = kept.len();
             let [m, v, t] = kept_moments_bytes(st, &kept, row_len, t_per_row);
@@ -977,6 +1002,37 @@ impl AdamState {
                         };
                     }
                 }
+                let name = format!("adam.t_exceptions.{}", s.name);
+                if f.tensors.contains_key(&name) {
+                    let label = f
+                        .source
+                        .as_ref()
+                        .map_or("<checkpoint>".into(), |p| p.display().to_string());
+                    let x = f.get(&name)?;
+                    if !t_per_row || x.dtype != DType::U32 || x.shape.len() != 2 || x.shape[1] != 3
+                    {
+                        bail!(
+                            "{label}: tensor {name} is {} {:?}, expected U32 [e, 3] beside a step count per row (adam.t.{} of shape [{}])",
+                            x.dtype,
+                            x.shape,
+                            s.name,
+                            rows.len()
+                        );
+                    }
+                    let x = f.get_u32(&name)?;
+                    let mut last = None;
+                    for e in x.chunks_exact(3) {
+                        let (k, j, t) = (e[0] as usize, e[1] as usize, e[2]);
+                        if k >= rows.len() || j >= row_len || last.is_some_and(|l| l >= (k, j)) {
+                            bail!(
+                                "{label}: tensor {name}: entry ({k}, {j}) not ascending or beyond the {} kept rows of {row_len} scalars",
+                                rows.len()
+                            );
+                        }
+                        last = Some((k, j));
+                        out[rows[k] as usize * row_len + j].t = t;
+                    }
+                }
                 continue;
             }
             // Decoded straight from the file's bytes into the state, in parallel chunks.
@@ -1104,8 +1160,13 @@ mod tests {
         st.save_compact(&mut f).unwrap();
         assert_eq!(f.get("adam.mask.a").unwrap().data, vec![0b1010]);
         assert_eq!(f.get("adam.m.a").unwrap().shape, vec![2, 2]);
-        // Row 3's two scalars stepped a different number of times: a count per scalar.
-        assert_eq!(f.get("adam.t.a").unwrap().shape, vec![2, 2]);
+        // One count per row (its first scalar's); the second scalars of rows 1 and 3 (counts 3
+        // and 7) are the exceptions.
+        assert_eq!(f.get_u32("adam.t.a").unwrap(), vec![2, 0]);
+        assert_eq!(
+            f.get_u32("adam.t_exceptions.a").unwrap(),
+            vec![0, 1, 3, 1, 1, 7]
+        );
         assert!(!f.tensors.contains_key("adam.mask.b"));
         assert_eq!(AdamState::load(&f, &specs).unwrap().state, st.state);
         // Rows whose scalars share a count: one count per row, read back the same.
@@ -1115,9 +1176,24 @@ mod tests {
         }
         let mut g = TensorFile::default();
         even.save_compact(&mut g).unwrap();
-        assert_eq!(g.get("adam.t.a").unwrap().shape, vec![2]);
         assert_eq!(g.get_u32("adam.t.a").unwrap(), vec![7, 7]);
+        assert!(!g.tensors.contains_key("adam.t_exceptions.a"));
         assert_eq!(AdamState::load(&g, &specs).unwrap().state, even.state);
+        // A bad exception list is an error naming it.
+        for (x, want) in [
+            (vec![1u32, 0, 5, 0, 0, 5], "not ascending"),
+            (vec![2, 0, 5], "beyond"),
+        ] {
+            let mut h = f.clone();
+            let n = x.len() / 3;
+            let b: Vec<u8> = x.iter().flat_map(|v| v.to_le_bytes()).collect();
+            h.insert(
+                "adam.t_exceptions.a",
+                Tensor::from_bytes(DType::U32, vec![n, 3], b).unwrap(),
+            );
+            let e = format!("{:#}", AdamState::load(&h, &specs).unwrap_err());
+            assert!(e.contains("adam.t_exceptions.a") && e.contains(want), "{e}");
+        }
         for (mask, want) in [
             (vec![0u8, 0], "expected U8 [1]"),
             (vec![0b10_0010], "beyond"),

@@ -9,8 +9,8 @@
 //! Python process with `torch.set_num_threads` the same). The peer must reproduce xscale's loss at the
 //! checkpoint to 1e-5 before it is timed. Prints each round, the medians and the ratio.
 //!
-//! Run: `cargo bench --bench torch_peer` (needs `python3` with `torch`, `numpy` and `safetensors`;
-//! without them it says so and exits). `XSCALE_BENCH_ROUNDS` (3), `XSCALE_BENCH_STEPS` (10).
+//! Run: `cargo bench --bench torch_peer` (needs `python3` with `torch`, `numpy` and `safetensors`, or
+//! the interpreter named by `XSCALE_TORCH_PYTHON`, e.g. a venv's; without them it says so and exits). `XSCALE_BENCH_ROUNDS` (3), `XSCALE_BENCH_STEPS` (10).
 //! `XSCALE_BENCH_FIXED_LEVELS=1` uses the preset's fixed 16-level range instead of the automatic one
 //! (22 levels on `small`): the configuration the 0.5–0.6 s PyTorch figure was quoted at, to
 //! check the peer is as fast as that before its ratio at 22 levels is quoted. The peer compiles its loss with
@@ -42,13 +42,14 @@ fn main() {
     let fixed_levels = env("XSCALE_BENCH_FIXED_LEVELS", 0) != 0;
     let eager = env("XSCALE_BENCH_PEER_EAGER", 0) != 0;
     let script = concat!(env!("CARGO_MANIFEST_DIR"), "/reference/bench_torch.py");
-    let probe = Command::new("python3")
+    let python = std::env::var("XSCALE_TORCH_PYTHON").unwrap_or_else(|_| "python3".into());
+    let probe = Command::new(&python)
         .args(["-c", "import torch, numpy, safetensors"])
         .output();
     if !probe.is_ok_and(|o| o.status.success()) {
-        eprintln!("skipped: python3 with torch, numpy and safetensors is needed (pip install torch numpy safetensors)");
+        eprintln!("skipped: {python} with torch, numpy and safetensors is needed (pip install torch numpy safetensors; XSCALE_TORCH_PYTHON names another interpreter)");
         emit_json(serde_json::json!({
-            "skipped": "python3 with torch, numpy and safetensors is not installed (pip install torch numpy safetensors)"
+            "skipped": format!("{python} with torch, numpy and safetensors is not installed (pip install torch numpy safetensors; XSCALE_TORCH_PYTHON names another interpreter)")
         }));
         return;
     }
@@ -106,7 +107,7 @@ fn main() {
             (loss0, t0.elapsed().as_secs_f64() * 1e3 / steps as f64)
         });
         // The peer, which first checks it reproduces loss0.
-        let o = Command::new("python3")
+        let o = Command::new(&python)
             .arg(script)
             .args(["--checkpoint", ck.to_str().unwrap()])
             .args(["--batch", bp.to_str().unwrap()])

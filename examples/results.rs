@@ -65,7 +65,7 @@ const SECTIONS: &[Spec] = &[
     Spec {
         name: "torch_peer",
         title: "Against PyTorch (`cargo bench --bench torch_peer`)",
-        measures: "One training step of the same model, checkpoint and 16,384-pixel batch on 2 threads in xscale and in a PyTorch peer (`reference/bench_torch.py`, compiled with `torch.compile`), timed in alternating rounds after the peer reproduced xscale's loss. Needs `pip install torch numpy safetensors`; without them the section says it was skipped.",
+        measures: "One training step of the same model, checkpoint and 16,384-pixel batch on 2 threads in xscale and in a PyTorch peer (`reference/bench_torch.py`, compiled with `torch.compile`), timed in alternating rounds after the peer reproduced xscale's loss. Needs `pip install torch numpy safetensors` for `python3` (or the interpreter `XSCALE_TORCH_PYTHON` names); without them the section keeps its earlier measurement, or says it was skipped.",
         cost: "a few minutes when torch is installed",
         run: torch_peer,
     },
@@ -142,7 +142,7 @@ const SECTIONS: &[Spec] = &[
     Spec {
         name: "sizing",
         title: "Table sizes from the scene: parameters, checkpoints, quality, step time",
-        measures: "The `cpu` preset's hash-table sizes chosen from the surface cells the training rays reach (`[model.grid_h] log2_table_size = \"auto\"`, the default: each level 4 entries per reached cell, 2^12..2^19, dense iff its dense grid fits that size, grid D never above its configured 2^17; the checkpoint leaves out the Adam state of entries no ray reached) against fixed tables of 2^19 entries per level (`--config` with `[model.grid_h] log2_table_size = 19`, the preset before). `tiny`, `small`, `cross` and `large` (`synth --preset NAME --seed 1`): parameters of the model `xscale init` builds; each but `large` trained with the default budget (training seeds `XSCALE_SIZING_SEEDS`, default 0,1,2; `large` only with `XSCALE_SIZING_LARGE_SEEDS`): checkpoint bytes and what fills them, held-out masked PSNR (close-ups and aerial views apart), wall time of the `train` command, the two configurations alternating seed by seed. Then `cargo bench --bench sizing`: milliseconds per training step on `small`, 2 threads, 4,096- and 16,384-pixel batches, the two models alternating in rounds (best round).",
+        measures: "The `cpu` preset's hash-table sizes chosen from the surface cells the training rays reach (`[model.grid_h] log2_table_size = \"auto\"`, the default: each level 4 entries per reached cell, 2^12..2^19, dense iff its dense grid fits that size, grid D never above its configured 2^17; the checkpoint leaves out the Adam state of entries no ray reached) against fixed tables of 2^19 entries per level (`--config` with `[model.grid_h] log2_table_size = 19`, the preset before). `tiny`, `small`, `cross` and `large` (`synth --preset NAME --seed 1`): parameters of the model `xscale init` builds; each but `large` trained with the default budget (training seeds `XSCALE_SIZING_SEEDS`, default 0,1,2; `large` only with `XSCALE_SIZING_LARGE_SEEDS`): checkpoint bytes and what fills them, held-out masked PSNR (close-ups and aerial views apart), wall time of the `train` command, the two configurations alternating seed by seed. Then `cargo bench --bench sizing`: milliseconds per training step on `small` and `cross`, 2 threads, 4,096- and 16,384-pixel batches, the two models alternating in rounds (best round).",
         cost: "about 10 minutes per seed (tiny, small, cross; 20 with load), plus the bench",
         run: sizing,
     },
@@ -176,6 +176,9 @@ struct Section {
     tables: Vec<Value>,
     notes: Vec<String>,
     images: Vec<(String, String)>,
+    /// Why the whole section could not be measured on this host (a missing tool): the page then
+    /// keeps the section's earlier measurement, if it has one, instead of a "not measured" note.
+    skipped: Option<String>,
 }
 
 struct Ctx {
@@ -602,6 +605,7 @@ fn torch_peer(c: &Ctx) -> Result<Section> {
     };
     if let Some(why) = v["skipped"].as_str() {
         s.notes.push(format!("Not measured on this host: {why}."));
+        s.skipped = Some(why.to_string());
         return Ok(s);
     }
     s.tables.push(table(
@@ -705,10 +709,12 @@ fn python(c: &Ctx) -> Result<Section> {
         .current_dir(&c.root)
         .output();
     if !probe.is_ok_and(|o| o.status.success()) {
-        s.notes.push(format!(
-            "Not measured on this host: `{py}` cannot import the package (`pip install ./python`; \
-             XSCALE_PYTHON names another interpreter)."
-        ));
+        let why = format!(
+            "`{py}` cannot import the package (`pip install ./python`; \
+             XSCALE_PYTHON names another interpreter)"
+        );
+        s.notes.push(format!("Not measured on this host: {why}."));
+        s.skipped = Some(why);
         return Ok(s);
     }
     let json = c.work.join("python.json");
@@ -1463,8 +1469,9 @@ fn sizing(c: &Ctx) -> Result<Section> {
     let v = c.bench("sizing", &[])?;
     s.commands.push("cargo bench --bench sizing".into());
     s.tables.push(table(
-        "a training step on `small`, 2 threads (best of alternating rounds)",
+        "a training step on `small` and `cross`, 2 threads (best of alternating rounds)",
         &[
+            "scene",
             "batch (pixels)",
             "fixed 2^19 (ms)",
             "auto (ms)",
@@ -1472,11 +1479,12 @@ fn sizing(c: &Ctx) -> Result<Section> {
             "fixed parameters",
             "auto parameters",
         ],
-        &[0, 1, 1, 2, 0, 0],
+        &[0, 0, 1, 1, 2, 0, 0],
         columns(
             &v,
             "sizing",
             &[
+                "scene",
                 "batch",
                 "fixed_ms",
                 "auto_ms",
@@ -2675,6 +2683,11 @@ fn write_page(docs: &Path) -> Result<()> {
     Ok(())
 }
 
+/// Whether a section's page file holds a measurement (a table), not just a "not measured" note.
+fn measured_before(path: &Path) -> bool {
+    read_json(path).is_ok_and(|v| v["tables"].as_array().is_some_and(|t| !t.is_empty()))
+}
+
 fn main() -> Result<()> {
     let argv: Vec<String> = std::env::args().skip(1).collect();
     let root = PathBuf::from(env!("CARGO_MANIFEST_DIR"));
@@ -2746,6 +2759,7 @@ fn main() -> Result<()> {
         docs: docs.clone(),
     };
     let mut failed = Vec::new();
+    let mut kept = Vec::new();
     for spec in SECTIONS {
         if only
             .as_ref()
@@ -2755,7 +2769,17 @@ fn main() -> Result<()> {
         }
         eprintln!("== {} ({})", spec.name, spec.cost);
         let (date, load_before, t0) = (now_utc(), load(), Instant::now());
+        let path = docs.join(format!("results/{}.json", spec.name));
         match (spec.run)(&ctx) {
+            Ok(s) if s.skipped.is_some() && measured_before(&path) => {
+                eprintln!(
+                    "   {}: not measurable here ({}); kept the earlier measurement in {}",
+                    spec.name,
+                    s.skipped.as_deref().unwrap_or(""),
+                    path.display()
+                );
+                kept.push(spec.name);
+            }
             Ok(s) => {
                 let v = json!({
                     "section": spec.name,
@@ -2771,7 +2795,6 @@ fn main() -> Result<()> {
                     "notes": s.notes,
                     "images": s.images.iter().map(|(p, c)| json!([p, c])).collect::<Vec<_>>(),
                 });
-                let path = docs.join(format!("results/{}.json", spec.name));
                 std::fs::write(&path, serde_json::to_string_pretty(&v)? + "\n")?;
                 eprintln!(
                     "   {} in {:.0} s",
@@ -2786,6 +2809,12 @@ fn main() -> Result<()> {
         }
         // The page after every section, so an interrupted run keeps what it measured.
         write_page(&docs)?;
+    }
+    if !kept.is_empty() {
+        eprintln!(
+            "not measurable on this host, earlier measurements kept: {}",
+            kept.join(", ")
+        );
     }
     if !failed.is_empty() {
         bail!(

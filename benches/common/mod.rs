@@ -33,10 +33,17 @@ pub fn env_parse<T: std::str::FromStr>(name: &str, default: T, what: &str) -> T 
 
 /// `xscale synth --preset small --seed 1`, generated into `target/bench-scenes/small` on first use.
 pub fn small_scene() -> PathBuf {
-    let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("target/bench-scenes/small");
+    synth_scene(xscale::synth::Preset::Small, "small")
+}
+
+/// `xscale synth --preset NAME --seed 1`, generated into `target/bench-scenes/NAME` on first use.
+pub fn synth_scene(preset: xscale::synth::Preset, name: &str) -> PathBuf {
+    let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("target/bench-scenes")
+        .join(name);
     if !dir.join("scene.toml").is_file() {
-        eprintln!("generating the small scene into {}", dir.display());
-        let s = xscale::synth::build(xscale::synth::Preset::Small, 1);
+        eprintln!("generating the {name} scene into {}", dir.display());
+        let s = xscale::synth::build(preset, 1);
         let summary = s.summary();
         let images = s.render();
         xscale::synth::output::write(&s, &images, &summary, &dir, false).unwrap();

@@ -149,7 +149,7 @@ const SECTIONS: &[Spec] = &[
     Spec {
         name: "sizing_render",
         title: "Rendering a 1.08-megapixel frame with tables from the scene",
-        measures: "`xscale render --scale 6` of one held-out `small` view (1200×900, γ = 2) from the `sizing` section's seed-0 models of `small` (fixed 2^19 tables and tables from the scene): the whole command (mapping the checkpoint, building the BVH, casting, shading, writing the PNG), the two alternating, 5 runs each, median.",
+        measures: "`xscale render --scale 6` of one held-out `small` view (1200×900, γ = 2) from the `sizing` section's seed-0 models of `small` (fixed 2^19 tables and tables from the scene): the whole command (mapping the checkpoint, building the BVH, casting, shading, writing the PNG), the two alternating, 5 runs each, median. Then, for the auto model, the same command at `--scale 0.05` (its fixed costs) against the full frame, and with `XSCALE_RENDER_BEFORE=<an older xscale binary>` that binary's full frame as well (checked to write the same PNG bytes), all alternating, 5 runs each.",
         cost: "under a minute (after the sizing section)",
         run: sizing_render,
     },
@@ -1556,6 +1556,85 @@ fn sizing_render(c: &Ctx) -> Result<Section> {
         "Fixed / auto (medians): {:.2}×.",
         walls[0][2] / walls[1][2]
     ));
+    // Where the auto model's time goes: the same command at --scale 0.05 (a 40×30 frame: mapping
+    // the checkpoint, loading the scene, building the BVH) against the full frame, alternating;
+    // with XSCALE_RENDER_BEFORE=<an older xscale binary>, that binary's full frame too (its PNG
+    // must be the same bytes), for a before/after ratio measured in one run.
+    let before = std::env::var("XSCALE_RENDER_BEFORE").ok();
+    let r = &runs[1];
+    let png = c
+        .root
+        .join(&dir)
+        .join(Path::new(&view).with_extension("png"));
+    let mut cases: Vec<(String, PathBuf, &str)> = vec![
+        (
+            "this build, --scale 0.05 (load, scene, BVH)".into(),
+            c.bin.clone(),
+            "0.05",
+        ),
+        ("this build, --scale 6".into(), c.bin.clone(), "6"),
+    ];
+    if let Some(b) = &before {
+        cases.push((format!("{b}, --scale 6"), PathBuf::from(b), "6"));
+    }
+    let mut times = vec![Vec::new(); cases.len()];
+    let mut reference: Option<Vec<u8>> = None;
+    for _ in 0..5 {
+        for (k, (_, bin, scale)) in cases.iter().enumerate() {
+            let args = [
+                "render", "--run", r, "--views", &view, "--scale", scale, "--out", &dir, "-q",
+            ];
+            let ran = run_measured(Command::new(bin).args(args).current_dir(&c.root))?;
+            if !ran.ok {
+                bail!(
+                    "{} {}: failed:\n{}",
+                    bin.display(),
+                    args.join(" "),
+                    tail(&ran.stderr)
+                );
+            }
+            times[k].push(ran.wall_s);
+            if *scale == "6" {
+                let bytes = std::fs::read(&png)
+                    .with_context(|| format!("{}: cannot read", png.display()))?;
+                match &reference {
+                    None => reference = Some(bytes),
+                    Some(b) if *b == bytes => {}
+                    Some(_) => bail!("{}: not the same PNG bytes as this build's", bin.display()),
+                }
+            }
+        }
+    }
+    for (label, _, scale) in &cases {
+        s.commands.push(format!(
+            "{label}: xscale render --run {r} --views {view} --scale {scale} --out {dir} -q   (5 times, alternating)"
+        ));
+    }
+    for t in times.iter_mut() {
+        t.sort_by(f64::total_cmp);
+    }
+    let mp = 1200.0 * 900.0 / 1e6;
+    let rows = (cases.iter().zip(&times))
+        .map(|((label, _, _), t)| vec![json!(label), json!(t[2]), json!(t[0]), json!(t[4])])
+        .collect();
+    s.tables.push(table(
+        &format!("view {view}, auto tables: fixed costs against the frame"),
+        &["command", "median (s)", "fastest (s)", "slowest (s)"],
+        &[0, 2, 2, 2],
+        rows,
+    ));
+    s.notes.push(format!(
+        "This build: {:.2} s per megapixel for the whole command; {:.2} s of it fixed (load, scene, BVH), {:.2} s per megapixel for casting, shading and writing.",
+        times[1][2] / mp,
+        times[0][2],
+        (times[1][2] - times[0][2]) / mp
+    ));
+    if before.is_some() {
+        s.notes.push(format!(
+            "Before / this build (medians of the full frame): {:.2}×; the same PNG bytes.",
+            times[2][2] / times[1][2]
+        ));
+    }
     Ok(s)
 }
 

@@ -98,7 +98,7 @@ pub fn copied<T: Copy + Send + Sync>(src: &[T]) -> Vec<T> {
 
 /// A vector of `n` elements on huge pages, written in parallel pieces of [`FILL_CHUNK`]:
 /// `fill(at, piece)` must write every element of `piece`, elements `at..at + piece.len()`.
-fn built<T: Send>(n: usize, fill: impl Fn(usize, &mut [MaybeUninit<T>]) + Sync) -> Vec<T> {
+pub fn built<T: Send>(n: usize, fill: impl Fn(usize, &mut [MaybeUninit<T>]) + Sync) -> Vec<T> {
     let mut v = Vec::with_capacity(n);
     advise(&mut v);
     v.spare_capacity_mut()[..n]

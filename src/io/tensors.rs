@@ -148,16 +148,21 @@ macro_rules! typed_constructor_and_accessor {
 impl Tensor {
     /// A tensor from raw little-endian bytes; error if the byte count does not match the shape.
     pub fn from_bytes(dtype: DType, shape: Vec<usize>, data: Vec<u8>) -> Result<Tensor> {
+        Self::check_bytes(dtype, &shape, data.len())?;
+        Ok(Tensor { dtype, shape, data })
+    }
+
+    /// Error unless `bytes` is the byte count of a `dtype` tensor of `shape`.
+    fn check_bytes(dtype: DType, shape: &[usize], bytes: usize) -> Result<()> {
         let n =
-            shape_numel(&shape).ok_or_else(|| anyhow!("shape {shape:?} has too many elements"))?;
-        if n.checked_mul(dtype.size()) != Some(data.len()) {
+            shape_numel(shape).ok_or_else(|| anyhow!("shape {shape:?} has too many elements"))?;
+        if n.checked_mul(dtype.size()) != Some(bytes) {
             bail!(
-                "{dtype} tensor of shape {shape:?} needs {n} elements ({} bytes), got {} bytes",
+                "{dtype} tensor of shape {shape:?} needs {n} elements ({} bytes), got {bytes} bytes",
                 n.saturating_mul(dtype.size()),
-                data.len()
             );
         }
-        Ok(Tensor { dtype, shape, data })
+        Ok(())
     }
 
     fn check_len(shape: &[usize], len: usize, dtype: DType) -> Result<()> {
@@ -323,6 +328,19 @@ fn declared_data_bytes(bytes: &[u8], n: u64) -> Option<u64> {
         .or(Some(0))
 }
 
+/// A tensor left in a mapped file ([`TensorFile::with_mapped`]): its little-endian bytes, of
+/// the length its dtype and shape need.
+#[derive(Clone, Debug)]
+pub struct RawTensor<'a> {
+    pub dtype: DType,
+    pub shape: Vec<usize>,
+    pub data: &'a [u8],
+}
+
+/// From this many bytes a tensor read from a file is copied in parallel, onto huge pages
+/// ([`crate::memhint::copied`]).
+const PARALLEL_COPY_BYTES: usize = 4 << 20;
+
 /// A safetensors file in memory: string metadata (`__metadata__`) and named tensors.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct TensorFile {
@@ -338,7 +356,7 @@ impl TensorFile {
         TensorFile::default()
     }
 
-    fn label(&self) -> String {
+    pub(crate) fn label(&self) -> String {
         match &self.source {
             Some(p) => p.display().to_string(),
             None => "<in-memory tensor file>".to_string(),
@@ -356,14 +374,29 @@ impl TensorFile {
     /// (a model loaded to render or score skips the Adam state, three quarters of a training
     /// checkpoint).
     pub fn read_only(path: impl AsRef<Path>, keep: impl Fn(&str) -> bool) -> Result<TensorFile> {
+        Self::with_mapped(path, keep, |_| false, |f, _| Ok(f))
+    }
+
+    /// [`TensorFile::read_only`] leaving the kept tensors `defer` accepts in the mapped file:
+    /// `with(file, raw)` gets the file of the other kept tensors and the deferred ones' bytes by
+    /// name (validated like every tensor), read while the map lives. A model loaded to render
+    /// copies its hash tables once, straight into its parameter buffer, instead of into a
+    /// tensor first (that copy's fresh pages were half of `render`'s load time).
+    pub fn with_mapped<T>(
+        path: impl AsRef<Path>,
+        keep: impl Fn(&str) -> bool,
+        defer: impl Fn(&str) -> bool,
+        with: impl FnOnce(TensorFile, &BTreeMap<String, RawTensor>) -> Result<T>,
+    ) -> Result<T> {
         let path = path.as_ref();
         let file = std::fs::File::open(path)
             .with_context(|| format!("{}: cannot read", path.display()))?;
         // SAFETY: the map is read while this function runs and dropped before it returns; every
-        // kept tensor is copied out of it. Mapping is undefined behaviour only if another process
-        // changes the file in place meanwhile: xscale never does (files are written to a temporary
-        // name and renamed over, `io/atomic.rs`, which leaves a mapped file's bytes as they were).
-        // A file that cannot be mapped (an empty file, a pipe) is read instead.
+        // kept tensor is copied out of it (the deferred ones by `with`, which cannot keep a
+        // borrow of them). Mapping is undefined behaviour only if another process changes the
+        // file in place meanwhile: xscale never does (files are written to a temporary name and
+        // renamed over, `io/atomic.rs`, which leaves a mapped file's bytes as they were). A file
+        // that cannot be mapped (an empty file, a pipe) is read instead.
         let map = unsafe { memmap2::Mmap::map(&file) };
         let read;
         let bytes: &[u8] = match &map {
@@ -374,22 +407,24 @@ impl TensorFile {
                 &read
             }
         };
-        let mut f = Self::from_bytes_only(bytes, &path.display().to_string(), keep)?;
+        let (mut f, raw) = Self::from_bytes_only(bytes, &path.display().to_string(), keep, defer)?;
         f.source = Some(path.to_path_buf());
-        Ok(f)
+        with(f, &raw)
     }
 
     /// Parse a safetensors byte buffer; `label` names it in error messages.
     pub fn from_bytes(bytes: &[u8], label: &str) -> Result<TensorFile> {
-        Self::from_bytes_only(bytes, label, |_| true)
+        Ok(Self::from_bytes_only(bytes, label, |_| true, |_| false)?.0)
     }
 
-    /// [`TensorFile::from_bytes`] keeping only the tensors `keep` accepts.
-    fn from_bytes_only(
-        bytes: &[u8],
+    /// [`TensorFile::from_bytes`] keeping only the tensors `keep` accepts, those `defer` accepts
+    /// left in `bytes` (checked, not copied).
+    fn from_bytes_only<'a>(
+        bytes: &'a [u8],
         label: &str,
         keep: impl Fn(&str) -> bool,
-    ) -> Result<TensorFile> {
+        defer: impl Fn(&str) -> bool,
+    ) -> Result<(TensorFile, BTreeMap<String, RawTensor<'a>>)> {
         let invalid = |e| {
             anyhow!(
                 "{label}: not a valid safetensors file: {}",
@@ -404,6 +439,7 @@ impl TensorFile {
             .map(|m| m.iter().map(|(k, v)| (k.clone(), v.clone())).collect())
             .unwrap_or_default();
         let mut tensors = BTreeMap::new();
+        let mut raw = BTreeMap::new();
         for (name, view) in st.iter() {
             let dtype = DType::from_safetensors(view.dtype()).ok_or_else(|| {
                 anyhow!(
@@ -414,15 +450,32 @@ impl TensorFile {
             if !keep(name) {
                 continue;
             }
-            let t = Tensor::from_bytes(dtype, view.shape().to_vec(), view.data().to_vec())
+            if defer(name) {
+                let shape = view.shape().to_vec();
+                Tensor::check_bytes(dtype, &shape, view.data().len())
+                    .with_context(|| format!("{label}: tensor {name}"))?;
+                let (data, shape) = (view.data(), shape);
+                raw.insert(name.to_string(), RawTensor { dtype, shape, data });
+                continue;
+            }
+            // A large tensor (a hash table) is copied in parallel pieces onto huge pages: one
+            // thread copying it into fresh 4 KiB pages was most of the time `render` took to
+            // load a `small` checkpoint (docs/changelog.md).
+            let data = if view.data().len() >= PARALLEL_COPY_BYTES {
+                crate::memhint::copied(view.data())
+            } else {
+                view.data().to_vec()
+            };
+            let t = Tensor::from_bytes(dtype, view.shape().to_vec(), data)
                 .with_context(|| format!("{label}: tensor {name}"))?;
             tensors.insert(name.to_string(), t);
         }
-        Ok(TensorFile {
+        let file = TensorFile {
             metadata,
             tensors,
             source: None,
-        })
+        };
+        Ok((file, raw))
     }
 
     /// Insert (or replace) a tensor.

@@ -14,7 +14,7 @@
 //!   `loss` [] and every gradient `grad.*`, in the dtype of the instantiation (f64 or f32). Rows
 //!   of invalid sub-samples are zero (they are never evaluated).
 
-use crate::io::tensors::{DType, Tensor, TensorFile};
+use crate::io::tensors::{DType, RawTensor, Tensor, TensorFile};
 use crate::model::batch::Batch;
 use crate::model::config::ModelConfig;
 use crate::model::hashgrid::HashGrid;
@@ -23,6 +23,8 @@ use crate::model::params::{Grads, ParamLayout};
 use crate::model::sh::SH_DIM;
 use crate::model::Real;
 use anyhow::{bail, ensure, Context, Result};
+use rayon::prelude::*;
+use std::collections::BTreeMap;
 use std::path::Path;
 
 /// Version string in every checkpoint / dump header (`format`).
@@ -119,13 +121,71 @@ pub fn layout_from_tensors(
     layout: &ParamLayout,
     prefix: &str,
 ) -> Result<Vec<f32>> {
-    let mut out = crate::memhint::filled(layout.total, 0.0f32);
+    layout_from(file, &BTreeMap::new(), layout, prefix)
+}
+
+/// [`layout_from_tensors`] taking the tensors in `raw` (left in a mapped file) from there.
+fn layout_from(
+    file: &TensorFile,
+    raw: &BTreeMap<String, RawTensor>,
+    layout: &ParamLayout,
+    prefix: &str,
+) -> Result<Vec<f32>> {
+    // Every tensor checked first, then the buffer written once, in parallel pieces on huge
+    // pages (a zero fill followed by a copy on one thread was a third of `render`'s load).
+    let mut parts: Vec<(usize, &[u8])> = Vec::with_capacity(layout.tensors.len());
+    let mut at = 0;
     for t in &layout.tensors {
         let name = format!("{prefix}{}", t.name);
-        file.get_checked(&name, DType::F32, &t.shape)?
-            .copy_f32_into(&mut out[t.range()])?;
+        let data: &[u8] = match raw.get(&name) {
+            Some(r) => {
+                ensure!(
+                    r.dtype == DType::F32 && r.shape == t.shape,
+                    "{}: tensor {name} is {} {:?}, expected {} {:?}",
+                    file.label(),
+                    r.dtype,
+                    r.shape,
+                    DType::F32,
+                    t.shape
+                );
+                r.data
+            }
+            None => &file.get_checked(&name, DType::F32, &t.shape)?.data,
+        };
+        ensure!(
+            t.offset == at && data.len() == t.len * 4,
+            "{}: tensor {name}: {} bytes at element {}, the layout has {} elements at {at}",
+            file.label(),
+            data.len(),
+            t.offset,
+            t.len
+        );
+        parts.push((t.offset, data));
+        at += t.len;
     }
-    Ok(out)
+    ensure!(
+        at == layout.total,
+        "parameter layout: tensors cover {at} of {} elements",
+        layout.total
+    );
+    Ok(crate::memhint::built(layout.total, |at, piece| {
+        // The first tensor ending after `at`, then on until the piece is written.
+        let mut k = parts.partition_point(|&(o, d)| o + d.len() / 4 <= at);
+        let mut i = 0;
+        while i < piece.len() {
+            let (o, d) = parts[k];
+            let from = at + i - o;
+            let n = (d.len() / 4 - from).min(piece.len() - i);
+            for (x, c) in piece[i..i + n]
+                .iter_mut()
+                .zip(d[from * 4..].chunks_exact(4))
+            {
+                x.write(f32::from_le_bytes(c.try_into().unwrap()));
+            }
+            i += n;
+            k += 1;
+        }
+    }))
 }
 
 /// A tensor in the dtype of `R` (F64 or F32).
@@ -200,6 +260,12 @@ impl Checkpoint {
 
     /// Rebuild from a tensor file (saved scales, checked shapes); errors name the file/tensor.
     pub fn from_tensor_file(file: &TensorFile) -> Result<Checkpoint> {
+        Self::from_tensors(file, &BTreeMap::new())
+    }
+
+    /// [`Checkpoint::from_tensor_file`] with the tensors in `raw` left in a mapped file
+    /// ([`Checkpoint::read_model`]).
+    fn from_tensors(file: &TensorFile, raw: &BTreeMap<String, RawTensor>) -> Result<Checkpoint> {
         let label = file
             .source
             .as_ref()
@@ -254,8 +320,14 @@ impl Checkpoint {
                 .collect();
             Hfm::with_vertex(&cfg, faces.into()).with_context(|| label.clone())?
         };
-        let params = layout_from_tensors(file, &model.layout, "")?;
-        if let Some(i) = params.iter().position(|v| !v.is_finite()) {
+        let params = layout_from(file, raw, &model.layout, "")?;
+        let finite = params
+            .par_chunks(1 << 16)
+            .all(|c| c.iter().all(|v| v.is_finite()));
+        if let Some(i) = (!finite)
+            .then(|| params.iter().position(|v| !v.is_finite()))
+            .flatten()
+        {
             let t = model
                 .layout
                 .tensors
@@ -291,7 +363,19 @@ impl Checkpoint {
 
     /// The model of a checkpoint file ([`Checkpoint::read_model_tensors`]).
     pub fn load(path: impl AsRef<Path>) -> Result<Checkpoint> {
-        Checkpoint::from_tensor_file(&Checkpoint::read_model_tensors(path)?)
+        Ok(Checkpoint::read_model(path)?.0)
+    }
+
+    /// The model of a checkpoint file and the file's metadata: [`Checkpoint::load`] reading
+    /// the hash tables straight from the mapped file into the parameter buffer (the same
+    /// values as through [`Checkpoint::read_model_tensors`], one copy fewer).
+    pub fn read_model(path: impl AsRef<Path>) -> Result<(Checkpoint, BTreeMap<String, String>)> {
+        TensorFile::with_mapped(
+            path,
+            |name| !name.starts_with("adam."),
+            |name| name == "grid_h.table" || name == "grid_d.table",
+            |f, raw| Ok((Checkpoint::from_tensors(&f, raw)?, f.metadata)),
+        )
     }
 
     /// A checkpoint file's tensors and metadata without a training checkpoint's Adam state

@@ -82,6 +82,10 @@ pub fn apply_level_weights<R: Real>(w: &[R], nl: usize, nf: usize, x: &mut [R]) 
     );
     for (xr, wr) in x.chunks_exact_mut(nl * nf).zip(w.chunks_exact(nl)) {
         for (l, &wl) in wr.iter().enumerate() {
+            // x · 1 is x: a level of full weight (most levels of most pixels) is left as it is.
+            if wl == R::ONE {
+                continue;
+            }
             for v in &mut xr[l * nf..(l + 1) * nf] {
                 *v *= wl;
             }

@@ -13,9 +13,8 @@ use std::path::Path;
 
 /// A model checkpoint and, when it has one, the run configuration it was trained with.
 pub fn load_model(path: &Path) -> Result<(Checkpoint, Option<RunConfig>)> {
-    let f = Checkpoint::read_model_tensors(path)?;
-    let ckpt = Checkpoint::from_tensor_file(&f)?;
-    let cfg = match f.metadata.get("run_config") {
+    let (ckpt, metadata) = Checkpoint::read_model(path)?;
+    let cfg = match metadata.get("run_config") {
         Some(text) => Some(RunConfig::from_stored_toml(
             text,
             &path.display().to_string(),

@@ -142,8 +142,8 @@ const SECTIONS: &[Spec] = &[
     Spec {
         name: "sizing",
         title: "Table sizes from the scene: parameters, checkpoints, quality, step time",
-        measures: "The `cpu` preset's hash-table sizes chosen from the surface cells the training rays reach (`[model.grid_h] log2_table_size = \"auto\"`, the default: each hashed level 4 entries per reached cell, 2^12..2^19, grid D never above its configured 2^17; the checkpoint leaves out the Adam state of entries no ray reached) against fixed tables of 2^19 entries per level (`--config` with `[model.grid_h] log2_table_size = 19`, the preset before). `tiny`, `small` and `cross` (`synth --preset NAME --seed 1`): parameters of the model `xscale init` builds; on `tiny` and `small`, each trained with the default budget (training seeds `XSCALE_SIZING_SEEDS`, default 0,1,2 on `small`, 0 on `tiny`): checkpoint bytes, held-out masked PSNR, wall time of the `train` command, the two configurations alternating seed by seed. Then `cargo bench --bench sizing`: milliseconds per training step on `small` and `cross`, 2 threads, 4,096- and 16,384-pixel batches, the two models alternating in rounds (best round).",
-        cost: "about 10 minutes per seed on small (20 with load), plus the bench",
+        measures: "The `cpu` preset's hash-table sizes chosen from the surface cells the training rays reach (`[model.grid_h] log2_table_size = \"auto\"`, the default: each level 4 entries per reached cell, 2^12..2^19, dense iff its dense grid fits that size, grid D never above its configured 2^17; the checkpoint leaves out the Adam state of entries no ray reached) against fixed tables of 2^19 entries per level (`--config` with `[model.grid_h] log2_table_size = 19`, the preset before). `tiny`, `small`, `cross` and `large` (`synth --preset NAME --seed 1`): parameters of the model `xscale init` builds; each but `large` trained with the default budget (training seeds `XSCALE_SIZING_SEEDS`, default 0,1,2; `large` only with `XSCALE_SIZING_LARGE_SEEDS`): checkpoint bytes and what fills them, held-out masked PSNR (close-ups and aerial views apart), wall time of the `train` command, the two configurations alternating seed by seed. Then `cargo bench --bench sizing`: milliseconds per training step on `small` and `cross`, 2 threads, 4,096- and 16,384-pixel batches, the two models alternating in rounds (best round).",
+        cost: "about 10 minutes per seed (tiny, small, cross; 20 with load), plus the bench",
         run: sizing,
     },
     Spec {
@@ -1254,6 +1254,46 @@ fn ckpt_params(path: &Path) -> Result<usize> {
         .total)
 }
 
+/// Bytes of a checkpoint's tensors by part, from its safetensors header: grid H, grid D, the
+/// MLPs and appearance codes, and the Adam state (`adam.*`, its row masks included).
+fn ckpt_parts(path: &Path) -> Result<[u64; 4]> {
+    use std::io::Read;
+    let mut f = std::fs::File::open(path).with_context(|| format!("{}", path.display()))?;
+    let mut n = [0u8; 8];
+    f.read_exact(&mut n)?;
+    let mut head = vec![0u8; u64::from_le_bytes(n) as usize];
+    f.read_exact(&mut head)?;
+    let h: Value = serde_json::from_slice(&head)?;
+    let mut parts = [0u64; 4];
+    for (name, t) in h.as_object().into_iter().flatten() {
+        let Some(o) = t["data_offsets"].as_array() else {
+            continue; // __metadata__
+        };
+        let bytes = o[1].as_u64().unwrap_or(0) - o[0].as_u64().unwrap_or(0);
+        let i = if name.starts_with("adam.") {
+            3
+        } else if name == "grid_h.table" {
+            0
+        } else if name == "grid_d.table" {
+            1
+        } else {
+            2
+        };
+        parts[i] += bytes;
+    }
+    Ok(parts)
+}
+
+/// Seeds from an environment variable (comma-separated), or `default`.
+fn env_seeds(var: &str, default: &str) -> Vec<String> {
+    std::env::var(var)
+        .unwrap_or_else(|_| default.into())
+        .split(',')
+        .map(|x| x.trim().to_string())
+        .filter(|x| !x.is_empty())
+        .collect()
+}
+
 fn sizing(c: &Ctx) -> Result<Section> {
     let mut s = Section::default();
     let fixed = c.w("sizing-fixed19.toml");
@@ -1263,16 +1303,16 @@ fn sizing(c: &Ctx) -> Result<Section> {
     )?;
     s.commands
         .push(format!("({fixed}: [model.grid_h] log2_table_size = 19)"));
-    let seeds: Vec<String> = std::env::var("XSCALE_SIZING_SEEDS")
-        .unwrap_or_else(|_| "0,1,2".into())
-        .split(',')
-        .map(|x| x.trim().to_string())
-        .filter(|x| !x.is_empty())
-        .collect();
+    let seeds = env_seeds("XSCALE_SIZING_SEEDS", "0,1,2");
+    let large_seeds = env_seeds("XSCALE_SIZING_LARGE_SEEDS", "");
+    let tag_name = |t: &str| if t == "fixed" { "fixed 2^19" } else { "auto" };
     let mut size_rows = Vec::new();
     let mut run_rows = Vec::new();
-    let mut means: Vec<(String, String, Vec<f64>, Vec<f64>)> = Vec::new();
-    for preset in ["tiny", "small", "cross"] {
+    let mut part_rows = Vec::new();
+    // (scene, tables, PSNR, checkpoint MB, close-ups, aerial) per run.
+    type Means = (String, String, Vec<f64>, Vec<f64>, Vec<f64>, Vec<f64>);
+    let mut means: Vec<Means> = Vec::new();
+    for preset in ["tiny", "small", "cross", "large"] {
         let scene = c.w(&format!("sizing-{preset}"));
         let args = ["synth", "--preset", preset, "--seed", "1", "--out", &scene];
         c.xscale(&args)?;
@@ -1287,6 +1327,7 @@ fn sizing(c: &Ctx) -> Result<Section> {
             c.xscale(&args)?;
             s.commands.push(format!("xscale {}", args.join(" ")));
             params[i] = ckpt_params(&c.root.join(&out))?;
+            let _ = std::fs::remove_file(c.root.join(&out));
         }
         size_rows.push(vec![
             json!(preset),
@@ -1294,16 +1335,23 @@ fn sizing(c: &Ctx) -> Result<Section> {
             json!(params[1]),
             json!(params[1] as f64 / params[0] as f64),
         ]);
-        if preset == "cross" {
-            continue;
-        }
-        let seeds: Vec<String> = if preset == "tiny" {
-            vec!["0".into()]
+        let seeds = if preset == "large" {
+            large_seeds.clone()
         } else {
             seeds.clone()
         };
+        if seeds.is_empty() {
+            continue;
+        }
         for tag in ["fixed", "auto"] {
-            means.push((preset.into(), tag.into(), Vec::new(), Vec::new()));
+            means.push((
+                preset.into(),
+                tag.into(),
+                Vec::new(),
+                Vec::new(),
+                Vec::new(),
+                Vec::new(),
+            ));
         }
         let n = means.len();
         for seed in &seeds {
@@ -1320,22 +1368,31 @@ fn sizing(c: &Ctx) -> Result<Section> {
                 s.commands.push(format!("xscale {}", args.join(" ")));
                 let run = c.root.join(&out);
                 let e = read_json(&run.join("eval.json"))?;
-                let bytes = std::fs::metadata(run.join("checkpoint.safetensors"))?.len();
-                let psnr = e["mean"]["psnr_masked"].as_f64().unwrap_or(f64::NAN);
+                let ckpt = run.join("checkpoint.safetensors");
+                let bytes = std::fs::metadata(&ckpt)?.len();
+                let (psnr, _, _, near, far) = scores(&e);
+                let f = |v: &Value| v.as_f64().unwrap_or(f64::NAN);
                 let m = &mut means[n - 2 + i];
-                m.2.push(psnr);
+                m.2.push(f(&psnr));
                 m.3.push(bytes as f64 / 1e6);
+                m.4.push(f(&near));
+                m.5.push(f(&far));
+                if seed == &seeds[0] {
+                    let p = ckpt_parts(&ckpt)?;
+                    let mut row = vec![json!(preset), json!(tag_name(tag))];
+                    row.extend(p.iter().map(|&b| json!(b as f64 / 1e6)));
+                    row.push(json!(bytes as f64 / 1e6));
+                    part_rows.push(row);
+                }
                 run_rows.push(vec![
                     json!(preset),
-                    json!(if *tag == "fixed" {
-                        "fixed 2^19"
-                    } else {
-                        "auto"
-                    }),
+                    json!(tag_name(tag)),
                     json!(seed),
                     e["step"].clone(),
                     json!(bytes as f64 / 1e6),
-                    json!(psnr),
+                    psnr,
+                    near,
+                    far,
                     json!(r.wall_s),
                     json!(peak_mb(&run)),
                 ]);
@@ -1345,13 +1402,15 @@ fn sizing(c: &Ctx) -> Result<Section> {
     let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len().max(1) as f64;
     let mean_rows = means
         .iter()
-        .map(|(p, t, psnr, mb)| {
+        .map(|(p, t, psnr, mb, near, far)| {
             vec![
                 json!(p),
-                json!(if t == "fixed" { "fixed 2^19" } else { "auto" }),
+                json!(tag_name(t)),
                 json!(psnr.len()),
                 json!(mean(mb)),
                 json!(mean(psnr)),
+                json!(mean(near)),
+                json!(mean(far)),
             ]
         })
         .collect();
@@ -1370,10 +1429,12 @@ fn sizing(c: &Ctx) -> Result<Section> {
             "steps",
             "checkpoint (MB)",
             "masked PSNR (dB)",
+            "close-ups (dB)",
+            "aerial (dB)",
             "wall (s)",
             "peak memory (MB)",
         ],
-        &[0, 0, 0, 0, 1, 2, 0, 0],
+        &[0, 0, 0, 0, 1, 2, 2, 2, 0, 0],
         run_rows,
     ));
     s.tables.push(table(
@@ -1384,10 +1445,27 @@ fn sizing(c: &Ctx) -> Result<Section> {
             "seeds",
             "checkpoint (MB)",
             "masked PSNR (dB)",
+            "close-ups (dB)",
+            "aerial (dB)",
         ],
-        &[0, 0, 0, 1, 2],
+        &[0, 0, 0, 1, 2, 2, 2],
         mean_rows,
     ));
+    s.tables.push(table(
+        "what the checkpoint holds (first seed's run, MB of tensor data)",
+        &[
+            "scene",
+            "tables",
+            "grid H",
+            "grid D",
+            "MLPs and codes",
+            "Adam state",
+            "file",
+        ],
+        &[0, 0, 2, 2, 3, 2, 2],
+        part_rows,
+    ));
+    s.notes.push("Close-ups and aerial views: the held-out views below and above the near/far split of `eval.json` (`by_scale.near_far`); on `tiny` and `small` the split is by footprint too. `large` is trained only with `XSCALE_SIZING_LARGE_SEEDS` set (its parameters are always counted).".into());
     let v = c.bench("sizing", &[])?;
     s.commands.push("cargo bench --bench sizing".into());
     s.tables.push(table(

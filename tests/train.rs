@@ -90,7 +90,7 @@ fn f64_arithmetic_resumes_exactly_and_differs_from_f32() {
 }
 
 /// The `cpu` preset's tables sized from the scene: its checkpoint leaves out the Adam state of
-/// the grid entries no ray reached (`adam.rows.*`), loads back to the very state trained (what
+/// the grid entries no ray reached (`adam.mask.*`), loads back to the very state trained (what
 /// the full layout writes), and a resumed run is still byte-identical on 1 and 2 threads.
 #[test]
 fn compact_adam_state_resumes_exactly() {
@@ -103,16 +103,16 @@ fn compact_adam_state_resumes_exactly() {
     c.train.checkpoint_every = 30;
     let bytes = resume_exact(c, "auto");
     let f = xscale::io::tensors::TensorFile::from_bytes(&bytes, "auto run").unwrap();
-    let rows = f.get_u32("adam.rows.grid_h.table").unwrap();
+    let mask = &f.get("adam.mask.grid_h.table").unwrap().data;
     let entries = f.get("grid_h.table").unwrap().shape[0];
-    assert!(
-        !rows.is_empty() && rows.len() < entries,
-        "{} of {entries} rows kept",
-        rows.len()
-    );
-    assert_eq!(f.get("adam.m.grid_h.table").unwrap().shape[0], rows.len());
-    // The MLPs step every scalar every step: written whole, without a row list.
-    assert!(!f.tensors.contains_key("adam.rows.shader.layers.0.weight"));
+    assert_eq!(mask.len(), entries.div_ceil(8));
+    let rows = mask.iter().map(|b| b.count_ones() as usize).sum::<usize>();
+    assert!(rows > 0 && rows < entries, "{rows} of {entries} rows kept");
+    assert_eq!(f.get("adam.m.grid_h.table").unwrap().shape[0], rows);
+    // A grid entry's two features step together: one step count per kept row.
+    assert_eq!(f.get("adam.t.grid_h.table").unwrap().shape, vec![rows]);
+    // The MLPs step every scalar every step: written whole, without a row mask.
+    assert!(!f.tensors.contains_key("adam.mask.shader.layers.0.weight"));
     let st = TrainState::from_tensor_file(&f).unwrap();
     let mut full = xscale::io::tensors::TensorFile::default();
     st.adam.save(&mut full).unwrap();
@@ -131,7 +131,7 @@ fn compact_adam_state_resumes_exactly() {
     let stepped = (0..entries)
         .filter(|&e| t[e * width..(e + 1) * width].iter().any(|&x| x > 0))
         .count();
-    assert_eq!(stepped, rows.len());
+    assert_eq!(stepped, rows);
 }
 
 /// Train `c` straight and interrupted + resumed, on 1 and 2 threads; all four checkpoints must

@@ -778,11 +778,16 @@ impl AdamState {
 
     /// [`AdamState::save`], but a slot's rows (its first dimension: a grid's entries) whose
     /// state is still zero — never stepped: entries and levels no training ray reached — are not
-    /// written. Such a slot is stored as `adam.rows.<name>` (U32 `[k]`, the kept rows, ascending)
-    /// and `adam.{m,v,t}.<name>` of shape `[k, …]`; a slot every row of which has stepped is
-    /// written as by `save` (so is every dense group). [`AdamState::load`] reads either back
-    /// to the same state, so a resumed run is bit-identical. `train.table_size = "auto"`
-    /// checkpoints use it (`train/state.rs`).
+    /// written. Such a slot is stored as `adam.mask.<name>` (U8 `[ceil(rows / 8)]`, bit `r % 8`
+    /// of byte `r / 8` set iff row `r` is kept; bits past the last row 0) and
+    /// `adam.{m,v}.<name>` of shape `[k, …]` (the kept rows, ascending), `adam.t.<name>` of shape
+    /// `[k]` (each kept row's first scalar's step count: a grid entry's features step together
+    /// unless one has an exactly zero gradient) with `adam.t_exceptions.<name>` (U32 `[e, 3]`:
+    /// kept row, scalar within the row, count; ascending; absent when `e = 0`) for the scalars
+    /// whose count differs; a slot every row of which has stepped is written as by `save` (so is
+    /// every dense group). [`AdamState::load`] reads either back (and the `adam.rows.<name>` row lists
+    /// of earlier checkpoints) to the same state, so a resumed run is bit-identical.
+    /// `train.table_size = "auto"` checkpoints use it (`train/state.rs`).
     pub fn save_compact(&self, f: &mut TensorFile) -> Result<()> {
         for s in &self.slots {
             let rows = s.shape.first().copied().unwrap_or(1);
@@ -803,22 +808,59 @@ impl AdamState {
                 insert_state(f, &s.name, &s.shape, [m, v, t])?;
                 continue;
             }
+            let row = |r: u32| &st[r as usize * row_len..(r as usize + 1) * row_len];
+            let t_per_row = row_len > 1;
+            // The scalars whose count is not their row's first: (kept row, scalar, count).
+            let exceptions: Vec<u32> = if t_per_row {
+                kept.par_iter()
+                    .enumerate()
+                    .flat_map_iter(|(k, &r)| {
+                        let first = row(r)[0].t;
+                        row(r)
+                            .iter()
+                            .enumerate()
+                            .filter(move |(_, m)| m.t != first)
+                            .flat_map(move |(j, m)| [k as u32, j as u32, m.t])
+                    })
+                    .collect()
+            } else {
+                Vec::new()
+            };
+            if !exceptions.is_empty() {
+                f.insert(
+                    format!("adam.t_exceptions.{}", s.name),
+                    Tensor::from_bytes(
+                        DType::U32,
+                        vec![exceptions.len() / 3, 3],
+                        exceptions.iter().flat_map(|x| x.to_le_bytes()).collect(),
+                    )?,
+                );
+            }
             let mut shape = s.shape.clone();
             shape[0] = kept.len();
-            let mut packed = Vec::with_capacity(kept.len() * row_len);
-            for &r in &kept {
-                let b = r as usize * row_len;
-                packed.extend_from_slice(&st[b..b + row_len]);
+            let [m, v, t] = kept_moments_bytes(st, &kept, row_len, t_per_row);
+            let t_shape = if t_per_row {
+                vec![kept.len()]
+            } else {
+                shape.clone()
+            };
+            for (kind, dtype, bytes, shape) in [
+                ("m", DType::F32, m, &shape),
+                ("v", DType::F32, v, &shape),
+                ("t", DType::U32, t, &t_shape),
+            ] {
+                f.insert(
+                    format!("adam.{kind}.{}", s.name),
+                    Tensor::from_bytes(dtype, shape.clone(), bytes)?,
+                );
             }
-            let [m, v, t] = moments_bytes(&packed);
-            insert_state(f, &s.name, &shape, [m, v, t])?;
+            let mut mask = vec![0u8; rows.div_ceil(8)];
+            for &r in &kept {
+                mask[r as usize / 8] |= 1 << (r % 8);
+            }
             f.insert(
-                format!("adam.rows.{}", s.name),
-                Tensor::from_bytes(
-                    DType::U32,
-                    vec![kept.len()],
-                    kept.iter().flat_map(|r| r.to_le_bytes()).collect(),
-                )?,
+                format!("adam.mask.{}", s.name),
+                Tensor::from_bytes(DType::U8, vec![mask.len()], mask)?,
             );
         }
         Ok(())
@@ -847,6 +889,46 @@ fn insert_state(f: &mut TensorFile, name: &str, shape: &[usize], b: [Vec<u8>; 3]
     Ok(())
 }
 
+/// The little-endian bytes of `m`, `v` and `t` of the rows `kept` (of `row_len` moments each)
+/// of `st` (`t` one count per row, the row's first, with `t_per_row`), written straight from
+/// the state in parallel chunks (no packed copy of the rows: on `synth small` that copy cost a
+/// checkpoint write ~100 MB of peak memory).
+fn kept_moments_bytes(
+    st: &[Moments],
+    kept: &[u32],
+    row_len: usize,
+    t_per_row: bool,
+) -> [Vec<u8>; 3] {
+    let n = kept.len() * row_len;
+    let t_len = if t_per_row { kept.len() } else { n };
+    let (mut m, mut v, mut t) = (vec![0u8; n * 4], vec![0u8; n * 4], vec![0u8; t_len * 4]);
+    let rows_per = IO_CHUNK.div_ceil(row_len.max(1)).max(1);
+    let bytes = rows_per * row_len * 4;
+    let t_bytes = if t_per_row { rows_per * 4 } else { bytes };
+    m.par_chunks_mut(bytes)
+        .zip(v.par_chunks_mut(bytes))
+        .zip(t.par_chunks_mut(t_bytes))
+        .zip(kept.par_chunks(rows_per))
+        .for_each(|(((m, v), t), rows)| {
+            for (k, &r) in rows.iter().enumerate() {
+                let src = &st[r as usize * row_len..(r as usize + 1) * row_len];
+                if t_per_row {
+                    t[k * 4..k * 4 + 4].copy_from_slice(&src[0].t.to_le_bytes());
+                }
+                for (j, s) in src.iter().enumerate() {
+                    let i = k * row_len + j;
+                    let b = i * 4..i * 4 + 4;
+                    m[b.clone()].copy_from_slice(&s.m.to_le_bytes());
+                    v[b.clone()].copy_from_slice(&s.v.to_le_bytes());
+                    if !t_per_row {
+                        t[b].copy_from_slice(&s.t.to_le_bytes());
+                    }
+                }
+            }
+        });
+    [m, v, t]
+}
+
 /// The little-endian bytes of `m`, `v` and `t` of `st`, in parallel chunks.
 fn moments_bytes(st: &[Moments]) -> [Vec<u8>; 3] {
     let mut out = [0; 3].map(|_| vec![0u8; st.len() * 4]);
@@ -873,23 +955,37 @@ impl AdamState {
     pub fn load<S: AsRef<str>>(f: &TensorFile, params: &[(S, Vec<usize>)]) -> Result<AdamState> {
         let mut st = AdamState::new(params);
         for s in st.slots.clone() {
-            // Rows kept by `save_compact` (absent: every row).
-            let rows = match f.tensors.get(&format!("adam.rows.{}", s.name)) {
-                None => None,
-                Some(_) => Some(kept_rows(f, &s)?),
+            // Rows kept by `save_compact` (absent: every row): its row mask, or the row list
+            // of earlier checkpoints.
+            let rows = if f.tensors.contains_key(&format!("adam.mask.{}", s.name)) {
+                Some(mask_rows(f, &s)?)
+            } else if f.tensors.contains_key(&format!("adam.rows.{}", s.name)) {
+                Some(kept_rows(f, &s)?)
+            } else {
+                None
             };
             let mut shape = s.shape.clone();
             if let Some(r) = &rows {
                 shape[0] = r.len();
             }
-            let get = |kind: &str, dtype| {
-                f.get_checked(&format!("adam.{kind}.{}", s.name), dtype, &shape)
+            let get = |kind: &str, dtype, shape: &[usize]| {
+                f.get_checked(&format!("adam.{kind}.{}", s.name), dtype, shape)
                     .map(|t| &t.data[..])
             };
+            // A compact slot's step counts may be one per row (`[k]`).
+            let t_per_row = rows.is_some()
+                && shape.len() > 1
+                && f.tensors
+                    .get(&format!("adam.t.{}", s.name))
+                    .is_some_and(|t| t.shape == shape[..1]);
             let (m, v, t) = (
-                get("m", DType::F32)?,
-                get("v", DType::F32)?,
-                get("t", DType::U32)?,
+                get("m", DType::F32, &shape)?,
+                get("v", DType::F32, &shape)?,
+                get(
+                    "t",
+                    DType::U32,
+                    if t_per_row { &shape[..1] } else { &shape },
+                )?,
             );
             if let Some(rows) = rows {
                 let row_len = s.len() / s.shape[0];
@@ -902,8 +998,39 @@ impl AdamState {
                         out[r as usize * row_len + j] = Moments {
                             m: f32::from_le_bytes(word(m, i)),
                             v: f32::from_le_bytes(word(v, i)),
-                            t: u32::from_le_bytes(word(t, i)),
+                            t: u32::from_le_bytes(word(t, if t_per_row { k } else { i })),
                         };
+                    }
+                }
+                let name = format!("adam.t_exceptions.{}", s.name);
+                if f.tensors.contains_key(&name) {
+                    let label = f
+                        .source
+                        .as_ref()
+                        .map_or("<checkpoint>".into(), |p| p.display().to_string());
+                    let x = f.get(&name)?;
+                    if !t_per_row || x.dtype != DType::U32 || x.shape.len() != 2 || x.shape[1] != 3
+                    {
+                        bail!(
+                            "{label}: tensor {name} is {} {:?}, expected U32 [e, 3] beside a step count per row (adam.t.{} of shape [{}])",
+                            x.dtype,
+                            x.shape,
+                            s.name,
+                            rows.len()
+                        );
+                    }
+                    let x = f.get_u32(&name)?;
+                    let mut last = None;
+                    for e in x.chunks_exact(3) {
+                        let (k, j, t) = (e[0] as usize, e[1] as usize, e[2]);
+                        if k >= rows.len() || j >= row_len || last.is_some_and(|l| l >= (k, j)) {
+                            bail!(
+                                "{label}: tensor {name}: entry ({k}, {j}) not ascending or beyond the {} kept rows of {row_len} scalars",
+                                rows.len()
+                            );
+                        }
+                        last = Some((k, j));
+                        out[rows[k] as usize * row_len + j].t = t;
                     }
                 }
                 continue;
@@ -928,7 +1055,42 @@ impl AdamState {
     }
 }
 
-/// The `adam.rows.<name>` of a compact slot, checked: ascending, distinct, within the slot's rows.
+/// The rows of a compact slot from its `adam.mask.<name>`, checked: U8 `[ceil(rows / 8)]`, no bit
+/// set past the slot's rows.
+fn mask_rows(f: &TensorFile, s: &ParamSlot) -> Result<Vec<u32>> {
+    let name = format!("adam.mask.{}", s.name);
+    let t = f.get(&name)?;
+    let label = f
+        .source
+        .as_ref()
+        .map_or("<checkpoint>".into(), |p| p.display().to_string());
+    let n = s.shape.first().copied().unwrap_or(0);
+    if t.dtype != DType::U8 || t.shape != [n.div_ceil(8)] || s.shape.is_empty() {
+        bail!(
+            "{label}: tensor {name} is {} {:?}, expected U8 [{}] (a bit per row of a parameter of shape {:?})",
+            t.dtype,
+            t.shape,
+            n.div_ceil(8),
+            s.shape
+        );
+    }
+    let mut rows = Vec::new();
+    for (i, &b) in t.data.iter().enumerate() {
+        for bit in 0..8 {
+            if b >> bit & 1 == 1 {
+                let r = i * 8 + bit;
+                if r >= n {
+                    bail!("{label}: tensor {name}: row {r} beyond the parameter's {n} rows");
+                }
+                rows.push(r as u32);
+            }
+        }
+    }
+    Ok(rows)
+}
+
+/// The `adam.rows.<name>` of a compact slot (checkpoints before `adam.mask`), checked:
+/// ascending, distinct, within the slot's rows.
 fn kept_rows(f: &TensorFile, s: &ParamSlot) -> Result<Vec<u32>> {
     let name = format!("adam.rows.{}", s.name);
     let t = f.get(&name)?;
@@ -996,12 +1158,70 @@ mod tests {
         }
         let mut f = TensorFile::default();
         st.save_compact(&mut f).unwrap();
-        assert_eq!(f.get_u32("adam.rows.a").unwrap(), vec![1, 3]);
+        assert_eq!(f.get("adam.mask.a").unwrap().data, vec![0b1010]);
         assert_eq!(f.get("adam.m.a").unwrap().shape, vec![2, 2]);
-        assert!(!f.tensors.contains_key("adam.rows.b"));
+        // One count per row (its first scalar's); the second scalars of rows 1 and 3 (counts 3
+        // and 7) are the exceptions.
+        assert_eq!(f.get_u32("adam.t.a").unwrap(), vec![2, 0]);
+        assert_eq!(
+            f.get_u32("adam.t_exceptions.a").unwrap(),
+            vec![0, 1, 3, 1, 1, 7]
+        );
+        assert!(!f.tensors.contains_key("adam.mask.b"));
         assert_eq!(AdamState::load(&f, &specs).unwrap().state, st.state);
-        for (rows, want) in [(vec![3u32, 1], "not ascending"), (vec![1, 5], "beyond")] {
+        // Rows whose scalars share a count: one count per row, read back the same.
+        let mut even = st.clone();
+        for i in [2, 3, 6, 7] {
+            even.state[i] = Moments {
+                m: 1.0,
+                v: 0.5,
+                t: 7,
+            };
+        }
+        let mut g = TensorFile::default();
+        even.save_compact(&mut g).unwrap();
+        assert_eq!(g.get_u32("adam.t.a").unwrap(), vec![7, 7]);
+        assert!(!g.tensors.contains_key("adam.t_exceptions.a"));
+        assert_eq!(AdamState::load(&g, &specs).unwrap().state, even.state);
+        // A bad exception list is an error naming it.
+        for (x, want) in [
+            (vec![1u32, 0, 5, 0, 0, 5], "not ascending"),
+            (vec![2, 0, 5], "beyond"),
+        ] {
+            let mut h = f.clone();
+            let n = x.len() / 3;
+            let b: Vec<u8> = x.iter().flat_map(|v| v.to_le_bytes()).collect();
+            h.insert(
+                "adam.t_exceptions.a",
+                Tensor::from_bytes(DType::U32, vec![n, 3], b).unwrap(),
+            );
+            let e = format!("{:#}", AdamState::load(&h, &specs).unwrap_err());
+            assert!(e.contains("adam.t_exceptions.a") && e.contains(want), "{e}");
+        }
+        for (mask, want) in [
+            (vec![0u8, 0], "expected U8 [1]"),
+            (vec![0b10_0010], "beyond"),
+        ] {
             let mut g = f.clone();
+            let len = mask.len();
+            g.insert(
+                "adam.mask.a",
+                Tensor::from_bytes(DType::U8, vec![len], mask).unwrap(),
+            );
+            let e = format!("{:#}", AdamState::load(&g, &specs).unwrap_err());
+            assert!(e.contains("adam.mask.a") && e.contains(want), "{e}");
+        }
+        // The row lists of earlier checkpoints (`adam.rows`) still load.
+        let mut old = f.clone();
+        old.tensors.remove("adam.mask.a");
+        let b: Vec<u8> = [1u32, 3].iter().flat_map(|r| r.to_le_bytes()).collect();
+        old.insert(
+            "adam.rows.a",
+            Tensor::from_bytes(DType::U32, vec![2], b).unwrap(),
+        );
+        assert_eq!(AdamState::load(&old, &specs).unwrap().state, st.state);
+        for (rows, want) in [(vec![3u32, 1], "not ascending"), (vec![1, 5], "beyond")] {
+            let mut g = old.clone();
             let b: Vec<u8> = rows.iter().flat_map(|r| r.to_le_bytes()).collect();
             g.insert(
                 "adam.rows.a",

@@ -514,17 +514,31 @@ impl TensorFile {
     /// A tensor by name, checked to have exactly this dtype and shape.
     pub fn get_checked(&self, name: &str, dtype: DType, shape: &[usize]) -> Result<&Tensor> {
         let t = self.get(name)?;
-        if t.dtype != dtype || t.shape != shape {
+        self.check_type(name, (t.dtype, &t.shape), dtype, shape)?;
+        Ok(t)
+    }
+
+    /// Error (naming this file and tensor `name`) unless `found` (dtype, shape) is `dtype` of
+    /// `shape`: [`TensorFile::get_checked`]'s check, also for a tensor left in the mapped file
+    /// ([`RawTensor`]).
+    pub(crate) fn check_type(
+        &self,
+        name: &str,
+        found: (DType, &[usize]),
+        dtype: DType,
+        shape: &[usize],
+    ) -> Result<()> {
+        if found.0 != dtype || found.1 != shape {
             bail!(
                 "{}: tensor {name} is {} {:?}, expected {} {:?}",
                 self.label(),
-                t.dtype,
-                t.shape,
+                found.0,
+                found.1,
                 dtype,
                 shape
             );
         }
-        Ok(t)
+        Ok(())
     }
 
     /// `get(name)?.to_f32()` with the file and tensor named in errors.

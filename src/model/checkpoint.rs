@@ -139,15 +139,7 @@ fn layout_from(
         let name = format!("{prefix}{}", t.name);
         let data: &[u8] = match raw.get(&name) {
             Some(r) => {
-                ensure!(
-                    r.dtype == DType::F32 && r.shape == t.shape,
-                    "{}: tensor {name} is {} {:?}, expected {} {:?}",
-                    file.label(),
-                    r.dtype,
-                    r.shape,
-                    DType::F32,
-                    t.shape
-                );
+                file.check_type(&name, (r.dtype, &r.shape), DType::F32, &t.shape)?;
                 r.data
             }
             None => &file.get_checked(&name, DType::F32, &t.shape)?.data,

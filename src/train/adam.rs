@@ -771,7 +771,7 @@ impl AdamState {
     /// each with the parameter's shape.
     pub fn save(&self, f: &mut TensorFile) -> Result<()> {
         for s in &self.slots {
-            insert_state(f, &s.name, &s.shape, self.state_bytes(s.range()))?;
+            insert_state(f, &s.name, &s.shape, &s.shape, self.state_bytes(s.range()))?;
         }
         Ok(())
     }
@@ -805,7 +805,7 @@ impl AdamState {
             };
             if s.shape.is_empty() || kept.len() == rows {
                 let [m, v, t] = self.state_bytes(s.range());
-                insert_state(f, &s.name, &s.shape, [m, v, t])?;
+                insert_state(f, &s.name, &s.shape, &s.shape, [m, v, t])?;
                 continue;
             }
             let row = |r: u32| &st[r as usize * row_len..(r as usize + 1) * row_len];
@@ -838,22 +838,13 @@ impl AdamState {
             }
             let mut shape = s.shape.clone();
             shape[0] = kept.len();
-            let [m, v, t] = kept_moments_bytes(st, &kept, row_len, t_per_row);
             let t_shape = if t_per_row {
                 vec![kept.len()]
             } else {
                 shape.clone()
             };
-            for (kind, dtype, bytes, shape) in [
-                ("m", DType::F32, m, &shape),
-                ("v", DType::F32, v, &shape),
-                ("t", DType::U32, t, &t_shape),
-            ] {
-                f.insert(
-                    format!("adam.{kind}.{}", s.name),
-                    Tensor::from_bytes(dtype, shape.clone(), bytes)?,
-                );
-            }
+            let bytes = kept_moments_bytes(st, &kept, row_len, t_per_row);
+            insert_state(f, &s.name, &shape, &t_shape, bytes)?;
             let mut mask = vec![0u8; rows.div_ceil(8)];
             for &r in &kept {
                 mask[r as usize / 8] |= 1 << (r % 8);
@@ -873,13 +864,19 @@ impl AdamState {
     }
 }
 
-/// `adam.m.<name>`, `adam.v.<name>` (F32) and `adam.t.<name>` (U32) of `shape`.
-fn insert_state(f: &mut TensorFile, name: &str, shape: &[usize], b: [Vec<u8>; 3]) -> Result<()> {
+/// `adam.m.<name>`, `adam.v.<name>` (F32) of `shape` and `adam.t.<name>` (U32) of `t_shape`.
+fn insert_state(
+    f: &mut TensorFile,
+    name: &str,
+    shape: &[usize],
+    t_shape: &[usize],
+    b: [Vec<u8>; 3],
+) -> Result<()> {
     let [m, v, t] = b;
-    for (kind, dtype, bytes) in [
-        ("m", DType::F32, m),
-        ("v", DType::F32, v),
-        ("t", DType::U32, t),
+    for (kind, dtype, bytes, shape) in [
+        ("m", DType::F32, m, shape),
+        ("v", DType::F32, v, shape),
+        ("t", DType::U32, t, t_shape),
     ] {
         f.insert(
             format!("adam.{kind}.{name}"),

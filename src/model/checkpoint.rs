@@ -131,42 +131,44 @@ fn layout_from(
     layout: &ParamLayout,
     prefix: &str,
 ) -> Result<Vec<f32>> {
-    // Tables stored by their stepped rows only (`Checkpoint::to_tensor_file_stepped`): rebuilt
-    // whole first (the initial values from the seed, the stored rows over them).
-    let mut rebuilt: BTreeMap<String, Vec<u8>> = BTreeMap::new();
+    // Tables stored by their stepped rows (`Checkpoint::to_tensor_file_stepped`), checked first
+    // and completed as the buffer is written (no whole copy of the table in between).
+    let mut stepped: BTreeMap<String, SteppedTable> = BTreeMap::new();
     for t in &layout.tensors {
         let name = format!("{prefix}{}", t.name);
         if !raw.contains_key(&name)
             && !file.tensors.contains_key(&name)
             && file.tensors.contains_key(&format!("{name}.mask"))
         {
-            let table = stepped_table_from(file, &name, &t.shape)?;
-            rebuilt.insert(name, crate::io::tensors::le_bytes(&table));
+            let s = SteppedTable::from_file(file, &name, &t.shape)?;
+            stepped.insert(name, s);
         }
     }
     // Every tensor checked first, then the buffer written once, in parallel pieces on huge
     // pages (a zero fill followed by a copy on one thread was a third of `render`'s load).
-    let mut parts: Vec<(usize, &[u8])> = Vec::with_capacity(layout.tensors.len());
+    let mut parts: Vec<(usize, usize, Source)> = Vec::with_capacity(layout.tensors.len());
     let mut at = 0;
     for t in &layout.tensors {
         let name = format!("{prefix}{}", t.name);
-        let data: &[u8] = match (raw.get(&name), rebuilt.get(&name)) {
+        let (len, data) = match (raw.get(&name), stepped.get(&name)) {
             (Some(r), _) => {
                 file.check_type(&name, (r.dtype, &r.shape), DType::F32, &t.shape)?;
-                r.data
+                (r.data.len() / 4, Source::Bytes(r.data))
             }
-            (None, Some(b)) => b,
-            (None, None) => &file.get_checked(&name, DType::F32, &t.shape)?.data,
+            (None, Some(s)) => (t.len, Source::Stepped(s)),
+            (None, None) => {
+                let d = &file.get_checked(&name, DType::F32, &t.shape)?.data;
+                (d.len() / 4, Source::Bytes(d))
+            }
         };
         ensure!(
-            t.offset == at && data.len() == t.len * 4,
-            "{}: tensor {name}: {} bytes at element {}, the layout has {} elements at {at}",
+            t.offset == at && len == t.len,
+            "{}: tensor {name}: {len} elements at element {}, the layout has {} elements at {at}",
             file.label(),
-            data.len(),
             t.offset,
             t.len
         );
-        parts.push((t.offset, data));
+        parts.push((t.offset, len, data));
         at += t.len;
     }
     ensure!(
@@ -176,22 +178,33 @@ fn layout_from(
     );
     Ok(crate::memhint::built(layout.total, |at, piece| {
         // The first tensor ending after `at`, then on until the piece is written.
-        let mut k = parts.partition_point(|&(o, d)| o + d.len() / 4 <= at);
+        let mut k = parts.partition_point(|&(o, len, _)| o + len <= at);
         let mut i = 0;
         while i < piece.len() {
-            let (o, d) = parts[k];
+            let (o, len, ref src) = parts[k];
             let from = at + i - o;
-            let n = (d.len() / 4 - from).min(piece.len() - i);
-            for (x, c) in piece[i..i + n]
-                .iter_mut()
-                .zip(d[from * 4..].chunks_exact(4))
-            {
-                x.write(f32::from_le_bytes(c.try_into().unwrap()));
+            let n = (len - from).min(piece.len() - i);
+            let out = &mut piece[i..i + n];
+            match src {
+                Source::Bytes(d) => {
+                    for (x, c) in out.iter_mut().zip(d[from * 4..].chunks_exact(4)) {
+                        x.write(f32::from_le_bytes(c.try_into().unwrap()));
+                    }
+                }
+                Source::Stepped(s) => s.fill(from, out),
             }
             i += n;
             k += 1;
         }
     }))
+}
+
+/// Where a parameter tensor's values come from when the buffer is written.
+enum Source<'a> {
+    /// Little-endian f32 bytes (a mapped or read tensor).
+    Bytes(&'a [u8]),
+    /// A table stored by its stepped rows.
+    Stepped(&'a SteppedTable<'a>),
 }
 
 /// The feature tables a model file may store by their stepped rows only, with the tensor id
@@ -207,48 +220,82 @@ const STEPPED_TABLES: [(&str, u64); 2] = [
 const STEPPED_BELOW: f64 = 0.5;
 
 /// A table stored by its stepped rows (`<name>.mask` U8 `[ceil(rows/8)]`, `<name>.kept` F32
-/// `[k, …]`, header `init_seed`), rebuilt whole: every row its initial value
-/// (`init_uniform_table` of the seed and the table's tensor id), the kept rows over them.
-/// Errors name the file, the tensor and what was expected.
-fn stepped_table_from(file: &TensorFile, name: &str, shape: &[usize]) -> Result<Vec<f32>> {
-    let label = file.label();
-    let Some(&(_, id)) = STEPPED_TABLES.iter().find(|(n, _)| *n == name) else {
-        bail!("{label}: tensor {name}: only grid_h.table and grid_d.table may be stored by their stepped rows ({name}.mask)");
-    };
-    let rows = shape[0];
-    let row_len: usize = shape[1..].iter().product();
-    let mask_name = format!("{name}.mask");
-    let mask = file.get_checked(&mask_name, DType::U8, &[rows.div_ceil(8)])?;
-    let mut kept = Vec::new();
-    for (i, &b) in mask.data.iter().enumerate() {
-        for bit in 0..8 {
-            if b >> bit & 1 == 1 {
-                let r = i * 8 + bit;
-                ensure!(
-                    r < rows,
-                    "{label}: tensor {mask_name}: bit of row {r} set, beyond the table's {rows} rows"
-                );
-                kept.push(r);
-            }
+/// `[k, …]`, header `init_seed`), checked: a row not kept is its initial value
+/// (`hashgrid::init_value` of the seed, the table's tensor id and the flat element index), a
+/// kept row the stored one.
+struct SteppedTable<'a> {
+    seed: u64,
+    id: u64,
+    row_len: usize,
+    mask: &'a [u8],
+    /// Kept rows before byte i of the mask.
+    rank: Vec<u32>,
+    /// The kept rows' little-endian f32 bytes.
+    kept: &'a [u8],
+}
+
+impl<'a> SteppedTable<'a> {
+    /// Errors name the file, the tensor and what was expected.
+    fn from_file(file: &'a TensorFile, name: &str, shape: &[usize]) -> Result<Self> {
+        let label = file.label();
+        let Some(&(_, id)) = STEPPED_TABLES.iter().find(|(n, _)| *n == name) else {
+            bail!("{label}: tensor {name}: only grid_h.table and grid_d.table may be stored by their stepped rows ({name}.mask)");
+        };
+        let rows = shape[0];
+        let row_len: usize = shape[1..].iter().product();
+        let mask_name = format!("{name}.mask");
+        let mask = &file
+            .get_checked(&mask_name, DType::U8, &[rows.div_ceil(8)])?
+            .data;
+        let mut rank = Vec::with_capacity(mask.len());
+        let mut n = 0u32;
+        for &b in mask.iter() {
+            rank.push(n);
+            n += b.count_ones();
+        }
+        if let Some(&last) = mask.last().filter(|_| rows % 8 != 0) {
+            ensure!(
+                last >> (rows % 8) == 0,
+                "{label}: tensor {mask_name}: a bit set beyond the table's {rows} rows"
+            );
+        }
+        let mut kept_shape = shape.to_vec();
+        kept_shape[0] = n as usize;
+        let kept_name = format!("{name}.kept");
+        let kept = &file
+            .get_checked(&kept_name, DType::F32, &kept_shape)
+            .with_context(|| {
+                format!("{label}: {kept_name} holds one row per bit set in {mask_name}")
+            })?
+            .data;
+        let seed: u64 = file.meta("init_seed")?.parse().with_context(|| {
+            format!("{label}: header metadata \"init_seed\" (the seed {name}'s rows left out are drawn from) is not an integer")
+        })?;
+        Ok(SteppedTable {
+            seed,
+            id,
+            row_len,
+            mask,
+            rank,
+            kept,
+        })
+    }
+
+    /// Elements `from..from + out.len()` of the whole table.
+    fn fill(&self, from: usize, out: &mut [std::mem::MaybeUninit<f32>]) {
+        for (j, x) in (from..).zip(out.iter_mut()) {
+            let (r, c) = (j / self.row_len, j % self.row_len);
+            let byte = self.mask[r / 8];
+            let v = if byte >> (r % 8) & 1 == 1 {
+                let below = (byte & ((1u8 << (r % 8)) - 1)).count_ones() as usize;
+                let b = ((self.rank[r / 8] as usize + below) * self.row_len + c) * 4;
+                f32::from_le_bytes(self.kept[b..b + 4].try_into().unwrap())
+            } else {
+                crate::model::hashgrid::init_value(self.seed, self.id, j as u64)
+            };
+            x.write(v);
         }
     }
-    let mut kept_shape = shape.to_vec();
-    kept_shape[0] = kept.len();
-    let kept_name = format!("{name}.kept");
-    let values = file
-        .get_checked(&kept_name, DType::F32, &kept_shape)
-        .with_context(|| format!("{label}: {kept_name} holds one row per bit set in {mask_name}"))?
-        .to_f32()?;
-    let seed: u64 = file
-        .meta("init_seed")?
-        .parse()
-        .with_context(|| format!("{label}: header metadata \"init_seed\" (the seed {name}'s rows left out are drawn from) is not an integer"))?;
-    let mut table = crate::model::hashgrid::init_uniform_table(rows * row_len, seed, id);
-    for (k, &r) in kept.iter().enumerate() {
-        table[r * row_len..(r + 1) * row_len]
-            .copy_from_slice(&values[k * row_len..(k + 1) * row_len]);
-    }
-    Ok(table)
 }
 
 /// A tensor in the dtype of `R` (F64 or F32).

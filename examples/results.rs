@@ -142,7 +142,7 @@ const SECTIONS: &[Spec] = &[
     Spec {
         name: "sizing",
         title: "Table sizes from the scene: parameters, checkpoints, quality, step time",
-        measures: "The `cpu` preset's hash-table sizes chosen from the surface cells the training rays reach (`[model.grid_h] log2_table_size = \"auto\"`, the default: each level 4 entries per reached cell, 2^12..2^19, dense iff its dense grid fits that size, grid D never above its configured 2^17; the checkpoint leaves out the Adam state of entries no ray reached) against fixed tables of 2^19 entries per level (`--config` with `[model.grid_h] log2_table_size = 19`, the preset before). `tiny`, `small`, `cross` and `large` (`synth --preset NAME --seed 1`): parameters of the model `xscale init` builds; each but `large` trained with the default budget (training seeds `XSCALE_SIZING_SEEDS`, default 0,1,2; `large` only with `XSCALE_SIZING_LARGE_SEEDS`): checkpoint bytes and what fills them, held-out masked PSNR (close-ups and aerial views apart), wall time of the `train` command, the two configurations alternating seed by seed. Then `cargo bench --bench sizing`: milliseconds per training step on `small` and `cross`, 2 threads, 4,096- and 16,384-pixel batches, the two models alternating in rounds (best round).",
+        measures: "The `cpu` preset's hash-table sizes chosen from the surface cells the training rays reach (`[model.grid_h] log2_table_size = \"auto\"`, the default: each level 4 entries per reached cell, 2^12..2^19, dense iff its dense grid fits that size, grid D never above its configured 2^17; the optimizer state, in its own file, leaves out the Adam state of entries no ray reached, and the checkpoint (the model) a table's rows no ray reached where they are most of it) against fixed tables of 2^19 entries per level (`--config` with `[model.grid_h] log2_table_size = 19`, the preset before). `tiny`, `small`, `cross` and `large` (`synth --preset NAME --seed 1`): parameters of the model `xscale init` builds; each but `large` trained with the default budget (training seeds `XSCALE_SIZING_SEEDS`, default 0,1,2; `large` only with `XSCALE_SIZING_LARGE_SEEDS`): checkpoint and optimizer-state bytes and what fills them, held-out masked PSNR (close-ups and aerial views apart), wall time of the `train` command, the two configurations alternating seed by seed. Then `cargo bench --bench sizing`: milliseconds per training step on `small` and `cross`, 2 threads, 4,096- and 16,384-pixel batches, the two models alternating in rounds (best round).",
         cost: "about 10 minutes per seed (tiny, small, cross; 20 with load), plus the bench",
         run: sizing,
     },
@@ -1264,32 +1264,42 @@ fn ckpt_params(path: &Path) -> Result<usize> {
         .total)
 }
 
-/// Bytes of a checkpoint's tensors by part, from its safetensors header: grid H, grid D, the
-/// MLPs and appearance codes, and the Adam state (`adam.*`, its row masks included).
+/// Bytes of a run's tensors by part, from the safetensors headers of its model file and, beside
+/// it, its optimizer state (`optimizer.safetensors`, if any): grid H, grid D (each whole, or its
+/// stepped rows and row mask), the MLPs and appearance codes, and the Adam state (`adam.*`, its
+/// row masks included).
 fn ckpt_parts(path: &Path) -> Result<[u64; 4]> {
     use std::io::Read;
-    let mut f = std::fs::File::open(path).with_context(|| format!("{}", path.display()))?;
-    let mut n = [0u8; 8];
-    f.read_exact(&mut n)?;
-    let mut head = vec![0u8; u64::from_le_bytes(n) as usize];
-    f.read_exact(&mut head)?;
-    let h: Value = serde_json::from_slice(&head)?;
     let mut parts = [0u64; 4];
-    for (name, t) in h.as_object().into_iter().flatten() {
-        let Some(o) = t["data_offsets"].as_array() else {
-            continue; // __metadata__
-        };
-        let bytes = o[1].as_u64().unwrap_or(0) - o[0].as_u64().unwrap_or(0);
-        let i = if name.starts_with("adam.") {
-            3
-        } else if name == "grid_h.table" {
-            0
-        } else if name == "grid_d.table" {
-            1
-        } else {
-            2
-        };
-        parts[i] += bytes;
+    for path in [
+        path.to_path_buf(),
+        xscale::train::state::optimizer_path(path),
+    ] {
+        if !path.is_file() {
+            continue;
+        }
+        let mut f = std::fs::File::open(&path).with_context(|| format!("{}", path.display()))?;
+        let mut n = [0u8; 8];
+        f.read_exact(&mut n)?;
+        let mut head = vec![0u8; u64::from_le_bytes(n) as usize];
+        f.read_exact(&mut head)?;
+        let h: Value = serde_json::from_slice(&head)?;
+        for (name, t) in h.as_object().into_iter().flatten() {
+            let Some(o) = t["data_offsets"].as_array() else {
+                continue; // __metadata__
+            };
+            let bytes = o[1].as_u64().unwrap_or(0) - o[0].as_u64().unwrap_or(0);
+            let i = if name.starts_with("adam.") {
+                3
+            } else if name.starts_with("grid_h.table") {
+                0
+            } else if name.starts_with("grid_d.table") {
+                1
+            } else {
+                2
+            };
+            parts[i] += bytes;
+        }
     }
     Ok(parts)
 }
@@ -1380,6 +1390,8 @@ fn sizing(c: &Ctx) -> Result<Section> {
                 let e = read_json(&run.join("eval.json"))?;
                 let ckpt = run.join("checkpoint.safetensors");
                 let bytes = std::fs::metadata(&ckpt)?.len();
+                let opt_bytes = std::fs::metadata(xscale::train::state::optimizer_path(&ckpt))
+                    .map_or(0, |m| m.len());
                 let (psnr, _, _, near, far) = scores(&e);
                 let f = |v: &Value| v.as_f64().unwrap_or(f64::NAN);
                 let m = &mut means[n - 2 + i];
@@ -1392,6 +1404,7 @@ fn sizing(c: &Ctx) -> Result<Section> {
                     let mut row = vec![json!(preset), json!(tag_name(tag))];
                     row.extend(p.iter().map(|&b| json!(b as f64 / 1e6)));
                     row.push(json!(bytes as f64 / 1e6));
+                    row.push(json!(opt_bytes as f64 / 1e6));
                     part_rows.push(row);
                 }
                 run_rows.push(vec![
@@ -1400,6 +1413,7 @@ fn sizing(c: &Ctx) -> Result<Section> {
                     json!(seed),
                     e["step"].clone(),
                     json!(bytes as f64 / 1e6),
+                    json!(opt_bytes as f64 / 1e6),
                     psnr,
                     near,
                     far,
@@ -1438,13 +1452,14 @@ fn sizing(c: &Ctx) -> Result<Section> {
             "seed",
             "steps",
             "checkpoint (MB)",
+            "optimizer state (MB)",
             "masked PSNR (dB)",
             "close-ups (dB)",
             "aerial (dB)",
             "wall (s)",
             "peak memory (MB)",
         ],
-        &[0, 0, 0, 0, 1, 2, 2, 2, 0, 0],
+        &[0, 0, 0, 0, 1, 1, 2, 2, 2, 0, 0],
         run_rows,
     ));
     s.tables.push(table(
@@ -1470,9 +1485,10 @@ fn sizing(c: &Ctx) -> Result<Section> {
             "grid D",
             "MLPs and codes",
             "Adam state",
-            "file",
+            "checkpoint file",
+            "optimizer file",
         ],
-        &[0, 0, 2, 2, 3, 2, 2],
+        &[0, 0, 2, 2, 3, 2, 2, 2],
         part_rows,
     ));
     s.notes.push("Close-ups and aerial views: the held-out views below and above the near/far split of `eval.json` (`by_scale.near_far`); on `tiny` and `small` the split is by footprint too. `large` is trained only with `XSCALE_SIZING_LARGE_SEEDS` set (its parameters are always counted).".into());

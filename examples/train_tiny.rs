@@ -84,7 +84,8 @@ fn main() -> Result<()> {
     let scene = args.get(1).map_or("fixtures/tiny", |s| s.as_str());
     let steps = args.get(2).map_or(Ok(300), |s| s.parse())?;
     let out = run(Path::new(scene), steps, true)?;
-    // 6. A checkpoint like `xscale train`'s (config, parameters, Adam state, step).
+    // 6. A checkpoint like `xscale train`'s: the model (config, parameters, step) and, beside it
+    //    in `xscale-example-tiny.optimizer.safetensors`, the Adam state a resume needs.
     let path = std::env::temp_dir().join("xscale-example-tiny.safetensors");
     out.state.save(&path)?;
     eprintln!("checkpoint: {}", path.display());

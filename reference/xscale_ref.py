@@ -322,9 +322,72 @@ def _check_grid(ck_path, tensors, prefix, gcfg: GridConfig) -> list[Level]:
     return levels
 
 
+_MASK64 = (1 << 64) - 1
+
+
+def _fmix(z):
+    """SPEC §5.1: the SplitMix64 finaliser, on a Python int (masked to 64 bits) or a uint64 array."""
+    if isinstance(z, int):
+        z ^= z >> 30
+        z = (z * 0xBF58476D1CE4E5B9) & _MASK64
+        z ^= z >> 27
+        z = (z * 0x94D049BB133111EB) & _MASK64
+        return z ^ (z >> 31)
+    z = z ^ (z >> np.uint64(30))
+    z = z * np.uint64(0xBF58476D1CE4E5B9)
+    z = z ^ (z >> np.uint64(27))
+    z = z * np.uint64(0x94D049BB133111EB)
+    return z ^ (z >> np.uint64(31))
+
+
+def init_table(seed: int, tensor_id: int, n: int) -> np.ndarray:
+    """SPEC §4.2 / §5.1: the initial table, element e = f32(-1e-4 + 2e-4 * uniform_f64(seed, InitTable = 1,
+    tensor_id, e)), in f64 then rounded once."""
+    h = _fmix((seed ^ 0x9E3779B97F4A7C15) & _MASK64)
+    h = _fmix(h ^ ((1 * 0xBF58476D1CE4E5B9) & _MASK64))
+    h = _fmix(h ^ ((tensor_id * 0x94D049BB133111EB) & _MASK64))
+    e = np.arange(n, dtype=np.uint64)
+    bits = _fmix(np.uint64(h) ^ (e * np.uint64(0xD6E8FEB86659FD93)))
+    u = (bits >> np.uint64(11)).astype(np.float64) * (1.0 / (1 << 53))
+    return (-1e-4 + 2e-4 * u).astype(np.float32)
+
+
+def _expand_stepped_tables(path, tensors: dict, meta: dict) -> None:
+    """SPEC §6.2: a grid table stored by its stepped rows (`<name>.mask`, `<name>.kept`, header `init_seed`) is
+    rebuilt whole: every row its initial value from the seed, the kept rows over them."""
+    for name, tensor_id in (("grid_h.table", 0), ("grid_d.table", 1)):
+        mk, kn = name + ".mask", name + ".kept"
+        if name in tensors or mk not in tensors:
+            continue
+        grid = name.split(".")[0]
+        if kn not in tensors or grid + ".offsets" not in tensors:
+            raise RefError(f"{path}: {mk} without {kn} and {grid}.offsets")
+        if "init_seed" not in meta:
+            raise RefError(f"{path}: {name} is stored by its stepped rows ({mk}) but the header has no 'init_seed'")
+        try:
+            seed = int(meta["init_seed"])
+        except ValueError:
+            raise RefError(f"{path}: header 'init_seed' = {meta['init_seed']!r}, expected an integer") from None
+        rows = int(np.asarray(tensors[grid + ".offsets"])[-1])
+        mask, kept = tensors[mk], tensors[kn]
+        if mask.dtype != np.uint8 or mask.shape != ((rows + 7) // 8,):
+            raise RefError(f"{path}: {mk}: {mask.dtype} {list(mask.shape)}, expected uint8 [{(rows + 7) // 8}]")
+        idx = np.flatnonzero(np.unpackbits(mask, bitorder="little"))
+        if idx.size and idx[-1] >= rows:
+            raise RefError(f"{path}: {mk}: bit of row {idx[-1]} set, beyond the table's {rows} rows")
+        if kept.dtype != np.float32 or kept.ndim != 2 or kept.shape[0] != idx.size:
+            raise RefError(f"{path}: {kn}: {kept.dtype} {list(kept.shape)}, expected float32 [{idx.size}, F] "
+                           f"(one row per bit set in {mk})")
+        table = init_table(seed, tensor_id, rows * kept.shape[1]).reshape(rows, kept.shape[1])
+        table[idx] = kept
+        tensors[name] = table
+        del tensors[mk], tensors[kn]
+
+
 def load_checkpoint(path: str | Path, also: frozenset = frozenset()) -> Checkpoint:
     """`also`: as check_implemented's, for a caller that implements those parts itself."""
     tensors, meta = read_safetensors(path)
+    _expand_stepped_tables(path, tensors, meta)
     if "config" not in meta:
         raise RefError(f"{path}: header metadata has no 'config'")
     cfg = parse_config(meta["config"], f"{path}: config", also)

@@ -2,6 +2,7 @@
 //! and that training actually learns.
 
 use std::path::{Path, PathBuf};
+use xscale::io::tensors::TensorFile;
 use xscale::run::trainer::{train, TrainOptions};
 use xscale::train::config::RunConfig;
 use xscale::train::state::TrainState;
@@ -39,8 +40,11 @@ fn quiet(resume: bool, stop_at: Option<u64>) -> TrainOptions {
     }
 }
 
+/// The run's model file's bytes followed by its optimizer state's (`optimizer.safetensors`).
 fn checkpoint_bytes(run: &Path) -> Vec<u8> {
-    std::fs::read(run.join("checkpoint.safetensors")).unwrap()
+    let mut b = std::fs::read(run.join("checkpoint.safetensors")).unwrap();
+    b.extend(std::fs::read(run.join("optimizer.safetensors")).unwrap());
+    b
 }
 
 /// 200 steps straight, and 100 + resume + 100: byte-identical checkpoints, with 1 and 2 threads
@@ -57,7 +61,7 @@ fn resume_is_exact_and_thread_independent() {
 fn f64_arithmetic_resumes_exactly_and_differs_from_f32() {
     let mut c = cfg(200);
     c.train.arithmetic = xscale::train::config::Arithmetic::F64;
-    let f64_bytes = resume_exact(c, "f64");
+    let (f64_bytes, f64_state) = resume_exact(c, "f64");
     let f32_run = tmp("f32ref");
     in_pool(2, || {
         train(&fixture(), &f32_run, cfg(200), &quiet(false, None))
@@ -70,10 +74,7 @@ fn f64_arithmetic_resumes_exactly_and_differs_from_f32() {
     );
     let (a, b) = (
         TrainState::load(&f32_run.join("checkpoint.safetensors")).unwrap(),
-        TrainState::from_tensor_file(
-            &xscale::io::tensors::TensorFile::from_bytes(&f64_bytes, "f64 run").unwrap(),
-        )
-        .unwrap(),
+        f64_state,
     );
     let diff = a
         .ckpt
@@ -126,10 +127,10 @@ fn compact_adam_state_resumes_exactly() {
     c.train.batch_pixels = 512;
     c.train.eval_every = 50;
     c.train.checkpoint_every = 30;
-    let bytes = resume_exact(c, "auto");
-    let f = xscale::io::tensors::TensorFile::from_bytes(&bytes, "auto run").unwrap();
+    let (_, st) = resume_exact(c, "auto");
+    let (model, f) = st.to_tensor_files().unwrap();
     let mask = &f.get("adam.mask.grid_h.table").unwrap().data;
-    let entries = f.get("grid_h.table").unwrap().shape[0];
+    let entries = st.ckpt.model.layout.get("grid_h.table").unwrap().shape[0];
     assert_eq!(mask.len(), entries.div_ceil(8));
     let rows = mask.iter().map(|b| b.count_ones() as usize).sum::<usize>();
     assert!(rows > 0 && rows < entries, "{rows} of {entries} rows kept");
@@ -138,7 +139,11 @@ fn compact_adam_state_resumes_exactly() {
     assert_eq!(f.get("adam.t.grid_h.table").unwrap().shape, vec![rows]);
     // The MLPs step every scalar every step: written whole, without a row mask.
     assert!(!f.tensors.contains_key("adam.mask.shader.layers.0.weight"));
-    let st = TrainState::from_tensor_file(&f).unwrap();
+    // Fewer than half of grid H's rows stepped: the model file stores those rows only, with
+    // the same mask as the Adam state.
+    assert_eq!(&model.get("grid_h.table.mask").unwrap().data, mask);
+    assert!(!model.tensors.contains_key("grid_h.table"));
+    let st = TrainState::from_tensor_files(&model, &f).unwrap();
     let mut full = xscale::io::tensors::TensorFile::default();
     st.adam.save(&mut full).unwrap();
     let names: Vec<(String, Vec<usize>)> = st
@@ -160,8 +165,8 @@ fn compact_adam_state_resumes_exactly() {
 }
 
 /// Train `c` straight and interrupted + resumed, on 1 and 2 threads; all four checkpoints must
-/// be the same bytes. Returns them.
-fn resume_exact(c: RunConfig, tag: &str) -> Vec<u8> {
+/// be the same bytes (model file and optimizer state). Returns them and the state they hold.
+fn resume_exact(c: RunConfig, tag: &str) -> (Vec<u8>, TrainState) {
     let mut finals = Vec::new();
     for threads in [1, 2] {
         let straight = tmp(&format!("straight{tag}{threads}"));
@@ -190,15 +195,219 @@ fn resume_exact(c: RunConfig, tag: &str) -> Vec<u8> {
             a == b,
             "{tag}, {threads} threads: resumed checkpoint differs from the uninterrupted one"
         );
-        finals.push(a);
+        finals.push((
+            a,
+            TrainState::load(&straight.join("checkpoint.safetensors")).unwrap(),
+        ));
         let _ = std::fs::remove_dir_all(&straight);
         let _ = std::fs::remove_dir_all(&split);
     }
     assert!(
-        finals[0] == finals[1],
+        finals[0].0 == finals[1].0,
         "{tag}: 1 and 2 threads give different checkpoints"
     );
     finals.pop().unwrap()
+}
+
+/// A run of the `cpu` preset (tables from the scene) stepped by hand, `steps` steps.
+fn stepped_auto_run(steps: u64, seed: u64) -> TrainState {
+    use xscale::model::params::Grads;
+    let mut c = RunConfig::preset("cpu").unwrap();
+    c.train.budget = xscale::train::config::StepBudget::Fixed;
+    c.train.steps = steps;
+    c.train.batch_pixels = 512;
+    c.train.seed = seed;
+    let prepared = xscale::train::setup::prepare(&fixture(), &c, true, &mut |_| {}).unwrap();
+    let mut st = TrainState::init(c, &prepared, &mut |_| {}).unwrap();
+    let mut grads = Grads::new(&st.ckpt.model.layout);
+    grads.inputs = false;
+    while st.step < steps {
+        let b = xscale::train::sampler::sample_batch(
+            &prepared.samples,
+            &prepared.tracer,
+            seed,
+            st.step,
+            512,
+        );
+        st.step(&b, &mut grads).unwrap();
+    }
+    st
+}
+
+/// The model file of a run with tables from the scene stores a table most rows of which no ray
+/// reached by its stepped rows (`grid_h.table.mask`, `.kept`, header `init_seed`); loading
+/// draws the other rows again from the seed, and every parameter comes back bit for bit — the
+/// rows left out are exactly their initial values. The pair (model, optimizer state) loads to
+/// the very state trained; a file of another step or run, or a damaged one, is refused with an
+/// error naming the file and what was expected.
+#[test]
+fn stepped_tables_load_back_bit_identical() {
+    let st = stepped_auto_run(40, 3);
+    let (model, opt) = st.to_tensor_files().unwrap();
+    assert_eq!(model.meta("init_seed").unwrap(), "3");
+    let rows = st.ckpt.model.layout.get("grid_h.table").unwrap().shape[0];
+    let kept = model.get("grid_h.table.kept").unwrap().shape[0];
+    assert!(kept > 0 && kept * 2 < rows, "{kept} of {rows} rows");
+    assert!(!model.tensors.keys().any(|k| k.starts_with("adam.")));
+    assert!(opt.tensors.keys().all(|k| k.starts_with("adam.")));
+    let (mb, ob) = (model.to_bytes().unwrap(), opt.to_bytes().unwrap());
+    let named = |b: &[u8], name: &str| {
+        let mut f = TensorFile::from_bytes(b, name).unwrap();
+        f.source = Some(name.into());
+        f
+    };
+    let (model, opt) = (
+        named(&mb, "RUN/checkpoint.safetensors"),
+        named(&ob, "RUN/optimizer.safetensors"),
+    );
+    let back = TrainState::from_tensor_files(&model, &opt).unwrap();
+    let bits = |p: &[f32]| p.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+    assert!(bits(&back.ckpt.params) == bits(&st.ckpt.params));
+    assert_eq!(back.adam.state, st.adam.state);
+    assert_eq!(back.step, st.step);
+    // The model alone, as render and eval read it.
+    let m = xscale::model::checkpoint::Checkpoint::from_tensor_file(&model).unwrap();
+    assert!(bits(&m.params) == bits(&st.ckpt.params));
+    // Saved again: the same bytes.
+    let (m2, o2) = back.to_tensor_files().unwrap();
+    assert!(m2.to_bytes().unwrap() == mb && o2.to_bytes().unwrap() == ob);
+
+    // The optimizer state of another step (or run) is not this model's.
+    let later = stepped_auto_run(41, 3);
+    let (_, other) = later.to_tensor_files().unwrap();
+    let other = named(&other.to_bytes().unwrap(), "OTHER/optimizer.safetensors");
+    let e = format!(
+        "{:#}",
+        TrainState::from_tensor_files(&model, &other).err().unwrap()
+    );
+    assert!(
+        e.contains(
+            "OTHER/optimizer.safetensors is not the optimizer state of RUN/checkpoint.safetensors"
+        ) && e.contains("step 41")
+            && e.contains("step 40"),
+        "{e}"
+    );
+    // A model file with no optimizer state is not a resumable checkpoint on its own.
+    let e = format!("{:#}", TrainState::from_tensor_file(&model).err().unwrap());
+    assert!(e.contains("optimizer.safetensors"), "{e}");
+    // Damaged files: each error names the file and the tensor or key, and what was expected.
+    let damaged = |edit: &dyn Fn(&mut TensorFile), want: &[&str]| {
+        let mut f = model.clone();
+        edit(&mut f);
+        let e = format!(
+            "{:#}",
+            xscale::model::checkpoint::Checkpoint::from_tensor_file(&f)
+                .err()
+                .unwrap_or_else(|| panic!("loaded despite damage (expected {want:?})"))
+        );
+        for w in want {
+            assert!(e.contains(w), "{w:?} not in: {e}");
+        }
+    };
+    use xscale::io::tensors::{DType, Tensor};
+    damaged(
+        &|f| {
+            f.metadata.remove("init_seed");
+        },
+        &["RUN/checkpoint.safetensors", "init_seed"],
+    );
+    damaged(
+        &|f| f.set_meta("init_seed", "x"),
+        &["RUN/checkpoint.safetensors", "init_seed", "not an integer"],
+    );
+    damaged(
+        &|f| {
+            let mut m = f.get("grid_h.table.mask").unwrap().data.clone();
+            m.push(1); // a byte more than the table's rows need
+            let n = m.len();
+            f.insert(
+                "grid_h.table.mask",
+                Tensor::from_bytes(DType::U8, vec![n], m).unwrap(),
+            );
+        },
+        &[
+            "RUN/checkpoint.safetensors",
+            "grid_h.table.mask",
+            "expected U8",
+        ],
+    );
+    damaged(
+        &|f| {
+            let t = f.get("grid_h.table.kept").unwrap().clone();
+            let v = t.to_f32().unwrap();
+            f.insert(
+                "grid_h.table.kept",
+                Tensor::f32(vec![t.shape[0] - 1, 2], &v[2..]).unwrap(),
+            );
+        },
+        &[
+            "RUN/checkpoint.safetensors",
+            "grid_h.table.kept",
+            "expected F32",
+            "one row per bit",
+        ],
+    );
+    damaged(
+        &|f| {
+            f.tensors.remove("grid_h.table.kept");
+        },
+        &["missing tensor grid_h.table.kept"],
+    );
+}
+
+/// `TrainState::save` writes the pair; a save cut after the model's rename (the new optimizer
+/// state still in `optimizer.next.safetensors`) resumes from the new pair; a model file alone
+/// or beside another step's optimizer state is refused, naming both files.
+#[test]
+fn the_pair_is_committed_by_the_model_file() {
+    let dir = tmp("pair");
+    std::fs::create_dir_all(&dir).unwrap();
+    let ck = dir.join("checkpoint.safetensors");
+    let (a, b) = (stepped_auto_run(20, 0), stepped_auto_run(21, 0));
+    a.save(&ck).unwrap();
+    assert!(dir.join("optimizer.safetensors").is_file());
+    assert!(!dir.join("optimizer.next.safetensors").exists());
+    assert_eq!(TrainState::load(&ck).unwrap().step, 20);
+    // Cut between the renames: the model is step 21, its state in `.next`.
+    let (m, o) = b.to_tensor_files().unwrap();
+    o.write_atomic(dir.join("optimizer.next.safetensors"))
+        .unwrap();
+    m.write_atomic(&ck).unwrap();
+    let back = TrainState::load(&ck).unwrap();
+    assert_eq!((back.step, back.adam.state == b.adam.state), (21, true));
+    assert!(!dir.join("optimizer.next.safetensors").exists());
+    // Cut before the model's rename: the step-20 pair, a stale `.next` ignored.
+    a.save(&ck).unwrap();
+    o.write_atomic(dir.join("optimizer.next.safetensors"))
+        .unwrap();
+    assert_eq!(TrainState::load(&ck).unwrap().step, 20);
+    // A mismatched pair and a missing optimizer state.
+    std::fs::remove_file(dir.join("optimizer.next.safetensors")).unwrap();
+    o.write_atomic(dir.join("optimizer.safetensors")).unwrap();
+    let e = format!("{:#}", TrainState::load(&ck).err().unwrap());
+    assert!(
+        e.contains("optimizer.safetensors is not the optimizer state of")
+            && e.contains("checkpoint.safetensors"),
+        "{e}"
+    );
+    std::fs::remove_file(dir.join("optimizer.safetensors")).unwrap();
+    let e = format!("{:#}", TrainState::load(&ck).err().unwrap());
+    assert!(
+        e.contains("optimizer.safetensors") && e.contains("missing"),
+        "{e}"
+    );
+    // The layout before the split: one file with the whole tables and the Adam state (`adam.*`)
+    // still resumes, with no optimizer file beside it.
+    let mut one = a.ckpt.to_tensor_file().unwrap();
+    one.set_meta("step", "20");
+    one.set_meta("run_config", a.cfg.to_toml());
+    a.adam.save_compact(&mut one).unwrap();
+    one.write_atomic(&ck).unwrap();
+    let back = TrainState::load(&ck).unwrap();
+    assert_eq!(back.step, 20);
+    assert_eq!(back.adam.state, a.adam.state);
+    assert!(back.ckpt.params == a.ckpt.params);
+    let _ = std::fs::remove_dir_all(&dir);
 }
 
 /// Training lowers the loss and reaches a held-out PSNR well above the untrained model's.

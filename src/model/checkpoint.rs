@@ -131,28 +131,44 @@ fn layout_from(
     layout: &ParamLayout,
     prefix: &str,
 ) -> Result<Vec<f32>> {
+    // Tables stored by their stepped rows (`Checkpoint::to_tensor_file_stepped`), checked first
+    // and completed as the buffer is written (no whole copy of the table in between).
+    let mut stepped: BTreeMap<String, SteppedTable> = BTreeMap::new();
+    for t in &layout.tensors {
+        let name = format!("{prefix}{}", t.name);
+        if !raw.contains_key(&name)
+            && !file.tensors.contains_key(&name)
+            && file.tensors.contains_key(&format!("{name}.mask"))
+        {
+            let s = SteppedTable::from_file(file, &name, &t.shape)?;
+            stepped.insert(name, s);
+        }
+    }
     // Every tensor checked first, then the buffer written once, in parallel pieces on huge
     // pages (a zero fill followed by a copy on one thread was a third of `render`'s load).
-    let mut parts: Vec<(usize, &[u8])> = Vec::with_capacity(layout.tensors.len());
+    let mut parts: Vec<(usize, usize, Source)> = Vec::with_capacity(layout.tensors.len());
     let mut at = 0;
     for t in &layout.tensors {
         let name = format!("{prefix}{}", t.name);
-        let data: &[u8] = match raw.get(&name) {
-            Some(r) => {
+        let (len, data) = match (raw.get(&name), stepped.get(&name)) {
+            (Some(r), _) => {
                 file.check_type(&name, (r.dtype, &r.shape), DType::F32, &t.shape)?;
-                r.data
+                (r.data.len() / 4, Source::Bytes(r.data))
             }
-            None => &file.get_checked(&name, DType::F32, &t.shape)?.data,
+            (None, Some(s)) => (t.len, Source::Stepped(s)),
+            (None, None) => {
+                let d = &file.get_checked(&name, DType::F32, &t.shape)?.data;
+                (d.len() / 4, Source::Bytes(d))
+            }
         };
         ensure!(
-            t.offset == at && data.len() == t.len * 4,
-            "{}: tensor {name}: {} bytes at element {}, the layout has {} elements at {at}",
+            t.offset == at && len == t.len,
+            "{}: tensor {name}: {len} elements at element {}, the layout has {} elements at {at}",
             file.label(),
-            data.len(),
             t.offset,
             t.len
         );
-        parts.push((t.offset, data));
+        parts.push((t.offset, len, data));
         at += t.len;
     }
     ensure!(
@@ -162,22 +178,124 @@ fn layout_from(
     );
     Ok(crate::memhint::built(layout.total, |at, piece| {
         // The first tensor ending after `at`, then on until the piece is written.
-        let mut k = parts.partition_point(|&(o, d)| o + d.len() / 4 <= at);
+        let mut k = parts.partition_point(|&(o, len, _)| o + len <= at);
         let mut i = 0;
         while i < piece.len() {
-            let (o, d) = parts[k];
+            let (o, len, ref src) = parts[k];
             let from = at + i - o;
-            let n = (d.len() / 4 - from).min(piece.len() - i);
-            for (x, c) in piece[i..i + n]
-                .iter_mut()
-                .zip(d[from * 4..].chunks_exact(4))
-            {
-                x.write(f32::from_le_bytes(c.try_into().unwrap()));
+            let n = (len - from).min(piece.len() - i);
+            let out = &mut piece[i..i + n];
+            match src {
+                Source::Bytes(d) => {
+                    for (x, c) in out.iter_mut().zip(d[from * 4..].chunks_exact(4)) {
+                        x.write(f32::from_le_bytes(c.try_into().unwrap()));
+                    }
+                }
+                Source::Stepped(s) => s.fill(from, out),
             }
             i += n;
             k += 1;
         }
     }))
+}
+
+/// Where a parameter tensor's values come from when the buffer is written.
+enum Source<'a> {
+    /// Little-endian f32 bytes (a mapped or read tensor).
+    Bytes(&'a [u8]),
+    /// A table stored by its stepped rows.
+    Stepped(&'a SteppedTable<'a>),
+}
+
+/// The feature tables a model file may store by their stepped rows only, with the tensor id
+/// their initial values are drawn with (`Purpose::InitTable`, SPEC §5.1).
+const STEPPED_TABLES: [(&str, u64); 2] = [
+    ("grid_h.table", crate::model::hfm::TENSOR_ID_GRID_H),
+    ("grid_d.table", crate::model::hfm::TENSOR_ID_GRID_D),
+];
+
+/// A table is stored by its stepped rows when fewer than this fraction of its rows stepped
+/// (below it the rows left out save more than the mask costs, and a table most of whose rows
+/// stepped stays whole, readable straight from the mapped file).
+const STEPPED_BELOW: f64 = 0.5;
+
+/// A table stored by its stepped rows (`<name>.mask` U8 `[ceil(rows/8)]`, `<name>.kept` F32
+/// `[k, …]`, header `init_seed`), checked: a row not kept is its initial value
+/// (`hashgrid::init_value` of the seed, the table's tensor id and the flat element index), a
+/// kept row the stored one.
+struct SteppedTable<'a> {
+    seed: u64,
+    id: u64,
+    row_len: usize,
+    mask: &'a [u8],
+    /// Kept rows before byte i of the mask.
+    rank: Vec<u32>,
+    /// The kept rows' little-endian f32 bytes.
+    kept: &'a [u8],
+}
+
+impl<'a> SteppedTable<'a> {
+    /// Errors name the file, the tensor and what was expected.
+    fn from_file(file: &'a TensorFile, name: &str, shape: &[usize]) -> Result<Self> {
+        let label = file.label();
+        let Some(&(_, id)) = STEPPED_TABLES.iter().find(|(n, _)| *n == name) else {
+            bail!("{label}: tensor {name}: only grid_h.table and grid_d.table may be stored by their stepped rows ({name}.mask)");
+        };
+        let rows = shape[0];
+        let row_len: usize = shape[1..].iter().product();
+        let mask_name = format!("{name}.mask");
+        let mask = &file
+            .get_checked(&mask_name, DType::U8, &[rows.div_ceil(8)])?
+            .data;
+        let mut rank = Vec::with_capacity(mask.len());
+        let mut n = 0u32;
+        for &b in mask.iter() {
+            rank.push(n);
+            n += b.count_ones();
+        }
+        if let Some(&last) = mask.last().filter(|_| rows % 8 != 0) {
+            ensure!(
+                last >> (rows % 8) == 0,
+                "{label}: tensor {mask_name}: a bit set beyond the table's {rows} rows"
+            );
+        }
+        let mut kept_shape = shape.to_vec();
+        kept_shape[0] = n as usize;
+        let kept_name = format!("{name}.kept");
+        let kept = &file
+            .get_checked(&kept_name, DType::F32, &kept_shape)
+            .with_context(|| {
+                format!("{label}: {kept_name} holds one row per bit set in {mask_name}")
+            })?
+            .data;
+        let seed: u64 = file.meta("init_seed")?.parse().with_context(|| {
+            format!("{label}: header metadata \"init_seed\" (the seed {name}'s rows left out are drawn from) is not an integer")
+        })?;
+        Ok(SteppedTable {
+            seed,
+            id,
+            row_len,
+            mask,
+            rank,
+            kept,
+        })
+    }
+
+    /// Elements `from..from + out.len()` of the whole table.
+    fn fill(&self, from: usize, out: &mut [std::mem::MaybeUninit<f32>]) {
+        for (j, x) in (from..).zip(out.iter_mut()) {
+            let (r, c) = (j / self.row_len, j % self.row_len);
+            let byte = self.mask[r / 8];
+            let v = if byte >> (r % 8) & 1 == 1 {
+                let below = (byte & ((1u8 << (r % 8)) - 1)).count_ones() as usize;
+                let b = ((self.rank[r / 8] as usize + below) * self.row_len + c) * 4;
+                f32::from_le_bytes(self.kept[b..b + 4].try_into().unwrap())
+            } else {
+                crate::model::hashgrid::init_value(self.seed, self.id, j as u64)
+            };
+            x.write(v);
+        }
+    }
 }
 
 /// A tensor in the dtype of `R` (F64 or F32).
@@ -248,6 +366,86 @@ impl Checkpoint {
             grid_tensors(&mut f, "grid_d", g)?;
         }
         Ok(f)
+    }
+
+    /// [`Checkpoint::to_tensor_file`] with a feature table (`grid_h.table`, `grid_d.table`) of
+    /// which fewer than half the rows were stepped stored by those rows only: `<name>.mask`
+    /// (U8 `[ceil(rows/8)]`, bit `r mod 8` of byte `⌊r/8⌋` set iff row r is stored),
+    /// `<name>.kept` (F32 `[k, …]`, the stored rows, ascending) and header `init_seed` = `seed`.
+    /// A row never stepped still holds its initial value (Adam leaves a row with a zero
+    /// gradient untouched and the grids have no L2, SPEC §4.8), which a loader draws again from
+    /// the seed: the parameters load back bit for bit. `stepped(name)` gives a table's stepped
+    /// rows, ascending (`AdamState::stepped_rows`); `seed` must be the one the model was
+    /// initialised with (`train.seed`).
+    pub fn to_tensor_file_stepped(
+        &self,
+        seed: u64,
+        stepped: &dyn Fn(&str) -> Result<Vec<u32>>,
+    ) -> Result<TensorFile> {
+        let mut f = self.to_tensor_file()?;
+        let mut any = false;
+        for (name, _) in STEPPED_TABLES {
+            let Some(t) = self.model.layout.get(name) else {
+                continue;
+            };
+            let rows = t.shape[0];
+            let row_len = t.len.checked_div(rows).unwrap_or(0);
+            let kept = stepped(name)?;
+            if row_len == 0 || kept.len() as f64 >= STEPPED_BELOW * rows as f64 {
+                continue;
+            }
+            let data = &self.params[t.range()];
+            let mut values = Vec::with_capacity(kept.len() * row_len);
+            let mut mask = vec![0u8; rows.div_ceil(8)];
+            for &r in &kept {
+                let r = r as usize;
+                values.extend_from_slice(&data[r * row_len..(r + 1) * row_len]);
+                mask[r / 8] |= 1 << (r % 8);
+            }
+            let mut shape = t.shape.clone();
+            shape[0] = kept.len();
+            f.tensors.remove(name);
+            f.insert(format!("{name}.kept"), Tensor::f32(shape, &values)?);
+            f.insert(
+                format!("{name}.mask"),
+                Tensor::from_bytes(DType::U8, vec![mask.len()], mask)?,
+            );
+            any = true;
+        }
+        if any {
+            f.set_meta("init_seed", seed.to_string());
+        }
+        Ok(f)
+    }
+
+    /// A digest of the parameters (every f32's bits, in layout order; 16 hex digits), which
+    /// pairs a run's optimizer state with the model it was saved with
+    /// (`train/state.rs`). Hashed in fixed chunks combined in order: the same on any thread
+    /// count.
+    pub fn params_digest(&self) -> String {
+        const CHUNK: usize = 1 << 16;
+        let mix = |mut z: u64| {
+            z ^= z >> 30;
+            z = z.wrapping_mul(0xBF58_476D_1CE4_E5B9);
+            z ^= z >> 27;
+            z = z.wrapping_mul(0x94D0_49BB_1331_11EB);
+            z ^ (z >> 31)
+        };
+        let chunks: Vec<u64> = self
+            .params
+            .par_chunks(CHUNK)
+            .map(|c| {
+                c.chunks(2).fold(0x9E37_79B9_7F4A_7C15u64, |h, p| {
+                    let w =
+                        p[0].to_bits() as u64 | (p.get(1).map_or(0, |x| x.to_bits()) as u64) << 32;
+                    mix(h ^ w).wrapping_add(w)
+                })
+            })
+            .collect();
+        let h = chunks
+            .iter()
+            .fold(self.params.len() as u64, |h, &c| mix(h ^ c));
+        format!("{h:016x}")
     }
 
     /// Rebuild from a tensor file (saved scales, checked shapes); errors name the file/tensor.
@@ -379,12 +577,18 @@ impl Checkpoint {
 
 const CHECKPOINT: &str = "a checkpoint (`xscale init`/`train`)";
 const BATCH: &str = "a batch (`xscale batch`)";
+const OPTIMIZER: &str = "a run's optimizer state (`RUN/optimizer.safetensors`, read to resume; the model is `RUN/checkpoint.safetensors`)";
+/// Header key of an optimizer state file: the digest of the model it belongs to
+/// ([`Checkpoint::params_digest`], `train/state.rs`).
+pub const OPTIMIZER_KEY: &str = "model_digest";
 
 /// Which of xscale's tensor files this is, from its tensor names (`None`: none of them), so a
 /// file given in another's place is named as what it is rather than by a missing key.
 fn file_kind(file: &TensorFile) -> Option<&'static str> {
     let has = |prefix: &str| file.tensors.keys().any(|k| k.starts_with(prefix));
-    if has("fwd.") || has("grad.") {
+    if file.metadata.contains_key(OPTIMIZER_KEY) {
+        Some(OPTIMIZER)
+    } else if has("fwd.") || has("grad.") {
         Some("a dump (`xscale dump`)")
     } else if has("grid_h.") || has("vertex.") || has("shader.") {
         Some(CHECKPOINT)

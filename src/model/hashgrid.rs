@@ -196,12 +196,18 @@ pub fn init_uniform_table(n: usize, seed: u64, tensor_id: u64) -> Vec<f32> {
         .enumerate()
         .for_each(|(ci, c)| {
             for (j, v) in c.iter_mut().enumerate() {
-                let e = (ci * INIT_CHUNK + j) as u64;
-                let u = rng::uniform_f64(seed, Purpose::InitTable, tensor_id, e);
-                *v = (-1e-4 + 2e-4 * u) as f32;
+                *v = init_value(seed, tensor_id, (ci * INIT_CHUNK + j) as u64);
             }
         });
     t
+}
+
+/// Element `e` of [`init_uniform_table`] (a loader completing a table stored by its stepped
+/// rows draws the others one by one, `model/checkpoint.rs`).
+#[inline]
+pub fn init_value(seed: u64, tensor_id: u64, e: u64) -> f32 {
+    let u = rng::uniform_f64(seed, Purpose::InitTable, tensor_id, e);
+    (-1e-4 + 2e-4 * u) as f32
 }
 
 impl HashGrid {

@@ -17,8 +17,12 @@ use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
 /// Files and folders a run writes (what `--overwrite` removes; nothing else is touched).
-pub const RUN_FILES: [&str; 11] = [
+pub const RUN_FILES: [&str; 15] = [
     "checkpoint.safetensors",
+    "optimizer.safetensors",
+    "optimizer.next.safetensors",
+    "optimizer-diverged.safetensors",
+    "optimizer-diverged.next.safetensors",
     TIME_FILE,
     "checkpoint-diverged.safetensors",
     "metrics.jsonl",

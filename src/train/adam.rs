@@ -793,16 +793,7 @@ impl AdamState {
             let rows = s.shape.first().copied().unwrap_or(1);
             let row_len = s.len().checked_div(rows).unwrap_or(0);
             let st = &self.state[s.range()];
-            let zero = |m: &Moments| m.m.to_bits() == 0 && m.v.to_bits() == 0 && m.t == 0;
-            let kept: Vec<u32> = if row_len == 0 || s.shape.is_empty() {
-                Vec::new()
-            } else {
-                st.par_chunks(row_len)
-                    .enumerate()
-                    .filter(|(_, r)| !r.iter().all(zero))
-                    .map(|(i, _)| i as u32)
-                    .collect()
-            };
+            let kept = self.stepped_rows_of(s);
             if s.shape.is_empty() || kept.len() == rows {
                 let [m, v, t] = self.state_bytes(s.range());
                 insert_state(f, &s.name, &s.shape, &s.shape, [m, v, t])?;
@@ -855,6 +846,30 @@ impl AdamState {
             );
         }
         Ok(())
+    }
+
+    /// The rows (first dimension: a grid's entries) of a slot whose state is not all zero,
+    /// ascending: every row Adam has stepped. A row outside the list has never been stepped
+    /// (every step adds 1 to a stepped scalar's `t`), so its parameters are still the ones
+    /// it was initialised with. Empty for a scalar slot (shape `[]`).
+    pub fn stepped_rows_of(&self, s: &ParamSlot) -> Vec<u32> {
+        let rows = s.shape.first().copied().unwrap_or(1);
+        let row_len = s.len().checked_div(rows).unwrap_or(0);
+        if row_len == 0 || s.shape.is_empty() {
+            return Vec::new();
+        }
+        let zero = |m: &Moments| m.m.to_bits() == 0 && m.v.to_bits() == 0 && m.t == 0;
+        self.state[s.range()]
+            .par_chunks(row_len)
+            .enumerate()
+            .filter(|(_, r)| !r.iter().all(zero))
+            .map(|(i, _)| i as u32)
+            .collect()
+    }
+
+    /// [`AdamState::stepped_rows_of`] the slot of a named parameter.
+    pub fn stepped_rows(&self, name: &str) -> Result<Vec<u32>> {
+        Ok(self.stepped_rows_of(self.slot(name)?))
     }
 
     /// The little-endian bytes of `m`, `v` and `t` over `range`, written in one pass over the

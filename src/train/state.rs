@@ -5,13 +5,40 @@
 
 use crate::io::tensors::TensorFile;
 use crate::model::batch::Batch;
-use crate::model::checkpoint::Checkpoint;
+use crate::model::checkpoint::{Checkpoint, FORMAT, OPTIMIZER_KEY};
 use crate::model::params::{Grads, Group};
 use crate::train::adam::AdamState;
 use crate::train::config::{RunConfig, TableSize};
 use crate::train::setup::Prepared;
-use anyhow::{Context, Result};
-use std::path::Path;
+use anyhow::{bail, ensure, Context, Result};
+use std::path::{Path, PathBuf};
+
+/// The optimizer state file of a model file: `checkpoint*.safetensors` →
+/// `optimizer*.safetensors` in the same folder (`RUN/optimizer.safetensors`,
+/// `RUN/optimizer-diverged.safetensors`), any other name `<stem>.optimizer.safetensors`.
+pub fn optimizer_path(model: &Path) -> PathBuf {
+    let name = model
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    let opt = match name.strip_prefix("checkpoint") {
+        Some(rest) => format!("optimizer{rest}"),
+        None => {
+            let stem = name.strip_suffix(".safetensors").unwrap_or(&name);
+            format!("{stem}.optimizer.safetensors")
+        }
+    };
+    model.with_file_name(opt)
+}
+
+/// Where [`TrainState::save`] writes the optimizer state before the model is committed:
+/// `optimizer.next.safetensors` beside `optimizer.safetensors`.
+pub fn optimizer_next_path(model: &Path) -> PathBuf {
+    let p = optimizer_path(model);
+    let name = p.file_name().unwrap().to_string_lossy().into_owned();
+    let stem = name.strip_suffix(".safetensors").unwrap_or(&name);
+    p.with_file_name(format!("{stem}.next.safetensors"))
+}
 use std::time::Instant;
 
 /// Everything that defines a run at a step: configuration, model, parameters, Adam state.
@@ -72,33 +99,72 @@ impl TrainState {
         })
     }
 
-    pub fn to_tensor_file(&self) -> Result<TensorFile> {
-        let mut f = self.ckpt.to_tensor_file()?;
-        // Tables sized from the scene also leave out the Adam state of entries no ray reached;
-        // fixed tables (the `paper` and `tiny` presets) keep every row, as before.
-        if self.cfg.train.table_size == TableSize::Auto {
-            self.adam.save_compact(&mut f)?;
+    /// The run's two files (SPEC §6.2): the model (`RUN/checkpoint.safetensors`: what render,
+    /// eval, dump and compare read; with `step` and `run_config`) and the optimizer state
+    /// (`RUN/optimizer.safetensors`: Adam's `adam.*`, read only to resume), paired by the step
+    /// and the model's [`Checkpoint::params_digest`]. Tables sized from the scene
+    /// (`train.table_size = "auto"`) leave out what no training ray reached: the Adam state of
+    /// those rows, and a table's rows in the model file where fewer than half of them stepped
+    /// ([`Checkpoint::to_tensor_file_stepped`]); fixed tables (the `paper` and `tiny` presets)
+    /// write every row, as before.
+    pub fn to_tensor_files(&self) -> Result<(TensorFile, TensorFile)> {
+        let auto = self.cfg.train.table_size == TableSize::Auto;
+        let mut model = if auto {
+            self.ckpt
+                .to_tensor_file_stepped(self.cfg.train.seed, &|name| self.adam.stepped_rows(name))?
         } else {
-            self.adam.save(&mut f)?;
+            self.ckpt.to_tensor_file()?
+        };
+        model.set_meta("step", self.step.to_string());
+        model.set_meta("run_config", self.cfg.to_toml());
+        let mut opt = TensorFile::new();
+        if auto {
+            self.adam.save_compact(&mut opt)?;
+        } else {
+            self.adam.save(&mut opt)?;
         }
-        f.set_meta("step", self.step.to_string());
-        f.set_meta("run_config", self.cfg.to_toml());
-        Ok(f)
+        opt.set_meta("format", FORMAT);
+        opt.set_meta("step", self.step.to_string());
+        opt.set_meta(OPTIMIZER_KEY, self.ckpt.params_digest());
+        Ok((model, opt))
     }
 
+    /// A run from a checkpoint holding its Adam state too (`adam.*` in the model file: the
+    /// layout before the optimizer state had its own file, still read to resume such runs).
     pub fn from_tensor_file(f: &TensorFile) -> Result<TrainState> {
-        let label = f
-            .source
-            .as_ref()
-            .map_or("<checkpoint>".into(), |p| p.display().to_string());
-        let ckpt = Checkpoint::from_tensor_file(f)?;
-        let cfg = RunConfig::from_stored_toml(f.meta("run_config")?, &label)
+        let label = f.label();
+        ensure!(
+            f.tensors.keys().any(|k| k.starts_with("adam.")),
+            "{label}: holds no optimizer state (adam.*): a run's Adam state is in its own file beside it (optimizer.safetensors); resume reads the pair (TrainState::load)"
+        );
+        Self::from_tensor_files(f, f)
+    }
+
+    /// A run from its model file and the file holding its Adam state (the same file for the
+    /// older single-file layout). Errors name the files and what was expected.
+    pub fn from_tensor_files(model: &TensorFile, opt: &TensorFile) -> Result<TrainState> {
+        let label = model.label();
+        let ckpt = Checkpoint::from_tensor_file(model)?;
+        let cfg = RunConfig::from_stored_toml(model.meta("run_config")?, &label)
             .with_context(|| format!("{label}: header metadata \"run_config\""))?;
-        let step: u64 = f
+        let step: u64 = model
             .meta("step")?
             .parse()
             .with_context(|| format!("{label}: \"step\""))?;
-        let adam = AdamState::load(f, &param_specs(&ckpt))?;
+        if !std::ptr::eq(model, opt) {
+            let opt_label = opt.label();
+            let opt_step = opt.meta("step")?;
+            let digest = opt.meta(OPTIMIZER_KEY).with_context(|| {
+                format!("{opt_label}: not an optimizer state file (no \"{OPTIMIZER_KEY}\")")
+            })?;
+            let own = ckpt.params_digest();
+            ensure!(
+                opt_step == step.to_string() && digest == own,
+                "{opt_label} is not the optimizer state of {label}: it was saved at step {opt_step} with a model of digest {digest}, the model is at step {step} with digest {own}. \
+                 The two are written together: copy both files of one run and step"
+            );
+        }
+        let adam = AdamState::load(opt, &param_specs(&ckpt))?;
         Ok(TrainState {
             cfg,
             ckpt,
@@ -107,12 +173,76 @@ impl TrainState {
         })
     }
 
+    /// Write the pair atomically: the optimizer state to its `.next` file, then the model over
+    /// `path` (the commit: a crash before it leaves the previous pair, after it the new model
+    /// with the new state in `.next`, which [`TrainState::load`] takes), then the `.next` file
+    /// renamed over the optimizer file. Each write is whole or absent and fsynced
+    /// (`io/atomic.rs`).
     pub fn save(&self, path: &Path) -> Result<()> {
-        self.to_tensor_file()?.write_atomic(path)
+        let (model, opt) = self.to_tensor_files()?;
+        let (opt_path, next) = (optimizer_path(path), optimizer_next_path(path));
+        opt.write_atomic(&next)?;
+        model.write_atomic(path)?;
+        std::fs::rename(&next, &opt_path).with_context(|| {
+            format!(
+                "{}: cannot rename {} over it",
+                opt_path.display(),
+                next.display()
+            )
+        })?;
+        #[cfg(unix)]
+        if let Some(d) = opt_path.parent().and_then(|d| {
+            std::fs::File::open(if d.as_os_str().is_empty() {
+                Path::new(".")
+            } else {
+                d
+            })
+            .ok()
+        }) {
+            let _ = d.sync_all();
+        }
+        Ok(())
     }
 
+    /// The run saved at `path` ([`TrainState::save`]): the model file and its optimizer state
+    /// (`optimizer_path`; its `.next` file if the save was cut between the two renames), or a
+    /// model file of the older layout holding the Adam state itself.
     pub fn load(path: &Path) -> Result<TrainState> {
-        TrainState::from_tensor_file(&TensorFile::read(path)?)
+        let model = TensorFile::read(path)?;
+        if model.tensors.keys().any(|k| k.starts_with("adam.")) {
+            return TrainState::from_tensor_file(&model);
+        }
+        let (opt_path, next) = (optimizer_path(path), optimizer_next_path(path));
+        if !opt_path.is_file() && !next.is_file() {
+            bail!(
+                "{}: resuming needs the run's optimizer state {}, which is missing (the model file alone renders and scores, but cannot continue training)",
+                path.display(),
+                opt_path.display()
+            );
+        }
+        let first = if opt_path.is_file() {
+            TensorFile::read(&opt_path).and_then(|opt| TrainState::from_tensor_files(&model, &opt))
+        } else {
+            Err(anyhow::anyhow!("{} is missing", opt_path.display()))
+        };
+        match first {
+            Ok(st) => Ok(st),
+            // A save cut between the model's rename and the optimizer's: the new state is
+            // in `.next`.
+            Err(e) if next.is_file() => {
+                let st = TrainState::from_tensor_files(&model, &TensorFile::read(&next)?)
+                    .map_err(|e2| e.context(format!("nor is {}: {e2:#}", next.display())))?;
+                std::fs::rename(&next, &opt_path).with_context(|| {
+                    format!(
+                        "{}: cannot rename {} over it",
+                        opt_path.display(),
+                        next.display()
+                    )
+                })?;
+                Ok(st)
+            }
+            Err(e) => Err(e),
+        }
     }
 
     /// One optimisation step on `batch`; `grads` must be zero on entry and is zero on exit.

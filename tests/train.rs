@@ -98,7 +98,7 @@ fn ssim_patches_resume_exactly_and_differ_from_l1() {
     c.model.ssim_weight = 0.2;
     c.train.patch = 4;
     c.validate().unwrap();
-    let ssim = resume_exact(c.clone(), "ssim");
+    let (ssim, _) = resume_exact(c.clone(), "ssim");
     let l1 = tmp("l1ref");
     in_pool(2, || train(&fixture(), &l1, cfg(200), &quiet(false, None))).unwrap();
     assert!(

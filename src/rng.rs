@@ -36,6 +36,8 @@ pub enum Purpose {
     RefinePhoto = 7,
     /// `xscale case`'s batch edit; `a` = 0 (sub-sample invalidated), `b` = sub-sample index.
     Case = 8,
+    /// Patch origins of a patch batch (`train/sampler.rs`); `a` = step, `b` = patch·tries + try.
+    Patch = 9,
     /// Anything a test needs.
     Test = 99,
 }

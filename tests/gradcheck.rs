@@ -24,6 +24,10 @@
 //!   through the whole pipeline (vertex table, shader, codes, directions; positions must get an
 //!   exactly zero gradient since they do not enter that model). It is linear in the table, so
 //!   only the shader's ReLUs and the loss branches can straddle a kink.
+//! - The D-SSIM term (`model/ssim.rs`) is checked per op (patch sides 3, 5 and 12: one window
+//!   and 2×2 sliding 11×11 windows per patch, with and without a masked slot) and through the
+//!   whole pipeline on a patch batch (case F, λ = 0.2). It is smooth (its denominators are
+//!   ≥ C1, C2 > 0), so only the L1 part and the ReLUs have kinks.
 //! - Positions are checked in `positions = "f64"` mode (the "tcnn" mode rounds x to f32, a
 //!   staircase that finite differences cannot see through).
 
@@ -37,6 +41,7 @@ use xscale::model::loss::{loss_backward, loss_forward, sigmoid_backward, sigmoid
 use xscale::model::mlp::{Mlp, MlpActs};
 use xscale::model::params::{Grads, Group};
 use xscale::model::sh::{sh_backward_one, sh_forward_one, SH_DIM};
+use xscale::model::ssim::{combine as ssim_combine, ssim_backward, ssim_forward};
 use xscale::model::vertex::{vertex_backward, vertex_forward, VertexTable};
 use xscale::rng::{uniform_f64, Purpose};
 
@@ -311,6 +316,67 @@ fn sigmoid_and_losses_match_fd() {
     rep.finish("sigmoid+loss", 50);
 }
 
+#[test]
+fn ssim_term_matches_fd() {
+    let mut rep = Report::default();
+    let lambda = 0.2;
+    for (ci, (k, patches, masked)) in [
+        (3usize, 2usize, None),
+        (5, 2, Some(7usize)),
+        (12, 2, None),
+        (12, 2, Some(150)),
+    ]
+    .into_iter()
+    .enumerate()
+    {
+        let n = k * k * patches;
+        let seed = 40 + ci as u64;
+        // Colours in (0.05, 0.95); the photo a noisy copy (SSIM near 1 and far from it both seen).
+        let x: Vec<f64> = (0..(n * 3) as u64)
+            .map(|i| 0.05 + 0.9 * u(seed, 0, i))
+            .collect();
+        let target: Vec<[f32; 3]> = (0..n)
+            .map(|r| {
+                let t = |c: usize| {
+                    let v = if r < n / 2 {
+                        x[r * 3 + c] + 0.1 * sym(seed, 1 + c as u64, r as u64)
+                    } else {
+                        u(seed, 4 + c as u64, r as u64)
+                    };
+                    v.clamp(0.0, 1.0) as f32
+                };
+                [t(0), t(1), t(2)]
+            })
+            .collect();
+        let mut mask = Vec::new();
+        if let Some(m) = masked {
+            mask = vec![1u8; n];
+            mask[m] = 0;
+        }
+        let f = |x: &[f64]| {
+            let (s, m) = ssim_forward(k, x, &target, &mask);
+            ssim_combine(lambda, 0.0, s, m)
+        };
+        let m = ssim_forward(k, &x, &target, &mask).1;
+        assert!(m > 0, "k {k}: no window counted");
+        let mut d = vec![0.0; n * 3];
+        ssim_backward(k, &x, &target, &mask, -lambda / m as f64, &mut d);
+        for i in 0..n * 3 {
+            let fd = central(x[i], |v| {
+                let mut xp = x.clone();
+                xp[i] = v;
+                f(&xp)
+            });
+            rep.check(&format!("ssim k {k} mask {masked:?} x[{i}]"), fd, d[i]);
+        }
+        if let Some(mr) = masked {
+            // The masked slot is in no counted window: its gradient is exactly 0.
+            assert!(d[mr * 3..mr * 3 + 3].iter().all(|&v| v == 0.0), "k {k}");
+        }
+    }
+    rep.finish("ssim", 1500);
+}
+
 /// A point whose cell fraction in every level of every grid is away from 0 and 1.
 fn safe_point(seed: u64, k: u64, grids: &[&HashGrid]) -> [f64; 3] {
     for attempt in 0..1000u64 {
@@ -480,6 +546,17 @@ fn cases() -> Vec<Case> {
         n: 6,
         p_invalid: 0.2,
     });
+    // F: the D-SSIM term on a patch batch (SPEC §4.7): two 4×4 patches (one 4×4 window each),
+    // λ = 0.2 with L1, ξ on, γ = 2 with invalid sub-samples (make_batch sets the patch side).
+    let mut f = ModelConfig::tiny();
+    f.ssim_weight = 0.2;
+    f.appearance_views = 2;
+    out.push(Case {
+        name: "F D-SSIM patches γ2 deform L1",
+        cfg: f,
+        n: 32,
+        p_invalid: 0.35,
+    });
     out
 }
 
@@ -527,6 +604,14 @@ fn make_batch(model: &Hfm, case: &Case, seed: u64) -> Batch {
         b.footprint = (0..case.n)
             .map(|i| (0.03 + 0.17 * u(seed, 90, i as u64)) as f32)
             .collect();
+    }
+    if case.cfg.ssim_weight > 0.0 {
+        b.patch = 4;
+        // Photos close to a smooth field so the patches have structure for SSIM to compare.
+        for (r, t) in b.target.iter_mut().enumerate() {
+            let (x, y) = ((r % 4) as f32, ((r / 4) % 4) as f32);
+            *t = [0.2 + 0.1 * x, 0.3 + 0.1 * y, 0.5 + 0.05 * (x - y)].map(|v| v + 0.05 * t[0]);
+        }
     }
     if model.appearance_dim() > 0 {
         // Both kinds of pixels: with a code and with the mean code.

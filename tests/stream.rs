@@ -13,7 +13,9 @@ use xscale::rng::{below, uniform_f32, Purpose};
 use xscale::run::trainer::{train, TrainOptions};
 use xscale::scene::{Image, LoadOptions, Scene};
 use xscale::train::config::RunConfig;
-use xscale::train::sampler::{batch_from_pixels, batch_pixels, SampleMode};
+use xscale::train::sampler::{
+    batch_from_pixels, batch_pixels, draw_batch, patch_pixels, SampleMode, Samples,
+};
 
 #[path = "common/pool.rs"]
 mod pool;
@@ -62,6 +64,83 @@ fn stream_batches_equal_cache_batches() {
     }
 }
 
+/// Patch batches (`train/sampler.rs`): the stream and the cache give the same kept pixels,
+/// masks and batches; every whole patch is k×k neighbouring pixels of one view in row-major
+/// order; a patch with a masked slot is one that no try could find whole, its masked rows
+/// filled with its origin; the batch is a pure function of (seed, step).
+#[test]
+fn patch_batches_are_neighbours_and_the_same_streamed_or_cached() {
+    let scene = Scene::load(&fixture(), &LoadOptions::default()).unwrap();
+    let tracer = Tracer::new(&scene.mesh, &scene.normalization).unwrap();
+    let train = scene.train();
+    let images: Vec<Image> = train
+        .iter()
+        .map(|&i| scene.load_image(i).unwrap())
+        .collect();
+    let views: Vec<_> = train
+        .iter()
+        .zip(&images)
+        .map(|(&i, img)| (&scene.views[i].camera, Some(img)))
+        .collect();
+    let cache = SampleCache::build(&tracer, &views, 2, false, &mut |_| {}).unwrap();
+    let stream = RayStream::build(&tracer, &views, 2, false, &mut |_| {}).unwrap();
+    let pix: Vec<([u32; 2], usize)> = (0..cache.len())
+        .map(|i| (cache.pixel(i), cache.view_index(i)))
+        .collect();
+    let (cache, stream) = (Samples::Cache(Box::new(cache)), Samples::Stream(stream));
+    let mut saw_masked = false;
+    for (k, size, patched) in [
+        (4usize, 512usize, 512usize),
+        (8, 512, 512),
+        (16, 512, 512),
+        (4, 500, 128),
+    ] {
+        for step in 0..4 {
+            let (pc, mc) = patch_pixels(&cache, 3, step, size, k, patched);
+            let (ps, ms) = patch_pixels(&stream, 3, step, size, k, patched);
+            assert_eq!((&pc, &mc), (&ps, &ms), "k {k} step {step}: stream ≠ cache");
+            assert_eq!(pc.len(), size);
+            assert_eq!(
+                patch_pixels(&cache, 3, step, size, k, patched),
+                (pc.clone(), mc.clone())
+            );
+            // The independent rows after the patches: the single-pixel draw's first slots.
+            let rest = batch_pixels(pix.len(), 3, step, size - patched);
+            assert_eq!(&pc[patched..], &rest[..]);
+            assert!(mc.len() == size || patched == size);
+            assert!(mc.get(patched..).unwrap_or(&[]).iter().all(|&m| m == 0));
+            for (j, rows) in pc[..patched].chunks(k * k).enumerate() {
+                let masked = |r: usize| mc.get(j * k * k + r) == Some(&0);
+                let o = pix[rows[0]];
+                for (r, &i) in rows.iter().enumerate() {
+                    if masked(r) {
+                        saw_masked = true;
+                        assert_eq!(i, rows[0], "k {k}: a masked row holds the origin");
+                        continue;
+                    }
+                    let (dx, dy) = ((r % k) as u32, (r / k) as u32);
+                    assert_eq!(pix[i].1, o.1, "k {k} patch {j}: one view");
+                    assert_eq!(
+                        pix[i].0,
+                        [o.0[0] + dx, o.0[1] + dy],
+                        "k {k} patch {j} row {r}"
+                    );
+                }
+            }
+            let bc = draw_batch(&cache, &tracer, 3, step, size, k as u32, patched);
+            let bs = in_pool(2, || {
+                draw_batch(&stream, &tracer, 3, step, size, k as u32, patched)
+            });
+            assert!(bc == bs, "k {k} step {step}: batches differ");
+            assert_eq!(bc.patch, k);
+            bc.validate().unwrap();
+        }
+    }
+    // The tiny fixture's views are 64×48 with the object in part of them: 16×16 patches
+    // cannot always be found whole, so the masked fallback is exercised.
+    assert!(saw_masked);
+}
+
 /// `HitMap::locate` is the k-th set bit in row-major order, against a brute-force list, on
 /// widths around multiples of 64, empty rows, full rows and an empty map.
 #[test]
@@ -97,6 +176,13 @@ fn hit_map_numbering() {
         for (k, &p) in want.iter().enumerate() {
             assert_eq!(m.locate(k), p, "case {case}, kept pixel {k}");
             assert!(m.get(p.0, p.1));
+        }
+        // index_of inverts locate, and is None off the mesh and outside the image.
+        for v in 0..h + 1 {
+            for u in 0..w + 1 {
+                let k = want.iter().position(|&p| p == (u, v));
+                assert_eq!(m.index_of(u, v), k, "case {case}, pixel ({u}, {v})");
+            }
         }
     }
 }

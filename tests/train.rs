@@ -90,6 +90,31 @@ fn f64_arithmetic_resumes_exactly_and_differs_from_f32() {
     let _ = std::fs::remove_dir_all(&f32_run);
 }
 
+/// The D-SSIM term on patch batches (`[model] ssim_weight`, `[train] patch`): exact resume and
+/// thread independence, and a result that differs from L1 on single pixels (the switch is real).
+#[test]
+fn ssim_patches_resume_exactly_and_differ_from_l1() {
+    let mut c = cfg(200);
+    c.model.ssim_weight = 0.2;
+    c.train.patch = 4;
+    c.validate().unwrap();
+    let (ssim, _) = resume_exact(c.clone(), "ssim");
+    let l1 = tmp("l1ref");
+    in_pool(2, || train(&fixture(), &l1, cfg(200), &quiet(false, None))).unwrap();
+    assert!(
+        ssim != checkpoint_bytes(&l1),
+        "the D-SSIM term trained the same bits as L1"
+    );
+    let _ = std::fs::remove_dir_all(&l1);
+    // Configuration errors name the key.
+    c.train.patch = 0;
+    let e = c.validate().unwrap_err().to_string();
+    assert!(e.contains("ssim_weight") && e.contains("patch"), "{e}");
+    c.train.patch = 5;
+    let e = c.validate().unwrap_err().to_string();
+    assert!(e.contains("batch_pixels") && e.contains("25"), "{e}");
+}
+
 /// The `cpu` preset's tables sized from the scene: its checkpoint leaves out the Adam state of
 /// the grid entries no ray reached (`adam.mask.*`), loads back to the very state trained (what
 /// the full layout writes), and a resumed run is still byte-identical on 1 and 2 threads.

@@ -31,6 +31,14 @@ pub struct Batch {
     pub triangle: Vec<u32>,
     /// `[N*S]` barycentrics `(u, v)` of each sub-sample (optional, with `triangle`).
     pub bary: Vec<[f64; 2]>,
+    /// Side k of the batch's square patches (`train/sampler.rs` patch mode; 0 = independent
+    /// pixels): rows `j·k²..(j+1)·k²` are patch j, row-major (rows after the last whole block,
+    /// and blocks of rows marked 0 in `patch_mask`, are in no window). Read only by the D-SSIM
+    /// term (`model/ssim.rs`).
+    pub patch: usize,
+    /// `[N]` or empty (= all 1): 0 marks a row that fills a patch slot whose pixel does not see
+    /// the mesh (the D-SSIM term leaves out every window that covers it; the L1 term counts it).
+    pub patch_mask: Vec<u8>,
 }
 
 impl Batch {
@@ -80,6 +88,9 @@ impl Batch {
         if keep.iter().all(|&k| k) {
             return;
         }
+        // Rows move: the patch layout no longer holds, the batch is independent pixels.
+        self.patch = 0;
+        self.patch_mask.clear();
         let mut w = 0;
         for (i, &k) in keep.iter().enumerate() {
             if !k {
@@ -160,6 +171,11 @@ impl Batch {
                 self.footprint[i]
             );
         }
+        ensure!(
+            self.patch_mask.is_empty() || (self.patch > 0 && self.patch_mask.len() == n),
+            "batch: patch_mask has {} entries, expected N = {n} with patches (or none)",
+            self.patch_mask.len()
+        );
         ensure!(
             self.triangle.len() == self.bary.len(),
             "batch: triangle has {} entries but bary has {}",

@@ -134,6 +134,10 @@ fn is_zero(v: &u32) -> bool {
     *v == 0
 }
 
+fn is_zero_f64(v: &f64) -> bool {
+    *v == 0.0
+}
+
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct ModelConfig {
@@ -151,6 +155,11 @@ pub struct ModelConfig {
     pub loss: LossKind,
     /// δ of smooth-L1.
     pub smooth_l1_delta: f64,
+    /// λ of the structural term on patch batches (SPEC §4.7, `model/ssim.rs`): the loss is
+    /// `(1−λ)·ρ + λ·(1 − SSIM)` when a batch holds patches (`[train] patch`), ρ alone when it
+    /// does not. Absent when 0 (the `tiny` and `paper` presets, configs written before it).
+    #[serde(default, skip_serializing_if = "is_zero_f64")]
+    pub ssim_weight: f64,
     /// `hash` (default) or `vertex` (the Fig. 2b baseline). Absent from a hash model's TOML, so
     /// hash configs and checkpoints are unchanged by the switch's existence.
     #[serde(default, skip_serializing_if = "Featurization::is_hash")]
@@ -220,6 +229,7 @@ impl ModelConfig {
             positions: PositionMode::F64,
             loss: LossKind::L1,
             smooth_l1_delta: 0.01,
+            ssim_weight: 0.0,
             featurization: Featurization::Hash,
             vertex_features: 0,
             vertex_count: 0,
@@ -266,6 +276,7 @@ impl ModelConfig {
             positions: PositionMode::F64,
             loss: LossKind::L1,
             smooth_l1_delta: 0.01,
+            ssim_weight: 0.0,
             featurization: Featurization::Hash,
             vertex_features: 0,
             vertex_count: 0,

@@ -37,6 +37,7 @@ use crate::model::loss::{loss_backward, loss_forward, sigmoid_backward, sigmoid_
 use crate::model::mlp::{Mlp, MlpActs};
 use crate::model::params::{Grads, Group, ParamLayout};
 use crate::model::sh::{sh_backward, sh_forward, SH_DIM};
+use crate::model::ssim::{combine as ssim_combine, ssim_backward, ssim_forward};
 use crate::model::vertex::{vertex_backward, vertex_forward, VertexTable};
 use crate::model::Real;
 use anyhow::{ensure, Context, Result};
@@ -389,6 +390,12 @@ impl Hfm {
         for ch in &chunks {
             sum += ch.loss_sum; // chunk order
         }
+        let mut loss = sum / (3 * n) as f64;
+        if let Some(k) = self.ssim_patch(batch) {
+            let rgb = batch_rgb(&chunks);
+            let (s, m) = ssim_forward(k, &rgb, &batch.target, &batch.patch_mask);
+            loss = ssim_combine(self.cfg.ssim_weight, loss, s, m);
+        }
         Ok(Forward {
             chunks,
             start: pre.start,
@@ -397,7 +404,7 @@ impl Hfm {
             triangles: pre.triangles,
             bary: pre.bary,
             code_mean: pre.code_mean,
-            loss: sum / (3 * n) as f64,
+            loss,
         })
     }
 
@@ -658,7 +665,29 @@ impl Hfm {
         if inputs && grads.dirs.len() != n * 3 {
             grads.dirs = vec![R::ZERO; n * 3];
         }
-        let scale = R::ONE / R::from_f64((3 * n) as f64);
+        // SPEC §4.7: with patches, (1−λ)·ρ + λ·D-SSIM; the D-SSIM gradient of every row first.
+        let ssim = self.ssim_patch(batch);
+        let lambda = ssim.map_or(0.0, |_| self.cfg.ssim_weight);
+        let scale = R::from_f64((1.0 - lambda) / (3 * n) as f64);
+        let d_ssim: Vec<R> = match ssim {
+            Some(k) => {
+                let rgb = batch_rgb(&fwd.chunks);
+                let m = ssim_forward(k, &rgb, &batch.target, &batch.patch_mask).1;
+                let mut d = vec![R::ZERO; n * 3];
+                if m > 0 {
+                    ssim_backward(
+                        k,
+                        &rgb,
+                        &batch.target,
+                        &batch.patch_mask,
+                        -lambda / m as f64,
+                        &mut d,
+                    );
+                }
+                d
+            }
+            None => Vec::new(),
+        };
         // The chunks write their rows of ∂L/∂F_H and ∂L/∂F_D straight into one buffer each, in
         // batch order (the grids' table backward reads them there; no copy after).
         let v_all = fwd.points.len();
@@ -687,6 +716,7 @@ impl Hfm {
                         fwd,
                         ch,
                         scale,
+                        d_ssim.get(ch.pixels.start * 3..ch.pixels.end * 3),
                         inputs,
                         position_max_scale,
                         d_feat,
@@ -780,6 +810,7 @@ impl Hfm {
         fwd: &Forward<R>,
         ch: &ChunkFwd<R>,
         scale: R,
+        d_ssim: Option<&[R]>, // [n, 3] the D-SSIM term's ∂L/∂rgb of the chunk's rows
         inputs: bool,
         position_max_scale: Option<f32>,
         d_feat: &mut [R], // [v, L·F] out: ∂L/∂F'_j (= ∂L/∂F_H(x_j) = ∂L/∂δ_j), then weighted
@@ -800,6 +831,9 @@ impl Hfm {
             scale,
             &mut d_rgb,
         );
+        if let Some(d) = d_ssim {
+            add_into(&mut d_rgb, d);
+        }
         let mut d_logits = vec![R::ZERO; n * 3];
         sigmoid_backward(&ch.rgb, &d_rgb, &mut d_logits);
         // Shader (Eq. 3).
@@ -901,6 +935,11 @@ impl Hfm {
         }
     }
 
+    /// The patch side when the D-SSIM term applies to `batch` (λ > 0 and a patch batch).
+    fn ssim_patch(&self, batch: &Batch) -> Option<usize> {
+        (self.cfg.ssim_weight > 0.0 && batch.patch > 0).then_some(batch.patch)
+    }
+
     /// `d_feat[v, L·F] *= level_w[v, L]` when the chunk was weighted (SPEC §4.10).
     fn weight_grad<R: Real>(&self, ch: &ChunkFwd<R>, d_feat: &mut [R]) {
         if !ch.level_w.is_empty() {
@@ -955,6 +994,11 @@ fn coarse_levels<'a, R: Real>(
 }
 
 /// `[A]` mean of the appearance rows `codes [views, A]` (the code of `view = −1`, SPEC §4.6): the
+/// The `[N, 3]` colours of a forward pass's chunks, in batch order.
+fn batch_rgb<R: Real>(chunks: &[ChunkFwd<R>]) -> Vec<R> {
+    chunks.iter().flat_map(|c| c.rgb.iter().copied()).collect()
+}
+
 /// rows summed in row order from +0, then divided by `views`; zeros when `a` or `views` is 0.
 pub fn appearance_mean<R: Real>(codes: &[R], a: usize, views: usize) -> Vec<R> {
     let mut m = vec![R::ZERO; a];

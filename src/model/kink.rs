@@ -342,6 +342,7 @@ fn one_pixel(batch: &Batch, p: usize) -> Batch {
             batch.triangle[r.clone()].to_vec()
         },
         bary: part(&batch.bary),
+        ..Batch::default()
     }
 }
 

@@ -16,6 +16,7 @@ pub mod params;
 pub mod real;
 pub mod refine;
 pub mod sh;
+pub mod ssim;
 pub mod vertex;
 
 pub use batch::Batch;

@@ -116,6 +116,19 @@ impl HitMap {
         unreachable!("kept index {k} beyond the row's count");
     }
 
+    /// The kept index of pixel (u, v) (the inverse of [`HitMap::locate`]), `None` if it does not
+    /// see the mesh or lies outside the image.
+    pub fn index_of(&self, u: u32, v: u32) -> Option<usize> {
+        if u >= self.width || v >= self.height || !self.get(u, v) {
+            return None;
+        }
+        let row = &self.bits[v as usize * self.words_per_row..];
+        let w = u as usize / 64;
+        let before: u32 = row[..w].iter().map(|x| x.count_ones()).sum::<u32>()
+            + (row[w] & ((1u64 << (u % 64)) - 1)).count_ones();
+        Some((self.row_start[v as usize] + before) as usize)
+    }
+
     pub fn bytes(&self) -> usize {
         self.bits.len() * 8 + self.row_start.len() * 4
     }

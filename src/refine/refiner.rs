@@ -54,7 +54,7 @@ use crate::refine::hit::{
 use crate::refine::photo_term::{self, PhotoStats, PhotoTerm};
 use crate::refine::trust::{self, TrustPool};
 use crate::train::adam::{AdamGroup, LrSchedule};
-use crate::train::sampler::{sample_batch, Samples};
+use crate::train::sampler::{draw_batch, Samples};
 use crate::train::setup::Prepared;
 use crate::train::state::{batch_mse, StepStats, TrainState};
 use anyhow::{ensure, Context, Result};
@@ -74,6 +74,9 @@ pub struct Refiner {
     steps: u64,
     seed: u64,
     batch_pixels: usize,
+    /// `[train] patch` and the pixels drawn in patches (patch batches for the D-SSIM term).
+    patch: u32,
+    patched: usize,
     /// Steps after which the loop saves or evaluates (offsets are synced before).
     checkpoint_every: u64,
     eval_every: u64,
@@ -150,6 +153,8 @@ impl Refiner {
             steps: state.cfg.train.steps,
             seed: state.cfg.train.seed,
             batch_pixels: state.cfg.train.batch_pixels,
+            patch: state.cfg.train.patch,
+            patched: state.cfg.train.patched_pixels(),
             checkpoint_every: state.cfg.train.checkpoint_every,
             eval_every: state.cfg.train.eval_every,
             interrupt,
@@ -471,6 +476,7 @@ impl Refiner {
             self.seed,
             k,
             self.batch_pixels,
+            (self.patch, self.patched),
         )
     }
 
@@ -487,7 +493,8 @@ impl Refiner {
         match next {
             Some(k1) if !self.needs_rebuild(k1) => {
                 let tracer = self.tracer.clone();
-                let (seed, n) = (self.seed, self.batch_pixels);
+                let (seed, n, patch, patched) =
+                    (self.seed, self.batch_pixels, self.patch, self.patched);
                 let (st, nb) = rayon::join(
                     || self.step(state, prepared, batch, grads),
                     || {
@@ -497,6 +504,7 @@ impl Refiner {
                             seed,
                             k1,
                             n,
+                            (patch, patched),
                         )
                     },
                 );
@@ -825,9 +833,17 @@ fn gauss_newton_step(x: &mut [f32], g: &[f64], h: &[f64], lr: f64, n: f64, dampi
     }
 }
 
-/// Batch k cast against `tracer` (pixels none of whose rays hit are dropped at use).
-fn draw_with(samples: &Samples, tracer: &Tracer, seed: u64, k: u64, n: usize) -> Batch {
-    sample_batch(samples, tracer, seed, k, n)
+/// Batch k cast against `tracer` (pixels none of whose rays hit are dropped at use; a patch
+/// batch that loses a pixel so becomes independent pixels, `Batch::drop_empty_pixels`).
+fn draw_with(
+    samples: &Samples,
+    tracer: &Tracer,
+    seed: u64,
+    k: u64,
+    n: usize,
+    (patch, patched): (u32, usize),
+) -> Batch {
+    draw_batch(samples, tracer, seed, k, n, patch, patched)
 }
 
 /// Gather the per-vertex sums `d` of the `touched` vertices onto the offset field's pending sums

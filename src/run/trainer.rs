@@ -28,7 +28,7 @@ use crate::run::run_dir::{
 use crate::scene::Camera;
 use crate::train::config::{differences_but_steps, RunConfig};
 use crate::train::memory::Job;
-use crate::train::sampler::sample_batch;
+use crate::train::sampler::draw_batch;
 use crate::train::setup::{prepare_until, Prepared};
 use crate::train::state::TrainState;
 use anyhow::{bail, Context, Result};
@@ -404,12 +404,14 @@ fn run_loop(
     grads.inputs = false; // positions and directions are data, not parameters
     let stop = opts.stop_at.unwrap_or(u64::MAX).min(tc.steps);
     let draw = |k: u64| {
-        sample_batch(
+        draw_batch(
             &prepared.samples,
             &prepared.tracer,
             tc.seed,
             k,
             tc.batch_pixels,
+            tc.patch,
+            tc.patched_pixels(),
         )
     };
     let a = &tc.adam;

@@ -137,6 +137,36 @@ pub struct TrainConfig {
     /// the checkpoint stay f32). Absent from older configs (= f32).
     #[serde(default)]
     pub arithmetic: Arithmetic,
+    /// Side k of the square pixel patches a batch is drawn in (`train/sampler.rs`; 0 = single
+    /// pixels): `batch_pixels / k²` patches of k×k neighbouring pixels of one view, for the
+    /// D-SSIM term (`[model] ssim_weight`). Absent when 0 (the `tiny` and `paper` presets,
+    /// configs written before it).
+    #[serde(default, skip_serializing_if = "is_zero_u32")]
+    pub patch: u32,
+    /// How many of a patch batch's `batch_pixels` are in patches (a multiple of `patch²`; the
+    /// rest are independent pixels, which cover more of the scene per step); 0 = all of them.
+    /// Absent when 0.
+    #[serde(default, skip_serializing_if = "is_zero_usize")]
+    pub patch_pixels: usize,
+}
+
+fn is_zero_usize(v: &usize) -> bool {
+    *v == 0
+}
+
+impl TrainConfig {
+    /// Pixels of a batch drawn in patches (`patch_pixels`, 0 = all; 0 without patches).
+    pub fn patched_pixels(&self) -> usize {
+        match (self.patch, self.patch_pixels) {
+            (0, _) => 0,
+            (_, 0) => self.batch_pixels,
+            (_, m) => m,
+        }
+    }
+}
+
+fn is_zero_u32(v: &u32) -> bool {
+    *v == 0
 }
 
 /// `[train] arithmetic`.
@@ -186,6 +216,8 @@ impl TrainConfig {
             samples: SampleMode::Auto,
             memory_gb: 0.0,
             arithmetic: Arithmetic::F32,
+            patch: 0,
+            patch_pixels: 0,
         };
         Ok(match name {
             "tiny" => TrainConfig {
@@ -479,6 +511,41 @@ impl RunConfig {
             bail!(
                 "model.smooth_l1_delta must be a number > 0 (the δ of loss = \"smooth_l1\"), got {}",
                 m.smooth_l1_delta
+            );
+        }
+        if !(0.0..1.0).contains(&m.ssim_weight) {
+            bail!(
+                "model.ssim_weight must be in [0, 1) (λ of (1−λ)·L1 + λ·D-SSIM), got {}",
+                m.ssim_weight
+            );
+        }
+        if t.patch == 1 || t.patch > 64 {
+            bail!(
+                "train.patch must be 0 (single pixels) or a patch side in 2..=64, got {}",
+                t.patch
+            );
+        }
+        let k2 = (t.patch * t.patch) as usize;
+        if t.patch > 0 && t.patched_pixels() % k2 != 0 {
+            bail!(
+                "train.{} = {} is not a whole number of {}×{} patches (train.patch): use a multiple of {k2}",
+                if t.patch_pixels == 0 { "batch_pixels" } else { "patch_pixels" },
+                t.patched_pixels(),
+                t.patch,
+                t.patch
+            );
+        }
+        if t.patch_pixels > t.batch_pixels {
+            bail!(
+                "train.patch_pixels = {} is more than train.batch_pixels = {}",
+                t.patch_pixels,
+                t.batch_pixels
+            );
+        }
+        if m.ssim_weight > 0.0 && t.patch == 0 {
+            bail!(
+                "model.ssim_weight = {} needs patch batches: set [train] patch (e.g. 8), or ssim_weight = 0",
+                m.ssim_weight
             );
         }
         t.adam.validate().context("train.adam")?;

@@ -2,6 +2,19 @@
 //! `below(seed, Batch, k, i, pixels)` — a pure function of (seed, k, i), so batch k is the same
 //! whatever happened before it (exact resume) and whatever the thread count.
 //!
+//! **Patch batches** (`[train] patch = k ≥ 2`, for the D-SSIM term, `model/ssim.rs`): the same
+//! pixel budget as P = N/k² patches of k×k neighbouring pixels of one training view; pixel
+//! (dx, dy) of patch j is row `j·k² + dy·k + dx`. Patch j of batch k tries up to
+//! [`PATCH_TRIES`] origins, try t being kept pixel `below(seed, Patch, k, j·TRIES + t, pixels)`
+//! (the patch's top-left pixel), and takes the first whose k×k pixels all lie in the image and
+//! see the mesh. If none does, it takes the last try's patch with every pixel that does not see
+//! the mesh (or lies outside the image) replaced by the origin pixel and marked 0 in
+//! `Batch::patch_mask`: the D-SSIM term leaves out every window that covers it, the L1 term
+//! counts the origin once more. A pure function of (seed, k, j) again. With `[train]
+//! patch_pixels` = M < N, only the first M rows are patches; rows M..N are independent pixels,
+//! slot i being kept pixel `below(seed, Batch, k, i, pixels)`, marked 0 in the patch mask (in
+//! no SSIM window; the L1 term counts them as any pixel).
+//!
 //! Where a batch's surface samples come from is [`Samples`]: the [`RayStream`] (default: rays
 //! cast when the batch is drawn, memory ~3 bytes per pixel) or the [`SampleCache`] (every
 //! training ray cast once at setup and stored, `12γ²+42` bytes per kept pixel). Both number the
@@ -173,6 +186,128 @@ pub fn batch_pixels(n: usize, seed: u64, step: u64, size: usize) -> Vec<usize> {
     (0..size as u64)
         .map(|i| below(seed, Purpose::Batch, step, i, n as u64) as usize)
         .collect()
+}
+
+/// Origins tried per patch before a partly covered patch is taken (module docs).
+pub const PATCH_TRIES: u64 = 8;
+
+impl Samples {
+    /// (view slot, u, v) of kept pixel `i`.
+    fn locate(&self, i: usize) -> (usize, u32, u32) {
+        match self {
+            Samples::Stream(s) => s.locate(i),
+            Samples::Cache(c) => {
+                let slot = c.views.partition_point(|v| v.start <= i) - 1;
+                let [u, v] = c.pixel(i);
+                (slot, u, v)
+            }
+        }
+    }
+
+    /// The kept index of pixel (u, v) of view slot `slot` (`None` outside the image or off
+    /// the mesh). Both sources number a view's kept pixels in row-major order.
+    fn index_at(&self, slot: usize, u: i64, v: i64) -> Option<usize> {
+        if u < 0 || v < 0 || u > u32::MAX as i64 || v > u32::MAX as i64 {
+            return None;
+        }
+        let (u, v) = (u as u32, v as u32);
+        match self {
+            Samples::Stream(s) => {
+                let view = &s.views[slot];
+                view.hits.index_of(u, v).map(|k| view.start + k)
+            }
+            Samples::Cache(c) => {
+                let view = &c.views[slot];
+                if u >= view.width || v >= view.height {
+                    return None;
+                }
+                let (mut lo, mut hi) = (view.start, view.start + view.len);
+                while lo < hi {
+                    let mid = (lo + hi) / 2;
+                    let [pu, pv] = c.pixel(mid);
+                    if (pv, pu) < (v, u) {
+                        lo = mid + 1;
+                    } else {
+                        hi = mid;
+                    }
+                }
+                (lo < view.start + view.len && c.pixel(lo) == [u, v]).then_some(lo)
+            }
+        }
+    }
+}
+
+/// The kept-pixel indices and patch mask of patch batch `step` (module docs): `patched / k²`
+/// patches of side `k` (`patched` ≤ `size`, a multiple of k²), then `size − patched`
+/// independent pixels (mask 0: in no SSIM window); the mask is empty when every row is in a
+/// whole patch.
+pub fn patch_pixels(
+    samples: &Samples,
+    seed: u64,
+    step: u64,
+    size: usize,
+    k: usize,
+    patched: usize,
+) -> (Vec<usize>, Vec<u8>) {
+    let n = samples.len() as u64;
+    let k2 = k * k;
+    let patches = patched.min(size) / k2;
+    let mut pixels = Vec::with_capacity(size);
+    let mut mask = Vec::with_capacity(size);
+    let mut partial = false;
+    let mut rows: Vec<Option<usize>> = Vec::with_capacity(k2);
+    for j in 0..patches as u64 {
+        let mut origin = 0;
+        for t in 0..PATCH_TRIES {
+            origin = below(seed, Purpose::Patch, step, j * PATCH_TRIES + t, n) as usize;
+            let (slot, u, v) = samples.locate(origin);
+            rows.clear();
+            for dy in 0..k as i64 {
+                for dx in 0..k as i64 {
+                    rows.push(samples.index_at(slot, u as i64 + dx, v as i64 + dy));
+                }
+            }
+            if rows.iter().all(Option::is_some) {
+                break;
+            }
+        }
+        for r in &rows {
+            pixels.push(r.unwrap_or(origin));
+            mask.push(r.is_some() as u8);
+            partial |= r.is_none();
+        }
+    }
+    for i in 0..(size - patches * k2) as u64 {
+        pixels.push(below(seed, Purpose::Batch, step, i, n) as usize);
+        mask.push(0);
+        partial = true;
+    }
+    if !partial {
+        mask.clear();
+    }
+    (pixels, mask)
+}
+
+/// Batch `step` of a run with `seed`: `size` independent pixels (`patch` ≤ 1), or `patched`
+/// pixels in patches of side `patch` and the rest independent (module docs).
+pub fn draw_batch(
+    samples: &Samples,
+    tracer: &Tracer,
+    seed: u64,
+    step: u64,
+    size: usize,
+    patch: u32,
+    patched: usize,
+) -> Batch {
+    if patch <= 1 {
+        return sample_batch(samples, tracer, seed, step, size);
+    }
+    let k = patch as usize;
+    let (pixels, mask) = patch_pixels(samples, seed, step, size, k, patched);
+    let mut b = samples.batch(tracer, &pixels);
+    b.patch = k;
+    b.patch_mask = mask;
+    b
 }
 
 /// Batch `step` of a run with `seed`.

@@ -140,9 +140,9 @@ struct Prologue<R> {
     wt_deform: Option<Vec<Vec<R>>>,
 }
 
-/// `v` cleared and refilled with `len` zeros, keeping its allocation.
-fn reset<R: Real>(v: &mut Vec<R>, len: usize) {
-    v.clear();
+/// `v` at length `len` for a stage that writes every element: what a reused buffer held is
+/// left in place instead of being zeroed first (only a grown tail is zero-filled).
+fn fit<R: Real>(v: &mut Vec<R>, len: usize) {
     v.resize(len, R::ZERO);
 }
 
@@ -523,19 +523,21 @@ impl Hfm {
         let pts = &points[samples.clone()];
         f.pixels = pixels.clone();
         f.samples = samples.clone();
-        // Eq. 2: F_H at every valid sub-sample (or Fig. 2b's F_V: vertex featurization).
-        reset(&mut f.grid_h, v * lf);
+        // Eq. 2: F_H at every valid sub-sample (or Fig. 2b's F_V: vertex featurization); every
+        // element is written below (a skipped level as 0), as are the other buffers `fit` sizes.
+        fit(&mut f.grid_h, v * lf);
         let local_start: Vec<usize> = start[pixels.start..=pixels.end]
             .iter()
             .map(|&x| x - samples.start)
             .collect();
         // SPEC §4.10: the weights of each sub-sample's levels, and how many levels it evaluates.
         let mut active = Vec::new();
+        let mut weights_all_one = false;
         if self.cfg.level_weight == LevelWeight::Footprint {
             let nl = self.grid_h.scales.len();
-            reset(&mut f.level_w, v * nl);
+            fit(&mut f.level_w, v * nl);
             active = vec![0u8; v];
-            level_weights(
+            weights_all_one = level_weights(
                 &self.grid_h.scales,
                 &local_start,
                 &batch.footprint[pixels.clone()],
@@ -552,7 +554,8 @@ impl Hfm {
                     &mut f.grid_h,
                     &active,
                 );
-                if !f.level_w.is_empty() {
+                // x · 1 is x: a chunk whose weights are all 1 is left as it is.
+                if !f.level_w.is_empty() && !weights_all_one {
                     let nf = self.cfg.grid_h.features as usize;
                     apply_level_weights(&f.level_w, lf / nf, nf, &mut f.grid_h);
                 }
@@ -566,15 +569,15 @@ impl Hfm {
             ),
         }
         // SH(d_n).
-        reset(&mut f.sh, n * SH_DIM);
+        fit(&mut f.sh, n * SH_DIM);
         sh_forward(&batch.dirs[pixels.clone()], &mut f.sh);
         // Eq. 5: δ_j = ξ([F_D(x_j), SH(d_n)]).
         if let (Some(gd), Some(mlp), Some(wt)) = (&self.grid_d, &self.deform, wt_deform) {
             let ld = gd.out_dim();
-            reset(&mut f.grid_d, v * ld);
+            fit(&mut f.grid_d, v * ld);
             gd.forward(&params[self.r_grid_d.clone()], pts, mode, &mut f.grid_d);
             let din = ld + SH_DIM;
-            reset(&mut f.deform_in, v * din);
+            fit(&mut f.deform_in, v * din);
             for i in 0..n {
                 let sh = &f.sh[i * SH_DIM..(i + 1) * SH_DIM];
                 for j in start[pixels.start + i]..start[pixels.start + i + 1] {
@@ -593,12 +596,12 @@ impl Hfm {
             );
         }
         // Eq. 4: pooled_n = (Σ_j F'_j) / count_n, F'_j = F_H(x_j) + δ_j.
-        reset(&mut f.pooled, n * lf);
+        fit(&mut f.pooled, n * lf);
         let delta = self.deform.as_ref().map(|_| &f.deform.out[..]);
         pool_forward(&local_start, &f.grid_h, delta, lf, &mut f.pooled);
         // Shader input [pooled, SH(d), code(view)].
         let din = lf + SH_DIM + a;
-        reset(&mut f.shader_in, n * din);
+        fit(&mut f.shader_in, n * din);
         let codes = &params[self.r_codes.clone()];
         for i in 0..n {
             let row = &mut f.shader_in[i * din..(i + 1) * din];
@@ -622,7 +625,7 @@ impl Hfm {
             n,
             &mut f.shader,
         );
-        reset(&mut f.rgb, n * 3);
+        fit(&mut f.rgb, n * 3);
         sigmoid_forward(&f.shader.out, &mut f.rgb);
         f.loss_sum = loss_forward(
             self.cfg.loss,

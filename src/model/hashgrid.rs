@@ -368,11 +368,12 @@ impl HashGrid {
                 };
                 for l in 0..self.cfg.levels as usize {
                     if !act.is_empty() && act.iter().all(|&a| a as usize <= l) {
+                        // No point evaluates level l, hence none evaluates a finer one: their
+                        // outputs are 0, written as one fill per row.
                         o.chunks_exact_mut(lf).for_each(|r| {
-                            r[l * self.cfg.features as usize..][..self.cfg.features as usize]
-                                .fill(R::ZERO)
+                            r[l * self.cfg.features as usize..].fill(R::ZERO)
                         });
-                        continue;
+                        break;
                     }
                     let g = self.level(l, mode);
                     let tab = &table[g.offset * self.cfg.features as usize..]

@@ -109,6 +109,33 @@ pub struct ChunkFwd<R> {
     pub loss_sum: f64,
 }
 
+/// One chunk buffer per thread of the pool for [`Hfm::infer_with`]: a thread only ever takes
+/// its own (uncontended), and keeps it across chunks and calls.
+pub struct InferBuffers<R>(Vec<std::sync::Mutex<ChunkFwd<R>>>);
+
+impl<R: Real> InferBuffers<R> {
+    pub fn new() -> Self {
+        InferBuffers(
+            (0..rayon::current_num_threads().max(1))
+                .map(|_| std::sync::Mutex::new(ChunkFwd::default()))
+                .collect(),
+        )
+    }
+
+    /// The calling thread's buffer (a thread outside the pool shares the first).
+    fn for_this_thread(&self) -> std::sync::MutexGuard<'_, ChunkFwd<R>> {
+        let i = rayon::current_thread_index().unwrap_or(0) % self.0.len();
+        // A poisoned buffer (a panic in another chunk) holds nothing the next chunk reads first.
+        self.0[i].lock().unwrap_or_else(|e| e.into_inner())
+    }
+}
+
+impl<R: Real> Default for InferBuffers<R> {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
 /// Forward results of a batch.
 #[derive(Clone, Debug)]
 pub struct Forward<R> {
@@ -416,6 +443,19 @@ impl Hfm {
         batch: &Batch,
         code: Option<&[R]>,
     ) -> Result<Vec<R>> {
+        self.infer_with(params, batch, code, &InferBuffers::new())
+    }
+
+    /// [`Hfm::infer_coded`] with the chunk buffers of `bufs`, which a caller evaluating many
+    /// batches (a frame's chunks) keeps across them, so no buffer is grown (and zero-filled)
+    /// again. The colours do not depend on the buffers.
+    pub fn infer_with<R: Real>(
+        &self,
+        params: &[R],
+        batch: &Batch,
+        code: Option<&[R]>,
+        bufs: &InferBuffers<R>,
+    ) -> Result<Vec<R>> {
         let mut pre = self.prologue(params, batch)?;
         if let Some(c) = code {
             ensure!(
@@ -429,8 +469,9 @@ impl Hfm {
         let mut rgb = vec![R::ZERO; batch.n_pixels() * 3];
         rgb.par_chunks_mut(PIXEL_CHUNK * 3)
             .enumerate()
-            .for_each_init(ChunkFwd::default, |f, (c, out)| {
-                self.forward_chunk(f, params, batch, &pre, c);
+            .for_each(|(c, out)| {
+                let mut f = bufs.for_this_thread();
+                self.forward_chunk(&mut f, params, batch, &pre, c);
                 out.copy_from_slice(&f.rgb);
             });
         Ok(rgb)

@@ -13,9 +13,10 @@
 //! the interpreter named by `XSCALE_TORCH_PYTHON`, e.g. a venv's; without them it says so and exits). `XSCALE_BENCH_ROUNDS` (3), `XSCALE_BENCH_STEPS` (10).
 //! `XSCALE_BENCH_FIXED_LEVELS=1` uses the preset's fixed 16-level range instead of the automatic one
 //! (22 levels on `small`): the configuration the 0.5–0.6 s PyTorch figure was quoted at, to
-//! check the peer is as fast as that before its ratio at 22 levels is quoted. The peer compiles its loss with
-//! `torch.compile` (untimed warm-up; Inductor needs a C++ compiler, `g++`); `XSCALE_BENCH_PEER_EAGER=1`
-//! times it uncompiled.
+//! check the peer is as fast as that before its ratio at 22 levels is quoted. Each round times the peer
+//! twice: with its loss compiled by `torch.compile` (untimed warm-up; Inductor needs a C++ compiler,
+//! `g++`) and uncompiled (eager PyTorch, the peer earlier ratios were quoted against);
+//! `XSCALE_BENCH_PEER=compiled` or `=eager` times only one of them.
 
 mod common;
 use common::{emit_json, env, env_count, small_scene};
@@ -40,7 +41,12 @@ fn main() {
     let steps = env_count("XSCALE_BENCH_STEPS", 10);
     let threads = env_count("XSCALE_BENCH_THREADS", 2);
     let fixed_levels = env("XSCALE_BENCH_FIXED_LEVELS", 0) != 0;
-    let eager = env("XSCALE_BENCH_PEER_EAGER", 0) != 0;
+    let peer_modes: Vec<bool> = match std::env::var("XSCALE_BENCH_PEER").as_deref() {
+        Ok("compiled") => vec![false],
+        Ok("eager") => vec![true],
+        Ok("both") | Err(_) => vec![false, true],
+        Ok(other) => panic!("XSCALE_BENCH_PEER={other}: expected compiled, eager or both"),
+    };
     let script = concat!(env!("CARGO_MANIFEST_DIR"), "/reference/bench_torch.py");
     let python = std::env::var("XSCALE_TORCH_PYTHON").unwrap_or_else(|_| "python3".into());
     let probe = Command::new(&python)
@@ -91,7 +97,9 @@ fn main() {
         batch.samples_per_pixel(),
         out.display()
     );
-    let (mut ours, mut theirs, mut ratios) = (Vec::new(), Vec::new(), Vec::new());
+    let mut ours = Vec::new();
+    // Per peer mode (compiled, eager): its ms/step and its ratio to xscale's in each round.
+    let mut theirs: Vec<(Vec<f64>, Vec<f64>)> = vec![(Vec::new(), Vec::new()); peer_modes.len()];
     for r in 0..rounds {
         // xscale: reload, then `steps` full steps on the batch.
         let mut st = TrainState::load(&ck).unwrap();
@@ -106,43 +114,50 @@ fn main() {
             }
             (loss0, t0.elapsed().as_secs_f64() * 1e3 / steps as f64)
         });
-        // The peer, which first checks it reproduces loss0.
-        let o = Command::new(&python)
-            .arg(script)
-            .args(["--checkpoint", ck.to_str().unwrap()])
-            .args(["--batch", bp.to_str().unwrap()])
-            .args([
-                "--steps",
-                &steps.to_string(),
-                "--threads",
-                &threads.to_string(),
-            ])
-            .args(["--expect-loss", &format!("{loss0:e}")])
-            .args(eager.then_some("--eager"))
-            .output()
-            .unwrap();
-        let stdout = String::from_utf8_lossy(&o.stdout);
-        assert!(
-            o.status.success(),
-            "the peer failed: {}{}",
-            stdout,
-            String::from_utf8_lossy(&o.stderr)
-        );
-        let j: serde_json::Value = serde_json::from_str(stdout.trim()).unwrap();
-        let peer_ms = j["ms_per_step"].as_f64().unwrap();
-        let peer_loss = j["loss0"].as_f64().unwrap();
-        eprintln!(
-            "round {r}: xscale {ms:.1} ms/step (loss {loss0:.8}), PyTorch {peer_ms:.1} ms/step (loss {peer_loss:.8}, {}, {} Adam, torch {}): {:.1}x",
-            if j["compiled"].as_bool() == Some(true) { "torch.compile" } else { "eager" },
-            j["adam"].as_str().unwrap_or("?"),
-            j["torch"].as_str().unwrap_or("?"),
-            peer_ms / ms
-        );
         ours.push(ms);
-        theirs.push(peer_ms);
-        ratios.push(peer_ms / ms);
+        // The peers, each of which first checks it reproduces loss0.
+        for (k, &eager) in peer_modes.iter().enumerate() {
+            let o = Command::new(&python)
+                .arg(script)
+                .args(["--checkpoint", ck.to_str().unwrap()])
+                .args(["--batch", bp.to_str().unwrap()])
+                .args([
+                    "--steps",
+                    &steps.to_string(),
+                    "--threads",
+                    &threads.to_string(),
+                ])
+                .args(["--expect-loss", &format!("{loss0:e}")])
+                .args(eager.then_some("--eager"))
+                .output()
+                .unwrap();
+            let stdout = String::from_utf8_lossy(&o.stdout);
+            assert!(
+                o.status.success(),
+                "the peer failed: {}{}",
+                stdout,
+                String::from_utf8_lossy(&o.stderr)
+            );
+            let j: serde_json::Value = serde_json::from_str(stdout.trim()).unwrap();
+            assert_eq!(
+                j["compiled"].as_bool(),
+                Some(!eager),
+                "the peer ran in the wrong mode"
+            );
+            let peer_ms = j["ms_per_step"].as_f64().unwrap();
+            let peer_loss = j["loss0"].as_f64().unwrap();
+            eprintln!(
+                "round {r}: xscale {ms:.1} ms/step (loss {loss0:.8}), PyTorch {peer_ms:.1} ms/step (loss {peer_loss:.8}, {}, {} Adam, torch {}): {:.1}x",
+                mode_name(eager),
+                j["adam"].as_str().unwrap_or("?"),
+                j["torch"].as_str().unwrap_or("?"),
+                peer_ms / ms
+            );
+            theirs[k].0.push(peer_ms);
+            theirs[k].1.push(peer_ms / ms);
+        }
     }
-    let (a, b, q) = (median(&mut ours), median(&mut theirs), median(&mut ratios));
+    let a = median(&mut ours.clone());
     println!(
         "training step, cpu preset, {batch_px} pixels (γ=2), {threads} threads, median of {rounds} alternating rounds of {steps} steps:"
     );
@@ -150,16 +165,30 @@ fn main() {
         "  xscale  {a:8.1} ms/step  ({:.0} px/s)",
         batch_px as f64 / a * 1e3
     );
-    println!(
-        "  PyTorch {b:8.1} ms/step  ({:.0} px/s)",
-        batch_px as f64 / b * 1e3
-    );
-    println!("  PyTorch / xscale: {q:.1}x (median of the per-round ratios)");
+    let mut peers = Vec::new();
+    for (&eager, (ms, ratios)) in peer_modes.iter().zip(&mut theirs) {
+        let (b, q) = (median(&mut ms.clone()), median(&mut ratios.clone()));
+        println!(
+            "  PyTorch ({}) {b:8.1} ms/step  ({:.0} px/s): {q:.1}x xscale's time (median of the per-round ratios)",
+            mode_name(eager),
+            batch_px as f64 / b * 1e3
+        );
+        peers.push(serde_json::json!({
+            "mode": mode_name(eager), "compiled": !eager, "torch_ms": b, "ratio": q,
+            "ratio_min": ratios.iter().cloned().fold(f64::INFINITY, f64::min),
+            "ratio_max": ratios.iter().cloned().fold(0.0, f64::max),
+        }));
+    }
     emit_json(serde_json::json!({
         "batch": batch_px, "threads": threads, "rounds": rounds, "steps": steps,
-        "xscale_ms": a, "torch_ms": b, "ratio": q,
-        "ratio_min": ratios.iter().cloned().fold(f64::INFINITY, f64::min),
-        "ratio_max": ratios.iter().cloned().fold(0.0, f64::max),
-        "compiled": !eager,
+        "xscale_ms": a, "peers": peers,
     }));
+}
+
+fn mode_name(eager: bool) -> &'static str {
+    if eager {
+        "eager"
+    } else {
+        "torch.compile"
+    }
 }

@@ -370,9 +370,8 @@ impl HashGrid {
                     if !act.is_empty() && act.iter().all(|&a| a as usize <= l) {
                         // No point evaluates level l, hence none evaluates a finer one: their
                         // outputs are 0, written as one fill per row.
-                        o.chunks_exact_mut(lf).for_each(|r| {
-                            r[l * self.cfg.features as usize..].fill(R::ZERO)
-                        });
+                        o.chunks_exact_mut(lf)
+                            .for_each(|r| r[l * self.cfg.features as usize..].fill(R::ZERO));
                         break;
                     }
                     let g = self.level(l, mode);

@@ -366,6 +366,7 @@ impl HashGrid {
             .zip(points.par_chunks(CHUNK_POINTS))
             .enumerate()
             .for_each(|(ci, (o, p))| {
+                let mut sc = BlockScratch::new();
                 let act = if active.is_empty() {
                     &[][..]
                 } else {
@@ -373,16 +374,27 @@ impl HashGrid {
                 };
                 for l in 0..self.cfg.levels as usize {
                     if !act.is_empty() && act.iter().all(|&a| a as usize <= l) {
-                        o.chunks_exact_mut(lf).for_each(|r| {
-                            r[l * self.cfg.features as usize..][..self.cfg.features as usize]
-                                .fill(R::ZERO)
-                        });
-                        continue;
+                        // No point evaluates level l, hence none evaluates a finer one: their
+                        // outputs are 0, written as one fill per row.
+                        o.chunks_exact_mut(lf)
+                            .for_each(|r| r[l * self.cfg.features as usize..].fill(R::ZERO));
+                        break;
                     }
                     let g = self.level(l, mode);
                     let tab = &table[g.offset * self.cfg.features as usize..]
                         [..g.size as usize * self.cfg.features as usize];
-                    kernels::forward_level(fast, self.cfg.features, &g, tab, p, o, lf, l, act);
+                    kernels::forward_level(
+                        fast,
+                        self.cfg.features,
+                        &g,
+                        tab,
+                        p,
+                        o,
+                        lf,
+                        l,
+                        act,
+                        &mut sc,
+                    );
                 }
             });
     }
@@ -830,21 +842,25 @@ fn block_len(n: usize) -> usize {
     n.next_multiple_of(8).min(BLOCK)
 }
 
-/// `locate` for a block, SoA: `c[d][j]`, `t[d][j]` for `j < block_len(xs.len())`.
+/// `locate` for a block, SoA: `c[d][j]`, `t[d][j]` for `j < block_len(xs.len())`. `xd` is
+/// scratch (the points transposed; the padding lanes set to 0).
 #[inline(always)]
 fn locate_block<R: Real>(
     scale: f32,
     tcnn: bool,
     xs: &[[f64; 3]],
+    xd: &mut [[f64; BLOCK]; 3],
     c: &mut [[u32; BLOCK]; 3],
     t: &mut [[R; BLOCK]; 3],
 ) {
     let n = block_len(xs.len());
-    let mut xd = [[0.0f64; BLOCK]; 3];
     for (j, x) in xs.iter().enumerate() {
         xd[0][j] = x[0];
         xd[1][j] = x[1];
         xd[2][j] = x[2];
+    }
+    for row in xd.iter_mut() {
+        row[xs.len()..n].fill(0.0);
     }
     for d in 0..3 {
         if tcnn {
@@ -896,10 +912,15 @@ fn interp_block<R: Real>(
     }
 }
 
-/// Trilinear corner weights for a block: `w8[k][j]`, each the product in axis order 0, 1, 2.
+/// Trilinear corner weights for a block: `w8[k][j]`, each the product in axis order 0, 1, 2
+/// (`om` is scratch: `1 − w`).
 #[inline(always)]
-fn corner_weights_block<R: Real>(n: usize, w: &[[R; BLOCK]; 3], w8: &mut [[R; BLOCK]; 8]) {
-    let mut om = [[R::ZERO; BLOCK]; 3];
+fn corner_weights_block<R: Real>(
+    n: usize,
+    w: &[[R; BLOCK]; 3],
+    om: &mut [[R; BLOCK]; 3],
+    w8: &mut [[R; BLOCK]; 8],
+) {
     for d in 0..3 {
         for j in 0..n {
             om[d][j] = R::ONE - w[d][j];
@@ -911,6 +932,32 @@ fn corner_weights_block<R: Real>(n: usize, w: &[[R; BLOCK]; 3], w8: &mut [[R; BL
         let c = if k >> 2 == 1 { &w[2] } else { &om[2] };
         for j in 0..n {
             row[j] = a[j] * b[j] * c[j];
+        }
+    }
+}
+
+/// The forward kernel's per-block arrays, made once per chunk of points and kept across its
+/// levels and blocks: a block writes every lane it reads before reading it, so nothing is cleared
+/// between blocks (clearing these ~10 KB for every block of every level was a visible share of a
+/// render's time).
+pub(crate) struct BlockScratch<R> {
+    xd: [[f64; BLOCK]; 3],
+    c: [[u32; BLOCK]; 3],
+    w: [[R; BLOCK]; 3],
+    om: [[R; BLOCK]; 3],
+    idx: [[u32; BLOCK]; 8],
+    w8: [[R; BLOCK]; 8],
+}
+
+impl<R: Real> BlockScratch<R> {
+    pub(crate) fn new() -> Self {
+        BlockScratch {
+            xd: [[0.0; BLOCK]; 3],
+            c: [[0; BLOCK]; 3],
+            w: [[R::ZERO; BLOCK]; 3],
+            om: [[R::ZERO; BLOCK]; 3],
+            idx: [[0; BLOCK]; 8],
+            w8: [[R::ZERO; BLOCK]; 8],
         }
     }
 }
@@ -1024,7 +1071,8 @@ mod kernels {
     // ---------------------------------------------------------------- forward
 
     kernel!(forward_level, forward_level_fma, forward_level_plain, forward_level_impl,
-        (tab: &[R], pts: &[[f64; 3]], out: &mut [R], lf: usize, l: usize, active: &[u8]));
+        (tab: &[R], pts: &[[f64; 3]], out: &mut [R], lf: usize, l: usize, active: &[u8],
+         sc: &mut BlockScratch<R>));
 
     /// One level for a chunk of points: `out[i, l*F..(l+1)*F] = Σ_k w_k · table[idx_k]` (Eq. 2).
     #[inline(always)]
@@ -1040,25 +1088,30 @@ mod kernels {
         lf: usize,
         l: usize,
         active: &[u8], // [n] levels evaluated per point, or empty = all
+        sc: &mut BlockScratch<R>,
     ) {
         assert_eq!(tab.len(), g.size as usize * F);
         assert!(out.len() >= pts.len() * lf);
         assert!(active.is_empty() || active.len() >= pts.len());
         // A point whose active-level count is ≤ l skips this level (output 0, no gather).
         let on = |i: usize| active.is_empty() || active[i] as usize > l;
-        let mut c = [[0u32; BLOCK]; 3];
-        let mut w = [[R::ZERO; BLOCK]; 3];
-        let mut idx = [[0u32; BLOCK]; 8];
-        let mut w8 = [[R::ZERO; BLOCK]; 8];
+        let BlockScratch {
+            xd,
+            c,
+            w,
+            om,
+            idx,
+            w8,
+        } = sc;
         for (b, xs) in pts.chunks(BLOCK).enumerate() {
             // Pass 1: corners and weights of the block, prefetching the table rows.
-            locate_block(g.scale, g.tcnn, xs, &mut c, &mut w);
-            interp_block(block_len(xs.len()), g.smooth, &mut w, None);
-            corner_weights_block(block_len(xs.len()), &w, &mut w8);
-            ix.corners_block(block_len(xs.len()), &c, &mut idx);
+            locate_block(g.scale, g.tcnn, xs, xd, c, w);
+            interp_block(block_len(xs.len()), g.smooth, w, None);
+            corner_weights_block(block_len(xs.len()), w, om, w8);
+            ix.corners_block(block_len(xs.len()), c, idx);
             for j in 0..xs.len() {
                 if on(b * BLOCK + j) {
-                    prefetch_corners::<R, F>(tab, &idx, j);
+                    prefetch_corners::<R, F>(tab, idx, j);
                 }
             }
             // Pass 2: gather and interpolate (Eq. 2), fma chain in corner order.
@@ -1105,17 +1158,19 @@ mod kernels {
         assert_eq!(d_tab.len(), g.size as usize * F);
         assert_eq!(bits.len(), (g.size as usize).div_ceil(64));
         assert!(d_out.len() >= pts.len() * lf);
+        let mut xd = [[0.0f64; BLOCK]; 3];
         let mut c = [[0u32; BLOCK]; 3];
         let mut w = [[R::ZERO; BLOCK]; 3];
+        let mut om = [[R::ZERO; BLOCK]; 3];
         let mut idx = [[0u32; BLOCK]; 8];
         let mut w8 = [[R::ZERO; BLOCK]; 8];
         let mut grs = [[R::ZERO; F]; BLOCK];
         let mut live = [false; BLOCK];
         for (b, xs) in pts.chunks(BLOCK).enumerate() {
             // Pass 1: corners and weights, prefetching the gradient rows.
-            locate_block(g.scale, g.tcnn, xs, &mut c, &mut w);
+            locate_block(g.scale, g.tcnn, xs, &mut xd, &mut c, &mut w);
             interp_block(block_len(xs.len()), g.smooth, &mut w, None);
-            corner_weights_block(block_len(xs.len()), &w, &mut w8);
+            corner_weights_block(block_len(xs.len()), &w, &mut om, &mut w8);
             ix.corners_block(block_len(xs.len()), &c, &mut idx);
             for j in 0..xs.len() {
                 grs[j].copy_from_slice(&d_out[(b * BLOCK + j) * lf + l * F..][..F]);
@@ -1172,6 +1227,7 @@ mod kernels {
         assert!(d_out.len() >= pts.len() * lf);
         assert!(acc.len() >= pts.len());
         let scale = R::from_f32(g.scale);
+        let mut xd = [[0.0f64; BLOCK]; 3];
         let mut c = [[0u32; BLOCK]; 3];
         let mut w = [[R::ZERO; BLOCK]; 3];
         let mut dw = [[R::ZERO; BLOCK]; 3];
@@ -1179,7 +1235,7 @@ mod kernels {
         let mut v = [[[R::ZERO; BLOCK]; F]; 8];
         for (b, xs) in pts.chunks(BLOCK).enumerate() {
             // Pass 1: corners, weights and dw/dt, prefetching the table rows.
-            locate_block(g.scale, g.tcnn, xs, &mut c, &mut w);
+            locate_block(g.scale, g.tcnn, xs, &mut xd, &mut c, &mut w);
             interp_block(block_len(xs.len()), g.smooth, &mut w, Some(&mut dw));
             ix.corners_block(block_len(xs.len()), &c, &mut idx);
             for j in 0..xs.len() {

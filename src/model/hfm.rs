@@ -110,6 +110,33 @@ pub struct ChunkFwd<R> {
     pub loss_sum: f64,
 }
 
+/// One chunk buffer per thread of the pool for [`Hfm::infer_with`]: a thread only ever takes
+/// its own (uncontended), and keeps it across chunks and calls.
+pub struct InferBuffers<R>(Vec<std::sync::Mutex<ChunkFwd<R>>>);
+
+impl<R: Real> InferBuffers<R> {
+    pub fn new() -> Self {
+        InferBuffers(
+            (0..rayon::current_num_threads().max(1))
+                .map(|_| std::sync::Mutex::new(ChunkFwd::default()))
+                .collect(),
+        )
+    }
+
+    /// The calling thread's buffer (a thread outside the pool shares the first).
+    fn for_this_thread(&self) -> std::sync::MutexGuard<'_, ChunkFwd<R>> {
+        let i = rayon::current_thread_index().unwrap_or(0) % self.0.len();
+        // A poisoned buffer (a panic in another chunk) holds nothing the next chunk reads first.
+        self.0[i].lock().unwrap_or_else(|e| e.into_inner())
+    }
+}
+
+impl<R: Real> Default for InferBuffers<R> {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
 /// Forward results of a batch.
 #[derive(Clone, Debug)]
 pub struct Forward<R> {
@@ -141,9 +168,9 @@ struct Prologue<R> {
     wt_deform: Option<Vec<Vec<R>>>,
 }
 
-/// `v` cleared and refilled with `len` zeros, keeping its allocation.
-fn reset<R: Real>(v: &mut Vec<R>, len: usize) {
-    v.clear();
+/// `v` at length `len` for a stage that writes every element: what a reused buffer held is
+/// left in place instead of being zeroed first (only a grown tail is zero-filled).
+fn fit<R: Real>(v: &mut Vec<R>, len: usize) {
     v.resize(len, R::ZERO);
 }
 
@@ -423,6 +450,19 @@ impl Hfm {
         batch: &Batch,
         code: Option<&[R]>,
     ) -> Result<Vec<R>> {
+        self.infer_with(params, batch, code, &InferBuffers::new())
+    }
+
+    /// [`Hfm::infer_coded`] with the chunk buffers of `bufs`, which a caller evaluating many
+    /// batches (a frame's chunks) keeps across them, so no buffer is grown (and zero-filled)
+    /// again. The colours do not depend on the buffers.
+    pub fn infer_with<R: Real>(
+        &self,
+        params: &[R],
+        batch: &Batch,
+        code: Option<&[R]>,
+        bufs: &InferBuffers<R>,
+    ) -> Result<Vec<R>> {
         let mut pre = self.prologue(params, batch)?;
         if let Some(c) = code {
             ensure!(
@@ -436,8 +476,9 @@ impl Hfm {
         let mut rgb = vec![R::ZERO; batch.n_pixels() * 3];
         rgb.par_chunks_mut(PIXEL_CHUNK * 3)
             .enumerate()
-            .for_each_init(ChunkFwd::default, |f, (c, out)| {
-                self.forward_chunk(f, params, batch, &pre, c);
+            .for_each(|(c, out)| {
+                let mut f = bufs.for_this_thread();
+                self.forward_chunk(&mut f, params, batch, &pre, c);
                 out.copy_from_slice(&f.rgb);
             });
         Ok(rgb)
@@ -530,19 +571,21 @@ impl Hfm {
         let pts = &points[samples.clone()];
         f.pixels = pixels.clone();
         f.samples = samples.clone();
-        // Eq. 2: F_H at every valid sub-sample (or Fig. 2b's F_V: vertex featurization).
-        reset(&mut f.grid_h, v * lf);
+        // Eq. 2: F_H at every valid sub-sample (or Fig. 2b's F_V: vertex featurization); every
+        // element is written below (a skipped level as 0), as are the other buffers `fit` sizes.
+        fit(&mut f.grid_h, v * lf);
         let local_start: Vec<usize> = start[pixels.start..=pixels.end]
             .iter()
             .map(|&x| x - samples.start)
             .collect();
         // SPEC §4.10: the weights of each sub-sample's levels, and how many levels it evaluates.
         let mut active = Vec::new();
+        let mut weights_all_one = false;
         if self.cfg.level_weight == LevelWeight::Footprint {
             let nl = self.grid_h.scales.len();
-            reset(&mut f.level_w, v * nl);
+            fit(&mut f.level_w, v * nl);
             active = vec![0u8; v];
-            level_weights(
+            weights_all_one = level_weights(
                 &self.grid_h.scales,
                 &local_start,
                 &batch.footprint[pixels.clone()],
@@ -559,7 +602,8 @@ impl Hfm {
                     &mut f.grid_h,
                     &active,
                 );
-                if !f.level_w.is_empty() {
+                // x · 1 is x: a chunk whose weights are all 1 is left as it is.
+                if !f.level_w.is_empty() && !weights_all_one {
                     let nf = self.cfg.grid_h.features as usize;
                     apply_level_weights(&f.level_w, lf / nf, nf, &mut f.grid_h);
                 }
@@ -573,15 +617,15 @@ impl Hfm {
             ),
         }
         // SH(d_n).
-        reset(&mut f.sh, n * SH_DIM);
+        fit(&mut f.sh, n * SH_DIM);
         sh_forward(&batch.dirs[pixels.clone()], &mut f.sh);
         // Eq. 5: δ_j = ξ([F_D(x_j), SH(d_n)]).
         if let (Some(gd), Some(mlp), Some(wt)) = (&self.grid_d, &self.deform, wt_deform) {
             let ld = gd.out_dim();
-            reset(&mut f.grid_d, v * ld);
+            fit(&mut f.grid_d, v * ld);
             gd.forward(&params[self.r_grid_d.clone()], pts, mode, &mut f.grid_d);
             let din = ld + SH_DIM;
-            reset(&mut f.deform_in, v * din);
+            fit(&mut f.deform_in, v * din);
             for i in 0..n {
                 let sh = &f.sh[i * SH_DIM..(i + 1) * SH_DIM];
                 for j in start[pixels.start + i]..start[pixels.start + i + 1] {
@@ -600,12 +644,12 @@ impl Hfm {
             );
         }
         // Eq. 4: pooled_n = (Σ_j F'_j) / count_n, F'_j = F_H(x_j) + δ_j.
-        reset(&mut f.pooled, n * lf);
+        fit(&mut f.pooled, n * lf);
         let delta = self.deform.as_ref().map(|_| &f.deform.out[..]);
         pool_forward(&local_start, &f.grid_h, delta, lf, &mut f.pooled);
         // Shader input [pooled, SH(d), code(view)].
         let din = lf + SH_DIM + a;
-        reset(&mut f.shader_in, n * din);
+        fit(&mut f.shader_in, n * din);
         let codes = &params[self.r_codes.clone()];
         for i in 0..n {
             let row = &mut f.shader_in[i * din..(i + 1) * din];
@@ -629,7 +673,7 @@ impl Hfm {
             n,
             &mut f.shader,
         );
-        reset(&mut f.rgb, n * 3);
+        fit(&mut f.rgb, n * 3);
         sigmoid_forward(&f.shader.out, &mut f.rgb);
         f.loss_sum = loss_forward(
             self.cfg.loss,

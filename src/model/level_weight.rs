@@ -42,25 +42,29 @@ pub fn weight(r: f64) -> f64 {
 
 /// For each sample of each pixel: its level weights `w[v, L]` (model float) and its number of
 /// active levels `active[v]`. `start[n+1]` is the pixels' sample ranges (local to `w`), `fp[n]`
-/// their footprints, `scales[L]` grid H's per-level scales.
+/// their footprints, `scales[L]` grid H's per-level scales. Returns whether every weight is 1
+/// (then [`apply_level_weights`] would change nothing: a close-up's pixels are finer than every
+/// level).
 pub fn level_weights<R: Real>(
     scales: &[f32],
     start: &[usize],
     fp: &[f32],
     w: &mut [R],
     active: &mut [u8],
-) {
+) -> bool {
     let nl = scales.len();
     assert!(
         nl <= u8::MAX as usize,
         "level weighting: at most 255 levels"
     );
     let mut row = vec![R::ZERO; nl];
+    let mut all_one = true;
     for (i, &f) in fp.iter().enumerate() {
         let mut act = 0u8;
         for (l, (&s, o)) in scales.iter().zip(row.iter_mut()).enumerate() {
             let x = weight(f as f64 * s as f64);
             *o = R::from_f64(x);
+            all_one &= *o == R::ONE;
             if x > 0.0 {
                 act = l as u8 + 1;
             }
@@ -70,6 +74,7 @@ pub fn level_weights<R: Real>(
             active[r] = act;
         }
     }
+    all_one
 }
 
 /// `x[v, L·F] *= w[v, L]` per level (forward: the weighted features; backward: the weighted
@@ -80,13 +85,20 @@ pub fn apply_level_weights<R: Real>(w: &[R], nl: usize, nf: usize, x: &mut [R]) 
         w.len() / nl.max(1),
         "level weights: shapes"
     );
-    for (xr, wr) in x.chunks_exact_mut(nl * nf).zip(w.chunks_exact(nl)) {
-        for (l, &wl) in wr.iter().enumerate() {
-            // x · 1 is x: a level of full weight (most levels of most pixels) is left as it is.
-            if wl == R::ONE {
-                continue;
+    // Every level is multiplied, those of full weight too (x · 1 is x, bit for bit): a loop
+    // without a test per level, which the compiler vectorises.
+    if nf == 2 {
+        for (xr, wr) in x.chunks_exact_mut(nl * 2).zip(w.chunks_exact(nl)) {
+            for (v, &wl) in xr.chunks_exact_mut(2).zip(wr) {
+                v[0] *= wl;
+                v[1] *= wl;
             }
-            for v in &mut xr[l * nf..(l + 1) * nf] {
+        }
+        return;
+    }
+    for (xr, wr) in x.chunks_exact_mut(nl * nf).zip(w.chunks_exact(nl)) {
+        for (v, &wl) in xr.chunks_exact_mut(nf.max(1)).zip(wr) {
+            for v in v {
                 *v *= wl;
             }
         }

@@ -421,17 +421,26 @@ pub fn cast_rows_into(
     let (w, h) = (camera.width as usize, rows as usize);
     let g2 = (gamma * gamma) as usize;
     // Filled in parallel on huge pages: at 1024×768, γ=2 this is 277 MB, and 4 KiB page faults
-    // serialise the threads. Every element is written by `cast_strip`.
+    // serialise the threads. Every element is written by `cast_strip`, so a buffer reused from
+    // the previous band (as long or longer) is only cut to length, not filled again.
     let subs = &mut out.subs;
     if subs.capacity() < w * h * g2 {
         *subs = Vec::with_capacity(w * h * g2);
         super::advise_huge_pages(subs);
     }
-    subs.clear();
-    subs.par_extend(rayon::iter::repeat_n(SubSample::default(), w * h * g2));
+    if subs.len() >= w * h * g2 {
+        subs.truncate(w * h * g2);
+    } else {
+        subs.clear();
+        subs.par_extend(rayon::iter::repeat_n(SubSample::default(), w * h * g2));
+    }
     let pixels = &mut out.pixels;
-    pixels.clear();
-    pixels.resize(w * h, PixelSummary::default());
+    if pixels.len() >= w * h {
+        pixels.truncate(w * h);
+    } else {
+        pixels.clear();
+        pixels.resize(w * h, PixelSummary::default());
+    }
     let strip = STRIP_ROWS as usize;
     subs.par_chunks_mut(strip * w * g2)
         .zip(pixels.par_chunks_mut(strip * w))

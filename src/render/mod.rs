@@ -79,6 +79,7 @@ impl ModelRenderer<'_> {
         let (model, params, gamma) = (self.model, self.params, self.gamma);
         let s = (gamma * gamma) as usize;
         let (view_row, code) = appearance.row_and_code();
+        let bufs = crate::model::hfm::InferBuffers::new();
         render_in_bands(
             self.tracer,
             camera,
@@ -89,7 +90,7 @@ impl ModelRenderer<'_> {
                 let hits = tile_order_hits(cast);
                 for chunk in hits.chunks(RENDER_CHUNK) {
                     let b = render_batch(model, cast, chunk, s, view_row);
-                    let rgb = model.infer_coded(params, &b, code)?;
+                    let rgb = model.infer_with(params, &b, code, &bufs)?;
                     for (&i, c) in chunk.iter().zip(rgb.chunks_exact(3)) {
                         colours[i * 3..i * 3 + 3].copy_from_slice(c);
                     }

@@ -11,7 +11,7 @@ use xscale::raycast::stream::HitMap;
 use xscale::raycast::{RayStream, SampleCache, Targets, Tracer};
 use xscale::rng::{below, uniform_f32, Purpose};
 use xscale::run::trainer::{train, TrainOptions};
-use xscale::scene::{Image, LoadOptions, Scene};
+use xscale::scene::{Camera, Image, LoadOptions, Scene};
 use xscale::train::config::RunConfig;
 use xscale::train::sampler::{
     batch_from_pixels, batch_pixels, draw_batch, patch_pixels, SampleMode, Samples,
@@ -25,23 +25,38 @@ fn fixture() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/tiny")
 }
 
+/// The tiny scene, its tracer and its training views' photos.
+fn tiny_training() -> (Scene, Tracer, Vec<Image>) {
+    let scene = Scene::load(&fixture(), &LoadOptions::default()).unwrap();
+    let tracer = Tracer::new(&scene.mesh, &scene.normalization).unwrap();
+    let images = scene
+        .train()
+        .iter()
+        .map(|&i| scene.load_image(i).unwrap())
+        .collect();
+    (scene, tracer, images)
+}
+
+/// The training views as the sample sources take them: (camera, photo), in training order.
+fn training_views<'a>(
+    scene: &'a Scene,
+    images: &'a [Image],
+) -> Vec<(&'a Camera, Option<&'a Image>)> {
+    scene
+        .train()
+        .iter()
+        .zip(images)
+        .map(|(&i, img)| (&scene.views[i].camera, Some(img)))
+        .collect()
+}
+
 /// Every kept pixel of the tiny scene, for γ = 1..4, hash (positions only) and vertex
 /// (triangle ids + barycentrics) batches: the stream's batch equals the cache's, and is the same
 /// with 1 and 2 threads.
 #[test]
 fn stream_batches_equal_cache_batches() {
-    let scene = Scene::load(&fixture(), &LoadOptions::default()).unwrap();
-    let tracer = Tracer::new(&scene.mesh, &scene.normalization).unwrap();
-    let train = scene.train();
-    let images: Vec<Image> = train
-        .iter()
-        .map(|&i| scene.load_image(i).unwrap())
-        .collect();
-    let views: Vec<_> = train
-        .iter()
-        .zip(&images)
-        .map(|(&i, img)| (&scene.views[i].camera, Some(img)))
-        .collect();
+    let (scene, tracer, images) = tiny_training();
+    let views = training_views(&scene, &images);
     for gamma in 1..=4 {
         for tri in [false, true] {
             let cache = SampleCache::build(&tracer, &views, gamma, tri, &mut |_| {}).unwrap();
@@ -70,18 +85,8 @@ fn stream_batches_equal_cache_batches() {
 /// filled with its origin; the batch is a pure function of (seed, step).
 #[test]
 fn patch_batches_are_neighbours_and_the_same_streamed_or_cached() {
-    let scene = Scene::load(&fixture(), &LoadOptions::default()).unwrap();
-    let tracer = Tracer::new(&scene.mesh, &scene.normalization).unwrap();
-    let train = scene.train();
-    let images: Vec<Image> = train
-        .iter()
-        .map(|&i| scene.load_image(i).unwrap())
-        .collect();
-    let views: Vec<_> = train
-        .iter()
-        .zip(&images)
-        .map(|(&i, img)| (&scene.views[i].camera, Some(img)))
-        .collect();
+    let (scene, tracer, images) = tiny_training();
+    let views = training_views(&scene, &images);
     let cache = SampleCache::build(&tracer, &views, 2, false, &mut |_| {}).unwrap();
     let stream = RayStream::build(&tracer, &views, 2, false, &mut |_| {}).unwrap();
     let pix: Vec<([u32; 2], usize)> = (0..cache.len())

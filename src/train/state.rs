@@ -39,6 +39,18 @@ pub fn optimizer_next_path(model: &Path) -> PathBuf {
     let stem = name.strip_suffix(".safetensors").unwrap_or(&name);
     p.with_file_name(format!("{stem}.next.safetensors"))
 }
+
+/// The optimizer state's `.next` file renamed over the optimizer file (the last step of a save,
+/// or of a load that found a save cut between its two renames).
+fn promote_next(next: &Path, opt_path: &Path) -> Result<()> {
+    std::fs::rename(next, opt_path).with_context(|| {
+        format!(
+            "{}: cannot rename {} over it",
+            opt_path.display(),
+            next.display()
+        )
+    })
+}
 use std::time::Instant;
 
 /// Everything that defines a run at a step: configuration, model, parameters, Adam state.
@@ -183,13 +195,7 @@ impl TrainState {
         let (opt_path, next) = (optimizer_path(path), optimizer_next_path(path));
         opt.write_atomic(&next)?;
         model.write_atomic(path)?;
-        std::fs::rename(&next, &opt_path).with_context(|| {
-            format!(
-                "{}: cannot rename {} over it",
-                opt_path.display(),
-                next.display()
-            )
-        })?;
+        promote_next(&next, &opt_path)?;
         #[cfg(unix)]
         if let Some(d) = opt_path.parent().and_then(|d| {
             std::fs::File::open(if d.as_os_str().is_empty() {
@@ -232,13 +238,7 @@ impl TrainState {
             Err(e) if next.is_file() => {
                 let st = TrainState::from_tensor_files(&model, &TensorFile::read(&next)?)
                     .map_err(|e2| e.context(format!("nor is {}: {e2:#}", next.display())))?;
-                std::fs::rename(&next, &opt_path).with_context(|| {
-                    format!(
-                        "{}: cannot rename {} over it",
-                        opt_path.display(),
-                        next.display()
-                    )
-                })?;
+                promote_next(&next, &opt_path)?;
                 Ok(st)
             }
             Err(e) => Err(e),

@@ -42,8 +42,9 @@ pub enum Purpose {
     Test = 99,
 }
 
+/// SplitMix64's finaliser (`fmix` in the module docs).
 #[inline]
-fn fmix(mut z: u64) -> u64 {
+pub(crate) fn fmix(mut z: u64) -> u64 {
     z ^= z >> 30;
     z = z.wrapping_mul(0xBF58_476D_1CE4_E5B9);
     z ^= z >> 27;

@@ -11,6 +11,8 @@
 //! masked PSNR uses the MSE over masked pixels; masked SSIM is the mean of the cropped SSIM map
 //! over masked pixels. Everything is computed in f64.
 
+use crate::model::ssim::{window_weights, C1, C2};
+
 /// Mean squared error over all pixels and channels (or masked pixels only).
 fn mse(a: &[f32], b: &[f32], mask: Option<&[bool]>) -> f64 {
     assert_eq!(a.len(), b.len(), "images differ in size");
@@ -43,21 +45,11 @@ pub fn psnr_masked(a: &[f32], b: &[f32], mask: &[bool]) -> f64 {
 }
 
 const RADIUS: usize = 5;
-const SIGMA: f64 = 1.5;
-
-fn gaussian_taps() -> [f64; 2 * RADIUS + 1] {
-    let mut w = [0.0; 2 * RADIUS + 1];
-    for (i, wi) in w.iter_mut().enumerate() {
-        let x = i as f64 - RADIUS as f64;
-        *wi = (-x * x / (2.0 * SIGMA * SIGMA)).exp();
-    }
-    let s: f64 = w.iter().sum();
-    w.map(|v| v / s)
-}
 
 /// The cropped SSIM map of one channel: `(h - 10) × (w - 10)` values.
 fn ssim_map_channel(x: &[f64], y: &[f64], w: usize, h: usize) -> Vec<f64> {
-    let taps = gaussian_taps();
+    // σ = 1.5, 11 taps: the window the training's D-SSIM term uses too (`model/ssim.rs`).
+    let taps = window_weights(2 * RADIUS + 1);
     let (ow, oh) = (w - 2 * RADIUS, h - 2 * RADIUS);
     // Separable filtering of the five moment images, valid region only.
     let filt = |img: &dyn Fn(usize) -> f64| -> Vec<f64> {
@@ -88,7 +80,7 @@ fn ssim_map_channel(x: &[f64], y: &[f64], w: usize, h: usize) -> Vec<f64> {
     let uxx = filt(&|i| x[i] * x[i]);
     let uyy = filt(&|i| y[i] * y[i]);
     let uxy = filt(&|i| x[i] * y[i]);
-    let (c1, c2) = (0.01f64 * 0.01, 0.03f64 * 0.03);
+    let (c1, c2) = (C1, C2);
     (0..ow * oh)
         .map(|i| {
             let (mx, my) = (ux[i], uy[i]);

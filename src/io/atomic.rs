@@ -178,13 +178,33 @@ pub fn write_atomic(
         let _ = std::fs::remove_file(&tmp);
         return result;
     }
-    // Persist the rename itself (best effort: not every platform can fsync a directory).
-    #[cfg(unix)]
     if durable {
-        if let Ok(d) = std::fs::File::open(&dir) {
-            let _ = d.sync_all();
-        }
+        sync_dir(&dir);
     }
+    Ok(())
+}
+
+/// Persist a rename in folder `dir` (best effort: not every platform can fsync a directory).
+fn sync_dir(dir: &Path) {
+    #[cfg(unix)]
+    if let Ok(d) = std::fs::File::open(dir) {
+        let _ = d.sync_all();
+    }
+    #[cfg(not(unix))]
+    let _ = dir;
+}
+
+/// Rename `from` over `to` and persist the rename (the folder fsynced, as [`write_atomic`]
+/// does): the commit of a write spread over two files (`train/state.rs`: a run's optimizer
+/// state after its model).
+pub fn rename_durable(from: &Path, to: &Path) -> Result<()> {
+    std::fs::rename(from, to)
+        .with_context(|| format!("{}: cannot rename {} over it", to.display(), from.display()))?;
+    let dir = match to.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d,
+        _ => Path::new("."),
+    };
+    sync_dir(dir);
     Ok(())
 }
 

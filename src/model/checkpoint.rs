@@ -424,13 +424,7 @@ impl Checkpoint {
     /// count.
     pub fn params_digest(&self) -> String {
         const CHUNK: usize = 1 << 16;
-        let mix = |mut z: u64| {
-            z ^= z >> 30;
-            z = z.wrapping_mul(0xBF58_476D_1CE4_E5B9);
-            z ^= z >> 27;
-            z = z.wrapping_mul(0x94D0_49BB_1331_11EB);
-            z ^ (z >> 31)
-        };
+        let mix = crate::rng::fmix;
         let chunks: Vec<u64> = self
             .params
             .par_chunks(CHUNK)

@@ -1037,12 +1037,12 @@ fn coarse_levels<'a, R: Real>(
     std::borrow::Cow::Owned(v)
 }
 
-/// `[A]` mean of the appearance rows `codes [views, A]` (the code of `view = −1`, SPEC §4.6): the
 /// The `[N, 3]` colours of a forward pass's chunks, in batch order.
 fn batch_rgb<R: Real>(chunks: &[ChunkFwd<R>]) -> Vec<R> {
     chunks.iter().flat_map(|c| c.rgb.iter().copied()).collect()
 }
 
+/// `[A]` mean of the appearance rows `codes [views, A]` (the code of `view = −1`, SPEC §4.6): the
 /// rows summed in row order from +0, then divided by `views`; zeros when `a` or `views` is 0.
 pub fn appearance_mean<R: Real>(codes: &[R], a: usize, views: usize) -> Vec<R> {
     let mut m = vec![R::ZERO; a];

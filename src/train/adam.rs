@@ -49,7 +49,7 @@
 //! depends only on its own state, so results are bit-identical for any thread count.
 
 use crate::io::tensors::{DType, Tensor, TensorFile};
-use anyhow::{bail, Context, Result};
+use anyhow::{bail, ensure, Context, Result};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use std::ops::Range;
@@ -789,11 +789,29 @@ impl AdamState {
     /// of earlier checkpoints) to the same state, so a resumed run is bit-identical.
     /// `train.table_size = "auto"` checkpoints use it (`train/state.rs`).
     pub fn save_compact(&self, f: &mut TensorFile) -> Result<()> {
-        for s in &self.slots {
+        self.save_compact_with(f, &self.stepped_rows())
+    }
+
+    /// [`AdamState::save_compact`] with every slot's stepped rows already listed
+    /// ([`AdamState::stepped_rows`]: a save that also needs them for the model file scans the
+    /// state once).
+    pub fn save_compact_with(
+        &self,
+        f: &mut TensorFile,
+        stepped: &[(&str, Vec<u32>)],
+    ) -> Result<()> {
+        ensure!(
+            stepped.len() == self.slots.len()
+                && stepped
+                    .iter()
+                    .zip(&self.slots)
+                    .all(|((n, _), s)| *n == s.name),
+            "Adam state: the stepped-row lists do not match the slots"
+        );
+        for (s, (_, kept)) in self.slots.iter().zip(stepped) {
             let rows = s.shape.first().copied().unwrap_or(1);
             let row_len = s.len().checked_div(rows).unwrap_or(0);
             let st = &self.state[s.range()];
-            let kept = self.stepped_rows_of(s);
             if s.shape.is_empty() || kept.len() == rows {
                 let [m, v, t] = self.state_bytes(s.range());
                 insert_state(f, &s.name, &s.shape, &s.shape, [m, v, t])?;
@@ -834,10 +852,10 @@ impl AdamState {
             } else {
                 shape.clone()
             };
-            let bytes = kept_moments_bytes(st, &kept, row_len, t_per_row);
+            let bytes = kept_moments_bytes(st, kept, row_len, t_per_row);
             insert_state(f, &s.name, &shape, &t_shape, bytes)?;
             let mut mask = vec![0u8; rows.div_ceil(8)];
-            for &r in &kept {
+            for &r in kept {
                 mask[r as usize / 8] |= 1 << (r % 8);
             }
             f.insert(
@@ -867,9 +885,12 @@ impl AdamState {
             .collect()
     }
 
-    /// [`AdamState::stepped_rows_of`] the slot of a named parameter.
-    pub fn stepped_rows(&self, name: &str) -> Result<Vec<u32>> {
-        Ok(self.stepped_rows_of(self.slot(name)?))
+    /// [`AdamState::stepped_rows_of`] every slot, in slot order, with its parameter's name.
+    pub fn stepped_rows(&self) -> Vec<(&str, Vec<u32>)> {
+        self.slots
+            .iter()
+            .map(|s| (s.name.as_str(), self.stepped_rows_of(s)))
+            .collect()
     }
 
     /// The little-endian bytes of `m`, `v` and `t` over `range`, written in one pass over the

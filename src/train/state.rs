@@ -3,6 +3,7 @@
 //! loop that drives it (batches, progress, checkpoints, resume) is `run/`; the f64 step is
 //! `precision.rs`, the mesh refinement's step `refine/`.
 
+use crate::io::atomic::rename_durable;
 use crate::io::tensors::TensorFile;
 use crate::model::batch::Batch;
 use crate::model::checkpoint::{Checkpoint, FORMAT, OPTIMIZER_KEY};
@@ -12,6 +13,7 @@ use crate::train::config::{RunConfig, TableSize};
 use crate::train::setup::Prepared;
 use anyhow::{bail, ensure, Context, Result};
 use std::path::{Path, PathBuf};
+use std::time::Instant;
 
 /// The optimizer state file of a model file: `checkpoint*.safetensors` →
 /// `optimizer*.safetensors` in the same folder (`RUN/optimizer.safetensors`,
@@ -39,19 +41,6 @@ pub fn optimizer_next_path(model: &Path) -> PathBuf {
     let stem = name.strip_suffix(".safetensors").unwrap_or(&name);
     p.with_file_name(format!("{stem}.next.safetensors"))
 }
-
-/// The optimizer state's `.next` file renamed over the optimizer file (the last step of a save,
-/// or of a load that found a save cut between its two renames).
-fn promote_next(next: &Path, opt_path: &Path) -> Result<()> {
-    std::fs::rename(next, opt_path).with_context(|| {
-        format!(
-            "{}: cannot rename {} over it",
-            opt_path.display(),
-            next.display()
-        )
-    })
-}
-use std::time::Instant;
 
 /// Everything that defines a run at a step: configuration, model, parameters, Adam state.
 pub struct TrainState {
@@ -121,9 +110,21 @@ impl TrainState {
     /// write every row, as before.
     pub fn to_tensor_files(&self) -> Result<(TensorFile, TensorFile)> {
         let auto = self.cfg.train.table_size == TableSize::Auto;
+        // Every slot's stepped rows, found once for both files.
+        let stepped = if auto {
+            self.adam.stepped_rows()
+        } else {
+            Vec::new()
+        };
         let mut model = if auto {
             self.ckpt
-                .to_tensor_file_stepped(self.cfg.train.seed, &|name| self.adam.stepped_rows(name))?
+                .to_tensor_file_stepped(self.cfg.train.seed, &|name| {
+                    stepped
+                        .iter()
+                        .find(|(n, _)| *n == name)
+                        .map(|(_, rows)| rows.clone())
+                        .with_context(|| format!("Adam state has no parameter {name}"))
+                })?
         } else {
             self.ckpt.to_tensor_file()?
         };
@@ -131,7 +132,7 @@ impl TrainState {
         model.set_meta("run_config", self.cfg.to_toml());
         let mut opt = TensorFile::new();
         if auto {
-            self.adam.save_compact(&mut opt)?;
+            self.adam.save_compact_with(&mut opt, &stepped)?;
         } else {
             self.adam.save(&mut opt)?;
         }
@@ -195,19 +196,7 @@ impl TrainState {
         let (opt_path, next) = (optimizer_path(path), optimizer_next_path(path));
         opt.write_atomic(&next)?;
         model.write_atomic(path)?;
-        promote_next(&next, &opt_path)?;
-        #[cfg(unix)]
-        if let Some(d) = opt_path.parent().and_then(|d| {
-            std::fs::File::open(if d.as_os_str().is_empty() {
-                Path::new(".")
-            } else {
-                d
-            })
-            .ok()
-        }) {
-            let _ = d.sync_all();
-        }
-        Ok(())
+        rename_durable(&next, &opt_path)
     }
 
     /// The run saved at `path` ([`TrainState::save`]): the model file and its optimizer state
@@ -238,7 +227,7 @@ impl TrainState {
             Err(e) if next.is_file() => {
                 let st = TrainState::from_tensor_files(&model, &TensorFile::read(&next)?)
                     .map_err(|e2| e.context(format!("nor is {}: {e2:#}", next.display())))?;
-                promote_next(&next, &opt_path)?;
+                rename_durable(&next, &opt_path)?;
                 Ok(st)
             }
             Err(e) => Err(e),

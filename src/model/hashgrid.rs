@@ -394,6 +394,7 @@ impl HashGrid {
                         l,
                         act,
                         &mut sc,
+                        fast,
                     );
                 }
             });
@@ -976,6 +977,75 @@ fn prefetch_corners<R, const F: usize>(tab: &[R], idx: &[[u32; BLOCK]; 8], j: us
     }
 }
 
+/// Hand-vectorised pieces of the kernels (x86-64 with AVX2 and FMA, selected at run time).
+#[cfg(target_arch = "x86_64")]
+mod x86 {
+    use super::BLOCK;
+    use std::arch::x86_64::*;
+
+    /// Pass 2 of the forward kernel for an f32 table with F = 2 (a row is 8 bytes): for each
+    /// point j < n with `live[j]` set (−1), `out[j·lf .. j·lf + 2] = Σ_k w8[k][j] · row(idx[k][j])`
+    /// as the fma chain in corner order from +0, exactly the scalar pass's operations, four points
+    /// at a time (one masked gather per corner: a point that does not evaluate the level reads no
+    /// row); a point j < n with `live[j] = 0` gets +0, as in the scalar pass.
+    ///
+    /// # Safety
+    /// fma and avx2 are available; `live` is −1 or 0, and 0 from n to n rounded up to 4; for j
+    /// below n rounded up to 4 with `live[j]` set, `tab + 2·idx[k][j]` is two readable floats; for
+    /// j < n, `out + j·lf` is two writable floats.
+    #[target_feature(enable = "avx2,fma")]
+    pub(super) unsafe fn gather_interp_f32x2(
+        tab: *const f32,
+        idx: &[[u32; BLOCK]; 8],
+        w8: &[[f32; BLOCK]; 8],
+        live: &[i64; BLOCK],
+        n: usize,
+        out: *mut f32,
+        lf: usize,
+    ) {
+        // Lane pairs (2q, 2q+1) are point j+q's two features: each weight twice.
+        let dup = _mm256_setr_epi32(0, 0, 1, 1, 2, 2, 3, 3);
+        let mut j = 0;
+        while j < n {
+            // SAFETY (the block): j + 4 <= BLOCK (n <= BLOCK, j a multiple of 4 below n), so the
+            // four-lane loads of `live`, `idx` and `w8` are in bounds; the gather reads only the
+            // live lanes' rows, and the stores write points < n only (the caller's promise).
+            unsafe {
+                let mask = _mm256_loadu_pd(live.as_ptr().add(j) as *const f64);
+                let mut acc = _mm256_setzero_ps();
+                for k in 0..8 {
+                    let vi = _mm_loadu_si128(idx[k].as_ptr().add(j) as *const __m128i);
+                    let v = _mm256_mask_i32gather_pd::<8>(
+                        _mm256_setzero_pd(),
+                        tab as *const f64,
+                        vi,
+                        mask,
+                    );
+                    let w4 = _mm_loadu_ps(w8[k].as_ptr().add(j));
+                    let w = _mm256_permutevar8x32_ps(_mm256_castps128_ps256(w4), dup);
+                    acc = _mm256_fmadd_ps(w, _mm256_castpd_ps(v), acc);
+                }
+                // A point that does not evaluate the level: +0 (its lanes are 0·w + 0, or NaN
+                // for a NaN weight, so they are cleared rather than trusted).
+                let acc = _mm256_castps_pd(_mm256_and_ps(acc, _mm256_castpd_ps(mask)));
+                let (lo, hi) = (_mm256_castpd256_pd128(acc), _mm256_extractf128_pd::<1>(acc));
+                let row = |q: usize| out.add((j + q) * lf) as *mut f64;
+                _mm_store_sd(row(0), lo);
+                if j + 1 < n {
+                    _mm_storeh_pd(row(1), lo);
+                }
+                if j + 2 < n {
+                    _mm_store_sd(row(2), hi);
+                }
+                if j + 3 < n {
+                    _mm_storeh_pd(row(3), hi);
+                }
+            }
+            j += 4;
+        }
+    }
+}
+
 /// The inner loops, generic over R, F and the indexer, with a runtime-selected `fma,avx2` build.
 #[allow(clippy::needless_range_loop)] // index loops over SoA blocks read best as they are
 mod kernels {
@@ -1072,7 +1142,7 @@ mod kernels {
 
     kernel!(forward_level, forward_level_fma, forward_level_plain, forward_level_impl,
         (tab: &[R], pts: &[[f64; 3]], out: &mut [R], lf: usize, l: usize, active: &[u8],
-         sc: &mut BlockScratch<R>));
+         sc: &mut BlockScratch<R>, simd: bool));
 
     /// One level for a chunk of points: `out[i, l*F..(l+1)*F] = Σ_k w_k · table[idx_k]` (Eq. 2).
     #[inline(always)]
@@ -1089,6 +1159,7 @@ mod kernels {
         l: usize,
         active: &[u8], // [n] levels evaluated per point, or empty = all
         sc: &mut BlockScratch<R>,
+        simd: bool, // the CPU has fma and avx2 (the `fma,avx2` build calls with `true`)
     ) {
         assert_eq!(tab.len(), g.size as usize * F);
         assert!(out.len() >= pts.len() * lf);
@@ -1103,30 +1174,77 @@ mod kernels {
             idx,
             w8,
         } = sc;
+        let mut same = [false; BLOCK];
+        // `x86::gather_interp_f32x2` takes pass 2 of f32 tables with two features (every preset's
+        // grids) where the CPU has AVX2: the same operations on four points at a time.
+        let simd_f32x2 =
+            simd && F == 2 && std::any::TypeId::of::<R>() == std::any::TypeId::of::<f32>();
+        let mut live = [0i64; BLOCK];
         for (b, xs) in pts.chunks(BLOCK).enumerate() {
             // Pass 1: corners and weights of the block, prefetching the table rows.
             locate_block(g.scale, g.tcnn, xs, xd, c, w);
             interp_block(block_len(xs.len()), g.smooth, w, None);
             corner_weights_block(block_len(xs.len()), w, om, w8);
             ix.corners_block(block_len(xs.len()), c, idx);
+            // A point in the same cell as the point before it (both evaluating the level) has the
+            // same 8 corner rows: it reuses the rows that point gathered, and nothing is
+            // prefetched for it. Consecutive points share cells often: a pixel's γ² sub-samples
+            // are consecutive, and so are neighbouring pixels at the levels coarser than a pixel.
+            let mut prev_on = false;
             for j in 0..xs.len() {
-                if on(b * BLOCK + j) {
+                let (now, p) = (on(b * BLOCK + j), j.saturating_sub(1));
+                same[j] = now
+                    && prev_on
+                    && c[0][j] == c[0][p]
+                    && c[1][j] == c[1][p]
+                    && c[2][j] == c[2][p];
+                if now && !same[j] {
                     prefetch_corners::<R, F>(tab, idx, j);
                 }
+                live[j] = -(now as i64);
+                prev_on = now;
             }
-            // Pass 2: gather and interpolate (Eq. 2), fma chain in corner order.
+            #[cfg(target_arch = "x86_64")]
+            if simd_f32x2 {
+                live[xs.len()..xs.len().next_multiple_of(4)].fill(0);
+                // SAFETY: `simd` promises fma and avx2. R is f32 (TypeId above), so `tab`, `w8` and
+                // `out` are f32 buffers of the lengths asserted above; every lane the function reads
+                // (below xs.len() rounded up to 4 ≤ block_len) holds an index < size, computed in
+                // pass 1; it writes rows b·BLOCK + j < pts.len() only, at columns l·2..l·2+2 < lf.
+                unsafe {
+                    x86::gather_interp_f32x2(
+                        tab.as_ptr() as *const f32,
+                        idx,
+                        &*(w8 as *const [[R; BLOCK]; 8] as *const [[f32; BLOCK]; 8]),
+                        &live,
+                        xs.len(),
+                        (out.as_mut_ptr() as *mut f32).add(b * BLOCK * lf + l * F),
+                        lf,
+                    )
+                };
+                continue;
+            }
+            // Pass 2: gather and interpolate (Eq. 2), fma chain in corner order; `v` holds the
+            // corner rows of the last point gathered (the same values whether gathered again or
+            // not, so the bits do not depend on the sharing).
+            let mut v = [[R::ZERO; F]; 8];
             for j in 0..xs.len() {
                 if !on(b * BLOCK + j) {
                     out[(b * BLOCK + j) * lf + l * F..][..F].fill(R::ZERO);
                     continue;
                 }
+                if !same[j] {
+                    for k in 0..8 {
+                        let e = idx[k][j] as usize * F;
+                        // SAFETY: idx < size (mod / mask), and tab.len() == size * F.
+                        let row = unsafe { tab.get_unchecked(e..e + F) };
+                        v[k].copy_from_slice(row);
+                    }
+                }
                 let mut acc = [R::ZERO; F];
                 for k in 0..8 {
-                    let e = idx[k][j] as usize * F;
-                    // SAFETY: idx < size (mod / mask), and tab.len() == size * F.
-                    let v = unsafe { tab.get_unchecked(e..e + F) };
                     for f in 0..F {
-                        acc[f] = w8[k][j].mul_add(v[f], acc[f]);
+                        acc[f] = w8[k][j].mul_add(v[k][f], acc[f]);
                     }
                 }
                 out[(b * BLOCK + j) * lf + l * F..][..F].copy_from_slice(&acc);

@@ -1009,7 +1009,7 @@ mod x86 {
         let dup = _mm256_setr_epi32(0, 0, 1, 1, 2, 2, 3, 3);
         let mut j = 0;
         while j < n {
-            // SAFETY (the block): j + 4 <= BLOCK (n <= BLOCK, j a multiple of 4 below n), so the
+            // SAFETY: j + 4 <= BLOCK (n <= BLOCK, j a multiple of 4 below n), so the
             // four-lane reads of `live`, `idx` and `w8` are in bounds; every row read is at an
             // index of a lane below n rounded up to 4, and the stores write points < n only (the
             // caller's promises).

@@ -57,7 +57,11 @@
 //! Points go through in blocks of 64: pass 1 computes cells, weights and corner indices for the
 //! whole block in structure-of-arrays form (vectorised by the compiler) and prefetches the table
 //! rows; pass 2 gathers/scatters, so many cache misses are in flight at once (the `cpu` preset's
-//! table is 49 MB). The kernels are compiled twice, for baseline x86-64 and with `fma,avx2`,
+//! table is 49 MB). A point in the same cell as the point before it (a pixel's γ² sub-samples;
+//! neighbouring pixels at the coarse levels) has the same corner rows: the forward pass issues no
+//! prefetch for it and the scalar pass 2 reuses the rows it holds. For f32 tables with F = 2 (every
+//! preset's grids) and AVX2, the forward's pass 2 runs four points per vector
+//! (`x86::interp_f32x2`, the same fma chain per lane). The kernels are compiled twice, for baseline x86-64 and with `fma,avx2`,
 //! selected at run time (`is_x86_feature_detected!`); both give identical bits (an FMA is exactly
 //! rounded whether done in hardware or by libm; without the feature `mul_add` is a slow libm
 //! call). No per-call allocation beyond a few per-level descriptors; the touched bitmap of

@@ -159,14 +159,15 @@ pub fn appearance_for(
 }
 
 /// The neighbour counts [`leave_one_out_k`] tries (those below the number of training views,
-/// and that number less one: all the others).
+/// and all of them when there are at most 16).
 pub const K_CANDIDATES: [usize; 5] = [1, 2, 4, 8, 16];
 
 /// The neighbour count a view without a code blends (`[model] appearance = "neighbours"`):
 /// the K whose blend best predicts each training view's own code from the other training
 /// views' (leave one out) — the least sum over views of the squared code error (f64, views in
 /// row order; the smaller K on a tie) over [`K_CANDIDATES`] below the number of training views
-/// `n`, and `n − 1`. [`K`] with fewer than 3 training views or no codes.
+/// `n`, and `n` itself when n ≤ 16 (all views: the n − 1 others of a view left out).
+/// [`K`] with fewer than 3 training views or no codes.
 ///
 /// Why: how far a code carries depends on the capture. A phone's exposure and white balance
 /// drift slowly along a capture, so the codes of many neighbours predict a view's best (K = 8
@@ -180,8 +181,9 @@ pub fn leave_one_out_k(codes: &[f32], a: usize, train: &[&Camera]) -> usize {
         return K;
     }
     let mut candidates: Vec<usize> = K_CANDIDATES.iter().copied().filter(|&k| k < n).collect();
-    if n - 1 < K_CANDIDATES[K_CANDIDATES.len() - 1] && !candidates.contains(&(n - 1)) {
-        candidates.push(n - 1);
+    if n <= K_CANDIDATES[K_CANDIDATES.len() - 1] {
+        // All of them: the n − 1 others when a view is left out, all n for a new view.
+        candidates.push(n);
     }
     let mut best = (f64::INFINITY, K);
     for k in candidates {

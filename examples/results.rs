@@ -135,7 +135,7 @@ const SECTIONS: &[Spec] = &[
     Spec {
         name: "budget",
         title: "Training budget: the step count the cpu preset chooses",
-        measures: "The `cpu` preset's training budget (`[train] budget = \"auto\"`: about 12 epochs over the kept training pixels, 1,000 to 6,000 steps, with the preset's learning-rate decays stretched to the chosen count) on `synth --preset small` and `cross` (seed 1) and on a real capture (the skull of section `real`), against fixed 2,000 steps (`--steps 2000`: the preset's schedule as written) and, on `cross` and the skull, a run 3× the rule's steps with the schedule stretched the same way. On the skull close-ups and aerial views do not apply (one scale). Held-out masked PSNR and SSIM, close-ups and aerial views apart; wall time of each `train` command (casting and the final evaluation included), one run after another on the same host.",
+        measures: "The `cpu` preset's training budget (`[train] budget = \"auto\"`: about 12 epochs over the kept training pixels, 1,000 to 12,000 steps, with the preset's learning-rate decays stretched to the chosen count) on `synth --preset small` and `cross` (seed 1) and on a real capture (the skull of section `real`), against fixed 2,000 steps (`--steps 2000`: the preset's schedule as written) and, on `cross` and the skull, a run 3× the rule's steps with the schedule stretched the same way. On the skull close-ups and aerial views do not apply (one scale). Held-out masked PSNR and SSIM, close-ups and aerial views apart; wall time of each `train` command (casting and the final evaluation included), one run after another on the same host.",
         cost: "about 20 minutes",
         run: budget,
     },

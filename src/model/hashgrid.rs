@@ -1191,6 +1191,8 @@ mod kernels {
         // where the CPU has AVX2: the same operations on four points at a time.
         let simd_f32x2 =
             simd && F == 2 && std::any::TypeId::of::<R>() == std::any::TypeId::of::<f32>();
+        #[cfg(not(target_arch = "x86_64"))]
+        let _ = simd_f32x2; // the AVX2 pass is x86-64 only
         let mut live = [0i64; BLOCK];
         for (b, xs) in pts.chunks(BLOCK).enumerate() {
             // Pass 1: corners and weights of the block, prefetching the table rows.

@@ -370,16 +370,17 @@ fn tables_stored_by_rows_when_that_saves_a_quarter() {
         // never stepped holds its initial value, so keeping it is as right as leaving it out).
         let with = |name: &str| -> anyhow::Result<Vec<u32>> {
             let rows = st.ckpt.model.layout.get(name).unwrap().shape[0];
-            let mut kept = stepped.iter().find(|(n, _)| *n == name).unwrap().1.clone();
+            let was = &stepped.iter().find(|(n, _)| *n == name).unwrap().1;
             let want = (share * rows as f64) as usize;
             assert!(
-                kept.len() < want,
+                was.len() < want,
                 "{name}: {} of {rows} rows stepped",
-                kept.len()
+                was.len()
             );
+            let mut kept = was.clone();
             let mut r = 0u32;
             while kept.len() < want {
-                if kept.binary_search(&r).is_err() {
+                if was.binary_search(&r).is_err() {
                     kept.push(r);
                 }
                 r += 1;

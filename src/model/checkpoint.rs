@@ -299,15 +299,17 @@ impl<'a> SteppedTable<'a> {
     fn fill(&self, from: usize, out: &mut [std::mem::MaybeUninit<f32>]) {
         let rl = self.row_len;
         let end = from + out.len();
-        // Rows r0..r1 lie whole in the piece; `head` elements before them, the rest after.
+        // Rows r0..r1 lie whole in the piece, a part row before them and one after (within one
+        // row when the piece spans no whole row).
         let (r0, r1) = (from.div_ceil(rl), end / rl);
-        if r0 >= r1 {
-            return self.fill_part(from, out);
-        }
-        let head = r0 * rl - from;
-        let (a, rest) = out.split_at_mut(head);
-        let (mid, tail) = rest.split_at_mut((r1 - r0) * rl);
+        let head_end = (r0 * rl).min(end);
+        let (a, rest) = out.split_at_mut(head_end - from);
         self.fill_part(from, a);
+        let (mid, tail) = rest.split_at_mut(r1.saturating_sub(r0) * rl);
+        self.fill_part(head_end + mid.len(), tail);
+        if mid.is_empty() {
+            return;
+        }
         let (byte, bit) = (self.mask[r0 / 8], r0 % 8);
         let k = self.rank[r0 / 8] as usize + (byte & ((1u8 << bit) - 1)).count_ones() as usize;
         let kept = &self.kept[k * rl * 4..];
@@ -331,7 +333,6 @@ impl<'a> SteppedTable<'a> {
                 }
             }
         }
-        self.fill_part(r1 * rl, tail);
     }
 
     /// Whole rows `r0..` of `N` elements into `out`, `kept` starting at the first kept row

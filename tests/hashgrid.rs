@@ -433,6 +433,94 @@ fn forward_matches_scalar_reference_f64_bitwise() {
     }
 }
 
+/// Points as a render casts them: clusters of four (a pixel's γ² sub-samples) a hair apart, a
+/// cluster next to the one before it, so consecutive points share a cell at the coarse levels
+/// and part them at the fine ones; the count leaves a ragged last block (not a multiple of 4).
+fn clustered_points(n: usize, a: u64) -> Vec<[f64; 3]> {
+    let base = points(n.div_ceil(4), a, 0.0, 1.0);
+    (0..n)
+        .map(|i| {
+            let c = base[i / 4];
+            let s = (i / 4) as f64 * 1e-3;
+            let o = (i % 4) as f64 * 2e-4;
+            [(0.3 + s + o) % 1.0, c[1] * 1e-2 + 0.5 + o, (c[2] + s) % 1.0]
+        })
+        .collect()
+}
+
+/// Levels evaluated per point for `forward_active`: runs (a pixel's sub-samples share a count)
+/// from 0 to every level.
+fn active_counts(n: usize, levels: u32) -> Vec<u8> {
+    (0..n)
+        .map(|i| ((i / 4 * 5 + i / 64) % (levels as usize + 1)) as u8)
+        .collect()
+}
+
+/// `forward_active` (rendering and training's path: a point skips the levels past its count,
+/// consecutive points in one cell share their corner rows, f32 with F = 2 takes the AVX2 pass
+/// where the CPU has it) is the scalar reference on the levels a point evaluates and +0 on the
+/// others, bit for bit, for F = 1, 2, 4 in f32 and f64.
+#[test]
+fn forward_active_is_the_scalar_reference() {
+    fn check<R: xscale::model::real::Real + PartialEq + std::fmt::Debug>(
+        g: &HashGrid,
+        table: &[R],
+        pts: &[[f64; 3]],
+        active: &[u8],
+        mode: PositionMode,
+    ) -> (usize, usize) {
+        let f = g.cfg.features as usize;
+        let lf = g.out_dim();
+        let mut out = vec![R::from_f64(7.0); pts.len() * lf];
+        g.forward_active(table, pts, mode, &mut out, active);
+        let (mut bad, mut shared) = (0, 0);
+        for (i, x) in pts.iter().enumerate() {
+            for l in 0..g.cfg.levels as usize {
+                let (idx, w) = g.corners::<R>(l, x, mode);
+                if i > 0 && g.corners::<R>(l, &pts[i - 1], mode).0 == idx {
+                    shared += 1;
+                }
+                for c in 0..f {
+                    let mut acc = R::ZERO;
+                    if l < active[i] as usize {
+                        for k in 0..8 {
+                            acc = w[k].mul_add(table[idx[k] as usize * f + c], acc);
+                        }
+                    }
+                    if acc.to_f64().to_bits() != out[i * lf + l * f + c].to_f64().to_bits() {
+                        bad += 1;
+                    }
+                }
+            }
+        }
+        (bad, shared)
+    }
+    let mut failures = Vec::new();
+    for features in [1, 2, 4] {
+        // Level 0 dense, 1-7 hashed; cells from 1/15 to 1/2047.
+        let g = HashGrid::new(&cfg(8, features, 12, 16.0, 2.0, Interpolation::Linear));
+        assert!(g.dense[0] && !g.dense[1]);
+        let t64 = values(g.n_params(), 40 + features as u64, 1.0);
+        let t32: Vec<f32> = t64.iter().map(|&v| v as f32).collect();
+        let pts = clustered_points(CHUNK_POINTS + 70 + 3, features as u64);
+        let active = active_counts(pts.len(), g.cfg.levels);
+        for mode in [PositionMode::F64, PositionMode::Tcnn] {
+            let (b32, shared) = check::<f32>(&g, &t32, &pts, &active, mode);
+            let (b64, _) = check::<f64>(&g, &t64, &pts, &active, mode);
+            assert!(
+                shared > pts.len() && shared < pts.len() * (g.cfg.levels as usize - 1),
+                "the points share cells at some levels only ({shared})"
+            );
+            if b32 + b64 > 0 {
+                failures.push(format!(
+                    "F = {features} {mode:?}: f32 {b32}, f64 {b64} differ"
+                ));
+            }
+        }
+    }
+    assert!(failures.is_empty(), "{failures:#?}");
+}
+
 #[test]
 fn tcnn_mode_f32_matches_scalar_fp32_bitwise() {
     for (ci, c) in test_configs().into_iter().enumerate() {
@@ -768,10 +856,16 @@ fn portable_and_fma_builds_agree_bitwise() {
         .iter()
         .map(|&v| v as f32)
         .collect();
+    // Rendering's path too: skipped levels and consecutive points sharing cells.
+    let clustered = clustered_points(CHUNK_POINTS + 70 + 3, 34);
+    let active = active_counts(clustered.len(), g.cfg.levels);
     let run = |portable: bool, mode: PositionMode| {
         xscale::model::hashgrid::force_portable_kernels(portable);
         let mut out = vec![0.0f32; pts.len() * g.out_dim()];
         g.forward(&table, &pts, mode, &mut out);
+        let mut out_active = vec![0.0f32; clustered.len() * g.out_dim()];
+        g.forward_active(&table, &clustered, mode, &mut out_active, &active);
+        out.extend(out_active);
         let mut d_table = vec![0.0f32; g.n_params()];
         let mut touched = Touched::default();
         g.backward_table(&pts, mode, &d_out, &mut d_table, &mut touched);

@@ -228,7 +228,7 @@ pub fn stores_by_rows(rows: usize, kept: usize, row_len: usize) -> bool {
 /// ([`stores_by_rows`]). A loader draws every row left out again (a hash per element) and
 /// reads every kept row through the mask, where a whole table is a copy from the mapped file:
 /// measured on `synth small`'s trained model (both tables ~⅓ unstepped; `docs/runs.md`), that
-/// costs 12–14 instructions per byte saved, and the more so the fewer rows are left out (each
+/// costs about 14 instructions per byte saved, and the more so the fewer rows are left out (each
 /// kept element costs ~8 instructions through the mask against ~1 copied): a quarter keeps
 /// tables most of whose bytes would be mask and kept rows whole.
 pub const ROWS_MIN_SAVING: f64 = 0.25;

@@ -55,16 +55,40 @@ pub(crate) fn fmix(mut z: u64) -> u64 {
 /// 64 random bits for `(seed, purpose, a, b)`.
 #[inline]
 pub fn bits(seed: u64, purpose: Purpose, a: u64, b: u64) -> u64 {
-    let mut h = fmix(seed ^ 0x9E37_79B9_7F4A_7C15);
-    h = fmix(h ^ (purpose as u64).wrapping_mul(0xBF58_476D_1CE4_E5B9));
-    h = fmix(h ^ a.wrapping_mul(0x94D0_49BB_1331_11EB));
-    fmix(h ^ b.wrapping_mul(0xD6E8_FEB8_6659_FD93))
+    Keyed::new(seed, purpose, a).bits(b)
+}
+
+/// The draws of one `(seed, purpose, a)`: the first three rounds of [`bits`] done once, then one
+/// per `b` (a loader drawing millions of a table's initial values, `model/checkpoint.rs`).
+#[derive(Clone, Copy, Debug)]
+pub struct Keyed(u64);
+
+impl Keyed {
+    #[inline]
+    pub fn new(seed: u64, purpose: Purpose, a: u64) -> Keyed {
+        let mut h = fmix(seed ^ 0x9E37_79B9_7F4A_7C15);
+        h = fmix(h ^ (purpose as u64).wrapping_mul(0xBF58_476D_1CE4_E5B9));
+        Keyed(fmix(h ^ a.wrapping_mul(0x94D0_49BB_1331_11EB)))
+    }
+
+    /// `bits(seed, purpose, a, b)`.
+    #[inline]
+    pub fn bits(self, b: u64) -> u64 {
+        fmix(self.0 ^ b.wrapping_mul(0xD6E8_FEB8_6659_FD93))
+    }
+
+    /// `uniform_f64(seed, purpose, a, b)`.
+    #[inline]
+    pub fn uniform_f64(self, b: u64) -> f64 {
+        // Below 2^53: exact through i64, one instruction where u64 → f64 takes several.
+        ((self.bits(b) >> 11) as i64) as f64 * (1.0 / (1u64 << 53) as f64)
+    }
 }
 
 /// Uniform f64 in [0, 1) with 53 random bits.
 #[inline]
 pub fn uniform_f64(seed: u64, purpose: Purpose, a: u64, b: u64) -> f64 {
-    (bits(seed, purpose, a, b) >> 11) as f64 * (1.0 / (1u64 << 53) as f64)
+    Keyed::new(seed, purpose, a).uniform_f64(b)
 }
 
 /// Uniform f32 in [0, 1) with 24 random bits.

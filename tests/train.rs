@@ -355,6 +355,62 @@ fn stepped_tables_load_back_bit_identical() {
     );
 }
 
+/// The rule by bytes (`checkpoint::stores_by_rows`): a table is stored by its stepped rows when
+/// that saves at least a quarter of its bytes, whatever the share of rows stepped — so a table
+/// 60 % of whose rows are kept is stored by them (the 50 % rule before kept it whole) and one 80 %
+/// of whose rows are kept stays whole; either way the parameters load back bit for bit.
+#[test]
+fn tables_stored_by_rows_when_that_saves_a_quarter() {
+    use xscale::model::checkpoint::{stores_by_rows, Checkpoint};
+    let st = stepped_auto_run(30, 4);
+    let stepped = st.adam.stepped_rows();
+    let bits = |p: &[f32]| p.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+    for share in [0.6, 0.8] {
+        // The stepped rows and as many unstepped ones as make up `share` of each table (a row
+        // never stepped holds its initial value, so keeping it is as right as leaving it out).
+        let with = |name: &str| -> anyhow::Result<Vec<u32>> {
+            let rows = st.ckpt.model.layout.get(name).unwrap().shape[0];
+            let was = &stepped.iter().find(|(n, _)| *n == name).unwrap().1;
+            let want = (share * rows as f64) as usize;
+            assert!(
+                was.len() < want,
+                "{name}: {} of {rows} rows stepped",
+                was.len()
+            );
+            let mut kept = was.clone();
+            let mut r = 0u32;
+            while kept.len() < want {
+                if was.binary_search(&r).is_err() {
+                    kept.push(r);
+                }
+                r += 1;
+            }
+            kept.sort_unstable();
+            Ok(kept)
+        };
+        let model = st.ckpt.to_tensor_file_stepped(4, &with).unwrap();
+        for name in ["grid_h.table", "grid_d.table"] {
+            let rows = st.ckpt.model.layout.get(name).unwrap().shape[0];
+            let kept = with(name).unwrap().len();
+            let by_rows = stores_by_rows(rows, kept, 2);
+            assert_eq!(by_rows, share < 0.7, "{name} at {share}");
+            assert_eq!(
+                model.tensors.contains_key(name),
+                !by_rows,
+                "{name} at {share}"
+            );
+            if by_rows {
+                assert_eq!(model.get(&format!("{name}.kept")).unwrap().shape, [kept, 2]);
+            }
+        }
+        let back = Checkpoint::from_tensor_file(
+            &TensorFile::from_bytes(&model.to_bytes().unwrap(), "m").unwrap(),
+        )
+        .unwrap();
+        assert!(bits(&back.params) == bits(&st.ckpt.params), "share {share}");
+    }
+}
+
 /// `TrainState::save` writes the pair; a save cut after the model's rename (the new optimizer
 /// state still in `optimizer.next.safetensors`) resumes from the new pair; a model file alone
 /// or beside another step's optimizer state is refused, naming both files.

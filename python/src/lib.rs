@@ -525,13 +525,23 @@ fn file_from_py(
     Ok(f)
 }
 
-/// Read a safetensors file: `(tensors, metadata)`.
+/// Read a safetensors file: `(tensors, metadata)`. Unless `stored`, a model file's tables
+/// stored by their stepped rows come back whole, rebuilt by the checkpoint loader's own code
+/// (`xscale::model::checkpoint::whole_tables`).
 #[pyfunction]
+#[pyo3(signature = (path, stored=false))]
 fn load<'py>(
     py: Python<'py>,
     path: std::path::PathBuf,
+    stored: bool,
 ) -> PyResult<(Bound<'py, PyDict>, Bound<'py, PyDict>)> {
-    let f = compute(py, || TensorFile::read(&path))?;
+    let f = compute(py, || {
+        let mut f = TensorFile::read(&path)?;
+        if !stored {
+            xscale::model::checkpoint::whole_tables(&mut f)?;
+        }
+        Ok(f)
+    })?;
     file_to_py(py, &f)
 }
 

@@ -127,9 +127,17 @@ class Tensors(dict):
         return f"Tensors({len(self)} tensors: {', '.join(parts[:6])}{', …' if len(parts) > 6 else ''}; metadata {sorted(self.metadata)})"
 
 
-def load(path: PathLike) -> Tensors:
-    """Read a checkpoint, batch or dump (safetensors) into a :class:`Tensors` dict."""
-    t, m = _xscale.load(os.fspath(path))
+def load(path: PathLike, stored: bool = False) -> Tensors:
+    """Read a checkpoint, batch or dump (safetensors) into a :class:`Tensors` dict.
+
+    A training run's model file may store a hash table by the rows Adam stepped only
+    (``grid_h.table.kept`` + ``grid_h.table.mask``, header ``init_seed``; docs/spec.md §6.2):
+    such a table comes back whole as ``grid_h.table`` (likewise ``grid_d.table``), every row
+    left out drawn again from the seed by the same Rust code the ``xscale`` loader runs (the
+    very values it trains and renders with, bit for bit), and ``init_seed`` is dropped from the
+    metadata. ``stored=True`` returns the tensors and metadata exactly as the file holds them.
+    """
+    t, m = _xscale.load(os.fspath(path), stored)
     return Tensors(t, m)
 
 

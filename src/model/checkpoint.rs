@@ -214,18 +214,32 @@ const STEPPED_TABLES: [(&str, u64); 2] = [
     ("grid_d.table", crate::model::hfm::TENSOR_ID_GRID_D),
 ];
 
-/// A table is stored by its stepped rows when fewer than this fraction of its rows stepped
-/// (below it the rows left out save more than the mask costs, and a table most of whose rows
-/// stepped stays whole, readable straight from the mapped file).
-const STEPPED_BELOW: f64 = 0.5;
+/// Whether a table of `rows` rows of `row_len` f32s, `kept` of which Adam stepped, is stored by
+/// those rows ([`Checkpoint::to_tensor_file_stepped`]): when that saves at least
+/// [`ROWS_MIN_SAVING`] of the whole table's bytes (the rows left out less the mask's
+/// `ceil(rows/8)` bytes).
+pub fn stores_by_rows(rows: usize, kept: usize, row_len: usize) -> bool {
+    let whole = rows * row_len * 4;
+    let by_rows = kept * row_len * 4 + rows.div_ceil(8);
+    row_len > 0 && kept < rows && by_rows as f64 <= (1.0 - ROWS_MIN_SAVING) * whole as f64
+}
+
+/// The least fraction of a table's bytes that storing it by its stepped rows must save
+/// ([`stores_by_rows`]). A loader draws every row left out again (a hash per element) and
+/// reads every kept row through the mask, where a whole table is a copy from the mapped file:
+/// measured on `synth small`'s trained model (both tables ~⅓ unstepped; `docs/runs.md`), that
+/// costs about 14 instructions per byte saved, and the more so the fewer rows are left out (each
+/// kept element costs ~8 instructions through the mask against ~1 copied): a quarter keeps
+/// tables most of whose bytes would be mask and kept rows whole.
+pub const ROWS_MIN_SAVING: f64 = 0.25;
 
 /// A table stored by its stepped rows (`<name>.mask` U8 `[ceil(rows/8)]`, `<name>.kept` F32
 /// `[k, …]`, header `init_seed`), checked: a row not kept is its initial value
 /// (`hashgrid::init_value` of the seed, the table's tensor id and the flat element index), a
 /// kept row the stored one.
 struct SteppedTable<'a> {
-    seed: u64,
-    id: u64,
+    /// The table's initial values (seed from the header, the table's tensor id).
+    init: crate::model::hashgrid::TableInit,
     row_len: usize,
     mask: &'a [u8],
     /// Kept rows before byte i of the mask.
@@ -272,8 +286,7 @@ impl<'a> SteppedTable<'a> {
             format!("{label}: header metadata \"init_seed\" (the seed {name}'s rows left out are drawn from) is not an integer")
         })?;
         Ok(SteppedTable {
-            seed,
-            id,
+            init: crate::model::hashgrid::TableInit::new(seed, id),
             row_len,
             mask,
             rank,
@@ -281,21 +294,147 @@ impl<'a> SteppedTable<'a> {
         })
     }
 
-    /// Elements `from..from + out.len()` of the whole table.
+    /// Elements `from..from + out.len()` of the whole table: a kept row copied, any other drawn
+    /// again. Whole rows in one pass (a row's mask bit read once), a part row at either end.
     fn fill(&self, from: usize, out: &mut [std::mem::MaybeUninit<f32>]) {
-        for (j, x) in (from..).zip(out.iter_mut()) {
-            let (r, c) = (j / self.row_len, j % self.row_len);
-            let byte = self.mask[r / 8];
-            let v = if byte >> (r % 8) & 1 == 1 {
-                let below = (byte & ((1u8 << (r % 8)) - 1)).count_ones() as usize;
-                let b = ((self.rank[r / 8] as usize + below) * self.row_len + c) * 4;
-                f32::from_le_bytes(self.kept[b..b + 4].try_into().unwrap())
-            } else {
-                crate::model::hashgrid::init_value(self.seed, self.id, j as u64)
-            };
-            x.write(v);
+        let rl = self.row_len;
+        let end = from + out.len();
+        // Rows r0..r1 lie whole in the piece, a part row before them and one after (within one
+        // row when the piece spans no whole row).
+        let (r0, r1) = (from.div_ceil(rl), end / rl);
+        let head_end = (r0 * rl).min(end);
+        let (a, rest) = out.split_at_mut(head_end - from);
+        self.fill_part(from, a);
+        let (mid, tail) = rest.split_at_mut(r1.saturating_sub(r0) * rl);
+        self.fill_part(head_end + mid.len(), tail);
+        if mid.is_empty() {
+            return;
+        }
+        let (byte, bit) = (self.mask[r0 / 8], r0 % 8);
+        let k = self.rank[r0 / 8] as usize + (byte & ((1u8 << bit) - 1)).count_ones() as usize;
+        let kept = &self.kept[k * rl * 4..];
+        // The row length a constant where it is one of the presets' (the features per entry):
+        // a row's elements unrolled.
+        match rl {
+            1 => self.fill_rows::<1>(r0, kept, mid),
+            2 => self.fill_rows::<2>(r0, kept, mid),
+            4 => self.fill_rows::<4>(r0, kept, mid),
+            8 => self.fill_rows::<8>(r0, kept, mid),
+            _ => {
+                let mut kept = kept.chunks_exact(4);
+                for (r, dst) in (r0..).zip(mid.chunks_exact_mut(rl)) {
+                    if self.mask[r / 8] >> (r % 8) & 1 == 1 {
+                        for (x, v) in dst.iter_mut().zip(kept.by_ref()) {
+                            x.write(f32::from_le_bytes(v.try_into().unwrap()));
+                        }
+                    } else {
+                        self.draw(r * rl, dst);
+                    }
+                }
+            }
         }
     }
+
+    /// Whole rows `r0..` of `N` elements into `out`, `kept` starting at the first kept row
+    /// among them.
+    fn fill_rows<const N: usize>(
+        &self,
+        r0: usize,
+        kept: &[u8],
+        out: &mut [std::mem::MaybeUninit<f32>],
+    ) {
+        let mut kept = kept.chunks_exact(4 * N);
+        for (r, dst) in (r0..).zip(out.chunks_exact_mut(N)) {
+            if self.mask[r / 8] >> (r % 8) & 1 == 1 {
+                let src = kept.next().unwrap();
+                for c in 0..N {
+                    dst[c].write(f32::from_le_bytes(
+                        src[4 * c..4 * c + 4].try_into().unwrap(),
+                    ));
+                }
+            } else {
+                for (c, x) in dst.iter_mut().enumerate() {
+                    x.write(self.init.value((r * N + c) as u64));
+                }
+            }
+        }
+    }
+
+    /// Initial values of elements `e..e + out.len()`.
+    fn draw(&self, e: usize, out: &mut [std::mem::MaybeUninit<f32>]) {
+        for (e, x) in (e as u64..).zip(out.iter_mut()) {
+            x.write(self.init.value(e));
+        }
+    }
+
+    /// Elements `from..from + out.len()`, all within one row.
+    fn fill_part(&self, from: usize, out: &mut [std::mem::MaybeUninit<f32>]) {
+        let Some(r) = (!out.is_empty()).then_some(from / self.row_len) else {
+            return;
+        };
+        let byte = self.mask[r / 8];
+        if byte >> (r % 8) & 1 == 1 {
+            let below = (byte & ((1u8 << (r % 8)) - 1)).count_ones() as usize;
+            let at = (self.rank[r / 8] as usize + below) * self.row_len + from % self.row_len;
+            let src = &self.kept[at * 4..(at + out.len()) * 4];
+            for (x, v) in out.iter_mut().zip(src.chunks_exact(4)) {
+                x.write(f32::from_le_bytes(v.try_into().unwrap()));
+            }
+        } else {
+            self.draw(from, out);
+        }
+    }
+}
+
+/// A model file's tables stored by their stepped rows (`<name>.kept`, `<name>.mask`, header
+/// `init_seed`; [`Checkpoint::to_tensor_file_stepped`]) rebuilt whole in place, as the loader
+/// completes them (the same values, bit for bit): `<name>` of shape `[rows, …]` (rows from
+/// `<grid>.offsets`) instead of the two, and `init_seed` dropped once no table needs it. Every
+/// other tensor and key is left as it is; a file without such a table is unchanged. Returns
+/// the tables rebuilt. Errors name the file, the tensor and what was expected.
+pub fn whole_tables(file: &mut TensorFile) -> Result<Vec<String>> {
+    let label = file.label();
+    let mut whole = Vec::new();
+    for (name, _) in STEPPED_TABLES {
+        if file.tensors.contains_key(name) || !file.tensors.contains_key(&format!("{name}.mask")) {
+            continue;
+        }
+        let grid = name.split('.').next().unwrap_or(name);
+        let offsets = file
+            .get(&format!("{grid}.offsets"))
+            .with_context(|| format!("{label}: {name} is stored by its stepped rows"))?;
+        ensure!(
+            offsets.dtype == DType::U32 && offsets.shape.len() == 1 && offsets.shape[0] > 0,
+            "{label}: tensor {grid}.offsets is {} {:?}, expected U32 [levels + 1]",
+            offsets.dtype,
+            offsets.shape
+        );
+        let rows = *offsets.to_u32()?.last().unwrap() as usize;
+        let kept = file
+            .get(&format!("{name}.kept"))
+            .with_context(|| format!("{label}: {name} is stored by its stepped rows"))?;
+        let mut shape = kept.shape.clone();
+        ensure!(
+            shape.len() >= 2,
+            "{label}: tensor {name}.kept has shape {shape:?}, expected [k, features]"
+        );
+        shape[0] = rows;
+        let len: usize = shape.iter().product();
+        let table = SteppedTable::from_file(file, name, &shape)?;
+        let values = crate::memhint::built(len, |at, piece| table.fill(at, piece));
+        let t = Tensor::f32(shape, &values)?;
+        file.tensors.remove(&format!("{name}.kept"));
+        file.tensors.remove(&format!("{name}.mask"));
+        file.insert(name, t);
+        whole.push(name.to_string());
+    }
+    if !STEPPED_TABLES
+        .iter()
+        .any(|(n, _)| file.tensors.contains_key(&format!("{n}.mask")))
+    {
+        file.metadata.remove("init_seed");
+    }
+    Ok(whole)
 }
 
 /// A tensor in the dtype of `R` (F64 or F32).
@@ -382,6 +521,17 @@ impl Checkpoint {
         seed: u64,
         stepped: &dyn Fn(&str) -> Result<Vec<u32>>,
     ) -> Result<TensorFile> {
+        self.to_tensor_file_stepped_by(seed, stepped, &stores_by_rows)
+    }
+
+    /// [`Checkpoint::to_tensor_file_stepped`] with the rule `by_rows(rows, kept, row_len)`
+    /// choosing which tables are stored by their stepped rows (instead of [`stores_by_rows`]).
+    pub fn to_tensor_file_stepped_by(
+        &self,
+        seed: u64,
+        stepped: &dyn Fn(&str) -> Result<Vec<u32>>,
+        by_rows: &dyn Fn(usize, usize, usize) -> bool,
+    ) -> Result<TensorFile> {
         let mut f = self.to_tensor_file()?;
         let mut any = false;
         for (name, _) in STEPPED_TABLES {
@@ -391,7 +541,7 @@ impl Checkpoint {
             let rows = t.shape[0];
             let row_len = t.len.checked_div(rows).unwrap_or(0);
             let kept = stepped(name)?;
-            if row_len == 0 || kept.len() as f64 >= STEPPED_BELOW * rows as f64 {
+            if row_len == 0 || !by_rows(rows, kept.len(), row_len) {
                 continue;
             }
             let data = &self.params[t.range()];
@@ -856,6 +1006,73 @@ pub fn dump_with<R: Real>(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The storage rule at its edges: 1000 rows of 2 f32s (8000 bytes; the mask 125) are
+    /// stored by rows when at most 734 rows stepped (5997 bytes ≤ ¾ of 8000), whole above;
+    /// never for a table every row of which stepped, nor for an empty row.
+    #[test]
+    fn stores_by_rows_when_it_saves_a_quarter() {
+        assert_eq!(ROWS_MIN_SAVING, 0.25);
+        assert!(stores_by_rows(1000, 0, 2));
+        assert!(stores_by_rows(1000, 734, 2));
+        assert!(!stores_by_rows(1000, 735, 2));
+        assert!(!stores_by_rows(1000, 1000, 2));
+        assert!(!stores_by_rows(1000, 0, 0));
+        // Bytes, not the fraction of rows: a mask costs more beside short rows.
+        assert!(stores_by_rows(64, 47, 1) != stores_by_rows(64, 47, 8));
+    }
+
+    /// A table stored by its stepped rows is completed element for element whatever the pieces
+    /// the loader writes it in: rows of 3, 2 and 1 (part rows at either end, the constant and
+    /// the general row length), every kept/left-out pattern of a mask byte.
+    #[test]
+    fn stepped_table_fill_matches_every_piece() {
+        for (row_len, shape) in [(3usize, vec![37usize, 3]), (2, vec![37, 2]), (1, vec![37])] {
+            let rows = 37usize;
+            let kept: Vec<usize> = (0..rows).filter(|r| (r * 7 + r / 5) % 3 != 0).collect();
+            let mut mask = vec![0u8; rows.div_ceil(8)];
+            let mut values = Vec::new();
+            for &r in &kept {
+                mask[r / 8] |= 1 << (r % 8);
+                values.extend((0..row_len).map(|c| (r * 10 + c) as f32 + 0.5));
+            }
+            let mut kshape = shape.clone();
+            kshape[0] = kept.len();
+            let mut f = TensorFile::new();
+            f.insert("grid_d.table.kept", Tensor::f32(kshape, &values).unwrap());
+            f.insert(
+                "grid_d.table.mask",
+                Tensor::from_bytes(DType::U8, vec![mask.len()], mask).unwrap(),
+            );
+            f.set_meta("init_seed", "11");
+            let t = SteppedTable::from_file(&f, "grid_d.table", &shape).unwrap();
+            let want: Vec<u32> = (0..rows * row_len)
+                .map(|j| {
+                    let (r, c) = (j / row_len, j % row_len);
+                    if kept.contains(&r) {
+                        ((r * 10 + c) as f32 + 0.5).to_bits()
+                    } else {
+                        let id = crate::model::hfm::TENSOR_ID_GRID_D;
+                        crate::model::hashgrid::init_value(11, id, j as u64).to_bits()
+                    }
+                })
+                .collect();
+            let n = rows * row_len;
+            for from in 0..n {
+                for len in [0, 1, 2, 5, 17, n - from] {
+                    let len = len.min(n - from);
+                    let mut out = vec![std::mem::MaybeUninit::<f32>::uninit(); len];
+                    t.fill(from, &mut out);
+                    // SAFETY: `fill` wrote every element (what is checked).
+                    let got: Vec<u32> = out
+                        .iter()
+                        .map(|x| unsafe { x.assume_init() }.to_bits())
+                        .collect();
+                    assert_eq!(got, want[from..from + len], "row {row_len}, {from}+{len}");
+                }
+            }
+        }
+    }
 
     fn tiny_ckpt() -> Checkpoint {
         let norm = Normalization {

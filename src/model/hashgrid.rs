@@ -195,23 +195,41 @@ pub fn level_size(res: u32, log2_table_size: u32) -> u32 {
 /// initialisation of every feature table (hash grids, vertex features).
 pub fn init_uniform_table(n: usize, seed: u64, tensor_id: u64) -> Vec<f32> {
     const INIT_CHUNK: usize = 1 << 16;
+    let init = TableInit::new(seed, tensor_id);
     let mut t = vec![0.0f32; n];
     t.par_chunks_mut(INIT_CHUNK)
         .enumerate()
         .for_each(|(ci, c)| {
             for (j, v) in c.iter_mut().enumerate() {
-                *v = init_value(seed, tensor_id, (ci * INIT_CHUNK + j) as u64);
+                *v = init.value((ci * INIT_CHUNK + j) as u64);
             }
         });
     t
 }
 
-/// Element `e` of [`init_uniform_table`] (a loader completing a table stored by its stepped
-/// rows draws the others one by one, `model/checkpoint.rs`).
+/// Element `e` of [`init_uniform_table`].
 #[inline]
 pub fn init_value(seed: u64, tensor_id: u64, e: u64) -> f32 {
-    let u = rng::uniform_f64(seed, Purpose::InitTable, tensor_id, e);
-    (-1e-4 + 2e-4 * u) as f32
+    TableInit::new(seed, tensor_id).value(e)
+}
+
+/// The initial values of one table ([`init_value`] with the seed and tensor id fixed, drawn
+/// once): a loader completing a table stored by its stepped rows draws the others one by one
+/// (`model/checkpoint.rs`).
+#[derive(Clone, Copy, Debug)]
+pub struct TableInit(rng::Keyed);
+
+impl TableInit {
+    #[inline]
+    pub fn new(seed: u64, tensor_id: u64) -> TableInit {
+        TableInit(rng::Keyed::new(seed, Purpose::InitTable, tensor_id))
+    }
+
+    /// Element `e`: `f32(-1e-4 + 2e-4 · uniform_f64(seed, InitTable, tensor_id, e))`.
+    #[inline]
+    pub fn value(self, e: u64) -> f32 {
+        (-1e-4 + 2e-4 * self.0.uniform_f64(e)) as f32
+    }
 }
 
 impl HashGrid {

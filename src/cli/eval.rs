@@ -89,6 +89,7 @@ pub fn run(a: Args) -> Result<ExitCode> {
     } else {
         Vec::new()
     };
+    let looks = (ck.as_ref()).map(|ck| s.new_view_codes(&ck.model, &ck.params, a.appearance));
     let mut scores = Vec::new();
     for (k, &i) in views.iter().enumerate() {
         let e = match a.method {
@@ -101,13 +102,8 @@ pub fn run(a: Args) -> Result<ExitCode> {
                     gamma: ck.model.cfg.gamma,
                     background,
                 };
-                let look = s.appearance(
-                    &ck.model,
-                    &ck.params,
-                    a.appearance,
-                    s.rows[i],
-                    &s.scene.views[i].camera,
-                );
+                let looks = looks.as_ref().expect("with the model");
+                let look = looks.appearance(s.rows[i], &s.scene.views[i].camera);
                 evaluate_view(&renderer, &s.scene, i, &look)?
             }
             Method::Ulr => {

@@ -207,6 +207,8 @@ pub fn run(a: Args) -> Result<ExitCode> {
     } else {
         Vec::new()
     };
+    let looks =
+        (loaded.ck.as_ref()).map(|ck| s.new_view_codes(&ck.model, &ck.params, a.appearance));
     let t0 = std::time::Instant::now();
     for (k, (stem, cam, row)) in jobs.iter().enumerate() {
         let r = match a.method {
@@ -219,7 +221,9 @@ pub fn run(a: Args) -> Result<ExitCode> {
                     gamma,
                     background,
                 };
-                let look = s.appearance(&ck.model, &ck.params, a.appearance, *row, cam);
+                let look = (looks.as_ref())
+                    .expect("with the model")
+                    .appearance(*row, cam);
                 renderer.render(cam, &look)?
             }
             Method::Ulr => render_ulr(&s.tracer, &sources, cam, gamma, background)?,

@@ -521,17 +521,6 @@ impl Checkpoint {
         seed: u64,
         stepped: &dyn Fn(&str) -> Result<Vec<u32>>,
     ) -> Result<TensorFile> {
-        self.to_tensor_file_stepped_by(seed, stepped, &stores_by_rows)
-    }
-
-    /// [`Checkpoint::to_tensor_file_stepped`] with the rule `by_rows(rows, kept, row_len)`
-    /// choosing which tables are stored by their stepped rows (instead of [`stores_by_rows`]).
-    pub fn to_tensor_file_stepped_by(
-        &self,
-        seed: u64,
-        stepped: &dyn Fn(&str) -> Result<Vec<u32>>,
-        by_rows: &dyn Fn(usize, usize, usize) -> bool,
-    ) -> Result<TensorFile> {
         let mut f = self.to_tensor_file()?;
         let mut any = false;
         for (name, _) in STEPPED_TABLES {
@@ -541,7 +530,7 @@ impl Checkpoint {
             let rows = t.shape[0];
             let row_len = t.len.checked_div(rows).unwrap_or(0);
             let kept = stepped(name)?;
-            if row_len == 0 || !by_rows(rows, kept.len(), row_len) {
+            if !stores_by_rows(rows, kept.len(), row_len) {
                 continue;
             }
             let data = &self.params[t.range()];

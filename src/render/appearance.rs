@@ -131,31 +131,58 @@ pub fn neighbour_weights_k(camera: &Camera, train: &[&Camera], k: usize) -> Vec<
     w
 }
 
-/// The appearance of a view rendered with `model`: its own `row` if it has one (≥ 0), else by
-/// `rule` — the mean code, or the blend of its neighbours' codes (`train`: the training
-/// cameras, by row). Models without codes (A = 0), or whose rows do not match `train`, take
-/// `Row(row)` as it is.
-pub fn appearance_for(
-    model: &Hfm,
-    params: &[f32],
+/// The appearances of the views rendered with one model and fixed parameters: a view's own
+/// `row` if it has one (≥ 0), else by `rule` — the mean code, or the blend of its neighbours'
+/// codes (`train`: the training cameras, by row) over the K that [`leave_one_out_k`] chooses,
+/// found once here rather than for every view. Models without codes (A = 0), or whose rows do
+/// not match `train`, take `Row(row)` as it is.
+pub struct NewViewCodes<'a> {
+    model: &'a Hfm,
+    params: &'a [f32],
     rule: NewViewCode,
-    row: i32,
-    camera: &Camera,
-    train: &[&Camera],
-) -> Appearance {
-    let a = model.appearance_dim();
-    if row >= 0 || a == 0 || rule == NewViewCode::Mean || train.len() != model.appearance_views() {
-        return Appearance::Row(row);
-    }
-    let codes = model.codes(params);
-    let k = leave_one_out_k(codes, a, train);
-    let mut code = vec![0.0f64; a];
-    for (j, w) in neighbour_weights_k(camera, train, k) {
-        for (c, &v) in code.iter_mut().zip(&codes[j * a..(j + 1) * a]) {
-            *c += w * v as f64;
+    train: Vec<&'a Camera>,
+    /// The neighbours blended; `None` when no view is blended (the conditions above).
+    k: Option<usize>,
+}
+
+impl<'a> NewViewCodes<'a> {
+    pub fn new(
+        model: &'a Hfm,
+        params: &'a [f32],
+        rule: NewViewCode,
+        train: Vec<&'a Camera>,
+    ) -> NewViewCodes<'a> {
+        let a = model.appearance_dim();
+        let blends =
+            a > 0 && rule == NewViewCode::Neighbours && train.len() == model.appearance_views();
+        let k = blends.then(|| leave_one_out_k(model.codes(params), a, &train));
+        NewViewCodes {
+            model,
+            params,
+            rule,
+            train,
+            k,
         }
     }
-    Appearance::Code(code.into_iter().map(|v| v as f32).collect())
+
+    /// The appearance of a view with appearance row `row` (−1: none) and camera `camera`.
+    pub fn appearance(&self, row: i32, camera: &Camera) -> Appearance {
+        let Some(k) = self
+            .k
+            .filter(|_| row < 0 && self.rule == NewViewCode::Neighbours)
+        else {
+            return Appearance::Row(row);
+        };
+        let a = self.model.appearance_dim();
+        let codes = self.model.codes(self.params);
+        let mut code = vec![0.0f64; a];
+        for (j, w) in neighbour_weights_k(camera, &self.train, k) {
+            for (c, &v) in code.iter_mut().zip(&codes[j * a..(j + 1) * a]) {
+                *c += w * v as f64;
+            }
+        }
+        Appearance::Code(code.into_iter().map(|v| v as f32).collect())
+    }
 }
 
 /// The neighbour counts [`leave_one_out_k`] tries (those below the number of training views,

@@ -34,20 +34,19 @@ pub struct SceneForModel {
 }
 
 impl SceneForModel {
-    /// The appearance `camera` is rendered in: `row` (the view's own, ≥ 0) or, for a view
-    /// without one, the code `rule` gives (`render::appearance`), from the training cameras.
-    pub fn appearance(
-        &self,
-        model: &crate::model::hfm::Hfm,
-        params: &[f32],
+    /// The appearances views are rendered in with `model` and `params`: a view's own row (≥ 0)
+    /// or, for a view without one, the code `rule` gives (`render::appearance`), from the
+    /// training cameras.
+    pub fn new_view_codes<'a>(
+        &'a self,
+        model: &'a crate::model::hfm::Hfm,
+        params: &'a [f32],
         rule: crate::render::appearance::NewViewCode,
-        row: i32,
-        camera: &crate::scene::Camera,
-    ) -> crate::render::Appearance {
+    ) -> crate::render::appearance::NewViewCodes<'a> {
         let train: Vec<&crate::scene::Camera> = (self.scene.train().iter())
             .map(|&j| &self.scene.views[j].camera)
             .collect();
-        crate::render::appearance::appearance_for(model, params, rule, row, camera, &train)
+        crate::render::appearance::NewViewCodes::new(model, params, rule, train)
     }
 }
 

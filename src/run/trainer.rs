@@ -18,7 +18,7 @@
 
 use crate::eval::protocol::{evaluate_view, write_evaluated, ViewScore};
 use crate::model::params::Grads;
-use crate::render::appearance::appearance_for;
+use crate::render::appearance::NewViewCodes;
 use crate::render::ModelRenderer;
 use crate::run::divergence::Guard;
 use crate::run::report::Reporter;
@@ -158,21 +158,20 @@ pub fn evaluate_until(
     let train: Vec<&Camera> = (prepared.train_views.iter())
         .map(|&j| &prepared.scene.views[j].camera)
         .collect();
+    // The view's own row, or for a held-out view its neighbours' codes blended (the default
+    // rule of `render::appearance`).
+    let looks = NewViewCodes::new(
+        &state.ckpt.model,
+        &state.ckpt.params,
+        Default::default(),
+        train,
+    );
     let mut scores = Vec::new();
     for &i in &views {
         if stop() {
             return Ok(None);
         }
-        // The view's own row, or for a held-out view its neighbours' codes blended (the default
-        // rule of `render::appearance`).
-        let look = appearance_for(
-            &state.ckpt.model,
-            &state.ckpt.params,
-            Default::default(),
-            prepared.appearance_row(i),
-            &prepared.scene.views[i].camera,
-            &train,
-        );
+        let look = looks.appearance(prepared.appearance_row(i), &prepared.scene.views[i].camera);
         let e = evaluate_view(&renderer, &prepared.scene, i, &look)?;
         if let Some(dir) = out {
             let name = &prepared.scene.views[i].name;

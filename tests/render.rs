@@ -72,6 +72,98 @@ fn bands_do_not_show_in_the_frame() {
     assert!(bits(&two) == reference, "thread count changes the frame");
 }
 
+/// The renderer builds the model's input straight from the cast (`Hfm::infer_pixels`, no
+/// batch): every hit pixel's colour is the same bits as the forward of the batch the cast
+/// makes (`Batch { positions, valid, dirs, footprint, .. }`, the path rendering took before),
+/// for the hash model with ξ and the footprint level weighting, with a view's row and with
+/// the mean code, and for the vertex featurization (triangles and barycentrics from the cast).
+#[test]
+fn the_frame_is_the_forward_of_the_batch_its_cast_makes() {
+    use xscale::model::config::{Featurization, LevelWeight};
+    use xscale::model::Batch;
+    let (scene, tracer) = tiny_scene();
+    let cam = scene.views[scene.test[0]].camera.scaled(1.5);
+    let mut hashed = ModelConfig::tiny();
+    hashed.appearance_views = 4;
+    hashed.level_weight = LevelWeight::Footprint;
+    let mut vertex = ModelConfig::tiny();
+    vertex.featurization = Featurization::Vertex;
+    vertex.vertex_features = 6;
+    vertex.appearance_views = 4;
+    vertex.vertex_count = scene.mesh.vertices.len() as u32;
+    vertex.deform.enabled = false;
+    for cfg in [hashed, vertex] {
+        let model = match cfg.featurization {
+            Featurization::Vertex => {
+                Hfm::with_vertex(&cfg, scene.mesh.triangles.clone().into()).unwrap()
+            }
+            _ => Hfm::new(&cfg).unwrap(),
+        };
+        let mut params = model.init_params(11);
+        // Non-zero deformation and shader weights beyond the initial ones, and distinct codes.
+        for (k, v) in params.iter_mut().enumerate() {
+            *v += 0.01 * ((k * 7919 % 201) as f32 - 100.0) / 100.0;
+        }
+        let g = cfg.gamma;
+        let r = ModelRenderer {
+            model: &model,
+            params: &params,
+            tracer: &tracer,
+            gamma: g,
+            background: WHITE,
+        };
+        let cast = xscale::raycast::cast_view(&tracer, &cam, g).unwrap();
+        let s = (g * g) as usize;
+        let hits: Vec<usize> = (0..cast.pixels.len())
+            .filter(|&i| cast.pixels[i].valid != 0)
+            .collect();
+        assert!(hits.len() > 1000);
+        let subs = |i: usize| &cast.subs[i * s..(i + 1) * s];
+        for row in [-1, 2] {
+            let frame = r.render(&cam, &Appearance::Row(row)).unwrap();
+            let mut b = Batch {
+                positions: (hits.iter())
+                    .flat_map(|&i| subs(i).iter().map(|x| x.position.to_array()))
+                    .collect(),
+                valid: (hits.iter())
+                    .flat_map(|&i| subs(i).iter().map(|x| x.hit() as u8))
+                    .collect(),
+                dirs: (hits.iter())
+                    .map(|&i| cast.pixels[i].dir.as_vec3().to_array())
+                    .collect(),
+                view: vec![row; hits.len()],
+                target: vec![[0.0; 3]; hits.len()],
+                footprint: (hits.iter())
+                    .map(|&i| cast.pixels[i].footprint as f32)
+                    .collect(),
+                ..Batch::default()
+            };
+            if model.vertex.is_some() {
+                b.triangle = (hits.iter())
+                    .flat_map(|&i| subs(i).iter().map(|x| x.triangle))
+                    .collect();
+                b.bary = (hits.iter())
+                    .flat_map(|&i| {
+                        (subs(i).iter()).map(|x| if x.hit() { [x.u, x.v] } else { [0.0; 2] })
+                    })
+                    .collect();
+            }
+            let fwd = model.forward(&params, &b).unwrap();
+            let want = fwd.chunks.iter().flat_map(|c| c.rgb.iter().copied());
+            let mut differ = 0;
+            for (&i, w) in hits.iter().zip(want.collect::<Vec<f32>>().chunks_exact(3)) {
+                let got = &frame.image.data[i * 3..i * 3 + 3];
+                differ += (got.iter().zip(w)).any(|(a, b)| a.to_bits() != b.to_bits()) as usize;
+            }
+            assert_eq!(
+                differ, 0,
+                "{:?}, row {row}: pixels differ from the batch's forward",
+                cfg.featurization
+            );
+        }
+    }
+}
+
 /// A view rendered with a code of its own (`Appearance::Code`, what a held-out view gets from
 /// its neighbours) is the same bits as with the row holding that code, and with the mean code
 /// the same as row −1; a different code changes the frame.

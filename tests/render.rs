@@ -414,3 +414,66 @@ fn footprint_image_keeps_misses_off_the_ramp() {
     assert_eq!(px(3), [1.0; 3]);
     assert!(FOOTPRINT_MISS.iter().any(|&c| c != FOOTPRINT_MISS[0]));
 }
+
+/// `render` and `eval` load the scene and build its BVH while the checkpoint's tables are read
+/// (`load_model_and_scene`): the same parameters, scene, appearance rows and frame as the
+/// checkpoint loaded first and the scene after; a checkpoint that cannot be read is reported
+/// as such, not as the scene's error.
+#[test]
+fn the_scene_loaded_while_the_tables_are_read_is_the_one_loaded_after() {
+    use xscale::model::checkpoint::Checkpoint;
+    use xscale::run::model::{load_model, load_model_and_scene, scene_for_model};
+    let (scene, _) = tiny_scene();
+    let fixture = Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/tiny");
+    let mut cfg = ModelConfig::tiny();
+    cfg.appearance_views = scene.train().len() as u32;
+    let model = Hfm::new(&cfg).unwrap();
+    let params = model.init_params(3);
+    let ck = Checkpoint {
+        model,
+        params,
+        normalization: scene.normalization,
+        refine: None,
+    };
+    let dir = std::env::temp_dir().join(format!("xscale-test-render-load-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let path = dir.join("checkpoint.safetensors");
+    ck.save(&path).unwrap();
+    let (a, acfg) = load_model(&path).unwrap();
+    let sa = scene_for_model(&fixture, &a, acfg.as_ref(), None, None).unwrap();
+    let (b, _, bdir, sb) = load_model_and_scene(&path, || Ok(fixture.clone()), None, None).unwrap();
+    assert_eq!(bdir, fixture);
+    let bits32 = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+    assert!(bits32(&a.params) == bits32(&b.params) && bits32(&b.params) == bits32(&ck.params));
+    assert_eq!(sa.rows, sb.rows);
+    assert!(sb.rows.iter().any(|&r| r >= 0));
+    assert_eq!(sa.scene.views.len(), sb.scene.views.len());
+    let cam = &sa.scene.views[sa.scene.test[0]].camera;
+    let frame = |ck: &Checkpoint, s: &xscale::run::model::SceneForModel| {
+        let r = ModelRenderer {
+            model: &ck.model,
+            params: &ck.params,
+            tracer: &s.tracer,
+            gamma: 2,
+            background: WHITE,
+        };
+        bits(&r.render(cam, &Appearance::Row(1)).unwrap())
+    };
+    assert!(frame(&a, &sa) == frame(&b, &sb));
+    // A missing checkpoint is the error, whatever the scene's.
+    let err = load_model_and_scene(
+        &dir.join("none.safetensors"),
+        || Ok(fixture.clone()),
+        None,
+        None,
+    )
+    .err()
+    .unwrap();
+    assert!(format!("{err:#}").contains("none.safetensors"), "{err:#}");
+    // A scene that cannot be found is reported (after a checkpoint that reads).
+    let err = load_model_and_scene(&path, || Ok(dir.join("no-scene")), None, None)
+        .err()
+        .unwrap();
+    assert!(format!("{err:#}").contains("no-scene"), "{err:#}");
+    let _ = std::fs::remove_dir_all(&dir);
+}

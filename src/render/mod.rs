@@ -202,8 +202,10 @@ impl CastPixels {
         self.start.clear();
         self.start.push(0);
         let mut total = 0;
+        // A pixel's hit mask (`PixelSummary::valid`, bit j: sub-sample j hit) counts its
+        // points without reading its sub-samples on this thread.
         for &i in chunk {
-            total += subs(i).iter().filter(|x| x.hit()).count();
+            total += cast.pixels[i].valid.count_ones() as usize;
             self.start.push(total);
         }
         let ids = model.vertex.is_some();
@@ -257,6 +259,7 @@ impl CastPixels {
                         k += 1;
                     }
                 }
+                assert_eq!(k, p.len(), "the cast's hit masks count its hits");
             });
     }
 

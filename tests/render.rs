@@ -21,6 +21,22 @@ fn bits(r: &Rendered) -> (Vec<u32>, Vec<bool>, Vec<u32>) {
     )
 }
 
+/// A renderer of `model` on a white background.
+fn on_white<'a>(
+    model: &'a Hfm,
+    params: &'a [f32],
+    tracer: &'a Tracer,
+    gamma: u32,
+) -> ModelRenderer<'a> {
+    ModelRenderer {
+        model,
+        params,
+        tracer,
+        gamma,
+        background: WHITE,
+    }
+}
+
 /// The `tiny` fixture and a BVH of its mesh.
 fn tiny_scene() -> (Scene, Tracer) {
     let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/tiny");
@@ -105,13 +121,7 @@ fn the_frame_is_the_forward_of_the_batch_its_cast_makes() {
             *v += 0.01 * ((k * 7919 % 201) as f32 - 100.0) / 100.0;
         }
         let g = cfg.gamma;
-        let r = ModelRenderer {
-            model: &model,
-            params: &params,
-            tracer: &tracer,
-            gamma: g,
-            background: WHITE,
-        };
+        let r = on_white(&model, &params, &tracer, g);
         let cast = xscale::raycast::cast_view(&tracer, &cam, g).unwrap();
         let s = (g * g) as usize;
         let hits: Vec<usize> = (0..cast.pixels.len())
@@ -450,13 +460,7 @@ fn the_scene_loaded_while_the_tables_are_read_is_the_one_loaded_after() {
     assert_eq!(sa.scene.views.len(), sb.scene.views.len());
     let cam = &sa.scene.views[sa.scene.test[0]].camera;
     let frame = |ck: &Checkpoint, s: &xscale::run::model::SceneForModel| {
-        let r = ModelRenderer {
-            model: &ck.model,
-            params: &ck.params,
-            tracer: &s.tracer,
-            gamma: 2,
-            background: WHITE,
-        };
+        let r = on_white(&ck.model, &ck.params, &s.tracer, 2);
         bits(&r.render(cam, &Appearance::Row(1)).unwrap())
     };
     assert!(frame(&a, &sa) == frame(&b, &sb));

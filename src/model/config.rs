@@ -253,8 +253,12 @@ impl ModelConfig {
             },
             deform: DeformConfig {
                 enabled: true,
+                // The spacing of 8 levels from 16 to 512, the 5 coarsest of them (finest
+                // res_4 = 116): the three finer ones held most of grid D's stepped rows
+                // and bought no held-out PSNR on tiny, small or cross (SPEC §9,
+                // docs/changelog.md "Grid D's levels").
                 grid: GridConfig {
-                    levels: 8,
+                    levels: 5,
                     features: 2,
                     log2_table_size: 17,
                     base_resolution: 16.0,
@@ -301,6 +305,7 @@ impl ModelConfig {
             log2_table_sizes: None,
         };
         c.deform.grid.interpolation = Interpolation::Smoothstep;
+        c.deform.grid.levels = 8; // finest res_7 = 512 (`cpu` keeps the 5 coarsest)
         c
     }
 

@@ -75,6 +75,15 @@ fn refinement_is_thread_independent_resumes_exactly_and_moves_the_mesh() {
             let s = xscale::run::model::scene_for_model(&fixture(), &ck, rc.as_ref(), None, None)
                 .unwrap();
             assert_eq!(s.scene.mesh.vertices, refined.vertices);
+            // Loaded with the scene read while the tables are: the refined mesh too.
+            let (_, _, _, s2) = xscale::run::model::load_model_and_scene(
+                &run.join("checkpoint.safetensors"),
+                || Ok(fixture()),
+                None,
+                None,
+            )
+            .unwrap();
+            assert_eq!(s2.scene.mesh.vertices, refined.vertices);
         }
         let _ = std::fs::remove_dir_all(&run);
     }

@@ -21,6 +21,22 @@ fn bits(r: &Rendered) -> (Vec<u32>, Vec<bool>, Vec<u32>) {
     )
 }
 
+/// A renderer of `model` on a white background.
+fn on_white<'a>(
+    model: &'a Hfm,
+    params: &'a [f32],
+    tracer: &'a Tracer,
+    gamma: u32,
+) -> ModelRenderer<'a> {
+    ModelRenderer {
+        model,
+        params,
+        tracer,
+        gamma,
+        background: WHITE,
+    }
+}
+
 /// The `tiny` fixture and a BVH of its mesh.
 fn tiny_scene() -> (Scene, Tracer) {
     let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/tiny");
@@ -70,6 +86,92 @@ fn bands_do_not_show_in_the_frame() {
             .unwrap()
     });
     assert!(bits(&two) == reference, "thread count changes the frame");
+}
+
+/// The renderer builds the model's input straight from the cast (`Hfm::infer_pixels`, no
+/// batch): every hit pixel's colour is the same bits as the forward of the batch the cast
+/// makes (`Batch { positions, valid, dirs, footprint, .. }`, the path rendering took before),
+/// for the hash model with ξ and the footprint level weighting, with a view's row and with
+/// the mean code, and for the vertex featurization (triangles and barycentrics from the cast).
+#[test]
+fn the_frame_is_the_forward_of_the_batch_its_cast_makes() {
+    use xscale::model::config::{Featurization, LevelWeight};
+    use xscale::model::Batch;
+    let (scene, tracer) = tiny_scene();
+    let cam = scene.views[scene.test[0]].camera.scaled(1.5);
+    let mut hashed = ModelConfig::tiny();
+    hashed.appearance_views = 4;
+    hashed.level_weight = LevelWeight::Footprint;
+    let mut vertex = ModelConfig::tiny();
+    vertex.featurization = Featurization::Vertex;
+    vertex.vertex_features = 6;
+    vertex.appearance_views = 4;
+    vertex.vertex_count = scene.mesh.vertices.len() as u32;
+    vertex.deform.enabled = false;
+    for cfg in [hashed, vertex] {
+        let model = match cfg.featurization {
+            Featurization::Vertex => {
+                Hfm::with_vertex(&cfg, scene.mesh.triangles.clone().into()).unwrap()
+            }
+            _ => Hfm::new(&cfg).unwrap(),
+        };
+        let mut params = model.init_params(11);
+        // Non-zero deformation and shader weights beyond the initial ones, and distinct codes.
+        for (k, v) in params.iter_mut().enumerate() {
+            *v += 0.01 * ((k * 7919 % 201) as f32 - 100.0) / 100.0;
+        }
+        let g = cfg.gamma;
+        let r = on_white(&model, &params, &tracer, g);
+        let cast = xscale::raycast::cast_view(&tracer, &cam, g).unwrap();
+        let s = (g * g) as usize;
+        let hits: Vec<usize> = (0..cast.pixels.len())
+            .filter(|&i| cast.pixels[i].valid != 0)
+            .collect();
+        assert!(hits.len() > 1000);
+        let subs = |i: usize| &cast.subs[i * s..(i + 1) * s];
+        for row in [-1, 2] {
+            let frame = r.render(&cam, &Appearance::Row(row)).unwrap();
+            let mut b = Batch {
+                positions: (hits.iter())
+                    .flat_map(|&i| subs(i).iter().map(|x| x.position.to_array()))
+                    .collect(),
+                valid: (hits.iter())
+                    .flat_map(|&i| subs(i).iter().map(|x| x.hit() as u8))
+                    .collect(),
+                dirs: (hits.iter())
+                    .map(|&i| cast.pixels[i].dir.as_vec3().to_array())
+                    .collect(),
+                view: vec![row; hits.len()],
+                target: vec![[0.0; 3]; hits.len()],
+                footprint: (hits.iter())
+                    .map(|&i| cast.pixels[i].footprint as f32)
+                    .collect(),
+                ..Batch::default()
+            };
+            if model.vertex.is_some() {
+                b.triangle = (hits.iter())
+                    .flat_map(|&i| subs(i).iter().map(|x| x.triangle))
+                    .collect();
+                b.bary = (hits.iter())
+                    .flat_map(|&i| {
+                        (subs(i).iter()).map(|x| if x.hit() { [x.u, x.v] } else { [0.0; 2] })
+                    })
+                    .collect();
+            }
+            let fwd = model.forward(&params, &b).unwrap();
+            let want = fwd.chunks.iter().flat_map(|c| c.rgb.iter().copied());
+            let mut differ = 0;
+            for (&i, w) in hits.iter().zip(want.collect::<Vec<f32>>().chunks_exact(3)) {
+                let got = &frame.image.data[i * 3..i * 3 + 3];
+                differ += (got.iter().zip(w)).any(|(a, b)| a.to_bits() != b.to_bits()) as usize;
+            }
+            assert_eq!(
+                differ, 0,
+                "{:?}, row {row}: pixels differ from the batch's forward",
+                cfg.featurization
+            );
+        }
+    }
 }
 
 /// A view rendered with a code of its own (`Appearance::Code`, what a held-out view gets from
@@ -321,4 +423,61 @@ fn footprint_image_keeps_misses_off_the_ramp() {
     assert_eq!(px(2), FOOTPRINT_MISS);
     assert_eq!(px(3), [1.0; 3]);
     assert!(FOOTPRINT_MISS.iter().any(|&c| c != FOOTPRINT_MISS[0]));
+}
+
+/// `render` and `eval` load the scene and build its BVH while the checkpoint's tables are read
+/// (`load_model_and_scene`): the same parameters, scene, appearance rows and frame as the
+/// checkpoint loaded first and the scene after; a checkpoint that cannot be read is reported
+/// as such, not as the scene's error.
+#[test]
+fn the_scene_loaded_while_the_tables_are_read_is_the_one_loaded_after() {
+    use xscale::model::checkpoint::Checkpoint;
+    use xscale::run::model::{load_model, load_model_and_scene, scene_for_model};
+    let (scene, _) = tiny_scene();
+    let fixture = Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/tiny");
+    let mut cfg = ModelConfig::tiny();
+    cfg.appearance_views = scene.train().len() as u32;
+    let model = Hfm::new(&cfg).unwrap();
+    let params = model.init_params(3);
+    let ck = Checkpoint {
+        model,
+        params,
+        normalization: scene.normalization,
+        refine: None,
+    };
+    let dir = std::env::temp_dir().join(format!("xscale-test-render-load-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let path = dir.join("checkpoint.safetensors");
+    ck.save(&path).unwrap();
+    let (a, acfg) = load_model(&path).unwrap();
+    let sa = scene_for_model(&fixture, &a, acfg.as_ref(), None, None).unwrap();
+    let (b, _, bdir, sb) = load_model_and_scene(&path, || Ok(fixture.clone()), None, None).unwrap();
+    assert_eq!(bdir, fixture);
+    let bits32 = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+    assert!(bits32(&a.params) == bits32(&b.params) && bits32(&b.params) == bits32(&ck.params));
+    assert_eq!(sa.rows, sb.rows);
+    assert!(sb.rows.iter().any(|&r| r >= 0));
+    assert_eq!(sa.scene.views.len(), sb.scene.views.len());
+    let cam = &sa.scene.views[sa.scene.test[0]].camera;
+    let frame = |ck: &Checkpoint, s: &xscale::run::model::SceneForModel| {
+        let r = on_white(&ck.model, &ck.params, &s.tracer, 2);
+        bits(&r.render(cam, &Appearance::Row(1)).unwrap())
+    };
+    assert!(frame(&a, &sa) == frame(&b, &sb));
+    // A missing checkpoint is the error, whatever the scene's.
+    let err = load_model_and_scene(
+        &dir.join("none.safetensors"),
+        || Ok(fixture.clone()),
+        None,
+        None,
+    )
+    .err()
+    .unwrap();
+    assert!(format!("{err:#}").contains("none.safetensors"), "{err:#}");
+    // A scene that cannot be found is reported (after a checkpoint that reads).
+    let err = load_model_and_scene(&path, || Ok(dir.join("no-scene")), None, None)
+        .err()
+        .unwrap();
+    assert!(format!("{err:#}").contains("no-scene"), "{err:#}");
+    let _ = std::fs::remove_dir_all(&dir);
 }

@@ -1,7 +1,7 @@
 //! Pieces shared by several subcommands: choosing a checkpoint, loading a scene for a model.
 
 use crate::model::checkpoint::Checkpoint;
-use crate::run::model::{load_model, scene_for_model, scene_without_model, SceneForModel};
+use crate::run::model::{load_model_and_scene, scene_without_model, SceneForModel};
 use crate::run::run_dir::run_checkpoint;
 use crate::scene::{LoadOptions, Scene};
 use crate::train::config::RunConfig;
@@ -98,12 +98,9 @@ impl ModelArgs {
     /// The checkpoint path, the model, its run configuration (if any) and the scene for it.
     pub fn load(&self) -> Result<(PathBuf, Checkpoint, SceneForModel)> {
         let path = checkpoint_path(&self.run, &self.checkpoint)?;
-        let (ck, cfg) = load_model(&path)?;
-        let dir = self.scene_dir()?;
-        let s = scene_for_model(
-            &dir,
-            &ck,
-            cfg.as_ref(),
+        let (ck, cfg, dir, s) = load_model_and_scene(
+            &path,
+            || self.scene_dir(),
             self.downsample,
             self.mesh.as_deref(),
         )?;

@@ -589,37 +589,21 @@ impl Checkpoint {
     /// [`Checkpoint::from_tensor_file`] with the tensors in `raw` left in a mapped file
     /// ([`Checkpoint::read_model`]).
     fn from_tensors(file: &TensorFile, raw: &BTreeMap<String, RawTensor>) -> Result<Checkpoint> {
-        let label = file
-            .source
-            .as_ref()
-            .map_or("<in-memory checkpoint>".to_string(), |p| {
-                p.display().to_string()
-            });
-        if let Some(kind) = file_kind(file).filter(|&k| k != CHECKPOINT) {
-            let swapped = if kind == BATCH {
-                " (--checkpoint and --batch swapped?)"
-            } else {
-                ""
-            };
-            bail!("{label}: not a checkpoint: this file is {kind}{swapped}");
-        }
-        let format = file.meta("format")?;
-        if format != FORMAT {
-            bail!("{label}: format is {format:?}, expected {FORMAT:?}");
-        }
-        let cfg: ModelConfig = toml::from_str(file.meta("config")?).with_context(|| {
-            format!("{label}: header metadata \"config\" is not a model config")
-        })?;
-        let norm_text = file.meta("normalization")?;
-        let normalization: Normalization = serde_json::from_str(norm_text).with_context(|| {
-            format!("{label}: header metadata \"normalization\" is not {{\"center\":[x,y,z],\"extent\":[x,y,z]}}")
-        })?;
-        let [c, e] = [normalization.center, normalization.extent];
-        ensure!(
-            c.is_finite() && e.is_finite() && e.min_element() > 0.0,
-            "{label}: normalization (header metadata) has center [{}, {}, {}] and extent [{}, {}, {}]: every value must be finite and every extent > 0",
-            c.x, c.y, c.z, e.x, e.y, e.z
-        );
+        let head = Head::of(file)?;
+        Self::from_head(file, raw, head)
+    }
+
+    /// The rest of [`Checkpoint::from_tensors`] once its header is read.
+    fn from_head(
+        file: &TensorFile,
+        raw: &BTreeMap<String, RawTensor>,
+        head: Head,
+    ) -> Result<Checkpoint> {
+        let Head {
+            label,
+            cfg,
+            normalization,
+        } = head;
         let model = if cfg.featurization.is_hash() {
             let grid_h = grid_from(file, "grid_h", &cfg.grid_h).with_context(|| label.clone())?;
             let grid_d = if cfg.deform.enabled {
@@ -701,10 +685,88 @@ impl Checkpoint {
         )
     }
 
+    /// [`Checkpoint::read_model`] running `meanwhile` on a thread of its own while the tables
+    /// are decoded: it is given the header (model configuration, normalisation) and the
+    /// metadata, read first, and can load and prepare what does not need the parameters (a
+    /// scene, its BVH), so that work overlaps the tables' copy. A checkpoint whose header is
+    /// refused does not run `meanwhile`; a refused table is reported before what `meanwhile`
+    /// returns is looked at.
+    pub fn read_model_while<T: Send>(
+        path: impl AsRef<Path>,
+        meanwhile: impl FnOnce(&Head, &BTreeMap<String, String>) -> T + Send,
+    ) -> Result<(Checkpoint, BTreeMap<String, String>, T)> {
+        TensorFile::with_mapped(
+            path,
+            |name| !name.starts_with("adam."),
+            |name| name == "grid_h.table" || name == "grid_d.table",
+            |f, raw| {
+                let head = Head::of(&f)?;
+                let (ck, other) = std::thread::scope(|sc| {
+                    let (h, m) = (head.clone(), &f.metadata);
+                    let other = sc.spawn(move || meanwhile(&h, m));
+                    let ck = Checkpoint::from_head(&f, raw, head);
+                    (ck, other.join())
+                });
+                let other = other.unwrap_or_else(|e| std::panic::resume_unwind(e));
+                Ok((ck?, f.metadata, other))
+            },
+        )
+    }
+
     /// A checkpoint file's tensors and metadata without a training checkpoint's Adam state
     /// (`adam.*`, `AdamState::save`: three quarters of the file), which a model does not need.
     pub fn read_model_tensors(path: impl AsRef<Path>) -> Result<TensorFile> {
         TensorFile::read_only(path, |name| !name.starts_with("adam."))
+    }
+}
+
+/// What a checkpoint's header says before any tensor is read: its model configuration and
+/// normalisation (checked), and the name errors give it.
+#[derive(Clone, Debug)]
+pub struct Head {
+    pub label: String,
+    pub cfg: ModelConfig,
+    pub normalization: Normalization,
+}
+
+impl Head {
+    fn of(file: &TensorFile) -> Result<Head> {
+        let label = file
+            .source
+            .as_ref()
+            .map_or("<in-memory checkpoint>".to_string(), |p| {
+                p.display().to_string()
+            });
+        if let Some(kind) = file_kind(file).filter(|&k| k != CHECKPOINT) {
+            let swapped = if kind == BATCH {
+                " (--checkpoint and --batch swapped?)"
+            } else {
+                ""
+            };
+            bail!("{label}: not a checkpoint: this file is {kind}{swapped}");
+        }
+        let format = file.meta("format")?;
+        if format != FORMAT {
+            bail!("{label}: format is {format:?}, expected {FORMAT:?}");
+        }
+        let cfg: ModelConfig = toml::from_str(file.meta("config")?).with_context(|| {
+            format!("{label}: header metadata \"config\" is not a model config")
+        })?;
+        let norm_text = file.meta("normalization")?;
+        let normalization: Normalization = serde_json::from_str(norm_text).with_context(|| {
+            format!("{label}: header metadata \"normalization\" is not {{\"center\":[x,y,z],\"extent\":[x,y,z]}}")
+        })?;
+        let [c, e] = [normalization.center, normalization.extent];
+        ensure!(
+            c.is_finite() && e.is_finite() && e.min_element() > 0.0,
+            "{label}: normalization (header metadata) has center [{}, {}, {}] and extent [{}, {}, {}]: every value must be finite and every extent > 0",
+            c.x, c.y, c.z, e.x, e.y, e.z
+        );
+        Ok(Head {
+            label,
+            cfg,
+            normalization,
+        })
     }
 }
 

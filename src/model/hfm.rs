@@ -156,16 +156,70 @@ pub struct Forward<R> {
     pub loss: f64,
 }
 
-/// What every chunk of a forward pass shares (see `Hfm::prologue`).
+/// What every chunk of a forward pass shares (see `Hfm::prologue`): the batch's valid
+/// sub-samples compacted, and what depends on the parameters alone.
 struct Prologue<R> {
     start: Vec<usize>,
     points: Vec<[f64; 3]>,
     sample_index: Vec<usize>,
     triangles: Vec<u32>,
     bary: Vec<[f64; 2]>,
+    shared: Shared<R>,
+}
+
+impl<R> Prologue<R> {
+    /// The pixels of `batch` as the chunks read them.
+    fn pixels<'a>(&'a self, batch: &'a Batch) -> Pixels<'a> {
+        Pixels {
+            start: &self.start,
+            points: &self.points,
+            triangles: &self.triangles,
+            bary: &self.bary,
+            dirs: &batch.dirs,
+            footprint: &batch.footprint,
+            view: &batch.view,
+            target: &batch.target,
+        }
+    }
+}
+
+/// What every chunk of a forward pass shares that depends on the parameters alone: the mean
+/// appearance code (or the code given for view −1) and the MLPs' transposed weights. A frame
+/// makes it once ([`Hfm::infer_shared`]) for all its pixels.
+pub struct Shared<R> {
     code_mean: Vec<R>,
     wt_shader: Vec<Vec<R>>,
     wt_deform: Option<Vec<Vec<R>>>,
+}
+
+/// Pixels as a forward pass reads them, their valid sub-samples already compacted (CSR by
+/// pixel): what [`Hfm::forward`] makes of a [`Batch`], or what a renderer builds straight from
+/// its cast ([`Hfm::infer_pixels`]), so nothing is copied into a batch first.
+#[derive(Clone, Copy, Debug)]
+pub struct Pixels<'a> {
+    /// `[n+1]`: pixel i's valid sub-samples are `start[i]..start[i+1]` of `points` (at least
+    /// one each).
+    pub start: &'a [usize],
+    /// `[V]` positions of the valid sub-samples, pixel by pixel in sub-sample order.
+    pub points: &'a [[f64; 3]],
+    /// `[V]` triangle and barycentrics of each valid sub-sample (vertex featurization only,
+    /// else empty).
+    pub triangles: &'a [u32],
+    pub bary: &'a [[f64; 2]],
+    /// `[n]` unit view directions.
+    pub dirs: &'a [[f32; 3]],
+    /// `[n]` pixel footprints (SPEC §6.3; empty without the footprint level weighting).
+    pub footprint: &'a [f32],
+    /// `[n]` appearance rows (−1: the shared code).
+    pub view: &'a [i32],
+    /// `[n]` targets; empty: no loss is summed (rendering).
+    pub target: &'a [[f32; 3]],
+}
+
+impl Pixels<'_> {
+    pub fn n_pixels(&self) -> usize {
+        self.dirs.len()
+    }
 }
 
 /// `v` at length `len` for a stage that writes every element: what a reused buffer held is
@@ -405,11 +459,12 @@ impl Hfm {
     pub fn forward<R: Real>(&self, params: &[R], batch: &Batch) -> Result<Forward<R>> {
         let pre = self.prologue(params, batch)?;
         let n = batch.n_pixels();
+        let px = pre.pixels(batch);
         let chunks: Vec<ChunkFwd<R>> = (0..n.div_ceil(PIXEL_CHUNK))
             .into_par_iter()
             .map(|c| {
                 let mut f = ChunkFwd::default();
-                self.forward_chunk(&mut f, params, batch, &pre, c);
+                self.forward_chunk(&mut f, params, &px, &pre.shared, c);
                 f
             })
             .collect();
@@ -430,7 +485,7 @@ impl Hfm {
             sample_index: pre.sample_index,
             triangles: pre.triangles,
             bary: pre.bary,
-            code_mean: pre.code_mean,
+            code_mean: pre.shared.code_mean,
             loss,
         })
     }
@@ -465,34 +520,174 @@ impl Hfm {
     ) -> Result<Vec<R>> {
         let mut pre = self.prologue(params, batch)?;
         if let Some(c) = code {
-            ensure!(
-                c.len() == self.appearance_dim(),
-                "appearance code of {} values, the model's codes have {}",
-                c.len(),
-                self.appearance_dim()
-            );
-            pre.code_mean = c.to_vec();
+            self.check_code(c)?;
+            pre.shared.code_mean = c.to_vec();
         }
         let mut rgb = vec![R::ZERO; batch.n_pixels() * 3];
+        let px = pre.pixels(batch);
         rgb.par_chunks_mut(PIXEL_CHUNK * 3)
             .enumerate()
             .for_each(|(c, out)| {
                 let mut f = bufs.for_this_thread();
-                self.forward_chunk(&mut f, params, batch, &pre, c);
+                self.forward_chunk(&mut f, params, &px, &pre.shared, c);
                 out.copy_from_slice(&f.rgb);
             });
         Ok(rgb)
     }
 
-    /// What every chunk of a forward pass shares: the batch checked, its valid sub-samples
-    /// compacted (CSR by pixel), the mean appearance code, the MLPs' transposed weights.
-    fn prologue<R: Real>(&self, params: &[R], batch: &Batch) -> Result<Prologue<R>> {
+    /// A code given for view −1 has the model's appearance dimension.
+    fn check_code<R>(&self, c: &[R]) -> Result<()> {
+        ensure!(
+            c.len() == self.appearance_dim(),
+            "appearance code of {} values, the model's codes have {}",
+            c.len(),
+            self.appearance_dim()
+        );
+        Ok(())
+    }
+
+    /// What [`Hfm::infer_pixels`] shares across a frame's pixels: the MLPs' transposed weights
+    /// and `code` (`[A]`) for the pixels of view −1 (`None`: the mean of all codes), checked
+    /// against the layout.
+    pub fn infer_shared<R: Real>(&self, params: &[R], code: Option<&[R]>) -> Result<Shared<R>> {
+        self.check_params(params)?;
+        let mut shared = self.shared(params);
+        if let Some(c) = code {
+            self.check_code(c)?;
+            shared.code_mean = c.to_vec();
+        }
+        Ok(shared)
+    }
+
+    /// The colours (`[n, 3]` σ(logits) into `rgb`) of pixels whose valid sub-samples are already
+    /// compacted: the same bits as [`Hfm::infer_with`] of the batch they came from (its
+    /// prologue compacts the same points in the same order), without the batch. `shared` from
+    /// [`Hfm::infer_shared`] with the same `params`. The pixels are checked chunk by chunk, in
+    /// parallel, as `infer_with` checks a batch (a pixel without a valid sub-sample, a
+    /// non-finite position or direction, a view without a code are errors).
+    pub fn infer_pixels<R: Real>(
+        &self,
+        params: &[R],
+        px: &Pixels<'_>,
+        shared: &Shared<R>,
+        bufs: &InferBuffers<R>,
+        rgb: &mut [R],
+    ) -> Result<()> {
+        self.check_params(params)?;
+        let n = px.n_pixels();
+        ensure!(
+            px.start.len() == n + 1
+                && px.start[0] == 0
+                && px.start[n] == px.points.len()
+                && px.view.len() == n
+                && rgb.len() == n * 3
+                && (px.target.is_empty() || px.target.len() == n),
+            "pixels: {n} directions, {} starts (first {:?}, last {:?}) for {} points, {} views, {} targets, {} colours",
+            px.start.len(),
+            px.start.first(),
+            px.start.last(),
+            px.points.len(),
+            px.view.len(),
+            px.target.len(),
+            rgb.len() / 3
+        );
+        ensure!(
+            px.footprint.len() == n
+                || (px.footprint.is_empty() && self.cfg.level_weight == LevelWeight::None),
+            "pixels: {} footprints for {n} pixels (the footprint level weighting needs one each)",
+            px.footprint.len()
+        );
+        ensure!(
+            self.vertex.is_none()
+                || (px.triangles.len() == px.points.len() && px.bary.len() == px.points.len()),
+            "pixels: the vertex featurization needs a triangle and barycentrics per point"
+        );
+        rgb.par_chunks_mut(PIXEL_CHUNK * 3)
+            .enumerate()
+            .try_for_each(|(c, out)| {
+                self.check_pixels(px, c * PIXEL_CHUNK..(c * PIXEL_CHUNK + PIXEL_CHUNK).min(n))?;
+                let mut f = bufs.for_this_thread();
+                self.forward_chunk(&mut f, params, px, shared, c);
+                out.copy_from_slice(&f.rgb);
+                Ok(())
+            })
+    }
+
+    /// [`Hfm::infer_pixels`]'s checks of `pixels` (what `Batch::validate` and
+    /// [`Hfm::check_batch`] ask of a batch's).
+    fn check_pixels(&self, px: &Pixels<'_>, pixels: Range<usize>) -> Result<()> {
+        let views = self.appearance_views() as i32;
+        for i in pixels {
+            let (a, b) = (px.start[i], px.start[i + 1]);
+            ensure!(
+                a < b && b <= px.points.len(),
+                "pixel {i}: no valid sub-sample ({a}..{b})"
+            );
+            for (j, p) in px.points[a..b].iter().enumerate() {
+                ensure!(
+                    p.iter().all(|v| v.is_finite()),
+                    "pixel {i} valid sub-sample {j}: position {p:?} is not finite"
+                );
+            }
+            if let Some(vt) = &self.vertex {
+                for k in a..b {
+                    let (t, w) = (px.triangles[k], px.bary[k]);
+                    ensure!(
+                        (t as usize) < vt.faces.len() && w.iter().all(|v| v.is_finite()),
+                        "pixel {i}: triangle {t} (barycentrics {w:?}) is not one of the model's {} faces",
+                        vt.faces.len()
+                    );
+                }
+            }
+            let d = px.dirs[i];
+            ensure!(
+                d.iter().all(|v| v.is_finite()),
+                "pixel {i}: direction {d:?} is not finite"
+            );
+            if let Some(f) = px.footprint.get(i) {
+                ensure!(
+                    f.is_finite() && *f >= 0.0,
+                    "pixel {i}: footprint {f} is not a finite number ≥ 0"
+                );
+            }
+            let v = px.view[i];
+            ensure!(
+                v >= -1 && (self.appearance_dim() == 0 || v < views),
+                "pixel {i}: view {v} has no appearance code (the model has {views} rows)"
+            );
+        }
+        Ok(())
+    }
+
+    /// `params` has the layout's length.
+    fn check_params<R>(&self, params: &[R]) -> Result<()> {
         ensure!(
             params.len() == self.layout.total,
             "parameters: {} values, the layout needs {}",
             params.len(),
             self.layout.total
         );
+        Ok(())
+    }
+
+    /// [`Shared`] of `params`: the mean code and the MLPs' transposed weights.
+    fn shared<R: Real>(&self, params: &[R]) -> Shared<R> {
+        Shared {
+            code_mean: self.code_mean(params),
+            wt_shader: self
+                .shader
+                .transpose_weights(&params[self.r_shader.clone()]),
+            wt_deform: self
+                .deform
+                .as_ref()
+                .map(|m| m.transpose_weights(&params[self.r_deform.clone()])),
+        }
+    }
+
+    /// What every chunk of a forward pass shares: the batch checked, its valid sub-samples
+    /// compacted (CSR by pixel), the mean appearance code, the MLPs' transposed weights.
+    fn prologue<R: Real>(&self, params: &[R], batch: &Batch) -> Result<Prologue<R>> {
+        self.check_params(params)?;
         self.check_batch(batch)?;
         let n = batch.n_pixels();
         let s = batch.samples_per_pixel();
@@ -517,14 +712,7 @@ impl Hfm {
             start.push(points.len());
         }
         Ok(Prologue {
-            code_mean: self.code_mean(params),
-            wt_shader: self
-                .shader
-                .transpose_weights(&params[self.r_shader.clone()]),
-            wt_deform: self
-                .deform
-                .as_ref()
-                .map(|m| m.transpose_weights(&params[self.r_deform.clone()])),
+            shared: self.shared(params),
             start,
             points,
             sample_index,
@@ -552,14 +740,14 @@ impl Hfm {
         &self,
         f: &mut ChunkFwd<R>,
         params: &[R],
-        batch: &Batch,
-        pre: &Prologue<R>,
+        batch: &Pixels<'_>,
+        pre: &Shared<R>,
         c: usize,
     ) {
         let p0 = c * PIXEL_CHUNK;
         let pixels = p0..(p0 + PIXEL_CHUNK).min(batch.n_pixels());
-        let (start, points) = (&pre.start[..], &pre.points[..]);
-        let ids = (&pre.triangles[..], &pre.bary[..]);
+        let (start, points) = (batch.start, batch.points);
+        let ids = (batch.triangles, batch.bary);
         let code_mean = &pre.code_mean[..];
         let wt_shader = &pre.wt_shader[..];
         let wt_deform = pre.wt_deform.as_deref();
@@ -675,12 +863,13 @@ impl Hfm {
         );
         fit(&mut f.rgb, n * 3);
         sigmoid_forward(&f.shader.out, &mut f.rgb);
-        f.loss_sum = loss_forward(
-            self.cfg.loss,
-            self.cfg.smooth_l1_delta,
-            &f.rgb,
-            &batch.target[pixels],
-        );
+        // Rendering has no targets: no loss.
+        f.loss_sum = match batch.target.get(pixels) {
+            Some(t) if !t.is_empty() => {
+                loss_forward(self.cfg.loss, self.cfg.smooth_l1_delta, &f.rgb, t)
+            }
+            _ => 0.0,
+        };
     }
 
     /// Backward pass: ACCUMULATES ∂L/∂params, ∂L/∂positions `[N*S*3]` and ∂L/∂dirs `[N*3]` into
@@ -1235,6 +1424,81 @@ mod tests {
             .flat_map(|c| c.rgb.iter().copied())
             .collect();
         assert_eq!(m.infer(&p64, &b).unwrap(), want, "f64 infer differs");
+    }
+
+    /// `infer_pixels` (the renderer's path: valid sub-samples compacted by the caller, no
+    /// batch) gives `infer`'s bits with the mean code and with a code given for view −1, and
+    /// refuses pixels a batch would be refused for.
+    #[test]
+    fn infer_pixels_is_infer_bit_for_bit() {
+        let mut cfg = ModelConfig::cpu();
+        cfg.appearance_views = 4;
+        let m = Hfm::new(&cfg).unwrap();
+        let p = m.init_params(7);
+        let n = 2 * PIXEL_CHUNK + 31;
+        let mut b = Batch::random(9, n, 4, 4, 0.3);
+        b.footprint = (0..n)
+            .map(|i| 10f32.powf(-4.0 + 3.0 * ((i * 37) % 101) as f32 / 100.0))
+            .collect();
+        let mut start = vec![0];
+        let mut points = Vec::new();
+        for i in 0..n {
+            for j in 0..4 {
+                if b.valid[i * 4 + j] != 0 {
+                    points.push(b.positions[i * 4 + j]);
+                }
+            }
+            start.push(points.len());
+        }
+        let px = Pixels {
+            start: &start,
+            points: &points,
+            triangles: &[],
+            bary: &[],
+            dirs: &b.dirs,
+            footprint: &b.footprint,
+            view: &b.view,
+            target: &[],
+        };
+        let bufs = InferBuffers::new();
+        let code = [0.25f32, -0.5, 0.75, 0.1][..cfg.appearance_dim as usize].to_vec();
+        for c in [None, Some(&code[..])] {
+            let want = m.infer_coded(&p, &b, c).unwrap();
+            let shared = m.infer_shared(&p, c).unwrap();
+            let mut got = vec![0.0f32; 3 * n];
+            m.infer_pixels(&p, &px, &shared, &bufs, &mut got).unwrap();
+            let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+            assert!(
+                bits(&got) == bits(&want),
+                "code {c:?}: infer_pixels differs"
+            );
+        }
+        let shared = m.infer_shared(&p, None).unwrap();
+        let mut rgb = vec![0.0f32; 3 * n];
+        // A pixel without a valid sub-sample, a view without a code, a missing footprint.
+        let mut empty = start.clone();
+        empty[5] = empty[4];
+        let mut e = px;
+        e.start = &empty;
+        // (start[5] = start[4] leaves pixel 4 empty)
+        let err = m
+            .infer_pixels(&p, &e, &shared, &bufs, &mut rgb)
+            .unwrap_err();
+        assert!(
+            err.to_string().contains("pixel 4: no valid sub-sample"),
+            "{err}"
+        );
+        let mut views = b.view.clone();
+        views[n - 1] = 4;
+        let mut e = px;
+        e.view = &views;
+        let err = m
+            .infer_pixels(&p, &e, &shared, &bufs, &mut rgb)
+            .unwrap_err();
+        assert!(err.to_string().contains("has no appearance code"), "{err}");
+        let mut e = px;
+        e.footprint = &[];
+        assert!(m.infer_pixels(&p, &e, &shared, &bufs, &mut rgb).is_err());
     }
 
     /// Switching parts off removes their tensors and changes the shader input width.

@@ -8,8 +8,7 @@ pub mod ulr;
 
 pub use appearance::Appearance;
 
-use crate::model::batch::Batch;
-use crate::model::hfm::Hfm;
+use crate::model::hfm::{Hfm, Pixels};
 use crate::raycast::{cast_rows_into, Tracer, ViewCast};
 use crate::scene::{Camera, Image};
 use anyhow::Result;
@@ -77,9 +76,12 @@ impl ModelRenderer<'_> {
         band_samples: usize,
     ) -> Result<Rendered> {
         let (model, params, gamma) = (self.model, self.params, self.gamma);
-        let s = (gamma * gamma) as usize;
         let (view_row, code) = appearance.row_and_code();
         let bufs = crate::model::hfm::InferBuffers::new();
+        // Once per frame: the MLPs' transposed weights and the code of view −1.
+        let shared = model.infer_shared(params, code)?;
+        let mut px = CastPixels::default();
+        let mut rgb = Vec::new();
         render_in_bands(
             self.tracer,
             camera,
@@ -89,8 +91,9 @@ impl ModelRenderer<'_> {
             |cast, _, colours| {
                 let hits = tile_order_hits(cast);
                 for chunk in hits.chunks(RENDER_CHUNK) {
-                    let b = render_batch(model, cast, chunk, s, view_row);
-                    let rgb = model.infer_with(params, &b, code, &bufs)?;
+                    px.fill(model, cast, chunk, view_row);
+                    rgb.resize(chunk.len() * 3, 0.0);
+                    model.infer_pixels(params, &px.pixels(), &shared, &bufs, &mut rgb)?;
                     for (&i, c) in chunk.iter().zip(rgb.chunks_exact(3)) {
                         colours[i * 3..i * 3 + 3].copy_from_slice(c);
                     }
@@ -170,47 +173,108 @@ pub fn render_in_bands(
     })
 }
 
-/// The model's batch for the cast pixels `chunk` (indices into `cast.pixels`), built in
-/// parallel.
-fn render_batch(model: &Hfm, cast: &ViewCast, chunk: &[usize], s: usize, view_row: i32) -> Batch {
-    use rayon::prelude::*;
-    let subs = |i: usize| &cast.subs[i * s..(i + 1) * s];
-    let mut b = Batch {
-        positions: chunk
-            .par_iter()
-            .flat_map_iter(|&i| subs(i).iter().map(|x| x.position.to_array()))
-            .collect(),
-        valid: chunk
-            .par_iter()
-            .flat_map_iter(|&i| subs(i).iter().map(|x| x.hit() as u8))
-            .collect(),
-        dirs: chunk
-            .par_iter()
-            .map(|&i| cast.pixels[i].dir.as_vec3().to_array())
-            .collect(),
-        view: vec![view_row; chunk.len()],
-        target: vec![[0.0; 3]; chunk.len()],
-        footprint: chunk
-            .par_iter()
-            .map(|&i| cast.pixels[i].footprint as f32)
-            .collect(),
-        ..Batch::default()
-    };
-    if model.vertex.is_some() {
-        b.triangle = chunk
-            .iter()
-            .flat_map(|&i| subs(i).iter().map(|x| x.triangle))
-            .collect();
-        b.bary = chunk
-            .iter()
-            .flat_map(|&i| {
-                subs(i)
-                    .iter()
-                    .map(|x| if x.hit() { [x.u, x.v] } else { [0.0; 2] })
-            })
-            .collect();
+/// Pixels per parallel piece of [`CastPixels::fill`].
+const FILL_PIECE: usize = 512;
+
+/// What the model reads of a chunk of cast pixels (`Hfm::infer_pixels`), built straight from
+/// the cast: each pixel's hit sub-samples in sub-sample order (the points the prologue of the
+/// batch `Batch { positions, valid, .. }` would compact, in the same order), its direction,
+/// footprint and appearance row. Kept across a frame's chunks, so its vectors are not made
+/// again.
+#[derive(Default)]
+struct CastPixels {
+    start: Vec<usize>,
+    points: Vec<[f64; 3]>,
+    triangles: Vec<u32>,
+    bary: Vec<[f64; 2]>,
+    dirs: Vec<[f32; 3]>,
+    footprint: Vec<f32>,
+    view: Vec<i32>,
+}
+
+impl CastPixels {
+    /// The cast pixels `chunk` (indices into `cast.pixels`), in parallel pieces.
+    fn fill(&mut self, model: &Hfm, cast: &ViewCast, chunk: &[usize], view_row: i32) {
+        use rayon::prelude::*;
+        let s = (cast.gamma * cast.gamma) as usize;
+        let subs = |i: usize| &cast.subs[i * s..(i + 1) * s];
+        let n = chunk.len();
+        self.start.clear();
+        self.start.push(0);
+        let mut total = 0;
+        // A pixel's hit mask (`PixelSummary::valid`, bit j: sub-sample j hit) counts its
+        // points without reading its sub-samples on this thread.
+        for &i in chunk {
+            total += cast.pixels[i].valid.count_ones() as usize;
+            self.start.push(total);
+        }
+        let ids = model.vertex.is_some();
+        // Every element is written below: a reused vector is only cut or grown to length.
+        self.points.resize(total, [0.0; 3]);
+        self.triangles.resize(if ids { total } else { 0 }, 0);
+        self.bary.resize(if ids { total } else { 0 }, [0.0; 2]);
+        self.dirs.resize(n, [0.0; 3]);
+        self.footprint.resize(n, 0.0);
+        self.view.clear();
+        self.view.resize(n, view_row);
+        // Disjoint pieces: FILL_PIECE pixels and their points each.
+        let mut pieces = Vec::with_capacity(n.div_ceil(FILL_PIECE));
+        let (mut points, mut triangles, mut bary) = (
+            &mut self.points[..],
+            &mut self.triangles[..],
+            &mut self.bary[..],
+        );
+        for (((k, pix), dirs), footprint) in (chunk.chunks(FILL_PIECE).enumerate())
+            .zip(self.dirs.chunks_mut(FILL_PIECE))
+            .zip(self.footprint.chunks_mut(FILL_PIECE))
+        {
+            let a = k * FILL_PIECE;
+            let m = self.start[(a + FILL_PIECE).min(n)] - self.start[a];
+            let (p, rest) = std::mem::take(&mut points).split_at_mut(m);
+            points = rest;
+            let (t, b) = if ids {
+                let (t, rt) = std::mem::take(&mut triangles).split_at_mut(m);
+                let (b, rb) = std::mem::take(&mut bary).split_at_mut(m);
+                (triangles, bary) = (rt, rb);
+                (t, b)
+            } else {
+                (&mut [][..], &mut [][..])
+            };
+            pieces.push((pix, dirs, footprint, p, t, b));
+        }
+        pieces
+            .into_par_iter()
+            .for_each(|(pix, dirs, footprint, p, t, b)| {
+                let mut k = 0;
+                for (j, &i) in pix.iter().enumerate() {
+                    let c = &cast.pixels[i];
+                    dirs[j] = c.dir.as_vec3().to_array();
+                    footprint[j] = c.footprint as f32;
+                    for x in subs(i).iter().filter(|x| x.hit()) {
+                        p[k] = x.position.to_array();
+                        if ids {
+                            t[k] = x.triangle;
+                            b[k] = [x.u, x.v];
+                        }
+                        k += 1;
+                    }
+                }
+                assert_eq!(k, p.len(), "the cast's hit masks count its hits");
+            });
     }
-    b
+
+    fn pixels(&self) -> Pixels<'_> {
+        Pixels {
+            start: &self.start,
+            points: &self.points,
+            triangles: &self.triangles,
+            bary: &self.bary,
+            dirs: &self.dirs,
+            footprint: &self.footprint,
+            view: &self.view,
+            target: &[],
+        }
+    }
 }
 
 /// Camera `i` of `n` on the straight path from `a` to `b` (both ends included): rotation by

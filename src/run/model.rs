@@ -9,19 +9,48 @@ use crate::refine::mesh::refined_mesh;
 use crate::scene::{LoadOptions, Scene};
 use crate::train::config::RunConfig;
 use anyhow::{bail, Context, Result};
-use std::path::Path;
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
 
 /// A model checkpoint and, when it has one, the run configuration it was trained with.
 pub fn load_model(path: &Path) -> Result<(Checkpoint, Option<RunConfig>)> {
     let (ckpt, metadata) = Checkpoint::read_model(path)?;
-    let cfg = match metadata.get("run_config") {
-        Some(text) => Some(RunConfig::from_stored_toml(
-            text,
-            &path.display().to_string(),
-        )?),
-        None => None,
-    };
-    Ok((ckpt, cfg))
+    Ok((ckpt, run_config(&metadata, path)?))
+}
+
+/// The run configuration stored in a checkpoint's metadata, if any.
+fn run_config(metadata: &BTreeMap<String, String>, path: &Path) -> Result<Option<RunConfig>> {
+    (metadata.get("run_config"))
+        .map(|text| RunConfig::from_stored_toml(text, &path.display().to_string()))
+        .transpose()
+}
+
+/// [`load_model`] and [`scene_for_model`] (the scene folder from `dir`, asked once the
+/// checkpoint's header is read), with the scene loaded and its BVH built on a thread of their
+/// own while the checkpoint's hash tables are copied (`Checkpoint::read_model_while`): the same
+/// model and scene, in the time of the longer of the two rather than their sum. Returns the
+/// scene folder too. A checkpoint's error is reported before the scene's.
+pub fn load_model_and_scene(
+    path: &Path,
+    dir: impl FnOnce() -> Result<PathBuf> + Send,
+    downsample: Option<u32>,
+    mesh: Option<&Path>,
+) -> Result<(Checkpoint, Option<RunConfig>, PathBuf, SceneForModel)> {
+    let (ckpt, _, early) = Checkpoint::read_model_while(path, |head, metadata| {
+        let cfg = run_config(metadata, path)?;
+        let dir = dir()?;
+        let opts = scene_options(cfg.as_ref(), downsample, mesh)?;
+        let scene = load_warning(&dir, &opts)?;
+        // A model that refines its mesh is cast against the refined one, made from its
+        // parameters: that BVH is built once they are read.
+        let tracer = (!head.cfg.refine.enabled)
+            .then(|| Tracer::new(&scene.mesh, &head.normalization).context("building the BVH"))
+            .transpose()?;
+        anyhow::Ok((cfg, dir, scene, tracer))
+    })?;
+    let (cfg, dir, scene, tracer) = early?;
+    let s = finish_scene(scene, tracer, &ckpt, cfg.as_ref())?;
+    Ok((ckpt, cfg, dir, s))
 }
 
 /// A scene loaded for a model: the model's normalisation (not the scene mesh's own, so a
@@ -60,6 +89,18 @@ pub fn scene_for_model(
     downsample: Option<u32>,
     mesh: Option<&Path>,
 ) -> Result<SceneForModel> {
+    let opts = scene_options(cfg, downsample, mesh)?;
+    let scene = load_warning(dir, &opts)?;
+    finish_scene(scene, None, ckpt, cfg)
+}
+
+/// How [`scene_for_model`] loads the scene: the run's downsampling, normalisation and mesh
+/// unless given (a run's mesh that no longer exists is an error).
+fn scene_options(
+    cfg: Option<&RunConfig>,
+    downsample: Option<u32>,
+    mesh: Option<&Path>,
+) -> Result<LoadOptions> {
     let opts = LoadOptions {
         downsample: downsample.or(cfg.map(|c| c.train.downsample)).unwrap_or(1),
         normalize: cfg.map(|c| c.train.normalize).unwrap_or_default(),
@@ -76,7 +117,18 @@ pub fn scene_for_model(
             );
         }
     }
-    let mut scene = load_warning(dir, &opts)?;
+    Ok(opts)
+}
+
+/// [`scene_for_model`] once the scene is loaded: the model's normalisation, the vertex model's
+/// mesh checked, the refined mesh, the BVH (`tracer`, when already built on the unrefined
+/// mesh with the model's normalisation, is used as it is), the appearance rows.
+fn finish_scene(
+    mut scene: Scene,
+    tracer: Option<Tracer>,
+    ckpt: &Checkpoint,
+    cfg: Option<&RunConfig>,
+) -> Result<SceneForModel> {
     if let Some(vt) = &ckpt.model.vertex {
         if scene.mesh.vertices.len() != vt.n_vertices || scene.mesh.triangles[..] != vt.faces[..] {
             bail!(
@@ -99,7 +151,10 @@ pub fn scene_for_model(
             anchor = Some(base);
         }
     }
-    let mut tracer = Tracer::new(&scene.mesh, &scene.normalization).context("building the BVH")?;
+    let mut tracer = match tracer {
+        Some(t) if ckpt.refine.is_none() => t,
+        _ => Tracer::new(&scene.mesh, &scene.normalization).context("building the BVH")?,
+    };
     if let Some(base) = &anchor {
         tracer = tracer.anchored(base)?;
     }

@@ -73,10 +73,10 @@ fn auto_is_the_cpu_default_and_an_integer_fixes_it() {
 fn the_rule_rounds_and_clamps() {
     assert_eq!(auto_log2_size(0.0), TABLE_FLOOR_LOG2);
     assert_eq!(auto_log2_size(1e12), TABLE_CEILING_LOG2);
-    // At least 4 entries per cell, the next power of two.
-    assert_eq!(auto_log2_size(16384.0), 16);
-    assert_eq!(auto_log2_size(16385.0), 17);
-    assert_eq!(auto_log2_size(10000.0), 16);
+    // At least TABLE_HEADROOM = 8 entries per cell, the next power of two.
+    assert_eq!(auto_log2_size(8192.0), 16);
+    assert_eq!(auto_log2_size(8193.0), 17);
+    assert_eq!(auto_log2_size(5000.0), 16);
 }
 
 fn grid(sizes: Option<Vec<u32>>) -> GridConfig {

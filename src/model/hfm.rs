@@ -110,8 +110,10 @@ pub struct ChunkFwd<R> {
     pub loss_sum: f64,
 }
 
-/// One chunk buffer per thread of the pool for [`Hfm::infer_with`]: a thread only ever takes
-/// its own (uncontended), and keeps it across chunks and calls.
+/// One chunk buffer per thread of the pool for [`Hfm::infer_pixels`] (and
+/// [`Hfm::infer_coded`]): a thread only ever takes its own (uncontended), and keeps it across
+/// chunks and calls, so a frame's chunks grow (and zero-fill) no buffer again. The colours do
+/// not depend on the buffers.
 pub struct InferBuffers<R>(Vec<std::sync::Mutex<ChunkFwd<R>>>);
 
 impl<R: Real> InferBuffers<R> {
@@ -505,19 +507,7 @@ impl Hfm {
         batch: &Batch,
         code: Option<&[R]>,
     ) -> Result<Vec<R>> {
-        self.infer_with(params, batch, code, &InferBuffers::new())
-    }
-
-    /// [`Hfm::infer_coded`] with the chunk buffers of `bufs`, which a caller evaluating many
-    /// batches (a frame's chunks) keeps across them, so no buffer is grown (and zero-filled)
-    /// again. The colours do not depend on the buffers.
-    pub fn infer_with<R: Real>(
-        &self,
-        params: &[R],
-        batch: &Batch,
-        code: Option<&[R]>,
-        bufs: &InferBuffers<R>,
-    ) -> Result<Vec<R>> {
+        let bufs = InferBuffers::new();
         let mut pre = self.prologue(params, batch)?;
         if let Some(c) = code {
             self.check_code(c)?;
@@ -560,10 +550,10 @@ impl Hfm {
     }
 
     /// The colours (`[n, 3]` σ(logits) into `rgb`) of pixels whose valid sub-samples are already
-    /// compacted: the same bits as [`Hfm::infer_with`] of the batch they came from (its
+    /// compacted: the same bits as [`Hfm::infer_coded`] of the batch they came from (its
     /// prologue compacts the same points in the same order), without the batch. `shared` from
     /// [`Hfm::infer_shared`] with the same `params`. The pixels are checked chunk by chunk, in
-    /// parallel, as `infer_with` checks a batch (a pixel without a valid sub-sample, a
+    /// parallel, as `infer_coded` checks a batch (a pixel without a valid sub-sample, a
     /// non-finite position or direction, a view without a code are errors).
     pub fn infer_pixels<R: Real>(
         &self,
@@ -740,17 +730,17 @@ impl Hfm {
         &self,
         f: &mut ChunkFwd<R>,
         params: &[R],
-        batch: &Pixels<'_>,
-        pre: &Shared<R>,
+        px: &Pixels<'_>,
+        shared: &Shared<R>,
         c: usize,
     ) {
         let p0 = c * PIXEL_CHUNK;
-        let pixels = p0..(p0 + PIXEL_CHUNK).min(batch.n_pixels());
-        let (start, points) = (batch.start, batch.points);
-        let ids = (batch.triangles, batch.bary);
-        let code_mean = &pre.code_mean[..];
-        let wt_shader = &pre.wt_shader[..];
-        let wt_deform = pre.wt_deform.as_deref();
+        let pixels = p0..(p0 + PIXEL_CHUNK).min(px.n_pixels());
+        let (start, points) = (px.start, px.points);
+        let ids = (px.triangles, px.bary);
+        let code_mean = &shared.code_mean[..];
+        let wt_shader = &shared.wt_shader[..];
+        let wt_deform = shared.wt_deform.as_deref();
         let mode = self.cfg.positions;
         let lf = self.feat_dim();
         let a = self.appearance_dim();
@@ -776,7 +766,7 @@ impl Hfm {
             weights_all_one = level_weights(
                 &self.grid_h.scales,
                 &local_start,
-                &batch.footprint[pixels.clone()],
+                &px.footprint[pixels.clone()],
                 &mut f.level_w,
                 &mut active,
             );
@@ -806,7 +796,7 @@ impl Hfm {
         }
         // SH(d_n).
         fit(&mut f.sh, n * SH_DIM);
-        sh_forward(&batch.dirs[pixels.clone()], &mut f.sh);
+        sh_forward(&px.dirs[pixels.clone()], &mut f.sh);
         // Eq. 5: δ_j = ξ([F_D(x_j), SH(d_n)]).
         if let (Some(gd), Some(mlp), Some(wt)) = (&self.grid_d, &self.deform, wt_deform) {
             let ld = gd.out_dim();
@@ -844,7 +834,7 @@ impl Hfm {
             row[..lf].copy_from_slice(&f.pooled[i * lf..(i + 1) * lf]);
             row[lf..lf + SH_DIM].copy_from_slice(&f.sh[i * SH_DIM..(i + 1) * SH_DIM]);
             if a > 0 {
-                let vw = batch.view[pixels.start + i];
+                let vw = px.view[pixels.start + i];
                 let code = if vw >= 0 {
                     &codes[vw as usize * a..(vw as usize + 1) * a]
                 } else {
@@ -864,7 +854,7 @@ impl Hfm {
         fit(&mut f.rgb, n * 3);
         sigmoid_forward(&f.shader.out, &mut f.rgb);
         // Rendering has no targets: no loss.
-        f.loss_sum = match batch.target.get(pixels) {
+        f.loss_sum = match px.target.get(pixels) {
             Some(t) if !t.is_empty() => {
                 loss_forward(self.cfg.loss, self.cfg.smooth_l1_delta, &f.rgb, t)
             }

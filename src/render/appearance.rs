@@ -139,9 +139,9 @@ pub fn neighbour_weights_k(camera: &Camera, train: &[&Camera], k: usize) -> Vec<
 pub struct NewViewCodes<'a> {
     model: &'a Hfm,
     params: &'a [f32],
-    rule: NewViewCode,
     train: Vec<&'a Camera>,
-    /// The neighbours blended; `None` when no view is blended (the conditions above).
+    /// The neighbours blended; `None` when no view is blended (the mean-code rule, or the
+    /// conditions above).
     k: Option<usize>,
 }
 
@@ -159,7 +159,6 @@ impl<'a> NewViewCodes<'a> {
         NewViewCodes {
             model,
             params,
-            rule,
             train,
             k,
         }
@@ -167,10 +166,7 @@ impl<'a> NewViewCodes<'a> {
 
     /// The appearance of a view with appearance row `row` (−1: none) and camera `camera`.
     pub fn appearance(&self, row: i32, camera: &Camera) -> Appearance {
-        let Some(k) = self
-            .k
-            .filter(|_| row < 0 && self.rule == NewViewCode::Neighbours)
-        else {
+        let Some(k) = self.k.filter(|_| row < 0) else {
             return Appearance::Row(row);
         };
         let a = self.model.appearance_dim();

@@ -129,7 +129,7 @@ const SECTIONS: &[Spec] = &[
         name: "prepare",
         title: "From photos to a scene: `xscale prepare`",
         measures: "The mesher of `xscale prepare` against a true surface: `examples/prepare_synth.rs` on the `small` synthetic scene (400 points found per camera, exact or with noise of 0.1 % of the diagonal and 2 % wrong matches), its Delaunay graph cut at three `--max-side` settings and COLMAP's `poisson_mesher` on the same points (normals fitted to 12 neighbours, turned towards the cameras); accuracy = RMS distance of area samples of the mesh to the truth, completeness = RMS distance of samples of the truth that two cameras see to the mesh, both capped at 10 % of the diagonal and given as a share of it. Then a real capture from a folder of photos to a trained model, stage by stage (`prepare.json`'s seconds per stage), with its points, reprojection error through xscale's cameras, the share of pixels whose ray meets the mesh, and the trained model's held-out scores: the committed skull photos (`fixtures/prepare_skull`, 10 photos of 709×473, with the poses of its COLMAP model: COLMAP's mapper finds no good initial pair in these 10 small photos), and any capture named by `XSCALE_PREPARE_PHOTOS` (with `XSCALE_PREPARE_POSES` for known poses, `XSCALE_PREPARE_DOWNSAMPLE`, `XSCALE_PREPARE_STEPS`). Needs COLMAP on the PATH for Poisson and for the photos; without it those rows say they were skipped.",
-        cost: "a minute or two on a quiet machine (15 at a load of 18: COLMAP's Poisson slows most)",
+        cost: "a minute or two on a quiet machine; about 15 minutes at a load of 18, where COLMAP's Poisson slows most",
         run: prepare,
     },
     Spec {
